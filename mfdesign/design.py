@@ -1,0 +1,275 @@
+"""Membrane designs, their validation, the public key format and the design space.
+
+A membrane is a flat Ecoflex disc of outer radius ``R_out = 70 mm`` and thickness ``t``,
+clamped at ``R_out``, with a rigid central contact disk of radius ``c`` and 0-2 stiff
+fabric rings. A ring is the annulus ``[r - w, r + w]``: ``r`` the radius of its centre
+line, ``w`` its half-width (outer - inner = 2 w). All lengths in millimetres.
+
+The public key format (that of the authors' data files) is
+``"[t, c, r1, w1, r2, w2]"`` with ``nan`` for an absent ring.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import equinox as eqx
+import numpy as np
+
+OUTER_RADIUS_MM = 70.0
+MIN_GAP_MM = 3.0  # fabric needs this much rubber between itself and the disk/clamp/other ring
+MAX_RINGS = 2
+_TOL = 1e-9
+
+
+class DesignError(ValueError):
+    """A membrane design that cannot be built; the message names the field and the rule."""
+
+
+def _check_number(name: str, value: float) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise DesignError(f"{name} must be a number in mm, got {value!r}") from None
+    if not math.isfinite(value):
+        raise DesignError(f"{name} must be finite, got {value}")
+    if value <= 0.0:
+        raise DesignError(f"{name} must be positive (mm), got {value}")
+    return value
+
+
+class Ring(eqx.Module):
+    """A stiff fabric ring: the annulus ``[radius_mm - half_width_mm, radius_mm + half_width_mm]``."""
+
+    radius_mm: float
+    half_width_mm: float
+
+    def __init__(self, radius_mm: float, half_width_mm: float):
+        self.radius_mm = _check_number("ring radius", radius_mm)
+        self.half_width_mm = _check_number("ring half-width", half_width_mm)
+
+    @property
+    def inner_mm(self) -> float:
+        return self.radius_mm - self.half_width_mm
+
+    @property
+    def outer_mm(self) -> float:
+        return self.radius_mm + self.half_width_mm
+
+
+class Membrane(eqx.Module):
+    """An axisymmetric membrane design (all lengths in mm).
+
+    Rings are stored sorted by radius, so a design with its rings swapped is the same
+    design (equal and with the same hash).
+    """
+
+    thickness_mm: float
+    contact_radius_mm: float
+    rings: tuple[Ring, ...]
+    outer_radius_mm: float = OUTER_RADIUS_MM
+
+    def __init__(
+        self,
+        thickness_mm: float,
+        contact_radius_mm: float,
+        rings: Sequence[Ring | tuple[float, float]] = (),
+        outer_radius_mm: float = OUTER_RADIUS_MM,
+    ):
+        self.thickness_mm = _check_number("thickness", thickness_mm)
+        self.contact_radius_mm = _check_number("contact radius", contact_radius_mm)
+        self.outer_radius_mm = _check_number("outer radius", outer_radius_mm)
+        rings = [r if isinstance(r, Ring) else Ring(*r) for r in rings]
+        if len(rings) > MAX_RINGS:
+            raise DesignError(f"a membrane has at most {MAX_RINGS} rings, got {len(rings)}")
+        self.rings = tuple(sorted(rings, key=lambda r: (r.radius_mm, r.half_width_mm)))
+        self._validate()
+
+    def _validate(self) -> None:
+        c, out = self.contact_radius_mm, self.outer_radius_mm
+        if c >= out:
+            raise DesignError(
+                f"contact radius {c} mm must be smaller than the outer radius {out} mm"
+            )
+        edges = [("the contact disk", c)]
+        for k, ring in enumerate(self.rings, start=1):
+            lo_name, lo = edges[-1]
+            if ring.inner_mm < lo + MIN_GAP_MM - _TOL:
+                raise DesignError(
+                    f"ring {k} (radius {ring.radius_mm}, half-width {ring.half_width_mm} mm) "
+                    f"starts at {ring.inner_mm:g} mm, overlapping {lo_name} (ends at {lo:g} mm): "
+                    f"allowed inner edge >= {lo + MIN_GAP_MM:g} mm ({MIN_GAP_MM:g} mm spacing)"
+                )
+            edges.append((f"ring {k}", ring.outer_mm))
+        last_name, last = edges[-1]
+        if self.rings and last > out - MIN_GAP_MM + _TOL:
+            raise DesignError(
+                f"{last_name} ends at {last:g} mm, overlapping the clamp at {out:g} mm: "
+                f"allowed outer edge <= {out - MIN_GAP_MM:g} mm ({MIN_GAP_MM:g} mm spacing)"
+            )
+
+    # -- conversions ------------------------------------------------------------------
+    @property
+    def n_rings(self) -> int:
+        return len(self.rings)
+
+    def to_array(self) -> np.ndarray:
+        """``[t, c, r1, w1, r2, w2]`` in mm, NaN for absent rings (the key's numbers)."""
+        out = [self.thickness_mm, self.contact_radius_mm]
+        for k in range(MAX_RINGS):
+            if k < len(self.rings):
+                out += [self.rings[k].radius_mm, self.rings[k].half_width_mm]
+            else:
+                out += [math.nan, math.nan]
+        return np.asarray(out, dtype=np.float64)
+
+    @classmethod
+    def from_array(cls, values: Sequence[float]) -> "Membrane":
+        """Inverse of :meth:`to_array`; NaN pairs mean "no ring"."""
+        values = list(values)
+        if len(values) != 2 + 2 * MAX_RINGS:
+            raise DesignError(
+                f"a design has {2 + 2 * MAX_RINGS} numbers [t, c, r1, w1, r2, w2], got {len(values)}"
+            )
+        try:
+            values = [float(v) for v in values]
+        except (TypeError, ValueError):
+            raise DesignError(f"design numbers must be numbers, got {values!r}") from None
+        rings = []
+        for k in range(MAX_RINGS):
+            r, w = values[2 + 2 * k], values[3 + 2 * k]
+            if math.isnan(r) and math.isnan(w):
+                continue
+            if math.isnan(w):
+                raise DesignError(f"ring {k + 1} has a radius ({r} mm) but no half-width")
+            if math.isnan(r):
+                raise DesignError(f"ring {k + 1} has a half-width ({w} mm) but no radius")
+            rings.append(Ring(r, w))
+        return cls(values[0], values[1], rings)
+
+    def key(self) -> str:
+        """The public key ``"[t, c, r1, w1, r2, w2]"`` (as in the authors' data files)."""
+        return "[" + ", ".join(repr(float(v)) for v in self.to_array()) + "]"
+
+    @classmethod
+    def from_key(cls, key: str) -> "Membrane":
+        """Parse ``"[t, c, r1, w1, r2, w2]"`` (``nan`` for an absent ring)."""
+        if not isinstance(key, str):
+            raise DesignError(f"a design key is a string, got {type(key).__name__}")
+        text = key.strip()
+        if not (text.startswith("[") and text.endswith("]")):
+            raise DesignError(
+                f"a design key looks like \"[2.0, 25.4, nan, nan, nan, nan]\", got {key!r}"
+            )
+        parts = [p.strip() for p in text[1:-1].split(",")]
+        try:
+            values = [float(p) for p in parts]
+        except ValueError:
+            raise DesignError(f"design key {key!r} holds something that is not a number") from None
+        return cls.from_array(values)
+
+    def __str__(self) -> str:
+        return self.key()
+
+
+def _smooth_unit(u):
+    """Clip to [0, 1]: decoding is linear (smooth) inside the cube, constant outside."""
+    return np.clip(np.asarray(u, dtype=np.float64), 0.0, 1.0)
+
+
+class DesignSpace(eqx.Module):
+    """Bounds of the designs an optimiser may propose, and a decoding from the unit cube.
+
+    The paper's bounds: thickness 1-3 mm, contact radius 25.4-38.1 mm, ring half-width
+    >= 5 mm; every gap (disk-ring, ring-ring, ring-clamp) >= 3 mm. A point of the unit
+    cube ``[0, 1]^(2 + 2 n_rings)`` decodes to ``(t, c, w_1.., slack fractions..)``:
+    widths first (each between ``half_width_min`` and what still fits), then the free
+    radial slack is shared among the ``n_rings + 1`` gaps. Every point of the cube gives
+    a valid design, and the map is piecewise linear in ``u``.
+    """
+
+    thickness_mm: tuple[float, float] = (1.0, 3.0)
+    contact_radius_mm: tuple[float, float] = (25.4, 38.1)
+    half_width_mm: tuple[float, float] = (5.0, 13.0)
+    outer_radius_mm: float = OUTER_RADIUS_MM
+    gap_mm: float = MIN_GAP_MM
+
+    def __check_init__(self):
+        for name in ("thickness_mm", "contact_radius_mm", "half_width_mm"):
+            lo, hi = getattr(self, name)
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+                raise DesignError(f"DesignSpace.{name} must be 0 < low <= high, got {(lo, hi)}")
+        # Two rings of minimum width must fit beside the largest disk.
+        need = self.contact_radius_mm[1] + 3 * self.gap_mm + 4 * self.half_width_mm[0]
+        if need > self.outer_radius_mm:
+            raise DesignError(
+                f"two rings of half-width {self.half_width_mm[0]} mm do not fit beside a "
+                f"{self.contact_radius_mm[1]} mm disk inside {self.outer_radius_mm} mm"
+            )
+
+    def dim(self, n_rings: int) -> int:
+        if n_rings not in (0, 1, 2):
+            raise DesignError(f"n_rings must be 0, 1 or 2, got {n_rings}")
+        return 2 + 2 * n_rings
+
+    def decode_array(self, u, n_rings: int) -> np.ndarray:
+        """Unit-cube points ``[..., dim]`` -> design arrays ``[..., 6]`` (NaN for no ring).
+
+        Written with array operations only, so it works on NumPy and (via ``xp``) batches.
+        """
+        u = _smooth_unit(u)
+        if u.shape[-1] != self.dim(n_rings):
+            raise DesignError(f"expected {self.dim(n_rings)} unit-cube coordinates, got {u.shape[-1]}")
+        (t_lo, t_hi), (c_lo, c_hi), (w_lo, w_hi) = (
+            self.thickness_mm,
+            self.contact_radius_mm,
+            self.half_width_mm,
+        )
+        t = t_lo + (t_hi - t_lo) * u[..., 0]
+        c = c_lo + (c_hi - c_lo) * u[..., 1]
+        out = np.full(u.shape[:-1] + (6,), np.nan)
+        out[..., 0], out[..., 1] = t, c
+        if n_rings == 0:
+            return out
+        gap, R = self.gap_mm, self.outer_radius_mm
+        span = R - c - (n_rings + 1) * gap  # room for rings and slack
+        # Widths one ring at a time: each may take what the earlier ones left over.
+        room = span - 2 * n_rings * w_lo
+        widths = []
+        for k in range(n_rings):
+            w = w_lo + u[..., 2 + k] * np.minimum(w_hi - w_lo, room / 2.0)
+            room = room - 2.0 * (w - w_lo)
+            widths.append(w)
+        slack = span - 2.0 * sum(widths)
+        # Share the slack among the gaps: before ring 1, before ring 2, after the last.
+        fractions = [u[..., 2 + n_rings + k] for k in range(n_rings)]
+        left = slack
+        edge = c + gap
+        for k in range(n_rings):
+            take = left * fractions[k]
+            left = left - take
+            inner = edge + take
+            out[..., 2 + 2 * k] = inner + widths[k]
+            out[..., 3 + 2 * k] = widths[k]
+            edge = inner + 2 * widths[k] + gap
+        return out
+
+    def decode(self, u, n_rings: int) -> Membrane:
+        """One unit-cube point -> a valid :class:`Membrane`."""
+        arr = self.decode_array(np.asarray(u, dtype=np.float64), n_rings)
+        if arr.ndim != 1:
+            raise DesignError("decode takes one point; use decode_array for batches")
+        return Membrane.from_array(arr)
+
+    def contains(self, design: Membrane) -> bool:
+        """Whether a design lies inside the bounds (validity is checked by Membrane itself)."""
+        ok = self.thickness_mm[0] - _TOL <= design.thickness_mm <= self.thickness_mm[1] + _TOL
+        ok &= self.contact_radius_mm[0] - _TOL <= design.contact_radius_mm <= self.contact_radius_mm[1] + _TOL
+        for ring in design.rings:
+            ok &= self.half_width_mm[0] - _TOL <= ring.half_width_mm <= self.half_width_mm[1] + _TOL
+        return bool(ok)
+
+    def sample(self, rng: np.random.Generator, n: int, n_rings: int) -> list[Membrane]:
+        """``n`` designs drawn uniformly in the unit cube (seeded by ``rng``)."""
+        return [self.decode(u, n_rings) for u in rng.uniform(size=(n, self.dim(n_rings)))]
