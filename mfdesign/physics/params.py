@@ -1,0 +1,51 @@
+"""Simulator inputs that calibration and physical effects vary: one immutable record.
+
+Every field is a float (or a JAX scalar when batched / differentiated), so a
+:class:`SimParams` can be ``vmap``-ed over, differentiated through and sampled by emcee.
+Effects change the mechanics only through these fields, never by forking the code.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+
+from mfdesign.materials import Gent
+
+Scalar = float | jax.Array
+
+
+class SimParams(eqx.Module):
+    """Physical constants of one simulation (units in the names).
+
+    * ``mu_pa``, ``jm``: Gent constants of the rubber (the authors: 31.7 kPa, 39.6).
+    * ``ring_mu_pa``, ``ring_jm``: Gent constants of the fabric rings, modelled as a
+      much stiffer hyperelastic solid of the membrane's thickness (the authors' choice:
+      1 MPa, 25); a modelling choice, not a measurement.
+    * ``thickness_factor``: actual / nominal thickness (gravity moulding makes it != 1).
+    * ``thickness_gradient``: relative thickness change from the disk edge to the clamp,
+      ``t(r) = t_eff (1 + g ((r - r_mid) / (r_out - r0)))`` (zero mean over the annulus).
+    * ``clamp_prestretch``: hoop stretch imposed by the clamp, ``R(r_out) = s * r_out``.
+    * ``contact_offset_mm``: the membrane stays stuck to the plate this far beyond the disk,
+      so the rigid inner region has radius ``c + offset``.
+    """
+
+    mu_pa: Scalar = 31.7e3
+    jm: Scalar = 39.6
+    ring_mu_pa: Scalar = 1.0e6
+    ring_jm: Scalar = 25.0
+    thickness_factor: Scalar = 1.0
+    thickness_gradient: Scalar = 0.0
+    clamp_prestretch: Scalar = 1.0
+    contact_offset_mm: Scalar = 0.0
+
+    @property
+    def rubber(self) -> Gent:
+        return Gent(mu_pa=self.mu_pa, jm=self.jm)
+
+    @property
+    def fabric(self) -> Gent:
+        return Gent(mu_pa=self.ring_mu_pa, jm=self.ring_jm)
+
+
+PAPER_PARAMS = SimParams()  # the constants of the authors' simulated planes
