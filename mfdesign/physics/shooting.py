@@ -1,0 +1,257 @@
+"""Shooting for the membrane boundary-value problem (the engine behind :mod:`solve`).
+
+Unknowns at the disk edge ``r0`` (where ``lambda2 = 1``, ``R = r0``, ``Z = h``):
+``x = (a, phi0)`` with ``lambda1(r0) = 1 + exp(a)`` (the meridian is in tension at the
+disk, so the parametrisation keeps iterates physical). Conditions at the clamp ``r_out``:
+``lambda2 = s`` (clamp pre-stretch, 1 without) and ``Z = 0``. The ODE of :mod:`membrane`
+is integrated with diffrax (Tsit5, PID step control, forward-mode autodiff) segment by
+segment in one ``lax.scan``; at each ring edge ``lambda1`` jumps so that the meridional
+force ``Q = r t W1`` is continuous (:func:`membrane.jump_lambda1`). Newton's method
+from optimistix drives the two residuals to zero. The plate force then follows from the disk's
+vertical balance, ``F = p pi r0^2 + 2 pi r0 t W1(lambda1(r0), 1) sin(phi0)``.
+
+A "string" model gives the first guess: a strip of the annulus in plane strain under
+constant tension is a circular arc of curvature ``p / T`` through the disk edge and the
+clamp; its stretch solves ``arc length = lambda L`` (bisection, optimistix).
+"""
+
+from __future__ import annotations
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+
+from mfdesign.design import Membrane
+from mfdesign.physics.membrane import PA_TO_MPA, Segment, jump_lambda1, rhs
+from mfdesign.physics.params import SimParams
+
+RTOL_ODE = 1e-9
+ATOL_ODE = 1e-10
+SHOOTING_SOLVER = optx.Newton(rtol=1e-10, atol=1e-11)
+SHOOTING_MAX_STEPS = 40
+FAILED_RESIDUAL = 1e3
+
+
+class Geometry(eqx.Module):
+    """A design as arrays (mm) for jit/vmap; ``ring_edges_mm`` = [in1, out1, in2, out2]."""
+
+    thickness_mm: jax.Array
+    contact_mm: jax.Array
+    outer_mm: jax.Array
+    ring_edges_mm: jax.Array
+
+    @property
+    def n_rings(self) -> int:
+        return self.ring_edges_mm.shape[-1] // 2
+
+
+def geometry_of(design: Membrane) -> Geometry:
+    edges = [e for ring in design.rings for e in (ring.inner_mm, ring.outer_mm)]
+    return Geometry(
+        thickness_mm=jnp.asarray(design.thickness_mm, float),
+        contact_mm=jnp.asarray(design.contact_radius_mm, float),
+        outer_mm=jnp.asarray(design.outer_radius_mm, float),
+        ring_edges_mm=jnp.asarray(edges, float).reshape(len(edges)),
+    )
+
+
+def stack_geometries(designs) -> Geometry:
+    """Stack designs with the same number of rings along a leading batch axis."""
+    geoms = [geometry_of(d) for d in designs]
+    if len({g.n_rings for g in geoms}) != 1:
+        raise ValueError("stack_geometries needs designs with the same number of rings")
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *geoms)
+
+
+class Segments(eqx.Module):
+    """The material segments from the disk to the clamp, stacked: ``seg[k]`` lives on
+    ``[bounds[k], bounds[k + 1]]``; even ``k`` rubber, odd ``k`` fabric."""
+
+    seg: Segment  # fields with a leading axis of length n_segments
+    bounds: jax.Array
+
+    @property
+    def r0(self):
+        return self.bounds[0]
+
+    @property
+    def r_out(self):
+        return self.bounds[-1]
+
+    def first(self) -> Segment:
+        return jax.tree.map(lambda a: a[0], self.seg)
+
+
+def segments(geom: Geometry, params: SimParams) -> Segments:
+    r0 = geom.contact_mm + params.contact_offset_mm
+    r_out = geom.outer_mm
+    bounds = jnp.concatenate([jnp.stack([r0]), geom.ring_edges_mm, jnp.stack([r_out])])
+    n = bounds.shape[0] - 1
+    is_fabric = (jnp.arange(n) % 2) == 1
+    ones = jnp.ones(n)
+    seg = Segment(
+        mu_mpa=jnp.where(is_fabric, params.ring_mu_pa, params.mu_pa) * PA_TO_MPA,
+        jm=jnp.where(is_fabric, params.ring_jm, params.jm) * ones,
+        t_mm=geom.thickness_mm * params.thickness_factor * ones,
+        gradient=params.thickness_gradient * ones,
+        r_mid=0.5 * (r0 + r_out) * ones,
+        span=(r_out - r0) * ones,
+    )
+    return Segments(seg=seg, bounds=bounds)
+
+
+def integrate(segs: Segments, p_mpa, y0, save_per_segment: int = 0):
+    """Integrate ``(lambda1, lambda2, phi, Z)`` from the disk to the clamp.
+
+    One ``lax.scan`` over the segments, so the traced program does not grow with the
+    number of rings. Returns ``(y_end, ok, profile)``, ``profile`` = ``(r, y)`` sampled at
+    ``save_per_segment`` points per segment (``None`` when 0).
+    """
+    n = segs.bounds.shape[0] - 1
+    prev = jax.tree.map(lambda a: jnp.concatenate([a[:1], a[:-1]]), segs.seg)
+    xs = (segs.seg, prev, segs.bounds[:-1], segs.bounds[1:])
+
+    def step(carry, x):
+        y, ok = carry
+        seg, seg_prev, a, b = x
+        # Segment 0 "jumps" from itself: the identity, solved exactly.
+        l1, ok_jump = jump_lambda1(seg_prev, seg, a, y[0], y[1], valid=ok)
+        y = y.at[0].set(l1)
+        if save_per_segment:
+            ts = a + (b - a) * jnp.linspace(0.0, 1.0, save_per_segment)
+            saveat = dfx.SaveAt(ts=ts)
+        else:
+            ts = None
+            saveat = dfx.SaveAt(t1=True)
+        sol = dfx.diffeqsolve(
+            dfx.ODETerm(rhs),
+            dfx.Tsit5(),
+            t0=a,
+            t1=b,
+            dt0=(b - a) / 16.0,
+            y0=y,
+            args=(seg, p_mpa),
+            saveat=saveat,
+            stepsize_controller=dfx.PIDController(rtol=RTOL_ODE, atol=ATOL_ODE),
+            adjoint=dfx.ForwardMode(),
+            max_steps=4096,
+            throw=False,
+        )
+        ok = ok & ok_jump & (sol.result == dfx.RESULTS.successful)
+        out = (ts, sol.ys) if save_per_segment else None
+        return (sol.ys[-1], ok), out
+
+    (y, ok), out = jax.lax.scan(step, (y0, jnp.asarray(True)), xs, length=n)
+    prof = (out[0].reshape(-1), out[1].reshape(-1, 4)) if save_per_segment else None
+    return y, ok & jnp.all(jnp.isfinite(y)), prof
+
+
+def disk_force(segs, p_mpa, l1_0, phi0):
+    # Q at the disk edge (lambda2 = 1) times the meridian's vertical direction.
+    """Force on the plate [N] from the disk's vertical balance (unknowns -> force)."""
+    seg, r0 = segs.first(), segs.r0
+    t0, _ = seg.thickness(r0)
+    return p_mpa * jnp.pi * r0**2 + 2.0 * jnp.pi * r0 * t0 * seg.w1(l1_0, 1.0) * jnp.sin(phi0)
+
+
+def start_state(x, h):
+    """State ``(lambda1, lambda2, phi, Z)`` at the disk edge from the unknowns ``x``."""
+    return jnp.stack([1.0 + jnp.exp(x[0]), jnp.ones_like(h), x[1], h])
+
+
+def force_residual(x, args):
+    """Shooting residual at fixed height: ``(lambda2(r_out) - s, Z(r_out) / L)``."""
+    geom, params, h, p_mpa = args
+    segs = segments(geom, params)
+    y, ok, _ = integrate(segs, p_mpa, start_state(x, h))
+    span = segs.r_out - segs.r0
+    res = jnp.stack([y[1] - params.clamp_prestretch, y[3] / span])
+    # Outside the physical region the residual is large but finite: the trust region
+    # rejects such a step (a NaN would reach, and abort, the linear solves).
+    return jnp.where(ok & jnp.all(jnp.isfinite(res)), res, FAILED_RESIDUAL)
+
+
+def solve_force(x0, geom: Geometry, params: SimParams, h_mm, p_mpa):
+    """Newton from ``x0``. Returns ``(x, converged, det_jacobian)``."""
+    args = (geom, params, h_mm, p_mpa)
+    sol = optx.root_find(
+        force_residual, SHOOTING_SOLVER, x0, args, max_steps=SHOOTING_MAX_STEPS, throw=False
+    )
+    x = sol.value
+    res = force_residual(x, args)
+    jac = jax.jacfwd(force_residual)(x, args)
+    converged = (
+        (sol.result == optx.RESULTS.successful)
+        & jnp.all(jnp.isfinite(x))
+        & jnp.all(jnp.abs(res) < 1e-7)
+    )
+    return x, converged, jnp.linalg.det(jac)
+
+
+def string_guess(geom: Geometry, params: SimParams, h_mm, p_mpa):
+    """First guess ``x = (a, phi0)`` from the circular-arc strip model (see module doc)."""
+    segs = segments(geom, params)
+    rubber, r0 = segs.first(), segs.r0
+    lengths = jnp.diff(segs.bounds)
+    L_rubber = jnp.sum(lengths[0::2])
+    L_ring = jnp.sum(lengths[1::2])
+    horiz = params.clamp_prestretch * segs.r_out - r0
+    chord = jnp.sqrt(horiz**2 + h_mm**2)
+    t = rubber.t_mm
+
+    def half_angle(lam):
+        tension = t * rubber.w1(lam, 1.0)  # N/mm
+        return jnp.clip(p_mpa * chord / (2.0 * tension), 0.0, 1.0)
+
+    def mismatch(lam, _):
+        u = half_angle(lam)
+        ratio = jnp.where(u < 1e-4, 1.0 + u**2 / 6.0, jnp.arcsin(u) / jnp.maximum(u, 1e-4))
+        return chord * ratio - (lam * L_rubber + L_ring)
+
+    lam_lo = jnp.maximum((chord - L_ring) / L_rubber, 1.0 + 1e-9)
+    c = 2.0 + 0.9 * rubber.jm
+    lam_hi = jnp.sqrt(0.5 * (c + jnp.sqrt(c**2 - 4.0)))
+    sol = optx.root_find(
+        mismatch,
+        optx.Bisection(rtol=1e-8, atol=1e-10),
+        0.5 * (lam_lo + lam_hi),
+        options=dict(lower=lam_lo, upper=lam_hi),
+        max_steps=200,
+        throw=False,
+    )
+    lam = jnp.clip(sol.value, lam_lo, lam_hi)
+    phi0 = jnp.arctan2(-h_mm, horiz) + jnp.arcsin(half_angle(lam))
+    return jnp.stack([jnp.log(jnp.maximum(lam - 1.0, 1e-12)), phi0])
+
+
+def profile(x, geom: Geometry, params: SimParams, h_mm, p_mpa, n_save: int = 48):
+    """The solution along r: ``r``, ``(lambda1, lambda2, phi, Z)``, and stress checks."""
+    segs = segments(geom, params)
+    _, ok, (r, y) = integrate(segs, p_mpa, start_state(x, h_mm), save_per_segment=n_save)
+    # Which segment each saved point belongs to (static: n_save points per segment).
+    n = segs.bounds.shape[0] - 1
+    seg_of_point = jax.tree.map(lambda a: jnp.repeat(a, n_save), segs.seg)
+    stress = jax.vmap(lambda sg, l1, l2: (sg.w1(l1, l2), sg.w2(l1, l2), sg.locking(l1, l2)))
+    w1, w2, locking = stress(seg_of_point, y[:, 0], y[:, 1])
+    return r, y, w1, w2, locking, ok
+
+
+def n_segments(n_rings: int) -> int:
+    return 2 * n_rings + 1
+
+
+__all__ = [
+    "Geometry",
+    "geometry_of",
+    "stack_geometries",
+    "segments",
+    "integrate",
+    "disk_force",
+    "force_residual",
+    "solve_force",
+    "string_guess",
+    "start_state",
+    "profile",
+]
