@@ -1,0 +1,164 @@
+"""``mfdesign rig ...``: emulate a rig, characterise a membrane, run mass-lift trials.
+
+``rig_app`` is a typer sub-app; ``mfdesign/cli.py`` registers it as ``rig``. Jobs write into
+``--out`` (journal, rig log, ``measurements.parquet``); run the same command again to
+resume an interrupted job. SIGTERM is treated like Ctrl-C (rig safe, port closed).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import signal
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from mfdesign.design import DesignError, Membrane
+from mfdesign.rig.config import ConfigError, RigConfig
+from mfdesign.rig.protocol import RigFault
+
+rig_app = typer.Typer(help="Drive the membrane test rig (or its emulator) over a serial port.",
+                      no_args_is_help=True)
+
+
+def _config(path: Optional[Path]) -> RigConfig:
+    try:
+        return RigConfig.load(path) if path else RigConfig()
+    except ConfigError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--config") from None
+
+
+def _design(key: str) -> Membrane:
+    try:
+        return Membrane.from_key(key)
+    except DesignError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--design") from None
+
+
+def _heights(text: str) -> tuple[float, ...]:
+    try:
+        hs = tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise typer.BadParameter(f"heights are comma-separated mm, got {text!r}", param_hint="--heights") from None
+    if not hs or any(not math.isfinite(h) for h in hs):
+        raise typer.BadParameter(f"need at least one finite height, got {text!r}", param_hint="--heights")
+    return hs
+
+
+def _sigterm_as_interrupt() -> None:
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    try:
+        signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread (e.g. under a test runner): leave it
+        pass
+
+
+def _finish(job_dir: Path, run) -> None:
+    from mfdesign.rig.procedures import JobError, to_measurements
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    _sigterm_as_interrupt()
+    try:
+        result = run()
+    except JobError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2)
+    except RigFault as exc:
+        typer.echo(f"rig fault ({exc.kind}): {exc}. The rig was put safe (pump off, valve open, "
+                   f"actuators stopped); see {job_dir / 'rig.log'}. Run the same command to resume.", err=True)
+        raise typer.Exit(3)
+    except KeyboardInterrupt:
+        typer.echo(f"interrupted: rig put safe; run the same command to resume ({job_dir}).", err=True)
+        raise typer.Exit(130)
+    m = to_measurements(job_dir)
+    out = job_dir / "measurements.parquet"
+    m.to_parquet(out)
+    n_done = sum(1 for t in result.trials_run if t.status == "complete")
+    typer.echo(f"{result.status}: {n_done} trials now, {result.skipped} before; {len(m)} samples -> {out}")
+    if result.status == "burst":
+        typer.echo("the membrane burst: that trial is in the journal (trials.jsonl) but not in the measurements")
+
+
+@rig_app.command()
+def emulate(
+    design: str = typer.Option("[2.0, 25.4, nan, nan, nan, nan]", help="membrane for the analytic plant"),
+    time_scale: float = typer.Option(1.0, min=0.01, max=1000.0, help="rig seconds per wall second"),
+    rate_hz: float = typer.Option(20.0, min=1.0, max=1000.0, help="telemetry lines per rig second"),
+    mass_kg: float = typer.Option(0.0, min=0.0, max=50.0, help="> 0: mass-lift rig carrying this mass"),
+    burst_pa: Optional[float] = typer.Option(None, min=1.0, help="membrane bursts at this pressure"),
+    config: Optional[Path] = typer.Option(None, help="rig config (.toml/.json) for the ToF maps"),
+    seed: int = typer.Option(0, help="sensor-noise seed"),
+) -> None:
+    """Serve a virtual rig controller on a pseudo-terminal; prints its device path."""
+    from mfdesign.rig.emulator import AnalyticPlant, RigEmulator
+
+    plant = AnalyticPlant.from_design(_design(design), burst_pressure_pa=burst_pa)
+    em = RigEmulator(plant, _config(config), time_scale=time_scale, rate_hz=rate_hz, payload_kg=mass_kg, seed=seed)
+    port = em.start()
+    typer.echo(port)
+    sys.stdout.flush()
+    typer.echo("emulated rig running; Ctrl-C to stop", err=True)
+    _sigterm_as_interrupt()
+    try:
+        em.serve_forever()
+    except KeyboardInterrupt:
+        typer.echo("emulator stopped", err=True)
+
+
+@rig_app.command()
+def characterize(
+    port: str = typer.Option(..., help="serial device or pyserial URL of the rig controller"),
+    design: str = typer.Option(..., help='design key, e.g. "[2.0, 25.4, nan, nan, nan, nan]"'),
+    out: Path = typer.Option(..., help="job directory (created; reused to resume)"),
+    config: Optional[Path] = typer.Option(None, help="rig config (.toml/.json)"),
+    heights: str = typer.Option("0,10,20,30,40,50,60,70", help="plate heights, mm"),
+    trials: int = typer.Option(3, min=1, max=100),
+    source: str = typer.Option("rig", help="'rig' (real rig) or 'virtual' (emulator)"),
+    progress: bool = typer.Option(True, help="progress bar"),
+) -> None:
+    """A membrane's force programme: heights x trials; ringed to 4.3 kPa, retest to 6.1 kPa."""
+    from mfdesign.rig.procedures import membrane_plan, run_job
+
+    cfg, d, hs = _config(config), _design(design), _heights(heights)
+    if source not in ("rig", "virtual"):
+        raise typer.BadParameter("must be 'rig' or 'virtual'", param_hint="--source")
+    bad = [h for h in hs if not (cfg.height_min_mm <= h <= cfg.height_max_mm)]
+    if bad:
+        raise typer.BadParameter(f"heights {bad} outside the rig's [{cfg.height_min_mm:g}, "
+                                 f"{cfg.height_max_mm:g}] mm", param_hint="--heights")
+    plan = membrane_plan(d, heights_mm=hs, trials=trials, source=source)
+    _finish(out, lambda: run_job(port, out, plan, cfg, progress=progress))
+
+
+@rig_app.command()
+def lift(
+    port: str = typer.Option(..., help="serial device or pyserial URL of the rig controller"),
+    design: str = typer.Option(..., help="design key"),
+    mass_kg: float = typer.Option(..., min=0.01, max=50.0, help="mass on the plate (mount it first)"),
+    out: Path = typer.Option(..., help="job directory (created; reused to resume)"),
+    config: Optional[Path] = typer.Option(None, help="rig config (.toml/.json)"),
+    trials: int = typer.Option(3, min=1, max=100),
+    pressure_limit_pa: float = typer.Option(10000.0, min=100.0, max=99000.0),
+    source: str = typer.Option("rig", help="'rig' or 'virtual'"),
+    progress: bool = typer.Option(True, help="progress bar"),
+) -> None:
+    """Mass-lift trials: inflate under a mass until the pressure or height limit; deflate."""
+    from mfdesign.rig.procedures import lift_plan, run_job
+
+    cfg, d = _config(config), _design(design)
+    if source not in ("rig", "virtual"):
+        raise typer.BadParameter("must be 'rig' or 'virtual'", param_hint="--source")
+    if pressure_limit_pa >= cfg.hard_pressure_limit_pa:
+        raise typer.BadParameter(f"must be below the hard limit {cfg.hard_pressure_limit_pa:g} Pa",
+                                 param_hint="--pressure-limit-pa")
+    plan = lift_plan(d, mass_kg, trials=trials, pressure_limit_pa=pressure_limit_pa, source=source)
+    _finish(out, lambda: run_job(port, out, plan, cfg, progress=progress))
+
+
+if __name__ == "__main__":
+    rig_app()

@@ -1,0 +1,371 @@
+"""The rig controller's serial protocol over pyserial: commands, strict telemetry, safety.
+
+The controller (an ESP32 at 115200 baud) takes one character plus a newline per command
+(:class:`Command`) and streams telemetry lines ``time,force_lbf,pressure_psi,left_tof,
+right_tof,flow,limit_switch``. This module converts lbf and psi to N and Pa and time-of-flight
+to height (through :class:`~mfdesign.rig.config.RigConfig`), so everything past it speaks mm,
+Pa and N.
+
+:class:`RigConnection` owns the one serial connection of a session. A reader thread parses
+every line (bad lines are counted and logged, never raised), watches for telemetry silence,
+pressure over the hard limit and a lost port, and on any of them puts the rig safe
+(:data:`SAFE_SEQUENCE`: pump off, valve open, actuators stopped) at once, without waiting
+for the caller. Used as a context manager, any exception in the caller (Ctrl-C included)
+also ends in the safe state and a closed port.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass
+
+import serial
+
+from mfdesign.rig.config import TOF_DROPOUT, RigConfig
+
+LBF_TO_N = 4.4482216152605
+PSI_TO_PA = 6894.757293168
+N_FIELDS = 7
+MAX_LINE_BYTES = 256
+_LOG_FIRST_BAD = 20  # log this many bad lines verbatim, then every 100th
+
+log = logging.getLogger("mfdesign.rig")
+
+
+class Command(str, enum.Enum):
+    """Controller commands (one character each; sent with a trailing newline)."""
+
+    PUMP_ON = "w"
+    PUMP_OFF = "s"
+    VALVE_OPEN = "q"
+    VALVE_CLOSE = "a"
+    LEFT_PUSH = "u"
+    LEFT_PULL = "i"
+    LEFT_STOP = "o"
+    RIGHT_PUSH = "j"
+    RIGHT_PULL = "k"
+    RIGHT_STOP = "l"
+    BOTH_PUSH = "y"
+    BOTH_STOP = "h"
+    BOTH_PULL = "n"
+    RESET = "m"
+    SENSORS_ON = "9"
+    SENSORS_OFF = "0"
+
+
+SAFE_SEQUENCE = (Command.PUMP_OFF, Command.VALVE_OPEN, Command.BOTH_STOP)
+# commands that cannot add energy: allowed after a fault, and do not leave the safe state
+_SAFE_CHARS = {c.value for c in SAFE_SEQUENCE} | {
+    Command.LEFT_STOP.value, Command.RIGHT_STOP.value, Command.SENSORS_ON.value, Command.SENSORS_OFF.value}
+
+
+class TelemetryError(ValueError):
+    """A telemetry line that does not follow the format; the message says why."""
+
+
+class RigFault(RuntimeError):
+    """A fault that ended the session in the safe state; ``kind`` names it."""
+
+    kind = "fault"
+
+
+class TelemetrySilence(RigFault):
+    kind = "telemetry_silence"
+
+
+class OverPressure(RigFault):
+    kind = "over_pressure"
+
+
+class RigDisconnected(RigFault):
+    kind = "disconnected"
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One telemetry line in physical units (mm, Pa, N, s)."""
+
+    rig_time_s: float
+    force_n: float
+    pressure_pa: float
+    left_tof: float
+    right_tof: float
+    flow: float
+    contact: bool  # limit switch reads 0: the membrane touched the rig
+    left_mm: float  # NaN: sensor dropout
+    right_mm: float
+    host_time: float  # time.monotonic() at receipt
+
+    @property
+    def height_mm(self) -> float:
+        """Mean of the valid sensors' heights; NaN when both dropped out."""
+        vals = [v for v in (self.left_mm, self.right_mm) if not math.isnan(v)]
+        return sum(vals) / len(vals) if vals else math.nan
+
+
+def _field(name: str, text: str, lo: float, hi: float) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise TelemetryError(f"{name} {text!r} is not a number") from None
+    if not math.isfinite(v) or not (lo <= v <= hi):
+        raise TelemetryError(f"{name} {text!r} outside [{lo:g}, {hi:g}]")
+    return v
+
+
+def parse_telemetry(line: bytes | str, config: RigConfig, host_time: float | None = None) -> Sample:
+    """Parse one line strictly (no newline), converting units; raise :class:`TelemetryError`."""
+    if isinstance(line, bytes):
+        try:
+            line = line.decode("ascii")
+        except UnicodeDecodeError:
+            raise TelemetryError("line is not ASCII") from None
+    line = line.rstrip("\r")
+    parts = line.split(",")
+    if len(parts) != N_FIELDS:
+        raise TelemetryError(f"expected {N_FIELDS} comma-separated fields, got {len(parts)}")
+    if any(p.strip() != p or p == "" for p in parts):
+        raise TelemetryError("empty field or stray whitespace")
+    t = _field("time", parts[0], 0.0, 1e9) * config.time_unit_s
+    force = _field("force_lbf", parts[1], -1000.0, 1000.0) * LBF_TO_N
+    pressure = _field("pressure_psi", parts[2], -20.0, 200.0) * PSI_TO_PA
+    ltof = _field("left_tof", parts[3], 0.0, 1e6)
+    rtof = _field("right_tof", parts[4], 0.0, 1e6)
+    flow = _field("flow", parts[5], -1e6, 1e6)
+    if parts[6] not in ("0", "1"):
+        raise TelemetryError(f"limit_switch {parts[6]!r} is not 0 or 1")
+    lmm, rmm = config.height_mm(ltof, rtof)
+    return Sample(
+        rig_time_s=t, force_n=force, pressure_pa=pressure, left_tof=ltof, right_tof=rtof,
+        flow=flow, contact=parts[6] == "0", left_mm=lmm, right_mm=rmm,
+        host_time=time.monotonic() if host_time is None else host_time,
+    )
+
+
+class RigConnection:
+    """The session's one serial connection to the rig controller (see module doc).
+
+    ``port`` is a device path or any pyserial URL (``serial_for_url``).
+    """
+
+    def __init__(self, port: str, config: RigConfig | None = None, *, logger: logging.Logger | None = None):
+        self.config = config or RigConfig()
+        self.log = logger or log
+        self.port = port
+        try:
+            self.ser = serial.serial_for_url(
+                port, baudrate=self.config.port_baudrate, timeout=0.02, write_timeout=1.0
+            )  # pyserial reports a write timeout when the thread was merely descheduled past
+            # it, even though the bytes went out: long enough not to mistake load for a fault
+        except (serial.SerialException, ValueError) as exc:
+            raise RigDisconnected(f"cannot open rig port {port!r}: {exc}") from None
+        self.ser.reset_input_buffer()
+        self.bad_lines = 0
+        self.good_lines = 0
+        self.fault: RigFault | None = None
+        self.sent: list[tuple[float, str, bool]] = []  # (monotonic time, char, written ok)
+        self._queue: queue.Queue = queue.Queue()
+        self._write_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._safe = False
+        self._closed = False
+        self._last_time = -math.inf
+        self._last_good = time.monotonic()
+        self._dropout = {"left": False, "right": False}
+        self._over_warned = 0.0
+        self._handled: BaseException | None = None
+        self._reader = threading.Thread(target=self._read_loop, name="rig-reader", daemon=True)
+        self.log.info("connected to rig on %s at %d baud", port, self.config.port_baudrate)
+        self.safe_state("connect")  # the rig's state is unknown (a killed host may have left it pumping)
+        self._reader.start()
+
+    # -- commands ------------------------------------------------------------------------
+    def send(self, cmd: Command) -> None:
+        """Send one command; after a fault only safe commands go out (others raise it)."""
+        cmd = Command(cmd)
+        if self.fault is not None and cmd.value not in _SAFE_CHARS:
+            raise self.fault
+        if not self._write(cmd):
+            self.fail(RigDisconnected(f"could not send {cmd.name} ({cmd.value!r}): port lost"))
+            raise self.fault  # type: ignore[misc]
+        if cmd.value not in _SAFE_CHARS:
+            self._safe = False
+        if cmd == Command.RESET:
+            self._last_time = -math.inf  # the controller's clock restarts
+
+    def _write(self, cmd: Command) -> bool:
+        with self._write_lock:
+            ok = True
+            try:
+                self.ser.write(f"{cmd.value}\n".encode("ascii"))
+            except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
+                ok = False
+                self.log.error("write %s (%r) failed: %s", cmd.name, cmd.value, exc)
+            self.sent.append((time.monotonic(), cmd.value, ok))
+            self.log.debug("sent %s (%r)", cmd.name, cmd.value)
+            return ok
+
+    def safe_state(self, reason: str) -> bool:
+        """Pump off, valve open, actuators stopped; log each action. True if all were sent."""
+        t0 = time.monotonic()
+        results = [(c, self._write(c)) for c in SAFE_SEQUENCE]
+        dt_ms = (time.monotonic() - t0) * 1e3
+        summary = ", ".join(f"{c.name} {c.value!r} {'sent' if ok else 'FAILED'}" for c, ok in results)
+        all_ok = all(ok for _, ok in results)
+        level = logging.WARNING if all_ok else logging.ERROR
+        self.log.log(level, "SAFE STATE (%s): %s in %.1f ms", reason, summary, dt_ms)
+        if dt_ms > self.config.safe_state_deadline_s * 1e3:
+            self.log.error("safe state took %.1f ms, over the %.0f ms budget", dt_ms,
+                           self.config.safe_state_deadline_s * 1e3)
+        self._safe = True
+        return all_ok
+
+    def fail(self, fault: RigFault) -> RigFault:
+        """Record a fault (the first one wins), log it, go safe at once; returns the fault."""
+        if self.fault is not None:
+            self.log.error("further fault after %s: %s", self.fault.kind, fault)
+            return self.fault
+        self.fault = fault
+        self.log.error("FAULT %s: %s", fault.kind, fault)
+        self.safe_state(f"fault {fault.kind}")
+        self._queue.put(fault)
+        return fault
+
+    # -- telemetry -------------------------------------------------------------------------
+    def next_sample(self, timeout: float | None = None) -> Sample:
+        """The next good sample in arrival order; raises the fault once the queue reaches it."""
+        if timeout is None:
+            timeout = self.config.telemetry_timeout_s + 0.5
+        try:
+            item = self._queue.get(timeout=timeout)
+        except queue.Empty:
+            if self.fault is None:
+                self.fail(TelemetrySilence(f"no telemetry for {timeout:.2f} s (reader stuck?)"))
+            raise self.fault from None  # type: ignore[misc]
+        if isinstance(item, RigFault):
+            self._queue.put(item)  # keep raising it on later calls
+            raise item
+        return item
+
+    def drain(self) -> list[Sample]:
+        """Samples already received and not yet consumed (without waiting)."""
+        out = []
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                return out
+            if isinstance(item, RigFault):
+                self._queue.put(item)
+                return out
+            out.append(item)
+
+    def _read_loop(self) -> None:
+        buf = b""
+        synced = False  # the first bytes after opening may start mid-line
+        while not self._stop.is_set():
+            try:
+                chunk = self.ser.read(self.ser.in_waiting or 1)
+            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+                if not self._stop.is_set():
+                    self.fail(RigDisconnected(f"serial port lost: {exc}"))
+                return
+            now = time.monotonic()
+            if chunk:
+                buf += chunk
+                *lines, buf = buf.split(b"\n")
+                for raw in lines:
+                    if not synced:
+                        synced = True
+                        if raw:
+                            self.log.debug("skipped partial first line %r", raw[:80])
+                            continue
+                    self._handle_line(raw, now)
+                if len(buf) > MAX_LINE_BYTES:
+                    self._bad(buf[:80], f"no newline within {MAX_LINE_BYTES} bytes")
+                    buf = b""
+            silent = now - self._last_good
+            if silent > self.config.telemetry_timeout_s and self.fault is None:
+                self.fail(TelemetrySilence(
+                    f"no valid telemetry for {silent:.2f} s (timeout {self.config.telemetry_timeout_s:.2f} s)"
+                ))
+
+    def _bad(self, raw: bytes, why: str) -> None:
+        self.bad_lines += 1
+        if self.bad_lines <= _LOG_FIRST_BAD or self.bad_lines % 100 == 0:
+            self.log.warning("bad telemetry line #%d (%s): %r", self.bad_lines, why, raw[:120])
+
+    def _handle_line(self, raw: bytes, now: float) -> None:
+        if not raw.strip():
+            return
+        try:
+            s = parse_telemetry(raw, self.config, host_time=now)
+        except TelemetryError as exc:
+            self._bad(raw, str(exc))
+            return
+        if s.rig_time_s <= self._last_time:
+            self._bad(raw, f"time {s.rig_time_s:g} s not after {self._last_time:g} s")
+            return
+        self._last_time = s.rig_time_s
+        self._last_good = now
+        self.good_lines += 1
+        for side, tof in (("left", s.left_tof), ("right", s.right_tof)):
+            dropped = tof >= TOF_DROPOUT
+            if dropped != self._dropout[side]:
+                self._dropout[side] = dropped
+                if dropped:
+                    self.log.warning("%s time-of-flight dropout (reading %g >= %g) at rig t=%.2f s",
+                                     side, tof, TOF_DROPOUT, s.rig_time_s)
+                else:
+                    self.log.info("%s time-of-flight back (reading %g) at rig t=%.2f s", side, tof, s.rig_time_s)
+        self._queue.put(s)
+        if s.pressure_pa <= self.config.hard_pressure_limit_pa or self.fault is not None:
+            return
+        if self._safe:
+            if now - self._over_warned > 1.0:  # already venting: nothing more to command
+                self._over_warned = now
+                self.log.warning("pressure %.0f Pa over the hard limit while the rig is safe (venting)",
+                                 s.pressure_pa)
+        else:
+            self.fail(OverPressure(
+                f"pressure {s.pressure_pa:.0f} Pa over the hard limit {self.config.hard_pressure_limit_pa:.0f} Pa"
+            ))
+
+    # -- lifetime --------------------------------------------------------------------------
+    def close(self, reason: str = "session end") -> None:
+        """Safe state (unless already safe), stop the reader, close the port. Idempotent."""
+        if self._closed:
+            return
+        if not self._safe:
+            self.safe_state(reason)
+        self._closed = True
+        self._stop.set()
+        if self._reader is not threading.current_thread():
+            self._reader.join(timeout=1.0)
+        try:
+            self.ser.close()
+        except (serial.SerialException, OSError) as exc:
+            self.log.error("closing port: %s", exc)
+        self.log.info("port %s closed (%d good lines, %d bad lines)", self.port, self.good_lines, self.bad_lines)
+
+    def __enter__(self) -> "RigConnection":
+        return self
+
+    def on_exception(self, exc: BaseException) -> None:
+        """Log an exception of the caller and go safe at once (once per exception)."""
+        if isinstance(exc, RigFault) or exc is self._handled:
+            return
+        self._handled = exc
+        name = "Ctrl-C" if isinstance(exc, KeyboardInterrupt) else type(exc).__name__
+        self.log.error("FAULT exception: %s%s", name, f": {exc}" if str(exc) else "")
+        self.safe_state(f"exception {name}")
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc is not None:
+            self.on_exception(exc)
+        self.close()
