@@ -1,0 +1,129 @@
+"""``mfdesign`` command line (typer). Units: mm, Pa, N.
+
+Bad input (a design that cannot be built, a file that is not what it should be) prints
+one line saying what was wrong and exits with status 2.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import typer
+
+app = typer.Typer(
+    help="Multi-fidelity Bayesian design of soft pneumatic actuators.",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+
+def enable_compilation_cache() -> Path:
+    """JAX's persistent compilation cache, so a second CLI call does not recompile."""
+    import jax
+
+    cache = Path(os.environ.get("MFDESIGN_CACHE_DIR", Path.home() / ".cache" / "mfdesign" / "jax"))
+    cache.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(cache))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return cache
+
+
+def fail(message: str) -> None:
+    """Print one line to stderr and exit with status 2."""
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code=2)
+
+
+@app.callback()
+def _main() -> None:
+    enable_compilation_cache()
+
+
+@app.command()
+def simulate(
+    design: str = typer.Option(
+        "[2.0, 25.4, nan, nan, nan, nan]",
+        help='Design key "[t, c, r1, w1, r2, w2]" in mm (nan = no ring).',
+    ),
+    out: Path = typer.Option(Path("out/simulate"), help="Output folder."),
+    h_max_mm: float = typer.Option(70.0, help="Largest plate height [mm]."),
+    p_max_pa: float = typer.Option(10_000.0, help="Largest pressure [Pa]."),
+    n_heights: int = typer.Option(50, min=2, max=400, help="Heights in the grid."),
+    n_pressures: int = typer.Option(50, min=2, max=2000, help="Pressures in the grid."),
+    mu_pa: float = typer.Option(31.7e3, help="Gent shear modulus of the rubber [Pa]."),
+    jm: float = typer.Option(39.6, help="Gent locking parameter J_m of the rubber."),
+) -> None:
+    """Simulate one membrane on a height x pressure grid: Parquet plane + PNG + JSON."""
+    from mfdesign.design import DesignError, Membrane
+    from mfdesign.physics.params import SimParams
+    from mfdesign.simulate_plane import simulate_plane, write_plane
+
+    try:
+        membrane = Membrane.from_key(design)
+    except DesignError as err:
+        fail(f"bad design {design!r}: {err}")
+    for name, value, lo in (("h-max-mm", h_max_mm, 0.0), ("p-max-pa", p_max_pa, 0.0), ("mu-pa", mu_pa, 0.0), ("jm", jm, 0.0)):
+        if not (value > lo and value < float("inf")):
+            fail(f"--{name} must be a positive finite number, got {value}")
+    params = SimParams(mu_pa=mu_pa, jm=jm)
+    table = simulate_plane(membrane, h_max_mm, p_max_pa, n_heights, n_pressures, params, progress=True)
+    paths = write_plane(table, membrane, out)
+    typer.echo(json.dumps({k: str(v) for k, v in paths.items()}))
+
+
+@app.command()
+def fit(
+    data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
+    out: Path = typer.Option(..., help="Folder for the fitted model."),
+    members: int = typer.Option(32, min=1, help="Ensemble members."),
+    steps: int = typer.Option(10_000, min=1, help="Training steps."),
+    batch: int = typer.Option(100, min=1, help="Minibatch size."),
+    degree: int = typer.Option(2, min=1, max=3, help="Degree of the head polynomial in pressure."),
+    monotone: bool = typer.Option(True, help="Force non-decreasing in pressure."),
+    seed: int = typer.Option(0, help="Random seed."),
+) -> None:
+    """Fit the paper's RPN ensemble to measurements and save it."""
+    from mfdesign.models import commands
+
+    try:
+        commands.fit(data, out, members, steps, batch, degree, monotone, seed)
+    except ValueError as err:
+        fail(str(err))
+
+
+@app.command()
+def cv(
+    data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
+    model: str = typer.Option("ensemble", help="ensemble | curve-fit"),
+    folds: int = typer.Option(0, min=0, help="k of k-fold by membrane; 0 = leave one membrane out."),
+    members: int = typer.Option(32, min=1),
+    steps: int = typer.Option(10_000, min=1),
+    batch: int = typer.Option(100, min=1),
+    degree: int = typer.Option(2, min=1, max=3),
+    monotone: bool = typer.Option(True),
+    seed: int = typer.Option(0),
+    out: Path = typer.Option(None, help="Write the metrics as JSON here."),
+) -> None:
+    """Leave-membranes-out cross-validation: RMSE [N], median error, interval coverage."""
+    from mfdesign.models import commands
+
+    try:
+        commands.cv(data, model, folds, members, steps, batch, degree, monotone, seed, out)
+    except ValueError as err:
+        fail(str(err))
+
+
+def _register_subcommands() -> None:
+    from mfdesign.rig.commands import rig_app
+
+    app.add_typer(rig_app, name="rig", help="Drive the test rig (or its emulator) over a serial port.")
+
+
+_register_subcommands()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    app()

@@ -1,0 +1,390 @@
+"""The simulator's public interface: force at a plate height, height under a load, shape.
+
+Units: heights and radii in mm, pressures in Pa, forces in N.
+
+* :func:`force_at` -- the rig's experiment: plate held at ``h``, chamber at ``p``.
+* :func:`force_plane` -- the same on a height x pressure grid (the paper's figure).
+* :func:`height_at` -- the mass-lift experiment: the plate carries a load ``F``.
+* :func:`shape` -- the deformed meridian, stretches and stresses, for plots and checks.
+
+Every point comes with a :class:`~mfdesign.physics.status.Status`. Solutions are found
+by quasi-static inflation at fixed height: pressure rises from near zero to the target
+in small steps, each shooting solve warm-started from the last (natural-parameter
+continuation). A pressure limit point at fixed height (snap-through) shows up as a sign
+change of the shooting Jacobian's determinant along the path; points beyond it are
+``LIMIT_POINT``. Points below the pressure at which the membrane reaches the plate
+(negative contact force) are ``NO_CONTACT`` with force 0, as the rig would measure.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from mfdesign.design import Membrane
+from mfdesign.physics import shooting as sh
+from mfdesign.physics.membrane import PA_TO_MPA
+from mfdesign.physics.params import SimParams
+from mfdesign.physics.status import Status
+
+WRINKLE_TOL = 1e-9  # MPa: a principal stress more negative than this is compression
+PATH_STEPS = 8  # pressure steps from p / PATH_STEPS to p for a scattered point
+
+
+class SimResult(eqx.Module):
+    """Per-point outputs (NumPy arrays of one shape).
+
+    ``force_n`` [N] (0 for ``NO_CONTACT``, NaN where ``status`` is not usable),
+    ``status`` (int codes of :class:`Status`), ``max_locking`` (``(I1 - 3) / J_m`` at
+    the most stretched point: 1 is the Gent limit, a burst indicator), ``max_rise_mm``
+    (how far the membrane rises above the plate beside the disk).
+    """
+
+    force_n: np.ndarray
+    status: np.ndarray
+    max_locking: np.ndarray
+    max_rise_mm: np.ndarray
+
+    @property
+    def ok(self) -> np.ndarray:
+        return np.isin(self.status, [Status.OK, Status.NO_CONTACT])
+
+
+# --------------------------------------------------------------------------------------
+# jitted kernels (one design; vmapped over points)
+
+
+def _step(carry, p_mpa, geom, params, h):
+    """One continuation step at fixed ``h``: warm start from the last solution; until the
+    path has one, start from the string model (one solve per step either way: under
+    ``vmap`` both branches of a conditional would run)."""
+    x_prev, have, det0, passed = carry
+    guess = jnp.where(have, x_prev, sh.string_guess(geom, params, h, p_mpa))
+    x, conv, det = sh.solve_force(guess, geom, params, h, p_mpa)
+    det0 = jnp.where(have, det0, det)
+    fold = conv & have & (jnp.sign(det) != jnp.sign(det0))
+    passed = passed | fold
+    carry = (jnp.where(conv, x, x_prev), have | conv, det0, passed)
+    return carry, (x, conv, passed)
+
+
+def _path(geom, params, h, p_path_mpa):
+    """Continuation along an increasing pressure path at fixed height."""
+    init = (jnp.zeros(2), jnp.asarray(False), jnp.asarray(1.0), jnp.asarray(False))
+    _, (xs, conv, passed) = jax.lax.scan(
+        lambda c, p: _step(c, p, geom, params, h), init, p_path_mpa
+    )
+    return xs, conv, passed
+
+
+def _point_outputs(x, conv, passed, geom, params, h, p_mpa):
+    """Force and checks at one converged (or not) point."""
+    segs = sh.segments(geom, params)
+    force = sh.disk_force(segs, p_mpa, 1.0 + jnp.exp(x[0]), x[1])
+    x_safe = jnp.where(conv, x, jnp.array([-1.0, 0.0]))
+    _, y, w1, w2, locking, ok_prof = sh.profile(x_safe, geom, params, h, p_mpa, n_save=24)
+    wrinkled = (jnp.min(w1) < -WRINKLE_TOL) | (jnp.min(w2) < -WRINKLE_TOL)
+    rise = jnp.max(y[:, 3]) - h
+    return force, wrinkled, jnp.max(locking), rise, ok_prof
+
+
+@eqx.filter_jit
+def _points_kernel(geom, params, h, p_mpa, n_steps: int):
+    """Scattered points: each gets its own path ``p * k / n_steps``, k = 1..n_steps."""
+
+    def one(hh, pp):
+        path = pp * jnp.arange(1, n_steps + 1) / n_steps
+        xs, conv, passed = _path(geom, params, hh, path)
+        out = _point_outputs(xs[-1], conv[-1], passed[-1], geom, params, hh, pp)
+        return (conv[-1], passed[-1]) + out
+
+    return jax.vmap(one)(h, p_mpa)
+
+
+@eqx.filter_jit
+def _plane_kernel(geom, params, h_grid, p_path_mpa, report_idx):
+    """Grid: vmap over heights, continuation over the (refined) pressure path."""
+
+    def one_h(hh):
+        xs, conv, passed = _path(geom, params, hh, p_path_mpa)
+        xs, conv, passed = xs[report_idx], conv[report_idx], passed[report_idx]
+        p_rep = p_path_mpa[report_idx]
+        out = jax.vmap(lambda x, c, f, pp: _point_outputs(x, c, f, geom, params, hh, pp))(
+            xs, conv, passed, p_rep
+        )
+        return (conv, passed) + out
+
+    return jax.vmap(one_h)(h_grid)
+
+
+def _classify(h, p, conv, passed, force, wrinkled, locking, rise, ok_prof) -> SimResult:
+    h, p = np.broadcast_arrays(np.asarray(h, float), np.asarray(p, float))
+    conv, passed, wrinkled, ok_prof = (np.asarray(a, bool) for a in (conv, passed, wrinkled, ok_prof))
+    force = np.asarray(force, float).copy()
+    status = np.full(h.shape, int(Status.OK), dtype=np.int8)
+    status[~conv] = Status.NOT_CONVERGED
+    status[conv & ~ok_prof] = Status.ODE_FAILURE
+    status[conv & wrinkled] = Status.WRINKLED
+    status[passed] = Status.LIMIT_POINT
+    near_lock = np.asarray(locking) > 0.98
+    status[~conv & near_lock] = Status.EXTENSION_LIMIT
+    usable = status == Status.OK
+    no_contact = usable & (force < 0)
+    status[no_contact] = Status.NO_CONTACT
+    force[no_contact] = 0.0
+    force[~usable] = np.nan
+    zero_p = np.isfinite(p) & (p == 0) & np.isfinite(h) & (h >= 0)
+    status[zero_p] = Status.NO_CONTACT  # no pressure: the membrane lies still
+    force[zero_p] = 0.0
+    bad = ~np.isfinite(h) | ~np.isfinite(p) | (h < 0) | (p < 0)
+    status[bad] = Status.INVALID_INPUT
+    force[bad] = np.nan
+    locking = np.where(conv, np.asarray(locking, float), np.nan)
+    rise = np.where(conv, np.asarray(rise, float), np.nan)
+    return SimResult(force_n=force, status=status, max_locking=locking, max_rise_mm=rise)
+
+
+def _sanitize(h, p):
+    """Inputs the kernels can run on (invalid points are classified afterwards)."""
+    h = np.asarray(h, float)
+    p = np.asarray(p, float)
+    ok = np.isfinite(h) & np.isfinite(p) & (h >= 0) & (p > 0)
+    return np.where(ok, h, 10.0), np.where(ok, p, 1000.0)
+
+
+def force_at(
+    design: Membrane,
+    h_mm,
+    p_pa,
+    params: SimParams = SimParams(),
+    path_steps: int = PATH_STEPS,
+) -> SimResult:
+    """Force on a plate held at height ``h_mm`` [mm] with gauge pressure ``p_pa`` [Pa].
+
+    ``h_mm`` and ``p_pa`` broadcast together; every point is solved independently by
+    quasi-static inflation in ``path_steps`` pressure steps at its height (vmapped).
+    """
+    h, p = np.broadcast_arrays(np.asarray(h_mm, float), np.asarray(p_pa, float))
+    shape_ = h.shape
+    hs, ps = _sanitize(h.ravel(), p.ravel())
+    if hs.size == 0:
+        empty = np.zeros(shape_)
+        return SimResult(empty, empty.astype(np.int8), empty, empty)
+    geom = sh.geometry_of(design)
+    out = _points_kernel(geom, params, jnp.asarray(hs), jnp.asarray(ps) * PA_TO_MPA, path_steps)
+    res = _classify(h.ravel(), p.ravel(), *[np.asarray(o) for o in out])
+    return jax.tree.map(lambda a: a.reshape(shape_), res)
+
+
+def force_plane(
+    design: Membrane,
+    h_grid_mm: Sequence[float],
+    p_grid_pa: Sequence[float],
+    params: SimParams = SimParams(),
+    substeps: int = 1,
+) -> SimResult:
+    """Force on a ``len(h_grid) x len(p_grid)`` grid (heights mm, pressures Pa).
+
+    Pressures must be increasing; each height is one continuation path through all of
+    them (``substeps`` extra steps between grid pressures), vmapped over heights.
+    """
+    h_grid = np.asarray(h_grid_mm, float).ravel()
+    p_grid = np.asarray(p_grid_pa, float).ravel()
+    if p_grid.size and np.any(np.diff(p_grid) <= 0):
+        raise ValueError("force_plane needs strictly increasing pressures")
+    p_pos = np.where(p_grid > 0, p_grid, np.nan)
+    first = np.nanmin(p_pos) if np.any(p_grid > 0) else 1000.0
+    # Path: from first/4 up through every grid pressure with substeps in between.
+    knots = np.concatenate([[first / 4.0], np.where(p_grid > 0, p_grid, first / 4.0)])
+    knots = np.maximum.accumulate(knots)
+    path, report = [knots[0]], []
+    for k in range(1, len(knots)):
+        for s in range(1, substeps + 1):
+            path.append(knots[k - 1] + (knots[k] - knots[k - 1]) * s / substeps)
+        report.append(len(path) - 1)
+    hs, _ = _sanitize(h_grid, np.ones_like(h_grid))
+    geom = sh.geometry_of(design)
+    out = _plane_kernel(
+        geom, params, jnp.asarray(hs), jnp.asarray(path) * PA_TO_MPA, jnp.asarray(report)
+    )
+    H, P = np.meshgrid(h_grid, p_grid, indexing="ij")
+    return _classify(H, P, *[np.asarray(o) for o in out])
+
+
+# --------------------------------------------------------------------------------------
+# mass lift: height under a load
+
+
+def _height_residual(a, args):
+    """1-D shooting at fixed force: ``phi0`` from the disk balance, ``lambda2(r_out) = s``."""
+    geom, params, F, p_mpa = args
+    segs = sh.segments(geom, params)
+    seg0, r0 = segs.first(), segs.r0
+    l1 = 1.0 + jnp.exp(a)
+    t0, _ = seg0.thickness(r0)
+    sin_phi = (F - p_mpa * jnp.pi * r0**2) / (2.0 * jnp.pi * r0 * t0 * seg0.w1(l1, 1.0))
+    ok_sin = jnp.abs(sin_phi) < 1.0
+    phi0 = jnp.arcsin(jnp.clip(sin_phi, -0.999999, 0.999999))
+    y0 = jnp.stack([l1, 1.0, phi0, 0.0])
+    y, ok, _ = sh.integrate(segs, p_mpa, y0)
+    res = y[1] - params.clamp_prestretch
+    return jnp.where(ok & ok_sin & jnp.isfinite(res), res, sh.FAILED_RESIDUAL), -y[3]
+
+
+@eqx.filter_jit
+def _height_kernel(geom, params, F, p_mpa, a0):
+    def one(ff, pp, aa):
+        sol = optx.root_find(
+            lambda a, args: _height_residual(a, args)[0],
+            sh.SHOOTING_SOLVER,
+            aa,
+            (geom, params, ff, pp),
+            max_steps=sh.SHOOTING_MAX_STEPS,
+            throw=False,
+        )
+        res, h = _height_residual(sol.value, (geom, params, ff, pp))
+        conv = (sol.result == optx.RESULTS.successful) & (jnp.abs(res) < 1e-7)
+        return jnp.where(conv, h, jnp.nan), conv
+
+    return jax.vmap(one)(F, p_mpa, a0)
+
+
+def height_at(
+    design: Membrane,
+    force_n,
+    p_pa,
+    params: SimParams = SimParams(),
+    h_max_mm: float = 100.0,
+    n_heights: int = 41,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Plate height [mm] when the plate carries ``force_n`` [N] at pressure ``p_pa`` [Pa].
+
+    The branch reached by quasi-static inflation from ``h = 0``: at pressure ``p`` the
+    plate rises until the membrane's force at fixed height falls to the load, i.e. the
+    first height where ``F(h, p)`` crosses the load from above (found on a height grid
+    from :func:`force_at`, then refined by shooting at fixed force). ``NOT_LIFTED`` (h = 0)
+    when the force at ``h = 0`` is below the load. Folds along a pressure sweep are
+    reported by :func:`lift_curve`. Returns ``(height_mm, status)``.
+    """
+    F, p = np.broadcast_arrays(np.asarray(force_n, float), np.asarray(p_pa, float))
+    shape_ = F.shape
+    F, p = F.ravel(), p.ravel()
+    hg = np.linspace(0.0, h_max_mm, n_heights)
+    Hq = np.broadcast_to(hg[None, :], (F.size, n_heights))
+    Pq = np.broadcast_to(p[:, None], (F.size, n_heights))
+    plane = force_at(design, Hq, Pq, params)
+    Fh = plane.force_n
+    above = Fh >= F[:, None]
+    height = np.full(F.size, np.nan)
+    status = np.full(F.size, int(Status.NOT_CONVERGED), dtype=np.int8)
+    lo_idx = np.zeros(F.size, int)
+    for_refine = np.zeros(F.size, bool)
+    for i in range(F.size):  # bookkeeping on a small table per query; solves are batched
+        row_ok = np.isfinite(Fh[i])
+        if not (np.isfinite(F[i]) and np.isfinite(p[i]) and p[i] >= 0 and F[i] >= 0):
+            status[i] = Status.INVALID_INPUT
+            continue
+        if not row_ok[0]:
+            continue
+        if not above[i, 0]:
+            height[i], status[i] = 0.0, Status.NOT_LIFTED
+            continue
+        below = np.nonzero(~above[i] & row_ok)[0]
+        if below.size == 0 or not row_ok[: below[0] + 1].all():
+            continue  # never falls below the load within h_max, or a gap: unconverged
+        j = below[0]
+        lo_idx[i], for_refine[i] = j - 1, True
+        status[i] = Status.OK
+    idx = np.nonzero(for_refine)[0]
+    if idx.size:
+        # Linear interpolation of the crossing, then shooting at fixed force.
+        j = lo_idx[idx]
+        f0, f1 = Fh[idx, j], Fh[idx, j + 1]
+        w = (f0 - F[idx]) / np.where(f0 != f1, f0 - f1, 1.0)
+        h_guess = hg[j] + w * (hg[j + 1] - hg[j])
+        a0 = _a_guess(design, params, h_guess, p[idx])
+        geom = sh.geometry_of(design)
+        h_ref, conv = _height_kernel(
+            geom, params, jnp.asarray(F[idx]), jnp.asarray(p[idx]) * PA_TO_MPA, jnp.asarray(a0)
+        )
+        h_ref, conv = np.asarray(h_ref), np.asarray(conv)
+        good = conv & (np.abs(h_ref - h_guess) < 2.0 * (hg[1] - hg[0]))
+        height[idx] = np.where(good, h_ref, np.nan)
+        status[idx] = np.where(good, status[idx], Status.NOT_CONVERGED)
+    return height.reshape(shape_), status.reshape(shape_)
+
+
+@eqx.filter_jit
+def _a_kernel(geom, params, h, p_mpa):
+    def one(hh, pp):
+        path = pp * jnp.arange(1, PATH_STEPS + 1) / PATH_STEPS
+        xs, conv, _ = _path(geom, params, hh, path)
+        return xs[-1, 0]
+
+    return jax.vmap(one)(h, p_mpa)
+
+
+def _a_guess(design, params, h, p):
+    geom = sh.geometry_of(design)
+    a = np.asarray(_a_kernel(geom, params, jnp.asarray(h), jnp.asarray(p) * PA_TO_MPA))
+    return np.where(np.isfinite(a), a, 0.0)
+
+
+# --------------------------------------------------------------------------------------
+# shape
+
+
+class Shape(eqx.Module):
+    """Deformed meridian of one solution: reference radius ``r_mm`` -> ``R_mm``, ``Z_mm``,
+    stretches, and the principal tensions per unit deformed length [N/mm]."""
+
+    r_mm: np.ndarray
+    R_mm: np.ndarray
+    Z_mm: np.ndarray
+    lambda1: np.ndarray
+    lambda2: np.ndarray
+    tension1_n_per_mm: np.ndarray
+    tension2_n_per_mm: np.ndarray
+    force_n: float
+    status: int
+
+
+def shape(design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimParams(), n_per_segment: int = 64) -> Shape:
+    """The deformed membrane at plate height ``h_mm`` [mm] and pressure ``p_pa`` [Pa]."""
+    res = force_at(design, np.array([h_mm]), np.array([p_pa]), params)
+    geom = sh.geometry_of(design)
+    p_mpa = float(p_pa) * PA_TO_MPA
+    a = _a_guess(design, params, np.array([h_mm]), np.array([p_pa]))
+    x = _solve_x(geom, params, float(h_mm), p_mpa, float(a[0]))
+    r, y, w1, w2, _, _ = sh.profile(jnp.asarray(x), geom, params, h_mm, p_mpa, n_save=n_per_segment)
+    segs = sh.segments(geom, params)
+    n = segs.bounds.shape[0] - 1
+    t = jnp.repeat(segs.seg.t_mm, n_per_segment)
+    r, y, w1, w2, t = (np.asarray(v) for v in (r, y, w1, w2, t))
+    return Shape(
+        r_mm=r,
+        R_mm=r * y[:, 1],
+        Z_mm=y[:, 3],
+        lambda1=y[:, 0],
+        lambda2=y[:, 1],
+        tension1_n_per_mm=t * w1 / y[:, 1],
+        tension2_n_per_mm=t * w2 / y[:, 0],
+        force_n=float(res.force_n[0]),
+        status=int(res.status[0]),
+    )
+
+
+@eqx.filter_jit
+def _solve_x_kernel(geom, params, h, p_mpa):
+    path = p_mpa * jnp.arange(1, PATH_STEPS + 1) / PATH_STEPS
+    xs, conv, _ = _path(geom, params, h, path)
+    return xs[-1]
+
+
+def _solve_x(geom, params, h, p_mpa, _a):
+    return np.asarray(_solve_x_kernel(geom, params, jnp.asarray(h), jnp.asarray(p_mpa)))

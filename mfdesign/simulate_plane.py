@@ -1,0 +1,104 @@
+"""A simulated force plane of one membrane: compute it (with a progress bar), save it.
+
+The plane is ``F(h, p)`` on a height x pressure grid (mm, Pa, N) with one status per
+point; the picture is the paper's: force against pressure, one curve per height.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mfdesign.design import Membrane
+from mfdesign.physics.params import SimParams
+from mfdesign.physics.solve import force_plane
+from mfdesign.physics.status import Status, is_valid, summarize
+
+HEIGHTS_PER_CHUNK = 10  # one compiled batch size; chunks feed the progress bar
+
+
+def simulate_plane(
+    design: Membrane,
+    h_max_mm: float = 70.0,
+    p_max_pa: float = 10_000.0,
+    n_heights: int = 50,
+    n_pressures: int = 50,
+    params: SimParams = SimParams(),
+    progress: bool = False,
+) -> pd.DataFrame:
+    """The plane as a table: ``height_mm, pressure_pa, force_n, status, status_name,
+    max_locking`` (one row per grid point)."""
+    from tqdm.auto import tqdm
+
+    h_grid = np.linspace(0.0, h_max_mm, n_heights)
+    p_grid = np.linspace(0.0, p_max_pa, n_pressures)
+    # Pad the height list to whole chunks so every chunk reuses one compiled kernel.
+    n_chunks = -(-n_heights // HEIGHTS_PER_CHUNK)
+    padded = np.concatenate([h_grid, np.full(n_chunks * HEIGHTS_PER_CHUNK - n_heights, h_grid[-1])])
+    parts = []
+    for k in tqdm(range(n_chunks), desc=f"simulate {design.key()}", unit="chunk", disable=not progress):
+        chunk = padded[k * HEIGHTS_PER_CHUNK:(k + 1) * HEIGHTS_PER_CHUNK]
+        parts.append(force_plane(design, chunk, p_grid, params))
+    cat = {f: np.concatenate([getattr(r, f) for r in parts])[:n_heights] for f in ("force_n", "status", "max_locking")}
+    H, P = np.meshgrid(h_grid, p_grid, indexing="ij")
+    return pd.DataFrame(
+        {
+            "design_key": design.key(),
+            "height_mm": H.ravel(),
+            "pressure_pa": P.ravel(),
+            "force_n": cat["force_n"].ravel(),
+            "status": cat["status"].ravel().astype(np.int8),
+            "status_name": [Status(int(s)).name for s in cat["status"].ravel()],
+            "max_locking": cat["max_locking"].ravel(),
+        }
+    )
+
+
+def plot_plane(table: pd.DataFrame, title: str, path: Path) -> None:
+    """Force vs pressure coloured by height (the paper's figure); unusable points omitted."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
+    heights = np.sort(table.height_mm.unique())
+    cmap = plt.get_cmap("viridis")
+    for k, h in enumerate(heights):
+        rows = table[table.height_mm == h]
+        ax.plot(rows.pressure_pa / 1e3, rows.force_n, color=cmap(k / max(len(heights) - 1, 1)), lw=1.2)
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(heights.min(), heights.max()))
+    fig.colorbar(sm, ax=ax, label="plate height h [mm]")
+    bad = table[~is_valid(table.status)]
+    if len(bad):
+        ax.plot([], [], " ", label=f"{len(bad)} of {len(table)} points unusable (see status)")
+        ax.legend(loc="upper left", fontsize=8)
+    ax.set_xlabel("pressure p [kPa]")
+    ax.set_ylabel("force F [N]")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def write_plane(table: pd.DataFrame, design: Membrane, out: Path) -> dict[str, Path]:
+    """``plane.parquet``, ``plane.png`` and ``summary.json`` in ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"parquet": out / "plane.parquet", "png": out / "plane.png", "json": out / "summary.json"}
+    tmp = paths["parquet"].with_suffix(".parquet.tmp")
+    table.to_parquet(tmp, index=False)
+    tmp.replace(paths["parquet"])
+    plot_plane(table, f"simulated force plane, design {design.key()}", paths["png"])
+    summary = {
+        "design": design.key(),
+        "points": int(len(table)),
+        "status": summarize(table.status.to_numpy()),
+        "max_force_n": float(np.nanmax(table.force_n)) if np.isfinite(table.force_n).any() else None,
+    }
+    paths["json"].write_text(json.dumps(summary, indent=2))
+    return paths
