@@ -106,6 +106,40 @@ def admissible_stretch(seg: Segment, l2, fraction=0.999):
 _JUMP_SOLVER = optx.Newton(rtol=1e-12, atol=1e-12)
 
 
+@jax.custom_jvp
+def _jump_root(seg_a: Segment, seg_b: Segment, r, l1_a, l2):
+    """Root of ``G(x) = Q_b(x, l2) - Q_a(l1_a, l2)`` in the admissible range of ``b``."""
+    target = meridional_force(seg_a, r, l1_a, l2)
+    scale = r * seg_a.t_mm * seg_a.mu_mpa
+    lo, hi = admissible_stretch(seg_b, l2)
+
+    def residual(x, _):
+        return (meridional_force(seg_b, r, x, l2) - target) / scale
+
+    guess = jnp.clip(1.0 + (l1_a - 1.0) * seg_a.mu_mpa / seg_b.mu_mpa, lo, hi)
+    sol = optx.root_find(
+        residual, _JUMP_SOLVER, guess, options=dict(lower=lo, upper=hi), max_steps=60, throw=False
+    )
+    return jnp.clip(sol.value, lo, hi)
+
+
+@_jump_root.defjvp
+def _jump_root_jvp(primals, tangents):
+    # Implicit function theorem for the scalar G(x, inputs) = 0:
+    # dx = -(dG/d inputs . d inputs) / (dG/dx). A scalar division, so no linear solve
+    # (whose tangent solves lineax always checks, aborting a batch on one bad point).
+    seg_a, seg_b, r, l1_a, l2 = primals
+    x = _jump_root(*primals)
+
+    def G(sa, sb, rr, la, ll):
+        return meridional_force(sb, rr, x, ll) - meridional_force(sa, rr, la, ll)
+
+    _, dG = jax.jvp(G, primals, tangents)
+    dGdx = jax.grad(lambda xx: meridional_force(seg_b, r, xx, l2))(x)
+    dx = -dG / dGdx
+    return x, jnp.where(jnp.isfinite(dx), dx, 0.0)
+
+
 def jump_lambda1(seg_a: Segment, seg_b: Segment, r, l1_a, l2, valid=True):
     """``lambda1`` on side ``b`` of an interface at ``r`` that carries the same ``Q``.
 
@@ -114,25 +148,13 @@ def jump_lambda1(seg_a: Segment, seg_b: Segment, r, l1_a, l2, valid=True):
     ``lambda1`` over that whole range (numerator and ``1 / (J_m - I1 + 3)`` both help),
     so the root is unique. Returns ``(lambda1_b, ok)``.
     """
-    # The solve (and its implicit derivative) only ever sees finite, admissible inputs:
-    # lineax aborts the whole batch when a NaN reaches one of its linear solves.
     lo_a, hi_a = admissible_stretch(seg_a, l2)
     finite = valid & jnp.isfinite(l1_a) & jnp.isfinite(l2) & (l2 > 0.05) & (l2 < 20.0)
     finite = finite & (l1_a > lo_a) & (l1_a < hi_a)
     l1_safe = jnp.where(finite, l1_a, 1.5)
     l2_safe = jnp.where(finite, l2, 1.0)
-    target = meridional_force(seg_a, r, l1_safe, l2_safe)
+    value = _jump_root(seg_a, seg_b, r, l1_safe, l2_safe)
     scale = r * seg_a.t_mm * seg_a.mu_mpa
-    lo, hi = admissible_stretch(seg_b, l2_safe)
-
-    def residual(x, _):
-        return (meridional_force(seg_b, r, x, l2_safe) - target) / scale
-
-    guess = jnp.clip(1.0 + (l1_safe - 1.0) * seg_a.mu_mpa / seg_b.mu_mpa, lo, hi)
-    sol = optx.root_find(
-        residual, _JUMP_SOLVER, guess, options=dict(lower=lo, upper=hi), max_steps=60, throw=False
-    )
-    value = jnp.clip(sol.value, lo, hi)
-    ok = finite & (sol.result == optx.RESULTS.successful)
-    ok = ok & (jnp.abs(residual(value, None)) < 1e-9)
+    mismatch = meridional_force(seg_b, r, value, l2_safe) - meridional_force(seg_a, r, l1_safe, l2_safe)
+    ok = finite & (jnp.abs(mismatch) < 1e-9 * scale)
     return value, ok

@@ -29,8 +29,9 @@ from mfdesign.physics.params import SimParams
 
 RTOL_ODE = 1e-9
 ATOL_ODE = 1e-10
-SHOOTING_SOLVER = optx.Newton(rtol=1e-10, atol=1e-11)
-SHOOTING_MAX_STEPS = 40
+SHOOTING_SOLVER = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-11)
+SHOOTING_MAX_STEPS = 25
+MAX_ODE_STEPS = 1024
 FAILED_RESIDUAL = 1e3
 
 
@@ -102,6 +103,20 @@ def segments(geom: Geometry, params: SimParams) -> Segments:
     return Segments(seg=seg, bounds=bounds)
 
 
+def _nonphysical(t, y, args, **kwargs):
+    """Stop integrating once the state has left the physical region (a diffrax event):
+    a state past the Gent limit has no energy, and integrating on would only shrink the
+    step until ``max_steps``, holding up every point of a vmapped batch."""
+    seg, _ = args
+    l1, l2 = y[0], y[1]
+    locking = seg.locking(l1, l2)
+    bad = (locking > 0.9995) | (l1 < 0.2) | (l2 < 0.05) | (l2 > 20.0)
+    return bad | ~jnp.all(jnp.isfinite(y))
+
+
+_EVENT = dfx.Event(_nonphysical)
+
+
 def integrate(segs: Segments, p_mpa, y0, save_per_segment: int = 0):
     """Integrate ``(lambda1, lambda2, phi, Z)`` from the disk to the clamp.
 
@@ -136,7 +151,8 @@ def integrate(segs: Segments, p_mpa, y0, save_per_segment: int = 0):
             saveat=saveat,
             stepsize_controller=dfx.PIDController(rtol=RTOL_ODE, atol=ATOL_ODE),
             adjoint=dfx.ForwardMode(),
-            max_steps=4096,
+            event=_EVENT,
+            max_steps=MAX_ODE_STEPS,
             throw=False,
         )
         ok = ok & ok_jump & (sol.result == dfx.RESULTS.successful)
@@ -176,7 +192,7 @@ def force_residual(x, args):
 def solve_force(x0, geom: Geometry, params: SimParams, h_mm, p_mpa):
     """Newton from ``x0``. Returns ``(x, converged, det_jacobian)``."""
     args = (geom, params, h_mm, p_mpa)
-    sol = optx.root_find(
+    sol = optx.least_squares(
         force_residual, SHOOTING_SOLVER, x0, args, max_steps=SHOOTING_MAX_STEPS, throw=False
     )
     x = sol.value

@@ -42,13 +42,17 @@ class SimResult(eqx.Module):
     ``force_n`` [N] (0 for ``NO_CONTACT``, NaN where ``status`` is not usable),
     ``status`` (int codes of :class:`Status`), ``max_locking`` (``(I1 - 3) / J_m`` at
     the most stretched point: 1 is the Gent limit, a burst indicator), ``max_rise_mm``
-    (how far the membrane rises above the plate beside the disk).
+    (how far the membrane rises above the plate beside the disk: the model has no
+    contact beyond the disk, so large values flag where it is least trustworthy) and
+    ``wrinkled`` (a principal stress is compressive somewhere: real membranes wrinkle
+    there, which membrane theory ignores; the force is kept, flagged).
     """
 
     force_n: np.ndarray
     status: np.ndarray
     max_locking: np.ndarray
     max_rise_mm: np.ndarray
+    wrinkled: np.ndarray
 
     @property
     def ok(self) -> np.ndarray:
@@ -60,34 +64,63 @@ class SimResult(eqx.Module):
 
 
 def _step(carry, p_mpa, geom, params, h):
-    """One continuation step at fixed ``h``: warm start from the last solution; until the
-    path has one, start from the string model (one solve per step either way: under
-    ``vmap`` both branches of a conditional would run)."""
-    x_prev, have, det0, passed = carry
-    guess = jnp.where(have, x_prev, sh.string_guess(geom, params, h, p_mpa))
-    x, conv, det = sh.solve_force(guess, geom, params, h, p_mpa)
+    """One continuation step at fixed ``h``.
+
+    Predictor: secant extrapolation from the last two solutions (the last one alone
+    after the first success). Corrector: Levenberg-Marquardt. When the predicted start
+    fails, the string-model guess is tried (under ``vmap`` both run anyway); the
+    determinant-sign check below still catches a jump to another branch.
+    """
+    x1, p1, x2, p2, n_have, det0, passed = carry
+    slope = jnp.where(n_have >= 2, (x1 - x2) / jnp.where(p1 != p2, p1 - p2, 1.0), 0.0)
+    predicted = x1 + slope * (p_mpa - p1)
+    cold = sh.string_guess(geom, params, h, p_mpa)
+    x_w, conv_w, det_w = sh.solve_force(jnp.where(n_have > 0, predicted, cold), geom, params, h, p_mpa)
+    x_c, conv_c, det_c = sh.solve_force(cold, geom, params, h, p_mpa)
+    use_cold = ~conv_w & conv_c
+    x = jnp.where(use_cold, x_c, x_w)
+    conv = conv_w | conv_c
+    det = jnp.where(use_cold, det_c, det_w)
+    have = n_have > 0
     det0 = jnp.where(have, det0, det)
     fold = conv & have & (jnp.sign(det) != jnp.sign(det0))
     passed = passed | fold
-    carry = (jnp.where(conv, x, x_prev), have | conv, det0, passed)
+    carry = (
+        jnp.where(conv, x, x1),
+        jnp.where(conv, p_mpa, p1),
+        jnp.where(conv, x1, x2),
+        jnp.where(conv, p1, p2),
+        n_have + conv.astype(int),
+        det0,
+        passed,
+    )
     return carry, (x, conv, passed)
 
 
 def _path(geom, params, h, p_path_mpa):
     """Continuation along an increasing pressure path at fixed height."""
-    init = (jnp.zeros(2), jnp.asarray(False), jnp.asarray(1.0), jnp.asarray(False))
+    z = jnp.zeros(2)
+    init = (z, jnp.asarray(0.0), z, jnp.asarray(0.0), jnp.asarray(0), jnp.asarray(1.0), jnp.asarray(False))
     _, (xs, conv, passed) = jax.lax.scan(
         lambda c, p: _step(c, p, geom, params, h), init, p_path_mpa
     )
     return xs, conv, passed
 
 
-def _point_outputs(x, conv, passed, geom, params, h, p_mpa):
-    """Force and checks at one converged (or not) point."""
+def _last_good(xs, conv, path):
+    """The last converged solution on a path and its pressure (the end when it converged):
+    checks of a failed point (e.g. how close to the Gent limit) use the last good state."""
+    idx = jnp.max(jnp.where(conv, jnp.arange(conv.shape[0]), 0))
+    idx = jnp.where(conv[-1], conv.shape[0] - 1, idx)
+    return xs[idx], path[idx]
+
+
+def _point_outputs(x, geom, params, h, p_at, p_mpa):
+    """Force at ``p_mpa`` and the stress checks of the state ``x`` solved at ``p_at``."""
     segs = sh.segments(geom, params)
     force = sh.disk_force(segs, p_mpa, 1.0 + jnp.exp(x[0]), x[1])
-    x_safe = jnp.where(conv, x, jnp.array([-1.0, 0.0]))
-    _, y, w1, w2, locking, ok_prof = sh.profile(x_safe, geom, params, h, p_mpa, n_save=24)
+    x_safe = jnp.where(jnp.all(jnp.isfinite(x)), x, jnp.array([-1.0, 0.0]))
+    _, y, w1, w2, locking, ok_prof = sh.profile(x_safe, geom, params, h, p_at, n_save=24)
     wrinkled = (jnp.min(w1) < -WRINKLE_TOL) | (jnp.min(w2) < -WRINKLE_TOL)
     rise = jnp.max(y[:, 3]) - h
     return force, wrinkled, jnp.max(locking), rise, ok_prof
@@ -100,7 +133,8 @@ def _points_kernel(geom, params, h, p_mpa, n_steps: int):
     def one(hh, pp):
         path = pp * jnp.arange(1, n_steps + 1) / n_steps
         xs, conv, passed = _path(geom, params, hh, path)
-        out = _point_outputs(xs[-1], conv[-1], passed[-1], geom, params, hh, pp)
+        x, p_at = _last_good(xs, conv, path)
+        out = _point_outputs(x, geom, params, hh, p_at, pp)
         return (conv[-1], passed[-1]) + out
 
     return jax.vmap(one)(h, p_mpa)
@@ -112,10 +146,14 @@ def _plane_kernel(geom, params, h_grid, p_path_mpa, report_idx):
 
     def one_h(hh):
         xs, conv, passed = _path(geom, params, hh, p_path_mpa)
-        xs, conv, passed = xs[report_idx], conv[report_idx], passed[report_idx]
+        # Failed points are checked at the last converged state before them.
+        idx = jnp.arange(conv.shape[0])
+        last = jax.lax.cummax(jnp.where(conv, idx, 0))
+        x_chk, p_chk = xs[last][report_idx], p_path_mpa[last][report_idx]
+        conv, passed = conv[report_idx], passed[report_idx]
         p_rep = p_path_mpa[report_idx]
-        out = jax.vmap(lambda x, c, f, pp: _point_outputs(x, c, f, geom, params, hh, pp))(
-            xs, conv, passed, p_rep
+        out = jax.vmap(lambda x, pa, pp: _point_outputs(x, geom, params, hh, pa, pp))(
+            x_chk, p_chk, p_rep
         )
         return (conv, passed) + out
 
@@ -126,13 +164,14 @@ def _classify(h, p, conv, passed, force, wrinkled, locking, rise, ok_prof) -> Si
     h, p = np.broadcast_arrays(np.asarray(h, float), np.asarray(p, float))
     conv, passed, wrinkled, ok_prof = (np.asarray(a, bool) for a in (conv, passed, wrinkled, ok_prof))
     force = np.asarray(force, float).copy()
+    locking = np.asarray(locking, float)
     status = np.full(h.shape, int(Status.OK), dtype=np.int8)
     status[~conv] = Status.NOT_CONVERGED
+    # The last converged state before the failure was close to locking: the membrane
+    # runs into the Gent limit (it would burst) rather than the solver failing.
+    status[~conv & (locking > 0.9)] = Status.EXTENSION_LIMIT
     status[conv & ~ok_prof] = Status.ODE_FAILURE
-    status[conv & wrinkled] = Status.WRINKLED
     status[passed] = Status.LIMIT_POINT
-    near_lock = np.asarray(locking) > 0.98
-    status[~conv & near_lock] = Status.EXTENSION_LIMIT
     usable = status == Status.OK
     no_contact = usable & (force < 0)
     status[no_contact] = Status.NO_CONTACT
@@ -144,9 +183,14 @@ def _classify(h, p, conv, passed, force, wrinkled, locking, rise, ok_prof) -> Si
     bad = ~np.isfinite(h) | ~np.isfinite(p) | (h < 0) | (p < 0)
     status[bad] = Status.INVALID_INPUT
     force[bad] = np.nan
-    locking = np.where(conv, np.asarray(locking, float), np.nan)
-    rise = np.where(conv, np.asarray(rise, float), np.nan)
-    return SimResult(force_n=force, status=status, max_locking=locking, max_rise_mm=rise)
+    converged = usable & ~zero_p
+    return SimResult(
+        force_n=force,
+        status=status,
+        max_locking=np.where(conv | ~converged, locking, np.nan),
+        max_rise_mm=np.where(converged, np.asarray(rise, float), np.nan),
+        wrinkled=converged & wrinkled,
+    )
 
 
 def _sanitize(h, p):
@@ -174,7 +218,7 @@ def force_at(
     hs, ps = _sanitize(h.ravel(), p.ravel())
     if hs.size == 0:
         empty = np.zeros(shape_)
-        return SimResult(empty, empty.astype(np.int8), empty, empty)
+        return SimResult(empty, empty.astype(np.int8), empty, empty, empty.astype(bool))
     geom = sh.geometry_of(design)
     out = _points_kernel(geom, params, jnp.asarray(hs), jnp.asarray(ps) * PA_TO_MPA, path_steps)
     res = _classify(h.ravel(), p.ravel(), *[np.asarray(o) for o in out])
@@ -341,13 +385,15 @@ def _a_guess(design, params, h, p):
 
 class Shape(eqx.Module):
     """Deformed meridian of one solution: reference radius ``r_mm`` -> ``R_mm``, ``Z_mm``,
-    stretches, and the principal tensions per unit deformed length [N/mm]."""
+    stretches, the meridian's angle above the horizontal ``phi_rad`` and the principal
+    tensions per unit deformed length [N/mm]."""
 
     r_mm: np.ndarray
     R_mm: np.ndarray
     Z_mm: np.ndarray
     lambda1: np.ndarray
     lambda2: np.ndarray
+    phi_rad: np.ndarray
     tension1_n_per_mm: np.ndarray
     tension2_n_per_mm: np.ndarray
     force_n: float
@@ -359,8 +405,7 @@ def shape(design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimPar
     res = force_at(design, np.array([h_mm]), np.array([p_pa]), params)
     geom = sh.geometry_of(design)
     p_mpa = float(p_pa) * PA_TO_MPA
-    a = _a_guess(design, params, np.array([h_mm]), np.array([p_pa]))
-    x = _solve_x(geom, params, float(h_mm), p_mpa, float(a[0]))
+    x = np.asarray(_solve_x_kernel(geom, params, jnp.asarray(float(h_mm)), jnp.asarray(p_mpa)))
     r, y, w1, w2, _, _ = sh.profile(jnp.asarray(x), geom, params, h_mm, p_mpa, n_save=n_per_segment)
     segs = sh.segments(geom, params)
     n = segs.bounds.shape[0] - 1
@@ -372,6 +417,7 @@ def shape(design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimPar
         Z_mm=y[:, 3],
         lambda1=y[:, 0],
         lambda2=y[:, 1],
+        phi_rad=y[:, 2],
         tension1_n_per_mm=t * w1 / y[:, 1],
         tension2_n_per_mm=t * w2 / y[:, 0],
         force_n=float(res.force_n[0]),
@@ -385,6 +431,3 @@ def _solve_x_kernel(geom, params, h, p_mpa):
     xs, conv, _ = _path(geom, params, h, path)
     return xs[-1]
 
-
-def _solve_x(geom, params, h, p_mpa, _a):
-    return np.asarray(_solve_x_kernel(geom, params, jnp.asarray(h), jnp.asarray(p_mpa)))

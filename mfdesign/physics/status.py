@@ -18,7 +18,6 @@ class Status(enum.IntEnum):
     EXTENSION_LIMIT = 3  # the Gent chains lock (I1 - 3 -> J_m): the membrane bursts first
     LIMIT_POINT = 4  # past a pressure limit point at this height (snap-through)
     ODE_FAILURE = 5  # the ODE could not be integrated (non-physical state)
-    WRINKLED = 6  # compressive stress: membrane theory does not hold
     INVALID_INPUT = 7  # negative or non-finite height or pressure
     NOT_LIFTED = 8  # mass-lift: the membrane's force at h = 0 is below the load, h = 0
     SNAP_THROUGH = 9  # mass-lift: the quasi-static branch jumped over a fold to reach h
@@ -35,7 +34,6 @@ _REASONS = {
     Status.EXTENSION_LIMIT: "Gent extension limit reached (the membrane would burst)",
     Status.LIMIT_POINT: "beyond a pressure limit point at this height (snap-through)",
     Status.ODE_FAILURE: "the equilibrium ODE could not be integrated",
-    Status.WRINKLED: "compressive stress: the membrane wrinkles, membrane theory fails",
     Status.INVALID_INPUT: "height and pressure must be finite and >= 0",
     Status.NOT_LIFTED: "the membrane cannot lift the load at this pressure: h = 0",
     Status.SNAP_THROUGH: "reached by snap-through over a fold of the p-h curve",

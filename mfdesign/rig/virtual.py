@@ -1,0 +1,547 @@
+"""A virtual rig: the paper's protocol run on the simulator, with hidden effects and sensor noise.
+
+Truth = simulator (mechanical effects applied through ``SimParams``) -> measurement-chain
+effects (:mod:`mfdesign.physics.effects`) -> sensor noise and quantisation. The output is
+a :class:`~mfdesign.data.measurements.Measurements` table with ``source = "virtual"``,
+shaped like the real data.
+
+Protocol (the paper's, see ``docs/rig.md``); every number is a field of :class:`Protocol`:
+
+* **force characterisation**: plate held at 0, 10, ..., 70 mm, 3 trials per height (order:
+  heights ascending, the 3 repeats back to back). The pressure ramps from 0 at
+  ``ramp_pa_per_s`` (100 Pa/s) and the rig samples at ``sample_hz`` (10 Hz). Ringed
+  membranes go to 4.3 kPa; when no trial burst the membrane, the whole programme runs
+  again to 6.1 kPa. Ringless membranes inflate "until contact with the rig": the membrane
+  beside the disk bulges above the plate and touches the plate's holder when it rises
+  ``ringless_contact_rise_mm`` (20 mm, our choice: it makes the largest ringless forces
+  ~100 N, as in the paper) above the plate; capped at ``ringless_limit_pa`` (10 kPa, the
+  rig's cap).
+* **mass lift**: 1.5, 2.5 and 4.0 kg on the free plate (load ``m * 9.81`` N), 2 trials per
+  mass (as in the real file), inflation from 0 to ``lift_limit_pa`` (10 kPa) or until the
+  plate reaches ``lift_height_max_mm`` (75 mm). Along the ramp the plate sits on the
+  branch reached by quasi-static inflation from ``h = 0``: at each pressure, the first
+  height where the force at fixed height falls to the load (as ``solve.height_at``).
+* **deflation** (``deflate=True``; off by default): back down to 0 at the same rate.
+* **bursts**: each membrane draws a burst threshold of the Gent locking measure
+  ``(I1 - 3) / J_m`` (normal, ``burst_locking_mean`` +- ``burst_locking_sd``); the first
+  sample beyond it bursts the membrane: that trial is dropped (as in the paper), the burst
+  is logged in :attr:`VirtualRig.events`, and the membrane takes no further trials.
+
+Efficiency: per membrane and distinct ``SimParams`` the simulator runs once, one
+:func:`~mfdesign.physics.solve.force_plane` on (heights x pressures): the set heights and
+a lift grid (0-80 mm every ``height_step_mm``) x ``pressure_step_pa`` up to the highest
+pressure of the programme. Samples interpolate linearly in pressure (and in height for the
+lift crossing). Samples where the simulator has no usable value (not converged, past a
+limit point) are omitted and counted in the trial's event. Planes can be memoised on
+disk (``cache_dir``), keyed by design, SimParams, grids and a hash of the simulator's
+source, so a rerun after a simulator change never reads a stale plane.
+
+Reproducibility: every (membrane, experiment) draws from its own generator seeded by
+``(seed, crc32(design key), crc32(experiment))``, so a membrane's data do not depend on
+which other membranes run or in what order; the same seed gives the same table, bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+from mfdesign.data.measurements import COLUMNS, Measurements
+from mfdesign.design import Membrane
+from mfdesign.physics import effects as fx
+from mfdesign.physics.params import SimParams
+from mfdesign.physics.status import Status
+
+log = logging.getLogger(__name__)
+
+__all__ = ["G", "Noise", "Protocol", "TruthPlane", "VirtualRig", "analytic_plane", "simulator_fingerprint"]
+
+G = 9.81  # m/s^2 (the real file: 1.5 kg -> 14.715 N)
+PSI_PA = 6894.757293168  # the real pressure sensor reads in steps of 1e-4 psi
+
+
+@dataclass(frozen=True)
+class Noise:
+    """Sensor noise (Gaussian standard deviations) and quantisation steps; 0 switches off."""
+
+    force_sd_n: float = 0.2
+    pressure_sd_pa: float = 10.0
+    height_sd_mm: float = 0.3
+    force_step_n: float = 0.01  # load-cell resolution
+    pressure_step_pa: float = 1e-4 * PSI_PA  # 0.69 Pa, as in the real mass-lift file
+    height_step_mm: float = 1.0  # time-of-flight sensors read whole millimetres
+
+    @classmethod
+    def none(cls) -> "Noise":
+        return cls(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """The experiment programme and the rig's sampling (mm, Pa, s, kg)."""
+
+    heights_mm: tuple[float, ...] = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0)
+    trials_per_height: int = 3
+    ringed_limits_pa: tuple[float, ...] = (4300.0, 6100.0)
+    ringless_limit_pa: float = 10000.0
+    ringless_contact_rise_mm: float = 20.0
+    ramp_pa_per_s: float = 100.0
+    sample_hz: float = 10.0
+    deflate: bool = False
+    lift_masses_kg: tuple[float, ...] = (1.5, 2.5, 4.0)
+    lift_trials: int = 2
+    lift_limit_pa: float = 10000.0
+    lift_height_max_mm: float = 75.0
+    height_step_mm: float = 10.0  # lift height grid of the simulator plane (0 .. lift max + step)
+    pressure_step_pa: float = 250.0  # pressure grid of the simulator plane
+    burst_locking_mean: float = 0.92
+    burst_locking_sd: float = 0.03
+
+    def __post_init__(self):
+        if self.ramp_pa_per_s <= 0 or self.sample_hz <= 0:
+            raise ValueError("ramp_pa_per_s and sample_hz must be positive")
+        if self.pressure_step_pa <= 0 or self.height_step_mm <= 0:
+            raise ValueError("grid steps must be positive")
+        if min(self.heights_mm, default=0.0) < 0:
+            raise ValueError("plate heights must be >= 0 mm")
+
+    def force_limits(self, design: Membrane) -> tuple[float, ...]:
+        return tuple(self.ringed_limits_pa) if design.n_rings else (self.ringless_limit_pa,)
+
+    def grids(self, design: Membrane) -> tuple[np.ndarray, np.ndarray]:
+        """(heights, pressures) of the one simulator plane a membrane needs."""
+        p_top = max(max(self.force_limits(design)), self.lift_limit_pa)
+        n = int(np.ceil(p_top / self.pressure_step_pa - 1e-9))
+        p_grid = self.pressure_step_pa * np.arange(1, n + 1)
+        top = self.lift_height_max_mm + self.height_step_mm
+        hs = {float(h) for h in self.heights_mm}
+        hs |= {float(h) for h in np.arange(0.0, top + 1e-9, self.height_step_mm)}
+        return np.array(sorted(hs)), p_grid
+
+
+# -- truth on a grid -----------------------------------------------------------------------
+@dataclass
+class TruthPlane:
+    """Simulator output on ``h_grid x p_grid``; ``p_grid[0] = 0`` (no pressure, no force)."""
+
+    h_grid: np.ndarray
+    p_grid: np.ndarray
+    force_n: np.ndarray
+    locking: np.ndarray
+    rise_mm: np.ndarray
+    status: np.ndarray
+
+    def __post_init__(self):
+        self.dF_dh = (np.gradient(self.force_n, self.h_grid, axis=0) if len(self.h_grid) > 1
+                      else np.zeros_like(self.force_n))
+
+    def row(self, h: float) -> int:
+        i = int(np.argmin(np.abs(self.h_grid - h)))
+        if abs(self.h_grid[i] - h) > 1e-9:
+            raise ValueError(f"height {h} mm is not on the plane's grid {self.h_grid}")
+        return i
+
+    def _pj(self, p):
+        j = np.clip(np.searchsorted(self.p_grid, p, side="right") - 1, 0, len(self.p_grid) - 2)
+        u = (p - self.p_grid[j]) / (self.p_grid[j + 1] - self.p_grid[j])
+        return j, u
+
+    def along_p(self, values: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Linear interpolation in pressure of one row (a NaN neighbour gives NaN)."""
+        j, u = self._pj(p)
+        return (1.0 - u) * values[..., j] + u * values[..., j + 1]
+
+    def at(self, values: np.ndarray, h: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Bilinear interpolation at points ``(h, p)`` (NaN where h is NaN)."""
+        hg = self.h_grid
+        hh = np.where(np.isfinite(h), h, hg[0])
+        i = np.clip(np.searchsorted(hg, hh, side="right") - 1, 0, len(hg) - 2)
+        w = (hh - hg[i]) / (hg[i + 1] - hg[i])
+        j, u = self._pj(p)
+        v = ((1 - w) * (1 - u) * values[i, j] + w * (1 - u) * values[i + 1, j]
+             + (1 - w) * u * values[i, j + 1] + w * u * values[i + 1, j + 1])
+        return np.where(np.isfinite(h), v, np.nan)
+
+    def lift_height(self, load_n: float) -> np.ndarray:
+        """Plate height at each grid pressure under ``load_n``: the first crossing of
+        ``F(h, p) = load`` going up from ``h = 0``, linear in h between grid heights.
+
+        Heights where the simulator has no value at this pressure are skipped (the crossing
+        is interpolated across them). ``0`` where the lowest height cannot carry the load
+        (not lifted); the top of the grid where every height carries it (the plate flies up
+        to the rig's top: a snap-through); NaN where the lowest usable height is not 0 and
+        already below the load (unknown).
+        """
+        F, hg = self.force_n, self.h_grid
+        out = np.full(F.shape[1], np.nan)
+        for j in range(F.shape[1]):
+            col = F[:, j]
+            rows = np.nonzero(np.isfinite(col))[0]
+            if rows.size == 0:
+                continue
+            f0 = rows[0]
+            if col[f0] < load_n:
+                if f0 == 0:
+                    out[j] = 0.0  # not lifted
+                continue
+            cand = rows[col[rows] < load_n]
+            if cand.size == 0:
+                if rows[-1] == len(hg) - 1:
+                    out[j] = hg[-1]  # carries the load everywhere: up to the top
+                continue
+            b = cand[0]
+            a = rows[rows < b][-1]
+            w = (col[a] - load_n) / (col[a] - col[b])
+            out[j] = hg[a] + w * (hg[b] - hg[a])
+        return out
+
+    # -- storage -------------------------------------------------------------------------
+    def to_npz(self, path: Path) -> None:
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez(tmp, h_grid=self.h_grid, p_grid=self.p_grid, force_n=self.force_n,
+                 locking=self.locking, rise_mm=self.rise_mm, status=self.status)
+        os.replace(tmp, path)
+
+    @classmethod
+    def from_npz(cls, path: Path) -> "TruthPlane":
+        with np.load(path) as z:
+            return cls(**{k: z[k] for k in ("h_grid", "p_grid", "force_n", "locking", "rise_mm", "status")})
+
+
+def _force_plane(design, h_grid, p_grid, params):
+    """``force_plane``; if the simulator raises (it should return statuses, but a solver
+    error inside JIT can escape), retry height by height and mark the failing heights
+    ``NOT_CONVERGED`` (NaN) instead of losing the whole membrane."""
+    from types import SimpleNamespace
+
+    from mfdesign.physics.solve import force_plane
+
+    try:
+        return force_plane(design, h_grid, p_grid, params)
+    except Exception as err:  # noqa: BLE001 -- any solver failure: degrade to per-height
+        log.warning("force_plane failed for %s (%s: %s); retrying height by height",
+                    design.key(), type(err).__name__, str(err).splitlines()[0] if str(err) else "")
+    shape = (len(h_grid), len(p_grid))
+    out = SimpleNamespace(force_n=np.full(shape, np.nan), status=np.full(shape, int(Status.NOT_CONVERGED), np.int8),
+                          max_locking=np.full(shape, np.nan), max_rise_mm=np.full(shape, np.nan))
+    for i, h in enumerate(h_grid):
+        try:
+            r = force_plane(design, [h], p_grid, params)
+        except Exception as err:  # noqa: BLE001
+            log.warning("force_plane failed for %s at h = %g mm: %s", design.key(), h, type(err).__name__)
+            continue
+        out.force_n[i], out.status[i] = r.force_n[0], r.status[0]
+        out.max_locking[i], out.max_rise_mm[i] = r.max_locking[0], r.max_rise_mm[0]
+    return out
+
+
+def analytic_plane(design: Membrane, h_grid, p_grid, params: SimParams = SimParams()):
+    """A cheap analytic stand-in for ``force_plane`` (tests, tutorials): same outputs, no physics.
+
+    ``F = max(0, k (p - p_contact(h)))`` with ``k`` proportional to the disk area and
+    ``p_contact`` growing with h and with the membrane's stiffness ``mu t``; locking and
+    rise grow with pressure. Shaped like the real planes, but only a stand-in.
+    """
+    from types import SimpleNamespace
+
+    H, P = np.meshgrid(np.asarray(h_grid, float), np.asarray(p_grid, float), indexing="ij")
+    stiff = float(params.mu_pa) * design.thickness_mm * float(params.thickness_factor) / 31.7e3
+    r_eff = design.contact_radius_mm + float(params.contact_offset_mm)
+    p_contact = 40.0 * stiff * H * (1.0 + 0.4 * design.n_rings)
+    force = np.maximum(0.0, np.pi * (r_eff * 1e-3) ** 2 * 1.6 * (P - p_contact))
+    status = np.where(force > 0, int(Status.OK), int(Status.NO_CONTACT)).astype(np.int8)
+    locking = 0.9 * (P / 8000.0) ** 1.5 / stiff ** 0.5 * (1.0 + 0.15 * design.n_rings)
+    rise = P / 250.0 - H / 2.0
+    return SimpleNamespace(force_n=force, status=status, max_locking=locking, max_rise_mm=rise)
+
+
+def simulator_fingerprint() -> str:
+    """Hash of the simulator's source files: part of every plane-cache key."""
+    root = Path(__file__).resolve().parents[1] / "physics"
+    h = hashlib.sha256()
+    for name in ("solve.py", "shooting.py", "membrane.py", "params.py", "../materials.py", "../design.py"):
+        f = (root / name).resolve()
+        if f.is_file():
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _params_dict(params: SimParams) -> dict:
+    return {f.name: float(getattr(params, f.name)) for f in dataclasses.fields(params)}
+
+
+def _quantise(x: np.ndarray, step: float) -> np.ndarray:
+    return np.round(x / step) * step + 0.0 if step > 0 else x + 0.0
+
+
+# -- the rig ---------------------------------------------------------------------------------
+class VirtualRig:
+    """The paper's rig in software: :meth:`characterise`, :meth:`mass_lift`, :meth:`run`.
+
+    ``effects``: hidden truth effects (registered names or instances); ``theta``: their
+    parameters (flat ``{"effect.param": value}`` or nested; missing = neutral);
+    ``membrane_theta``: per-design overrides ``{design key: theta}`` (e.g. each membrane's
+    own thickness deviation); ``base_params``: the simulator constants of the truth;
+    ``simulator``: ``(design, h_grid, p_grid, params) -> SimResult`` (default
+    :func:`~mfdesign.physics.solve.force_plane`; tests plug in a cheap analytic one);
+    ``cache_dir``: optional folder memoising simulator planes.
+    """
+
+    def __init__(
+        self,
+        effects: Iterable[str | fx.Effect] = (),
+        theta: Mapping[str, Any] | None = None,
+        seed: int = 0,
+        noise: Noise = Noise(),
+        protocol: Protocol = Protocol(),
+        base_params: SimParams = SimParams(),
+        membrane_theta: Mapping[str, Mapping[str, Any]] | None = None,
+        simulator: Callable | None = None,
+        cache_dir: str | os.PathLike | None = None,
+    ):
+        self.effects = [fx.effect(e) for e in effects]
+        self.theta = dict(theta or {})
+        fx.split_theta(self.effects, self.theta)  # fail now on a typo, not mid-run
+        self.membrane_theta = {Membrane.from_key(k).key(): dict(v) for k, v in (membrane_theta or {}).items()}
+        for v in self.membrane_theta.values():
+            fx.split_theta(self.effects, v)
+        self.seed = int(seed)
+        self.noise = noise
+        self.protocol = protocol
+        self.base_params = base_params
+        self.simulator = simulator or _force_plane
+        self.cache_dir = Path(cache_dir) if cache_dir is not None else None
+        self.events: list[dict] = []
+        self._planes: dict[str, TruthPlane] = {}
+
+    # -- truth -------------------------------------------------------------------------------
+    def _theta(self, design: Membrane) -> dict:
+        theta = dict(self.theta)
+        theta.update(self.membrane_theta.get(design.key(), {}))
+        return theta
+
+    def sim_params(self, design: Membrane, experiment: str = "force", trial_index: int = 0) -> SimParams:
+        """The truth's simulator inputs for one trial (mechanical effects applied)."""
+        ctx = fx.Context(experiment=experiment, trial_index=trial_index, design=design)
+        return fx.apply_sim_params(self.effects, self._theta(design), self.base_params, ctx)
+
+    def truth_plane(self, design: Membrane, params: SimParams | None = None) -> TruthPlane:
+        """The simulator plane of a membrane under ``params`` (memoised, optionally on disk)."""
+        params = self.sim_params(design) if params is None else params
+        h_grid, p_grid = self.protocol.grids(design)
+        ident = json.dumps({
+            "design": design.key(), "params": _params_dict(params), "h": h_grid.tolist(),
+            "p": p_grid.tolist(), "format": 2,
+            "sim": simulator_fingerprint() if self.simulator is _force_plane else repr(self.simulator),
+        }, sort_keys=True)
+        key = hashlib.sha256(ident.encode()).hexdigest()[:24]
+        if key in self._planes:
+            return self._planes[key]
+        path = self.cache_dir / f"plane_{key}.npz" if self.cache_dir is not None else None
+        if path is not None and path.is_file():
+            plane = TruthPlane.from_npz(path)
+        else:
+            res = self.simulator(design, h_grid, p_grid, params)
+            zero = np.zeros((len(h_grid), 1))
+            plane = TruthPlane(
+                h_grid=h_grid,
+                p_grid=np.concatenate([[0.0], p_grid]),
+                force_n=np.concatenate([zero, np.asarray(res.force_n, float)], axis=1),
+                locking=np.concatenate([zero, np.asarray(res.max_locking, float)], axis=1),
+                rise_mm=np.concatenate([zero, np.asarray(res.max_rise_mm, float)], axis=1),
+                status=np.concatenate([zero.astype(np.int8) + int(Status.NO_CONTACT),
+                                       np.asarray(res.status, np.int8)], axis=1),
+            )
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                plane.to_npz(path)
+        self._planes[key] = plane
+        return plane
+
+    # -- sampling ----------------------------------------------------------------------------
+    def _rng(self, design: Membrane, experiment: str) -> np.random.Generator:
+        words = [self.seed, zlib.crc32(design.key().encode()), zlib.crc32(experiment.encode())]
+        return np.random.default_rng(np.random.SeedSequence(words))
+
+    def _ramp(self, p_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(time, true pressure, deflating?) of one inflation (and deflation) to ``p_end``."""
+        pr = self.protocol
+        dt = 1.0 / pr.sample_hz
+        n_up = int(np.floor(p_end / pr.ramp_pa_per_s * pr.sample_hz + 1e-9)) + 1
+        t = np.arange(n_up) * dt
+        p = np.minimum(pr.ramp_pa_per_s * t, p_end)
+        down = np.zeros(n_up, bool)
+        if pr.deflate:
+            td = np.arange(1, n_up) * dt
+            t = np.concatenate([t, t[-1] + td])
+            p = np.concatenate([p, np.maximum(p[-1] - pr.ramp_pa_per_s * td, 0.0)])
+            down = np.concatenate([down, np.ones(len(td), bool)])
+        return t, p, down
+
+    def _observe(self, design, experiment, trial_index, t, h_true, p_true, f_true, down, dF_dh, rng):
+        ctx = fx.Context(experiment=experiment, trial_index=trial_index,
+                         phase=np.where(down, "deflate", "inflate"), time_s=t, dF_dh=dF_dh,
+                         design=design, rng=rng)
+        s = fx.apply_observe(self.effects, self._theta(design), fx.Sample(h_true, p_true, f_true), ctx)
+        nz, n = self.noise, len(t)
+        h = _quantise(s.height_mm + nz.height_sd_mm * rng.standard_normal(n), nz.height_step_mm)
+        p = _quantise(s.pressure_pa + nz.pressure_sd_pa * rng.standard_normal(n), nz.pressure_step_pa)
+        if experiment == "force":
+            f = _quantise(s.force_n + nz.force_sd_n * rng.standard_normal(n), nz.force_step_n)
+        else:
+            f = np.asarray(s.force_n, float)  # the known weight of the mass, not a reading
+        return h, p, f
+
+    @staticmethod
+    def _frame(design, trial, experiment, t, h_set, h, p, f, down) -> pd.DataFrame:
+        n = len(t)
+        return pd.DataFrame({
+            "design_key": design.key(),
+            "trial": np.full(n, trial, dtype=np.int64),
+            "experiment": experiment,
+            "phase": np.where(down, "deflate", "inflate"),
+            "time_s": t,
+            "height_set_mm": np.full(n, h_set, float),
+            "height_mm": h,
+            "pressure_pa": p,
+            "force_n": f,
+            "weight": np.ones(n),
+            "source": "virtual",
+        })
+
+    @staticmethod
+    def _measurements(frames: list[pd.DataFrame]) -> Measurements:
+        if not frames:
+            empty = {c: pd.Series(dtype=float) for c in COLUMNS}
+            for c in ("design_key", "experiment", "phase", "source"):
+                empty[c] = pd.Series(dtype=object)
+            empty["trial"] = pd.Series(dtype=np.int64)
+            return Measurements(pd.DataFrame(empty))
+        return Measurements(pd.concat(frames, ignore_index=True))
+
+    def _threshold(self, design: Membrane) -> float:
+        """The membrane's burst threshold (one per membrane, from its own stream)."""
+        pr = self.protocol
+        return float(pr.burst_locking_mean + pr.burst_locking_sd * self._rng(design, "burst").standard_normal())
+
+    def _burst(self, event, lock, p, threshold) -> bool:
+        over = np.nonzero(lock > threshold)[0]
+        if not over.size:
+            return False
+        event.update(status="burst", burst_pressure_pa=float(p[over[0]]),
+                     burst_locking=float(lock[over[0]]), threshold=threshold)
+        self.events.append(event)
+        log.info("virtual rig: %s burst at %.0f Pa (%s trial %d)", event["design_key"], p[over[0]],
+                 event["experiment"], event["trial"])
+        return True
+
+    # -- experiments -------------------------------------------------------------------------
+    def characterise(self, design: Membrane, first_trial: int = 0) -> Measurements:
+        """The force characterisation of one membrane (see the module doc)."""
+        return self._characterise(design, first_trial)[0]
+
+    def _characterise(self, design: Membrane, first_trial: int = 0):
+        pr = self.protocol
+        rng = self._rng(design, "force")
+        threshold = self._threshold(design)
+        frames, trial = [], first_trial
+        for k, p_limit in enumerate(pr.force_limits(design)):
+            for h_set in pr.heights_mm:
+                for _ in range(pr.trials_per_height):
+                    plane = self.truth_plane(design, self.sim_params(design, "force", trial))
+                    i = plane.row(h_set)
+                    t, p_true, down = self._ramp(p_limit)
+                    end = "pressure_limit"
+                    if not design.n_rings:  # ringless: until contact with the rig
+                        rise = plane.along_p(plane.rise_mm[i], p_true)
+                        hit = np.nonzero(~down & (rise >= pr.ringless_contact_rise_mm))[0]
+                        if hit.size:
+                            end = "contact"
+                            t, p_true, down = self._ramp(float(p_true[hit[0]]))
+                    event = dict(design_key=design.key(), experiment="force", trial=trial,
+                                 height_set_mm=float(h_set), pressure_limit_pa=float(p_limit), pass_index=k)
+                    lock = plane.along_p(plane.locking[i], p_true)
+                    if self._burst(event, lock, p_true, threshold):
+                        return self._measurements(frames), {"next_trial": trial + 1, "burst": True}
+                    f_true = plane.along_p(plane.force_n[i], p_true)
+                    slope = plane.along_p(plane.dF_dh[i], p_true)
+                    h, p, f = self._observe(design, "force", trial, t, np.full(len(t), float(h_set)),
+                                            p_true, f_true, down, slope, rng)
+                    keep = np.isfinite(f)
+                    event.update(status="complete", end_reason=end, n_samples=int(keep.sum()),
+                                 n_omitted=int((~keep).sum()), peak_pa=float(np.max(p_true)))
+                    self.events.append(event)
+                    if keep.any():
+                        frames.append(self._frame(design, trial, "force", t[keep], h_set, h[keep],
+                                                  p[keep], f[keep], down[keep]))
+                    trial += 1
+        return self._measurements(frames), {"next_trial": trial, "burst": False}
+
+    def mass_lift(self, design: Membrane, mass_kg: float | Sequence[float] | None = None,
+                  first_trial: int = 0) -> Measurements:
+        """Mass-lift trials, ``lift_trials`` per mass (default masses: the protocol's)."""
+        return self._mass_lift(design, mass_kg, first_trial)[0]
+
+    def _mass_lift(self, design: Membrane, mass_kg=None, first_trial: int = 0):
+        pr = self.protocol
+        masses = pr.lift_masses_kg if mass_kg is None else [float(m) for m in np.atleast_1d(mass_kg)]
+        rng = self._rng(design, "lift")
+        threshold = self._threshold(design)
+        frames, trial = [], first_trial
+        for mass in masses:
+            load = float(mass) * G
+            for _ in range(pr.lift_trials):
+                plane = self.truth_plane(design, self.sim_params(design, "lift", trial))
+                h_star = plane.lift_height(load)
+                t, p_true, down = self._ramp(pr.lift_limit_pa)
+                h_true = plane.along_p(h_star, p_true)
+                end = "pressure_limit"
+                top = np.nonzero(~down & (h_true >= pr.lift_height_max_mm))[0]
+                if top.size:  # the plate reached the top of the rig
+                    end = "height_limit"
+                    t, p_true, down = self._ramp(float(p_true[top[0]]))
+                    h_true = np.minimum(plane.along_p(h_star, p_true), pr.lift_height_max_mm)
+                event = dict(design_key=design.key(), experiment="lift", trial=trial, mass_kg=float(mass))
+                lock = plane.at(plane.locking, h_true, p_true)
+                if self._burst(event, lock, p_true, threshold):
+                    return self._measurements(frames), {"next_trial": trial + 1, "burst": True}
+                slope = plane.at(plane.dF_dh, h_true, p_true)
+                h, p, f = self._observe(design, "lift", trial, t, h_true, p_true, np.full(len(t), load),
+                                        down, slope, rng)
+                keep = np.isfinite(h) & np.isfinite(p)
+                event.update(status="complete", end_reason=end, n_samples=int(keep.sum()),
+                             n_omitted=int((~keep).sum()), peak_pa=float(np.max(p_true)))
+                self.events.append(event)
+                if keep.any():
+                    frames.append(self._frame(design, trial, "lift", t[keep], np.nan, h[keep], p[keep],
+                                              f[keep], down[keep]))
+                trial += 1
+        return self._measurements(frames), {"next_trial": trial, "burst": False}
+
+    def run(self, designs: Iterable[Membrane], characterise: bool = True, lift: bool = True,
+            progress: bool = True) -> Measurements:
+        """Each membrane: the force characterisation, then (if it did not burst) the mass lifts;
+        trial ids continue across the two, so ``trial`` is the order in the membrane's life."""
+        from tqdm.auto import tqdm
+
+        frames = []
+        for design in tqdm(list(designs), desc="virtual rig", unit="membrane", disable=not progress):
+            nxt, burst = 0, False
+            if characterise:
+                m, info = self._characterise(design, 0)
+                frames.append(m.df)
+                nxt, burst = info["next_trial"], info["burst"]
+            if lift and not burst:
+                frames.append(self._mass_lift(design, None, nxt)[0].df)
+        frames = [f for f in frames if len(f)]
+        return self._measurements(frames)

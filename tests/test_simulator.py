@@ -1,0 +1,88 @@
+"""Verification of the shooting simulator against references that share none of its code.
+
+a. the finite-element energy minimisation (``mfdesign.physics.fe``) of the same membrane;
+b. the exact first integral (vertical equilibrium of everything inside radius r);
+c. free inflation against Hencky's classical solution (see ``tests/hencky.py``);
+d. ``height_at`` inverts ``force_at``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import mfdesign  # noqa: F401  (float64)
+from hencky import hencky
+from mfdesign.design import Membrane
+from mfdesign.physics.fe import fe_force
+from mfdesign.physics.params import SimParams
+from mfdesign.physics.solve import force_at, height_at, shape
+from mfdesign.physics.status import Status
+
+RINGLESS = Membrane.from_key("[2.0, 25.4, nan, nan, nan, nan]")
+TWO_RINGS = Membrane.from_key("[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]")
+H = np.array([10.0, 20.0, 40.0])
+P = np.array([3000.0, 5000.0, 8000.0])
+
+
+@pytest.mark.parametrize("design", [RINGLESS, TWO_RINGS], ids=["ringless", "two-rings"])
+def test_shooting_agrees_with_finite_elements(design):
+    sim = force_at(design, H, P)
+    fe = fe_force(design, H, P, n_elements=400)
+    assert np.all(sim.status == Status.OK), sim.status
+    assert np.all(np.asarray(fe.converged))
+    rel = np.abs(sim.force_n - np.asarray(fe.force_n)) / np.abs(np.asarray(fe.force_n))
+    assert rel.max() < 5e-3, (sim.force_n, fe.force_n)
+
+
+@pytest.mark.parametrize("design", [RINGLESS, TWO_RINGS], ids=["ringless", "two-rings"])
+@pytest.mark.parametrize("h, p", [(20.0, 5000.0), (5.0, 7000.0), (50.0, 4000.0)])
+def test_first_integral_holds_along_the_solution(design, h, p):
+    """2 pi r t W1 sin(phi) + p pi R^2 = F at every r (phi above the horizontal)."""
+    s = shape(design, h, p)
+    assert s.status == Status.OK
+    # 2 pi r t W1 = 2 pi R T1 with T1 = t W1 / lambda2 the tension per deformed length.
+    lhs = 2 * np.pi * s.R_mm * s.tension1_n_per_mm * np.sin(s.phi_rad) + p * 1e-6 * np.pi * s.R_mm**2
+    assert np.max(np.abs(lhs - s.force_n)) <= 1e-6 * max(abs(s.force_n), p * 1e-6 * np.pi * 70.0**2)
+
+
+def test_free_inflation_matches_hencky():
+    """Small-strain limit: a neo-Hookean membrane (E = 3 mu, nu = 1/2) under pressure q,
+    no plate: centre deflection w0 = K a (q a / (E t))^(1/3) with Hencky's K(1/2)
+    (Hencky 1915; constant from tests/hencky.py). The 0.5 mm rigid disk and the finite
+    strain (w0/a = 3 %) cost ~0.3 %; 2 % tolerance."""
+    a, t, mu = 70.0, 1.0, 31.7e3
+    design = Membrane(thickness_mm=t, contact_radius_mm=0.5)
+    neo = SimParams(jm=1e12)
+    K = hencky(0.5).K
+    target_ratio = 0.03
+    q = (target_ratio / K) ** 3 * 3.0 * mu * t / a
+    h, status = height_at(design, 0.0, q, neo, h_max_mm=5.0, n_heights=26)
+    assert status[()] == Status.OK
+    w0_hencky = K * a * (q * a / (3.0 * mu * t)) ** (1.0 / 3.0)
+    assert abs(float(h) - w0_hencky) / w0_hencky < 0.02, (float(h), w0_hencky)
+
+
+@pytest.mark.parametrize("design", [RINGLESS, TWO_RINGS], ids=["ringless", "two-rings"])
+def test_height_at_inverts_force_at(design):
+    h_true = np.array([12.0, 30.0])
+    p = np.array([5000.0, 6000.0])
+    F = force_at(design, h_true, p).force_n
+    assert np.all(F > 0)
+    h, status = height_at(design, F, p)
+    assert np.all(status == Status.OK), status
+    np.testing.assert_allclose(h, h_true, atol=1e-3)
+
+
+def test_statuses_of_edge_cases():
+    r = force_at(RINGLESS, [20.0, 70.0, -1.0, np.nan, 0.0], [0.0, 500.0, 3000.0, 3000.0, 3000.0])
+    assert r.status[0] == Status.NO_CONTACT and r.force_n[0] == 0.0  # no pressure
+    assert r.status[1] == Status.NO_CONTACT and r.force_n[1] == 0.0  # membrane below plate
+    assert r.status[2] == Status.INVALID_INPUT and np.isnan(r.force_n[2])
+    assert r.status[3] == Status.INVALID_INPUT and np.isnan(r.force_n[3])
+    assert r.status[4] == Status.OK and r.force_n[4] > 0  # plate on the membrane at h = 0
+
+
+def test_not_lifted_below_the_lift_pressure():
+    h, status = height_at(RINGLESS, 40.0, 500.0)
+    assert status[()] == Status.NOT_LIFTED and float(h) == 0.0
