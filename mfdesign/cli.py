@@ -75,6 +75,24 @@ def simulate(
 
 
 @app.command()
+def demo(
+    out: Path = typer.Option(Path("out/demo"), help="Output folder."),
+) -> None:
+    """The main job on the embedded default (no hardware, no external data).
+
+    Today: simulate the default membrane (2 mm ringless, 25.4 mm disk) on a 36 x 41
+    height-pressure grid and write the plane (Parquet), its picture and a summary.
+    """
+    from mfdesign.design import Membrane
+    from mfdesign.simulate_plane import simulate_plane, write_plane
+
+    membrane = Membrane.from_key("[2.0, 25.4, nan, nan, nan, nan]")
+    table = simulate_plane(membrane, 70.0, 10_000.0, 36, 41, progress=True)
+    paths = write_plane(table, membrane, out)
+    typer.echo(f"wrote {paths['parquet']}, {paths['png']} and {paths['json']}")
+
+
+@app.command()
 def fit(
     data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
     out: Path = typer.Option(..., help="Folder for the fitted model."),

@@ -67,21 +67,19 @@ def _step(carry, p_mpa, geom, params, h):
     """One continuation step at fixed ``h``.
 
     Predictor: secant extrapolation from the last two solutions (the last one alone
-    after the first success). Corrector: Levenberg-Marquardt. When the predicted start
-    fails, the string-model guess is tried (under ``vmap`` both run anyway); the
-    determinant-sign check below still catches a jump to another branch.
+    after the first success); the string model when the path has no solution yet or
+    the previous step failed (across a stiff ring at low tension the shooting is very
+    sensitive, and a restart from the string model recovers). Corrector: one
+    Levenberg-Marquardt solve; one solve per step, because under ``vmap`` both
+    branches of a conditional would run. A sign change of the shooting Jacobian's
+    determinant marks a passed pressure limit point.
     """
-    x1, p1, x2, p2, n_have, det0, passed = carry
+    x1, p1, x2, p2, n_have, det0, passed, last_ok = carry
     slope = jnp.where(n_have >= 2, (x1 - x2) / jnp.where(p1 != p2, p1 - p2, 1.0), 0.0)
     predicted = x1 + slope * (p_mpa - p1)
     cold = sh.string_guess(geom, params, h, p_mpa)
-    x_w, conv_w, det_w = sh.solve_force(jnp.where(n_have > 0, predicted, cold), geom, params, h, p_mpa)
-    x_c, conv_c, det_c = sh.solve_force(cold, geom, params, h, p_mpa)
-    use_cold = ~conv_w & conv_c
-    x = jnp.where(use_cold, x_c, x_w)
-    conv = conv_w | conv_c
-    det = jnp.where(use_cold, det_c, det_w)
     have = n_have > 0
+    x, conv, det = sh.solve_force(jnp.where(have & last_ok, predicted, cold), geom, params, h, p_mpa)
     det0 = jnp.where(have, det0, det)
     fold = conv & have & (jnp.sign(det) != jnp.sign(det0))
     passed = passed | fold
@@ -93,6 +91,7 @@ def _step(carry, p_mpa, geom, params, h):
         n_have + conv.astype(int),
         det0,
         passed,
+        conv,
     )
     return carry, (x, conv, passed)
 
@@ -100,7 +99,8 @@ def _step(carry, p_mpa, geom, params, h):
 def _path(geom, params, h, p_path_mpa):
     """Continuation along an increasing pressure path at fixed height."""
     z = jnp.zeros(2)
-    init = (z, jnp.asarray(0.0), z, jnp.asarray(0.0), jnp.asarray(0), jnp.asarray(1.0), jnp.asarray(False))
+    init = (z, jnp.asarray(0.0), z, jnp.asarray(0.0), jnp.asarray(0), jnp.asarray(1.0),
+            jnp.asarray(False), jnp.asarray(False))
     _, (xs, conv, passed) = jax.lax.scan(
         lambda c, p: _step(c, p, geom, params, h), init, p_path_mpa
     )
@@ -220,9 +220,18 @@ def force_at(
         empty = np.zeros(shape_)
         return SimResult(empty, empty.astype(np.int8), empty, empty, empty.astype(bool))
     geom = sh.geometry_of(design)
+    n = hs.size
+    hs, ps = _pad(hs, n), _pad(ps, n)
     out = _points_kernel(geom, params, jnp.asarray(hs), jnp.asarray(ps) * PA_TO_MPA, path_steps)
-    res = _classify(h.ravel(), p.ravel(), *[np.asarray(o) for o in out])
+    res = _classify(h.ravel(), p.ravel(), *[np.asarray(o)[:n] for o in out])
     return jax.tree.map(lambda a: a.reshape(shape_), res)
+
+
+def _pad(values: np.ndarray, n: int) -> np.ndarray:
+    """Pad a batch to the next power of two (>= 8) by repeating its last entry: each
+    batch size is a separate compilation, so a few sizes serve every call."""
+    size = max(8, 1 << (n - 1).bit_length())
+    return np.concatenate([values, np.full(size - n, values[-1])])
 
 
 def force_plane(
@@ -353,10 +362,15 @@ def height_at(
         h_guess = hg[j] + w * (hg[j + 1] - hg[j])
         a0 = _a_guess(design, params, h_guess, p[idx])
         geom = sh.geometry_of(design)
+        m = idx.size
         h_ref, conv = _height_kernel(
-            geom, params, jnp.asarray(F[idx]), jnp.asarray(p[idx]) * PA_TO_MPA, jnp.asarray(a0)
+            geom,
+            params,
+            jnp.asarray(_pad(F[idx], m)),
+            jnp.asarray(_pad(p[idx], m)) * PA_TO_MPA,
+            jnp.asarray(_pad(a0, m)),
         )
-        h_ref, conv = np.asarray(h_ref), np.asarray(conv)
+        h_ref, conv = np.asarray(h_ref)[:m], np.asarray(conv)[:m]
         good = conv & (np.abs(h_ref - h_guess) < 2.0 * (hg[1] - hg[0]))
         height[idx] = np.where(good, h_ref, np.nan)
         status[idx] = np.where(good, status[idx], Status.NOT_CONVERGED)
@@ -375,7 +389,9 @@ def _a_kernel(geom, params, h, p_mpa):
 
 def _a_guess(design, params, h, p):
     geom = sh.geometry_of(design)
-    a = np.asarray(_a_kernel(geom, params, jnp.asarray(h), jnp.asarray(p) * PA_TO_MPA))
+    n = np.size(h)
+    h, p = _pad(np.asarray(h, float), n), _pad(np.asarray(p, float), n)
+    a = np.asarray(_a_kernel(geom, params, jnp.asarray(h), jnp.asarray(p) * PA_TO_MPA))[:n]
     return np.where(np.isfinite(a), a, 0.0)
 
 
