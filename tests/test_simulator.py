@@ -25,7 +25,11 @@ H = np.array([10.0, 20.0, 40.0])
 P = np.array([3000.0, 5000.0, 8000.0])
 
 
-@pytest.mark.parametrize("design", [RINGLESS, TWO_RINGS], ids=["ringless", "two-rings"])
+@pytest.mark.parametrize(
+    "design",
+    [RINGLESS, pytest.param(TWO_RINGS, marks=pytest.mark.slow)],
+    ids=["ringless", "two-rings"],
+)
 def test_shooting_agrees_with_finite_elements(design):
     sim = force_at(design, H, P)
     fe = fe_force(design, H, P, n_elements=400)
@@ -36,7 +40,10 @@ def test_shooting_agrees_with_finite_elements(design):
 
 
 @pytest.mark.parametrize("design", [RINGLESS, TWO_RINGS], ids=["ringless", "two-rings"])
-@pytest.mark.parametrize("h, p", [(20.0, 5000.0), (5.0, 7000.0), (50.0, 4000.0)])
+@pytest.mark.parametrize(
+    "h, p",
+    [(20.0, 5000.0), pytest.param(5.0, 7000.0, marks=pytest.mark.slow), pytest.param(50.0, 4000.0, marks=pytest.mark.slow)],
+)
 def test_first_integral_holds_along_the_solution(design, h, p):
     """2 pi r t W1 sin(phi) + p pi R^2 = F at every r (phi above the horizontal)."""
     s = shape(design, h, p)
@@ -46,6 +53,7 @@ def test_first_integral_holds_along_the_solution(design, h, p):
     assert np.max(np.abs(lhs - s.force_n)) <= 1e-6 * max(abs(s.force_n), p * 1e-6 * np.pi * 70.0**2)
 
 
+@pytest.mark.slow
 def test_free_inflation_matches_hencky():
     """Small-strain limit: a neo-Hookean membrane (E = 3 mu, nu = 1/2) under pressure q,
     no plate: centre deflection w0 = K a (q a / (E t))^(1/3) with Hencky's K(1/2)
@@ -63,6 +71,7 @@ def test_free_inflation_matches_hencky():
     assert abs(float(h) - w0_hencky) / w0_hencky < 0.02, (float(h), w0_hencky)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("design", [RINGLESS, TWO_RINGS], ids=["ringless", "two-rings"])
 def test_height_at_inverts_force_at(design):
     h_true = np.array([12.0, 30.0])
@@ -83,6 +92,7 @@ def test_statuses_of_edge_cases():
     assert r.status[4] == Status.OK and r.force_n[4] > 0  # plate on the membrane at h = 0
 
 
+@pytest.mark.slow
 def test_not_lifted_below_the_lift_pressure():
     h, status = height_at(RINGLESS, 40.0, 500.0)
     assert status[()] == Status.NOT_LIFTED and float(h) == 0.0

@@ -266,13 +266,16 @@ def analytic_plane(design: Membrane, h_grid, p_grid, params: SimParams = SimPara
 
 
 def simulator_fingerprint() -> str:
-    """Hash of the simulator's source files: part of every plane-cache key."""
-    root = Path(__file__).resolve().parents[1] / "physics"
+    """Hash of the simulator's source: every module of ``mfdesign/physics`` except the
+    effects library, plus ``materials.py`` and ``design.py``; part of every plane-cache key
+    and of the bundled dataset's card."""
+    pkg = Path(__file__).resolve().parents[1]
+    files = sorted(f for f in (pkg / "physics").glob("*.py") if f.name != "effects.py")
+    files += [pkg / "materials.py", pkg / "design.py"]
     h = hashlib.sha256()
-    for name in ("solve.py", "shooting.py", "membrane.py", "params.py", "../materials.py", "../design.py"):
-        f = (root / name).resolve()
+    for f in files:
         if f.is_file():
-            h.update(f.read_bytes())
+            h.update(f.name.encode() + b"\0" + f.read_bytes())
     return h.hexdigest()[:16]
 
 
@@ -435,7 +438,9 @@ class VirtualRig:
         return float(pr.burst_locking_mean + pr.burst_locking_sd * self._rng(design, "burst").standard_normal())
 
     def _burst(self, event, lock, p, threshold) -> bool:
-        over = np.nonzero(lock > threshold)[0]
+        # Only a usable locking value bursts a membrane; a non-finite one (the simulator
+        # failed at that point) is unknown, not a burst.
+        over = np.nonzero(np.isfinite(lock) & (lock > threshold))[0]
         if not over.size:
             return False
         event.update(status="burst", burst_pressure_pa=float(p[over[0]]),
