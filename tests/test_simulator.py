@@ -58,24 +58,30 @@ def test_free_inflation_matches_hencky():
     """Small-strain limit: a neo-Hookean membrane (E = 3 mu, nu = 1/2) under pressure q,
     no plate: centre deflection w0 = K a (q a / (E t))^(1/3) with Hencky's K(1/2)
     (Hencky 1915; constant from tests/hencky.py). The 0.5 mm rigid disk and the finite
-    strain (w0/a = 3 %) cost ~0.3 %; 2 % tolerance."""
+    strain (w0/a = 8 %: the FE reference differs from Hencky by 0.65 % there) stay
+    within the 2 % tolerance."""
     a, t, mu = 70.0, 1.0, 31.7e3
     design = Membrane(thickness_mm=t, contact_radius_mm=0.5)
     neo = SimParams(jm=1e12)
     K = hencky(0.5).deflection_coefficient
-    target_ratio = 0.03
+    target_ratio = 0.08
     q = (target_ratio / K) ** 3 * 3.0 * mu * t / a
-    h, status = height_at(design, 0.0, q, neo, h_max_mm=5.0, n_heights=26)
+    h, status = height_at(design, 0.0, q, neo, h_max_mm=10.0, n_heights=26)
     assert status[()] == Status.OK
     w0_hencky = K * a * (q * a / (3.0 * mu * t)) ** (1.0 / 3.0)
     assert abs(float(h) - w0_hencky) / w0_hencky < 0.02, (float(h), w0_hencky)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("design", [RINGLESS, TWO_RINGS], ids=["ringless", "two-rings"])
-def test_height_at_inverts_force_at(design):
+@pytest.mark.parametrize(
+    "design, p_pa", [(RINGLESS, 3000.0), (TWO_RINGS, 5000.0)], ids=["ringless", "two-rings"]
+)
+def test_height_at_inverts_force_at(design, p_pa):
+    """On the stable branch (force falling with height). At 5 kPa the ringless 2 mm
+    membrane's force *rises* with height, so a load lifted there snaps through: no
+    quasi-static state between, and height_at rightly answers NOT_LIFTED below it."""
     h_true = np.array([12.0, 30.0])
-    p = np.array([5000.0, 6000.0])
+    p = np.array([p_pa, p_pa])
     F = force_at(design, h_true, p).force_n
     assert np.all(F > 0)
     h, status = height_at(design, F, p)

@@ -12,7 +12,7 @@ vertical balance, ``F = p pi r0^2 + 2 pi r0 t W1(lambda1(r0), 1) sin(phi0)``.
 
 A "string" model gives the first guess: a strip of the annulus in plane strain under
 constant tension is a circular arc of curvature ``p / T`` through the disk edge and the
-clamp; its stretch solves ``arc length = lambda L`` (bisection, optimistix).
+clamp; its stretch solves ``arc length = lambda L`` (first sign change on a grid).
 """
 
 from __future__ import annotations
@@ -228,16 +228,19 @@ def string_guess(geom: Geometry, params: SimParams, h_mm, p_mpa):
 
     lam_lo = jnp.maximum((chord - L_ring) / L_rubber, 1.0 + 1e-9)
     c = 2.0 + 0.9 * rubber.jm
-    lam_hi = jnp.sqrt(0.5 * (c + jnp.sqrt(c**2 - 4.0)))
-    sol = optx.root_find(
-        mismatch,
-        optx.Bisection(rtol=1e-8, atol=1e-10),
-        0.5 * (lam_lo + lam_hi),
-        options=dict(lower=lam_lo, upper=lam_hi),
-        max_steps=200,
-        throw=False,
-    )
-    lam = jnp.clip(sol.value, lam_lo, lam_hi)
+    lam_hi = jnp.maximum(jnp.sqrt(0.5 * (c + jnp.sqrt(c**2 - 4.0))), lam_lo + 1e-6)
+    # A first guess only: the first sign change of the (decreasing) mismatch on a grid,
+    # linearly interpolated. Never raises, whatever the bracket (a bisection would
+    # abort the batch when the root lies outside [lo, hi]).
+    grid = lam_lo + (lam_hi - lam_lo) * jnp.linspace(0.0, 1.0, 129) ** 2
+    g = jax.vmap(lambda lam: mismatch(lam, None))(grid)
+    g = jnp.where(jnp.isfinite(g), g, -1.0)
+    k = jnp.argmax(g <= 0.0)  # 0 when even lam_lo overshoots (or no crossing at all)
+    k = jnp.where(jnp.any(g <= 0.0), k, grid.shape[0] - 1)
+    k0 = jnp.maximum(k - 1, 0)
+    w = jnp.where(g[k0] != g[k], g[k0] / (g[k0] - g[k]), 0.0)
+    lam = grid[k0] + jnp.clip(w, 0.0, 1.0) * (grid[k] - grid[k0])
+    lam = jnp.clip(lam, lam_lo, lam_hi)
     phi0 = jnp.arctan2(-h_mm, horiz) + jnp.arcsin(half_angle(lam))
     return jnp.stack([jnp.log(jnp.maximum(lam - 1.0, 1e-12)), phi0])
 
