@@ -184,6 +184,51 @@ def arbitrate(planes_by_key, rows, k, params, n_elements):
     return out
 
 
+def supplementary_checks(planes, rows, params, n_elements, n_label=20, seed=1):
+    """FE checks beyond the worst differences (cheap: ~0.1-0.2 s a point after compiling).
+
+    * ``label_check``: the ringless planes against FE with the fixed design and with the
+      design the file's label names (20 random points each).
+    * ``nan_points``: FE where the authors have a force and we returned NaN.
+    * ``absent_points``: FE at our contact grid points absent from the authors' data
+      (up to 2 per ringless plane, h > 5 mm).
+    """
+    from mfdesign.design import Membrane
+    from mfdesign.physics.fe import fe_force
+
+    rng = np.random.default_rng(seed)
+    out = {"label_check": [], "nan_points": [], "absent_points": []}
+    for i, pl in enumerate(planes[:6]):
+        idx = rng.choice(len(pl), n_label, replace=False)
+        h, p, Fa = pl.height_mm[idx], pl.pressure_pa[idx], pl.force_n[idx]
+        fixed = np.asarray(fe_force(pl.design, h, p, params, n_elements=n_elements).force_n)
+        lab = np.asarray(fe_force(Membrane.from_key(pl.label_in_file), h, p, params,
+                                  n_elements=n_elements).force_n)
+        out["label_check"].append({
+            "plane_index": i, "fixed_design": pl.design.key(), "label_in_file": pl.label_in_file,
+            "median_abs_err_fixed_n": float(np.nanmedian(np.abs(fixed - Fa))),
+            "median_abs_err_as_labelled_n": float(np.nanmedian(np.abs(lab - Fa))),
+            "max_abs_err_as_labelled_n": float(np.nanmax(np.abs(lab - Fa)))})
+    by_key = {pl.design.key(): pl for pl in planes}
+    for r in rows:
+        design = by_key[r["design"]].design
+        pts = r["nan_where_authors_have_force"]["points"]
+        if pts:
+            fe = fe_force(design, np.array([q["h_mm"] for q in pts]),
+                          np.array([q["p_pa"] for q in pts]), params, n_elements=n_elements)
+            for q, f, c in zip(pts, np.asarray(fe.force_n), np.asarray(fe.converged)):
+                out["nan_points"].append({"design": r["design"], **q, "F_fe_n": float(f),
+                                          "fe_converged": bool(c)})
+        if r["plane_index"] < 6:
+            ab = [q for q in r["reverse_grid"]["absent_points"] if q["h_mm"] > 5][:2]
+            if ab:
+                fe = fe_force(design, np.array([q["h_mm"] for q in ab]),
+                              np.array([q["p_pa"] for q in ab]), params, n_elements=n_elements)
+                for q, f in zip(ab, np.asarray(fe.force_n)):
+                    out["absent_points"].append({"design": r["design"], **q, "F_fe_n": float(f)})
+    return out
+
+
 def plot(rows, path):
     import matplotlib
 
@@ -219,8 +264,20 @@ def main(argv=None):
     ap.add_argument("--arbitrate", type=int, default=3, help="FE checks at the k worst points")
     ap.add_argument("--fe-elements", type=int, default=400)
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--supplement", type=Path, default=None,
+                    help="only add the supplementary FE checks to this existing JSON")
     args = ap.parse_args(argv)
     enable_compilation_cache()
+    if args.supplement:
+        report = json.loads(args.supplement.read_text())
+        t0 = time.perf_counter()
+        report["supplementary_checks"] = supplementary_checks(
+            load_sim_planes(), report["planes"], SimParams(), args.fe_elements)
+        report["supplementary_checks"]["seconds"] = time.perf_counter() - t0
+        report["supplementary_checks"]["command"] = "python experiments/compare_authors_sim.py " + " ".join(argv or sys.argv[1:])
+        args.supplement.write_text(json.dumps(report, indent=1))
+        print(json.dumps(report["supplementary_checks"], indent=1))
+        return
     t_start = time.perf_counter()
     params = SimParams()
     planes = load_sim_planes()

@@ -134,8 +134,10 @@ def _points_kernel(geom, params, h, p_mpa, n_steps: int):
         path = pp * jnp.arange(1, n_steps + 1) / n_steps
         xs, conv, passed = _path(geom, params, hh, path)
         x, p_at = _last_good(xs, conv, path)
-        out = _point_outputs(x, geom, params, hh, p_at, pp)
-        return (conv[-1], passed[-1]) + out
+        force, wrinkled, locking, rise, ok_prof = _point_outputs(x, geom, params, hh, p_at, pp)
+        # No converged state on the whole path: nothing is known about locking.
+        locking = jnp.where(jnp.any(conv), locking, jnp.nan)
+        return conv[-1], passed[-1], force, wrinkled, locking, rise, ok_prof
 
     return jax.vmap(one)(h, p_mpa)
 
@@ -150,12 +152,14 @@ def _plane_kernel(geom, params, h_grid, p_path_mpa, report_idx):
         idx = jnp.arange(conv.shape[0])
         last = jax.lax.cummax(jnp.where(conv, idx, 0))
         x_chk, p_chk = xs[last][report_idx], p_path_mpa[last][report_idx]
+        seen = jax.lax.cummax(conv.astype(int))[report_idx] > 0
         conv, passed = conv[report_idx], passed[report_idx]
         p_rep = p_path_mpa[report_idx]
-        out = jax.vmap(lambda x, pa, pp: _point_outputs(x, geom, params, hh, pa, pp))(
-            x_chk, p_chk, p_rep
-        )
-        return (conv, passed) + out
+        force, wrinkled, locking, rise, ok_prof = jax.vmap(
+            lambda x, pa, pp: _point_outputs(x, geom, params, hh, pa, pp)
+        )(x_chk, p_chk, p_rep)
+        locking = jnp.where(seen, locking, jnp.nan)  # nothing converged yet: unknown
+        return conv, passed, force, wrinkled, locking, rise, ok_prof
 
     return jax.vmap(one_h)(h_grid)
 
@@ -169,7 +173,7 @@ def _classify(h, p, conv, passed, force, wrinkled, locking, rise, ok_prof) -> Si
     status[~conv] = Status.NOT_CONVERGED
     # The last converged state before the failure was close to locking: the membrane
     # runs into the Gent limit (it would burst) rather than the solver failing.
-    status[~conv & (locking > 0.9)] = Status.EXTENSION_LIMIT
+    status[~conv & np.isfinite(locking) & (locking > 0.9)] = Status.EXTENSION_LIMIT
     status[conv & ~ok_prof] = Status.ODE_FAILURE
     status[passed] = Status.LIMIT_POINT
     usable = status == Status.OK
