@@ -387,14 +387,20 @@ def height_at(
     return height.reshape(shape_), status.reshape(shape_)
 
 
+def _final_state(geom, params, h, p_mpa):
+    """Shooting unknowns at ``(h, p)`` after quasi-static inflation in ``PATH_STEPS``
+    steps (the warm start for the fixed-force solve and the state :func:`shape` draws)."""
+    path = p_mpa * jnp.arange(1, PATH_STEPS + 1) / PATH_STEPS
+    xs, _, _ = _path(geom, params, h, path)
+    return xs[-1]
+
+
+_final_state_jit = eqx.filter_jit(_final_state)
+
+
 @eqx.filter_jit
 def _a_kernel(geom, params, h, p_mpa):
-    def one(hh, pp):
-        path = pp * jnp.arange(1, PATH_STEPS + 1) / PATH_STEPS
-        xs, conv, _ = _path(geom, params, hh, path)
-        return xs[-1, 0]
-
-    return jax.vmap(one)(h, p_mpa)
+    return jax.vmap(lambda hh, pp: _final_state(geom, params, hh, pp)[0])(h, p_mpa)
 
 
 def _a_guess(design, params, h, p):
@@ -431,10 +437,9 @@ def shape(design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimPar
     res = force_at(design, np.array([h_mm]), np.array([p_pa]), params)
     geom = sh.geometry_of(design)
     p_mpa = float(p_pa) * PA_TO_MPA
-    x = np.asarray(_solve_x_kernel(geom, params, jnp.asarray(float(h_mm)), jnp.asarray(p_mpa)))
+    x = np.asarray(_final_state_jit(geom, params, jnp.asarray(float(h_mm)), jnp.asarray(p_mpa)))
     r, y, w1, w2, _, _ = sh.profile(jnp.asarray(x), geom, params, h_mm, p_mpa, n_save=n_per_segment)
     segs = sh.segments(geom, params)
-    n = segs.bounds.shape[0] - 1
     t = jnp.repeat(segs.seg.t_mm, n_per_segment)
     r, y, w1, w2, t = (np.asarray(v) for v in (r, y, w1, w2, t))
     return Shape(
@@ -449,11 +454,3 @@ def shape(design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimPar
         force_n=float(res.force_n[0]),
         status=int(res.status[0]),
     )
-
-
-@eqx.filter_jit
-def _solve_x_kernel(geom, params, h, p_mpa):
-    path = p_mpa * jnp.arange(1, PATH_STEPS + 1) / PATH_STEPS
-    xs, conv, _ = _path(geom, params, h, path)
-    return xs[-1]
-
