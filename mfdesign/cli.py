@@ -134,10 +134,27 @@ def cv(
         fail(str(err))
 
 
+# Modules that add commands to ``app``: each defines ``register(app: typer.Typer)`` and
+# imports its heavy dependencies (JAX, emcee, ...) inside the command bodies, so that
+# ``mfdesign --help`` stays fast.
+_COMMAND_MODULES = (
+    "mfdesign.cli_calibrate",  # calibrate, fit --multi-fidelity helpers
+    "mfdesign.cli_diagnose",  # diagnose
+    "mfdesign.cli_propose",  # propose
+    "mfdesign.cli_optimize",  # optimize
+)
+
+
 def _register_subcommands() -> None:
+    import importlib
+    import importlib.util
+
     from mfdesign.rig.commands import rig_app
 
     app.add_typer(rig_app, name="rig", help="Drive the test rig (or its emulator) over a serial port.")
+    for name in _COMMAND_MODULES:
+        if importlib.util.find_spec(name) is not None:
+            importlib.import_module(name).register(app)
 
 
 _register_subcommands()
