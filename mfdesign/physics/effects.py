@@ -565,3 +565,192 @@ class Hysteresis(Effect):
         ok = np.isfinite(slope) & (slope < -1e-6)
         dh = np.where(ok, loss * sample.force_n / np.where(ok, slope, -1.0), 0.0)
         return sample.replace(height_mm=np.where(down, np.maximum(sample.height_mm + dh, 0.0), sample.height_mm))
+
+
+# -- the likelihood side: every effect inside a jitted log-likelihood (JAX) -------------------
+# Added for calibration (``mfdesign.calibrate``): the forward hooks above turn true values
+# into recorded ones (NumPy, for the virtual rig); the hooks below give, for a recorded row,
+# the EXPECTED recorded force at the row's RECORDED height and pressure, as a pure JAX
+# function of theta (traced), so that emcee / optimistix can differentiate and vectorise it.
+import equinox as _eqx  # noqa: E402
+import jax as _jax  # noqa: E402
+import jax.numpy as _jnp  # noqa: E402
+
+
+class Rows(_eqx.Module):
+    """Observation context of N recorded rows for a jitted likelihood (all arrays ``[N]``).
+
+    * ``h_mm``, ``p_pa``: the RECORDED plate height [mm] and gauge pressure [Pa];
+    * ``is_force``: True for a force trial (the force column is a load-cell reading),
+      False for a mass lift (the force column is the known weight ``m g`` [N]);
+    * ``is_deflate``: the row was recorded while deflating;
+    * ``is_first_trial``: the row belongs to the membrane's first trial (trial id 0);
+    * ``membrane``: int index of the row's membrane (into a list of design keys).
+
+    Mass-lift rows enter the likelihood as force samples, as the paper does: the plate is
+    in equilibrium at the recorded ``(h, p)``, so the membrane's force there equals the
+    weight ``W``; ``expected force = W`` is the observation. Per effect: pressure_sensor
+    acts on both kinds (the same transducer); load_cell_offset and rig_compliance only on
+    force rows (a lift reads no load cell, and the free plate does not load the frame);
+    hysteresis on deflating rows of both kinds (see :class:`Hysteresis`).
+    """
+
+    h_mm: _jax.Array
+    p_pa: _jax.Array
+    is_force: _jax.Array
+    is_deflate: _jax.Array
+    is_first_trial: _jax.Array
+    membrane: _jax.Array
+
+    @classmethod
+    def from_measurements(cls, table, design_keys=None) -> "Rows":
+        """Rows of a :class:`~mfdesign.data.measurements.Measurements` (membrane index into
+        ``design_keys``, default the table's own order)."""
+        df = table.df if hasattr(table, "df") else table
+        keys = list(design_keys) if design_keys is not None else list(dict.fromkeys(df["design_key"]))
+        index = {k: i for i, k in enumerate(keys)}
+        missing = sorted(set(df["design_key"]) - set(index))
+        if missing:
+            raise KeyError(f"Rows: membranes {missing} not among design_keys {keys}")
+        return cls(
+            h_mm=_jnp.asarray(df["height_mm"].to_numpy(float)),
+            p_pa=_jnp.asarray(df["pressure_pa"].to_numpy(float)),
+            is_force=_jnp.asarray(df["experiment"].to_numpy() == "force"),
+            is_deflate=_jnp.asarray(df["phase"].to_numpy() == "deflate"),
+            is_first_trial=_jnp.asarray(df["trial"].to_numpy() == 0),
+            membrane=_jnp.asarray(df["design_key"].map(index).to_numpy(np.int32)),
+        )
+
+    def __len__(self) -> int:
+        return int(self.h_mm.shape[0])
+
+    def take(self, idx) -> "Rows":
+        """The rows at integer positions ``idx``."""
+        return _jax.tree.map(lambda a: a[idx], self)
+
+
+def _row_sim_params_default(self, base: SimParams, theta, rows: Rows) -> SimParams:
+    """Row-wise simulator inputs (fields scalar or ``[N]``); default: ``sim_params`` without
+    a context. Override when the mechanics depend on the row (trial, phase)."""
+    return self.sim_params(base, theta, None)
+
+
+def _observed_force_fn_default(self, theta, force_fn, rows: Rows):
+    """Map ``force_fn(h_rec, p_rec) -> F`` (the expected recorded force of the effects applied
+    so far) to the same with this effect applied; default: identity (no measurement effect).
+
+    ``force_fn`` is element-wise over the rows (row i depends on ``h[i], p[i]`` only), which
+    lets effects take ``dF/dh`` with one ``jax.jvp``.
+    """
+    return force_fn
+
+
+def _expected_force(self, theta, force_fn, rows: Rows):
+    """Expected recorded force [N] of every row at its recorded (h, p) with this effect alone."""
+    return self.observed_force_fn(theta, force_fn, rows)(rows.h_mm, rows.p_pa)
+
+
+def _has_likelihood(self) -> bool:
+    """False for a measurement effect without a JAX likelihood hook (calibration refuses it)."""
+    return (not self.acts_on_measurement) or type(self).observed_force_fn is not Effect.observed_force_fn
+
+
+Effect.row_sim_params = _row_sim_params_default
+Effect.observed_force_fn = _observed_force_fn_default
+Effect.expected_force = _expected_force
+Effect.has_likelihood = property(_has_likelihood)
+
+
+def apply_row_sim_params(effects, theta, base: SimParams, rows: Rows) -> SimParams:
+    """Row-wise simulator inputs with every mechanical effect applied, in list order (JAX)."""
+    effects = _as_effects(effects)
+    per = split_theta(effects, theta)
+    params = base
+    for e in effects:
+        params = e.row_sim_params(params, per[e.name], rows)
+    return params
+
+
+def observed_force_fn(effects, theta, force_fn, rows: Rows):
+    """``force_fn`` wrapped by every measurement effect in list order (as ``apply_observe``)."""
+    effects = _as_effects(effects)
+    per = split_theta(effects, theta)
+    for e in effects:
+        if not e.has_likelihood:
+            raise NotImplementedError(
+                f"effect {e.name!r} changes measurements (observe) but has no likelihood hook "
+                "observed_force_fn(theta, force_fn, rows); add one to use it in calibration")
+        force_fn = e.observed_force_fn(per[e.name], force_fn, rows)
+    return force_fn
+
+
+def apply_expected_force(effects, theta, force_fn, rows: Rows):
+    """Expected recorded force [N] of every row at its recorded (h, p), all effects applied."""
+    return observed_force_fn(effects, theta, force_fn, rows)(rows.h_mm, rows.p_pa)
+
+
+def _stress_rows(self, base, theta, rows):
+    factor = 1.0 + theta["stiffening"] * rows.is_first_trial.astype(float)
+    return _replace(base, mu_pa=base.mu_pa * factor)
+
+
+def _pressure_fn(self, theta, force_fn, rows):
+    # recorded p = gain * p_true + offset  =>  p_true = (p - offset) / gain
+    return lambda h, p: force_fn(h, (p - theta["offset_pa"]) / theta["gain"])
+
+
+def _load_cell_fn(self, theta, force_fn, rows):
+    return lambda h, p: force_fn(h, p) + _jnp.where(rows.is_force, theta["offset_n"], 0.0)
+
+
+def _compliance_fn(self, theta, force_fn, rows):
+    c = theta["compliance_mm_per_n"]
+
+    def fn(h, p):
+        f, slope = _jax.jvp(lambda hh: force_fn(hh, p), (h,), (_jnp.ones_like(h),))
+        slope = _jnp.nan_to_num(slope, nan=0.0)
+        denom = _jnp.maximum(1.0 - slope * c, 0.2)
+        return _jnp.where(rows.is_force, f / denom, f)
+
+    return fn
+
+
+def _hysteresis_fn(self, theta, force_fn, rows):
+    # Force rows: the load cell reads (1 - loss) F. Lift rows: the plate settles where
+    # (1 - loss) F(h, p) = W at the recorded h, so the expected "force" sample is the same
+    # (1 - loss) F (the forward model moves the height to first order instead).
+    loss = theta["loss"]
+    return lambda h, p: _jnp.where(rows.is_deflate, (1.0 - loss) * force_fn(h, p), force_fn(h, p))
+
+
+StressSoftening.row_sim_params = _stress_rows
+PressureSensor.observed_force_fn = _pressure_fn
+LoadCellOffset.observed_force_fn = _load_cell_fn
+RigCompliance.observed_force_fn = _compliance_fn
+Hysteresis.observed_force_fn = _hysteresis_fn
+
+
+# JAX log-densities of the priors (same maths as ``logpdf``), for jitted log-posteriors.
+def _uniform_jax(self, x):
+    inside = (x >= self.low) & (x <= self.high)
+    return _jnp.where(inside, -math.log(self.high - self.low), -_jnp.inf)
+
+
+def _normal_jax(self, x):
+    z = (x - self.mean) / self.sd
+    lp = -0.5 * z**2 - math.log(self.sd * math.sqrt(2.0 * math.pi)) - math.log(self._mass())
+    return _jnp.where((x >= self.low) & (x <= self.high), lp, -_jnp.inf)
+
+
+def _lognormal_jax(self, x):
+    pos = x > 0
+    lx = _jnp.log(_jnp.where(pos, x, 1.0))
+    lp = self._log_normal().logpdf_jax(lx) - lx
+    return _jnp.where(pos, lp, -_jnp.inf)
+
+
+Uniform.logpdf_jax = _uniform_jax
+Normal.logpdf_jax = _normal_jax
+LogNormal.logpdf_jax = _lognormal_jax
+
+__all__ += ["Rows", "apply_expected_force", "apply_row_sim_params", "observed_force_fn"]
