@@ -1,0 +1,310 @@
+"""Active-learning loop against the virtual rig (issue 7, item 2): learning curves by arm.
+
+Truth: the bundled dataset's virtual rig (authors' simulator constants, sensor noise, one
+hidden effect: pressure-sensor offset 150 Pa). Held-out: the six bundled designs, run on
+the same virtual rig (fixed across seeds and arms). Every arm starts from the same three
+membranes (one per ring count, Latin hypercube in the unit cube, per seed), then runs
+``--iters`` rounds of a batch of ``q = 2`` and refits after each:
+
+* ``random``: Latin-hypercube designs, ring count uniform in {0, 1, 2}; fabricated.
+* ``rig``: the paper's acquisition (``mfdesign.acquire.propose``, rig fidelity only) on an
+  RPN ensemble fitted to the rig data.
+* ``fidelity``: acquisition over {rig, sim} with costs {1, ``--cost-sim``} on a
+  :class:`~mfdesign.acquire.SplitPredictor`: an RPN ensemble fitted to simulator planes
+  (``sim``) plus an RPN ensemble fitted to the rig data minus the sim ensemble's mean
+  (``discrepancy``); prediction = sim mean + discrepancy mean. A rig choice fabricates the
+  membrane *and* simulates it; a sim choice only simulates. This is our stand-in for the
+  multi-fidelity model of issue 5 (not available when this ran): the split
+  F = F_sim + delta, with no calibration of theta.
+
+Cost axis: rig membranes count 1, simulator planes ``--cost-sim``. Metric: force RMSE [N]
+on all held-out rows (mean prediction). Small ensembles (8 members, 1,500 steps) on a
+fixed-size resample of the training rows (one compilation for all fits); 32 acquisition
+restarts x 15 L-BFGS iterations. ``--quick`` swaps the simulator for the analytic stand-in
+(``mfdesign.rig.virtual.analytic_plane``), fewer steps: a smoke run, not a result.
+A checkpoint after every iteration lets a killed run resume (same command).
+
+    python experiments/active_learning.py [--quick] [--seeds 0 1 2] [--iters 6]
+
+Writes ``experiments/out/active_learning[_quick].json`` and ``.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "experiments" / "out"
+HIDDEN = ("pressure_sensor", {"pressure_sensor.offset_pa": 150.0, "pressure_sensor.gain": 1.0})
+HELD_OUT = (
+    "[2.0, 25.4, nan, nan, nan, nan]", "[1.0, 38.1, nan, nan, nan, nan]",
+    "[1.5, 30.0, 45.0, 6.0, nan, nan]", "[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]",
+    "[2.33, 29.63, 37.63, 5.0, 62.0, 5.0]", "[2.0, 38.1, 47.55, 6.45, 62.0, 5.0]",
+)
+ARMS = ("random", "rig", "fidelity")
+ROWS_PER_MEMBRANE = 400  # rig rows kept per membrane (the ramps are ~20k samples)
+TRAIN_ROWS = 6000  # fixed-size resample: every fit has the same shapes (one compilation)
+
+
+class Lab:
+    """Truth rig, nominal simulator and the held-out set for one experiment."""
+
+    def __init__(self, quick: bool):
+        from mfdesign.design import Membrane
+        from mfdesign.rig.virtual import VirtualRig, analytic_plane
+
+        sim = analytic_plane if quick else None
+        cache = None if quick else OUT / "plane_cache"
+        self.truth = VirtualRig(effects=[HIDDEN[0]], theta=HIDDEN[1], seed=777, simulator=sim, cache_dir=cache)
+        self.nominal = VirtualRig(simulator=sim, cache_dir=cache)
+        held = self.truth.run([Membrane.from_key(k) for k in HELD_OUT], progress=False).arrays()
+        self._rows: dict = {}
+        self.held = {k: v[::5] for k, v in held.items() if k in ("design", "height_mm", "pressure_pa", "force_n")}
+
+    def fabricate(self, design, seed: int) -> dict:
+        """Rig rows of one membrane (force characterisation + mass lifts), subsampled."""
+        memo = (design.key(), seed)
+        if memo not in self._rows:
+            self.truth.seed = 1000 + seed
+            a = self.truth.run([design], progress=False).arrays()
+            rng = np.random.default_rng([seed, zlib.crc32(design.key().encode())])
+            keep = rng.choice(len(a["force_n"]), size=min(ROWS_PER_MEMBRANE, len(a["force_n"])), replace=False)
+            self._rows[memo] = {k: a[k][keep] for k in ("design", "height_mm", "pressure_pa", "force_n")}
+        return self._rows[memo]
+
+    def simulate(self, design) -> dict:
+        """Simulator plane of one membrane: converged points up to the rig's pressure limit."""
+        plane = self.nominal.truth_plane(design)
+        p_top = max(self.nominal.protocol.force_limits(design))
+        H, P = np.meshgrid(plane.h_grid, plane.p_grid, indexing="ij")
+        ok = np.isfinite(plane.force_n) & (P <= p_top + 1e-9)
+        n = int(ok.sum())
+        return {"design": np.repeat(design.to_array()[None], n, 0), "height_mm": H[ok],
+                "pressure_pa": P[ok], "force_n": plane.force_n[ok]}
+
+
+def _cat(parts: list[dict]) -> dict:
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def _resample(data: dict, rng) -> dict:
+    idx = rng.choice(len(data["force_n"]), size=TRAIN_ROWS, replace=True)
+    return {k: v[idx] for k, v in data.items()}
+
+
+def _fit(cfg, data, seed):
+    from mfdesign.models.ensemble import fit_ensemble
+
+    d = _resample(data, np.random.default_rng(seed))
+    return fit_ensemble(cfg, d["design"], d["height_mm"], d["pressure_pa"], d["force_n"], key=seed, progress=False)
+
+
+class Model:
+    """The arm's model: rig ensemble, or sim ensemble + discrepancy ensemble."""
+
+    def __init__(self, arm, rig_data, sim_data, cfgs, seed):
+        import jax.numpy as jnp
+
+        from mfdesign.acquire import EnsemblePredictor, SplitPredictor
+
+        self.arm = arm
+        if arm != "fidelity":
+            self.ens = _fit(cfgs["rig"], rig_data, seed)
+            self.predictor = EnsemblePredictor(self.ens)
+            self.predict = lambda d, h, p: np.asarray(self.ens.predict(jnp.asarray(d), h, p).mean(0))
+            return
+        self.sim = _fit(cfgs["rig"], sim_data, seed)
+        s = np.asarray(self.sim.predict(jnp.asarray(rig_data["design"]), rig_data["height_mm"],
+                                        rig_data["pressure_pa"]).mean(0))
+        resid = dict(rig_data, force_n=rig_data["force_n"] - s)
+        self.disc = _fit(cfgs["disc"], resid, seed + 1)
+        self.predictor = SplitPredictor(self.sim, self.disc)
+        self.predict = lambda d, h, p: (np.asarray(self.sim.predict(jnp.asarray(d), h, p).mean(0))
+                                        + np.asarray(self.disc.predict(jnp.asarray(d), h, p).mean(0)))
+
+
+def _lhs(rng, n, dim):
+    from scipy.stats import qmc
+
+    return qmc.LatinHypercube(d=dim, seed=rng).random(n)
+
+
+def initial_designs(seed):
+    from mfdesign.design import DesignSpace
+
+    space, rng = DesignSpace(), np.random.default_rng(10_000 + seed)
+    return [space.decode(_lhs(rng, 1, space.dim(n))[0], n) for n in (0, 1, 2)]
+
+
+def run_arm(lab, arm, seed, args, cfgs, state) -> dict:
+    """Run (or resume) one arm for one seed; ``state`` is the checkpoint dict of this run."""
+    from mfdesign.acquire import propose
+    from mfdesign.design import DesignSpace, Membrane
+
+    space = DesignSpace()
+    rng = np.random.default_rng([seed, ARMS.index(arm)])
+    rig_keys = state.setdefault("rig", [d.key() for d in initial_designs(seed)])
+    sim_keys = state.setdefault("sim", list(rig_keys) if arm == "fidelity" else [])
+    curve = state.setdefault("curve", [])
+    costs = {"rig": 1.0, "sim": args.cost_sim}
+    while True:
+        it = len(curve)
+        rig_data = _cat([lab.fabricate(Membrane.from_key(k), seed) for k in rig_keys])
+        sim_data = _cat([lab.simulate(Membrane.from_key(k)) for k in sim_keys]) if sim_keys else None
+        t = time.perf_counter()
+        model = Model(arm, rig_data, sim_data, cfgs, seed * 100 + it)
+        fit_s = time.perf_counter() - t
+        h = lab.held
+        err = model.predict(h["design"], h["height_mm"], h["pressure_pa"]) - h["force_n"]
+        rmse = float(np.sqrt(np.mean(err**2)))
+        cost = len(rig_keys) + args.cost_sim * len(sim_keys)
+        if len(curve) == it:
+            curve.append({"iteration": it, "membranes": len(rig_keys), "sims": len(sim_keys), "cost": cost,
+                          "rmse_n": rmse, "fit_s": fit_s})
+        print(f"seed {seed} {arm:8s} it {it}: {len(rig_keys)} membranes, {len(sim_keys)} sims, cost {cost:.2f}: "
+              f"held-out RMSE {rmse:.2f} N (fit {fit_s:.1f} s)", flush=True)
+        if it >= args.iters:
+            return state
+        t = time.perf_counter()
+        if arm == "random":
+            new = [(space.decode(_lhs(rng, 1, space.dim(n))[0], n), "rig")
+                   for n in rng.integers(0, 3, size=args.q)]
+        else:
+            fids = ("rig", "sim") if arm == "fidelity" else ("rig",)
+            prop = propose(model.predictor, args.q, fidelities=fids, costs=costs, n_restarts=args.restarts,
+                           n_steps=args.lbfgs_steps, key=seed * 1000 + it)
+            new = list(zip(prop.designs, prop.fidelities))
+        curve[-1]["propose_s"] = time.perf_counter() - t
+        curve[-1]["proposed"] = [[d.key(), f] for d, f in new]
+        for d, f in new:
+            if f == "rig" and d.key() not in rig_keys:
+                rig_keys.append(d.key())
+            if arm == "fidelity" and d.key() not in sim_keys:
+                sim_keys.append(d.key())  # a fabricated membrane is simulated too
+        args.save()  # checkpoint after each iteration
+
+
+def summarise(results, args) -> dict:
+    target = args.target_n
+    summary = {}
+    for arm in ARMS:
+        runs = [results[s][arm]["curve"] for s in results if arm in results[s] and results[s][arm].get("curve")]
+        if not runs:
+            continue
+        first = []
+        for c in runs:
+            hit = [p for p in c if p["rmse_n"] <= target]
+            first.append(hit[0]["membranes"] if hit else None)
+        finals = [c[-1]["rmse_n"] for c in runs]
+        summary[arm] = {"seeds": len(runs), "final_rmse_n_mean": float(np.mean(finals)),
+                        "final_rmse_n": finals, "membranes_to_target": first,
+                        "final_cost_mean": float(np.mean([c[-1]["cost"] for c in runs]))}
+    return summary
+
+
+def plot(results, summary, args, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colours = {"random": "tab:gray", "rig": "tab:blue", "fidelity": "tab:orange"}
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for arm in ARMS:
+        for s in results:
+            c = results[s].get(arm, {}).get("curve", [])
+            if not c:
+                continue
+            for ax, x in zip(axes, ("membranes", "cost")):
+                ax.plot([p[x] for p in c], [p["rmse_n"] for p in c], "o-", color=colours[arm], alpha=0.7,
+                        label=arm if s == min(results) else None, ms=3)
+    for ax, lab in zip(axes, ("membranes fabricated", "cost (rig runs; sim = %g)" % args.cost_sim)):
+        ax.axhline(args.target_n, color="k", ls="--", lw=1, label=f"target {args.target_n} N")
+        ax.set_xlabel(lab)
+        ax.set_ylabel("held-out force RMSE [N]")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    fig.suptitle(f"Active learning on the virtual rig ({'quick: analytic simulator' if args.quick else 'simulator'}; "
+                 f"{len(results)} seeds, q = {args.q})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="analytic stand-in simulator, short fits")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--arms", nargs="+", default=list(ARMS), choices=ARMS)
+    ap.add_argument("--iters", type=int, default=6, help="acquisition rounds after the 3 initial membranes")
+    ap.add_argument("--q", type=int, default=2)
+    ap.add_argument("--restarts", type=int, default=32)
+    ap.add_argument("--lbfgs-steps", type=int, default=15)
+    ap.add_argument("--members", type=int, default=8)
+    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--cost-sim", type=float, default=0.01)
+    ap.add_argument("--target-n", type=float, default=4.0)
+    args = ap.parse_args()
+    if args.quick:
+        args.steps = min(args.steps, 600)
+
+    import jax
+
+    import mfdesign  # noqa: F401
+    from mfdesign.cli import enable_compilation_cache
+    from mfdesign.models.ensemble import EnsembleConfig
+
+    enable_compilation_cache()
+    jax.config.update("jax_platforms", "cpu")
+    tag = "_quick" if args.quick else ""
+    ckpt_path = OUT / f"active_learning{tag}_checkpoint.json"
+    results = json.loads(ckpt_path.read_text()) if ckpt_path.exists() else {}
+    results = {int(k): v for k, v in results.items()}
+
+    def save(_=None):
+        tmp = ckpt_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps({str(k): v for k, v in results.items()}, indent=1))
+        tmp.replace(ckpt_path)
+
+    args.save = save
+    common = dict(n_members=args.members, steps=args.steps, chunk=min(500, args.steps), batch=100)
+    cfgs = {"rig": EnsembleConfig(monotone=True, **common), "disc": EnsembleConfig(monotone=False, **common)}
+    t0 = time.perf_counter()
+    lab = Lab(args.quick)
+    print(f"held-out: {len(lab.held['force_n'])} rows of {len(HELD_OUT)} membranes ({time.perf_counter() - t0:.0f} s)",
+          flush=True)
+    for seed in args.seeds:
+        for arm in args.arms:
+            state = results.setdefault(seed, {}).setdefault(arm, {})
+            if state.get("curve") and len(state["curve"]) > args.iters:
+                continue
+            run_arm(lab, arm, seed, args, cfgs, state)
+            save()
+    summary = summarise(results, args)
+    for arm, s in summary.items():
+        print(f"{arm:8s}: final RMSE {s['final_rmse_n_mean']:.2f} N (mean of {s['seeds']} seeds), "
+              f"membranes to {args.target_n} N: {s['membranes_to_target']}", flush=True)
+    if "random" in summary and "rig" in summary:
+        r, a = summary["random"]["final_rmse_n_mean"], summary["rig"]["final_rmse_n_mean"]
+        print(f"ratio final RMSE random / rig acquisition: {r / a:.2f}", flush=True)
+    out = {"command": "python experiments/active_learning.py " + " ".join(
+               f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k not in ("save",)),
+           "quick": args.quick, "hidden_effect": {"name": HIDDEN[0], "theta": HIDDEN[1]},
+           "held_out": list(HELD_OUT), "held_out_rows": int(len(lab.held["force_n"])),
+           "target_n": args.target_n, "cost_sim": args.cost_sim, "summary": summary,
+           "runs": {str(k): v for k, v in results.items()}, "wall_s": time.perf_counter() - t0,
+           "note": ("fidelity arm: SplitPredictor (sim ensemble + discrepancy ensemble), our stand-in for the "
+                    "issue-5 multi-fidelity model")}
+    (OUT / f"active_learning{tag}.json").write_text(json.dumps(out, indent=2))
+    plot(results, summary, args, OUT / f"active_learning{tag}.png")
+    print(f"wrote {OUT / f'active_learning{tag}.json'} and .png", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,167 @@
+"""Hidden-effect sweep: does diagnosis find the effect hidden in virtual-rig data, and only then?
+
+For each effect (at its ``typical`` magnitude) and seed, the virtual rig measures 6
+membranes (the bundled dataset's designs; deflation on, so that hysteresis is visible)
+with that effect hidden; :func:`mfdesign.diagnose.pipeline.diagnose` then screens every
+registered effect and checks the best three. Recorded per case: the screen's rank of the
+hidden effect, the effect(s) claimed, the held-out (leave-membranes-out) RMSE after adding
+it, over the noise floor. Also: two hidden effects at once, and clean controls (nothing
+hidden: any claim is a false positive).
+
+    python experiments/hidden_effects.py [--simulator analytic|full] [--seeds 3] [--cache-dir DIR]
+
+Writes ``experiments/out/hidden_effects[_full].json`` (one checkpoint per case, a rerun
+skips finished cases) and a PNG. With ``--simulator analytic`` (the cheap stand-in of
+``mfdesign.rig.virtual``) only effects the stand-in responds to are run: it has no ring
+stiffness, clamp pre-stretch, thickness gradient, and no stiffness dependence at h = 0
+(where trial 0 runs), so ``ring_softening``, ``clamp_prestretch``, ``thickness_gradient``
+and ``stress_softening`` need ``--simulator full``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DESIGNS = (
+    "[2.0, 25.4, nan, nan, nan, nan]",
+    "[1.0, 38.1, nan, nan, nan, nan]",
+    "[1.5, 30.0, 45.0, 6.0, nan, nan]",
+    "[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]",
+    "[2.33, 29.63, 37.63, 5.0, 62.0, 5.0]",
+    "[2.0, 38.1, 47.55, 6.45, 62.0, 5.0]",
+)
+STAND_IN_BLIND = ("ring_softening", "clamp_prestretch", "thickness_gradient", "stress_softening")
+PAIRS = (("pressure_sensor", "load_cell_offset"), ("hysteresis", "contact_offset"))
+
+
+def run_case(hidden, seed, simulator, cache_dir, sample_hz):
+    import numpy as np
+
+    from mfdesign.design import Membrane
+    from mfdesign.diagnose import PlaneSimulator
+    from mfdesign.diagnose.pipeline import diagnose
+    from mfdesign.physics import effects as fx
+    from mfdesign.rig.virtual import Protocol, VirtualRig, analytic_plane
+
+    sim_fn = analytic_plane if simulator == "analytic" else None
+    rig = VirtualRig(effects=list(hidden), theta=fx.typical_theta(hidden), seed=seed, simulator=sim_fn,
+                     protocol=Protocol(deflate=True, sample_hz=sample_hz), cache_dir=cache_dir)
+    t0 = time.time()
+    meas = rig.run([Membrane.from_key(k) for k in DESIGNS], progress=False)
+    sim = PlaneSimulator(simulator=sim_fn, cache_dir=cache_dir)
+    d = diagnose(meas, sim, max_nfev_mechanical=None if simulator == "analytic" else 0)
+    first = d.steps[0] if d.steps else None
+    ranks = [r.effect for r in first["screen"]] if first else []
+    check_order = [list(c.effects)[-1] for c in first["checks"]] if first else []
+    last = d.steps[-1]["verdict"] if d.steps else {}
+    best_checks = [c for s in d.steps for c in s["checks"] if list(c.effects) == d.effects]
+    heldout = best_checks[0].heldout_rmse_n if best_checks else d.before.rmse_n
+    return {
+        "hidden": list(hidden), "seed": seed, "rows": len(meas),
+        "screen_ranking": ranks, "screen_rank_of_hidden": [ranks.index(h) + 1 if h in ranks else None for h in hidden],
+        "check_ranking": check_order, "found": d.found, "theta": d.theta,
+        "ranked_first": bool(hidden) and (check_order[:1] == [hidden[0]] or d.found[:1] == [hidden[0]]),
+        "all_found": sorted(d.found) == sorted(hidden),
+        "false_positive": (not hidden) and bool(d.found),
+        "rmse_before_n": d.before.rmse_n, "noise_floor_n": d.before.noise_floor_n,
+        "heldout_rmse_after_n": heldout,
+        "heldout_over_noise": heldout / d.before.noise_floor_n,
+        "verdicts": [s["verdict"]["words"] for s in d.steps], "seconds": time.time() - t0,
+    }
+
+
+def summarise(cases):
+    single = [c for c in cases if len(c["hidden"]) == 1]
+    pairs = [c for c in cases if len(c["hidden"]) == 2]
+    clean = [c for c in cases if not c["hidden"]]
+    frac = lambda xs: (sum(xs) / len(xs)) if xs else None
+    per = {}
+    for c in single:
+        e = c["hidden"][0]
+        per.setdefault(e, []).append(c)
+    return {
+        "single_effect_cases": len(single),
+        "ranking_accuracy": frac([c["found"][:1] == c["hidden"] for c in single]),
+        "screen_top1_accuracy": frac([c["screen_rank_of_hidden"] == [1] for c in single]),
+        "heldout_within_1.2x_noise": frac([c["heldout_over_noise"] <= 1.2 for c in single]),
+        "max_heldout_over_noise": max((c["heldout_over_noise"] for c in single), default=None),
+        "two_effect_cases": len(pairs), "two_effect_both_found": frac([c["all_found"] for c in pairs]),
+        "clean_cases": len(clean), "false_positive_rate": frac([c["false_positive"] for c in clean]),
+        "per_effect": {e: {"found_first": frac([c["found"][:1] == c["hidden"] for c in cs]),
+                           "heldout_over_noise": [round(c["heldout_over_noise"], 3) for c in cs],
+                           "theta": [c["theta"] for c in cs]} for e, cs in per.items()},
+    }
+
+
+def plot(summary, cases, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    single = [c for c in cases if len(c["hidden"]) == 1]
+    effects = sorted({c["hidden"][0] for c in single})
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for i, e in enumerate(effects):
+        ys = [c["heldout_over_noise"] for c in single if c["hidden"][0] == e]
+        ok = [c["found"][:1] == [e] for c in single if c["hidden"][0] == e]
+        ax.scatter([i] * len(ys), ys, c=["tab:green" if o else "tab:red" for o in ok])
+        ax.scatter([i] * len(ys), [c["rmse_before_n"] / c["noise_floor_n"] for c in single if c["hidden"][0] == e],
+                   marker="x", c="grey")
+    ax.axhline(1.2, ls="--", c="k", lw=0.8)
+    ax.set_xticks(range(len(effects)), effects, rotation=30, ha="right")
+    ax.set_ylabel("RMSE / noise floor")
+    ax.set_yscale("log")
+    ax.set_title(f"hidden effects: x before, dot after (green = found first); accuracy {summary['ranking_accuracy']}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--simulator", choices=("analytic", "full"), default="analytic")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--clean-seeds", type=int, default=5)
+    ap.add_argument("--sample-hz", type=float, default=2.0, help="rig sampling rate (10 Hz in the paper; 2 Hz keeps the sweep lean)")
+    ap.add_argument("--effects", nargs="*", default=None, help="hidden effects to sweep (default: all the simulator can show)")
+    ap.add_argument("--cache-dir", type=Path, default=ROOT / "experiments" / "out" / "plane_cache")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+    from mfdesign.physics import effects as fx
+
+    out = args.out or ROOT / "experiments" / "out" / ("hidden_effects.json" if args.simulator == "analytic" else "hidden_effects_full.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    names = args.effects if args.effects is not None else [
+        e for e in sorted(fx.EFFECTS) if args.simulator == "full" or e not in STAND_IN_BLIND]
+    plan = [((e,), s) for e in names for s in range(args.seeds)]
+    plan += [(p, s) for p in PAIRS if all(e in names for e in p) for s in range(1)]
+    plan += [((), 100 + s) for s in range(args.clean_seeds)]
+    done = json.loads(out.read_text())["cases"] if out.is_file() else []
+    have = {(tuple(c["hidden"]), c["seed"]) for c in done}
+    cache = args.cache_dir if args.simulator == "full" else None
+    for hidden, seed in plan:
+        if (tuple(hidden), seed) in have:
+            continue
+        c = run_case(hidden, seed, args.simulator, cache, args.sample_hz)
+        done.append(c)
+        print(f"{'+'.join(hidden) or 'clean':35s} seed {seed}: found {c['found']} screen rank "
+              f"{c['screen_rank_of_hidden']} held-out/noise {c['heldout_over_noise']:.2f} ({c['seconds']:.0f} s)", flush=True)
+        summary = summarise(done)
+        out.write_text(json.dumps({"simulator": args.simulator, "sample_hz": args.sample_hz,
+                                   "designs": list(DESIGNS), "summary": summary, "cases": done}, indent=1))
+    summary = summarise(done)
+    out.write_text(json.dumps({"simulator": args.simulator, "sample_hz": args.sample_hz,
+                               "designs": list(DESIGNS), "summary": summary, "cases": done}, indent=1))
+    plot(summary, done, out.with_suffix(".png"))
+    print(json.dumps({k: v for k, v in summary.items() if k != "per_effect"}, indent=1))
+    return summary
+
+
+if __name__ == "__main__":
+    sys.exit(0 if main() is not None else 1)

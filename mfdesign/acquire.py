@@ -1,0 +1,416 @@
+"""Batch acquisition over designs and fidelities: which membranes to build or simulate next.
+
+Score (uncertainty reduction per cost). A predictor gives, per fidelity ``f``, ``M`` paired
+members ``F_m^f(x, h, p)`` (N): ensemble members or posterior draws, member ``m`` of every
+fidelity being one hypothesis about the truth. On a height-pressure grid ``G`` (mm x Pa)
+the deviation of member ``m`` at design ``x`` is the L2 norm over the grid
+
+    d_m^f(x) = || F_m^f(x, G) - mean_k F_k^f(x, G) ||_2                      [N]
+
+For a batch ``B = {(x_j, f_j)}_{j=1..q}`` the uncertainty reduction is
+
+    U(B) = sum_m max_j d_m^{f_j}(x_j)                                        [N]
+
+(each hypothesis is refuted by the batch member that best tells it from the consensus),
+and the acquisition is ``A(B) = U(B) / sum_j c_{f_j}``. With one fidelity ``rig`` this is
+the acquisition of Campbell et al. 2025 ("Active Learning Design: Modeling Force Output
+for Axisymmetric Soft Pneumatic Actuators"): sum over ensemble members of the max over the
+batch of the L2 deviation on a height-pressure grid; :attr:`Proposal.utility` is exactly
+that number and the cost only rescales it. Fidelities: ``rig`` members carry the whole
+predictive spread (discrepancy and parameters); ``sim`` members carry only the part a
+simulator run informs (the simulator surrogate's spread), never the sim-to-real
+discrepancy, so a sim run is worth its low cost only while that part dominates.
+
+Optimisation: for every ring count and fidelity ("arm"), ``n_restarts`` batches of ``q``
+designs are optimised jointly by L-BFGS (Liu & Nocedal 1989; ``optax.lbfgs`` with its zoom
+line search) on the unit-cube decoding of :class:`~mfdesign.design.DesignSpace`. The box
+``[0, 1]`` is kept by the sine transform of MINUIT (James & Roos 1975):
+``u = (1 + sin z) / 2`` with ``z`` unconstrained, so every iterate is a valid design.
+Restarts run together under ``jax.vmap`` inside one ``jax.jit``. The final batch is the
+best of (a) each arm's best joint batch and (b) a cost-benefit greedy mix over the pool of
+all optimised designs of all arms (Leskovec et al. 2007, "Cost-effective outbreak
+detection in networks"; ``U`` is a facility-location function, hence submodular), which
+lets one batch mix ring counts and fidelities.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from mfdesign.design import DesignError, DesignSpace, Membrane
+
+__all__ = [
+    "FIDELITIES", "DEFAULT_COSTS", "Grid", "Predictor", "EnsemblePredictor", "SplitPredictor",
+    "FunctionPredictor", "Proposal", "decode_unit", "deviations", "batch_utility", "evaluate",
+    "propose",
+]
+
+FIDELITIES = ("rig", "sim")
+DEFAULT_COSTS = {"rig": 1.0, "sim": 0.01}  # a rig day vs a simulator plane (issue 7)
+
+
+# --------------------------------------------------------------------------- grid
+@dataclasses.dataclass(frozen=True)
+class Grid:
+    """Height x pressure grid (mm, Pa) on which members are compared.
+
+    Default: plate heights 0-70 mm every 10 mm (the rig's set heights) x pressures
+    1-8 kPa every 1 kPa: 64 points.
+    """
+
+    h_mm: tuple[float, ...] = tuple(float(h) for h in range(0, 71, 10))
+    p_pa: tuple[float, ...] = tuple(float(p) for p in range(1000, 8001, 1000))
+
+    def __post_init__(self):
+        for name in ("h_mm", "p_pa"):
+            v = np.asarray(getattr(self, name), dtype=float)
+            if v.ndim != 1 or v.size == 0:
+                raise ValueError(f"Grid.{name} must be a non-empty list of numbers, got {getattr(self, name)!r}")
+            if not np.all(np.isfinite(v)) or np.any(v < 0):
+                raise ValueError(f"Grid.{name} must be finite and >= 0, got {v.tolist()}")
+            object.__setattr__(self, name, tuple(float(x) for x in v))
+
+    @property
+    def size(self) -> int:
+        return len(self.h_mm) * len(self.p_pa)
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Flattened (h [G], p [G]), heights outer."""
+        h, p = np.meshgrid(self.h_mm, self.p_pa, indexing="ij")
+        return h.ravel(), p.ravel()
+
+
+# --------------------------------------------------------------------------- predictors
+@runtime_checkable
+class Predictor(Protocol):
+    """What acquisition consumes: paired members per fidelity on a grid.
+
+    ``grid_members(fidelity, design [B, 6], grid) -> [M, B, G]`` forces in N (design rows
+    ``[t, c, r1, w1, r2, w2]`` mm, NaN for no ring; ``G = grid.size``, heights outer).
+    Must be traceable (jit/vmap/grad in ``design``); member ``m`` of every fidelity is the
+    same hypothesis.
+    """
+
+    fidelities: tuple[str, ...]
+
+    def grid_members(self, fidelity: str, design, grid: Grid) -> jax.Array: ...
+
+
+def _ensemble_grid(ens, design, grid: Grid):
+    """RPN ensemble members [M, B, G] on a grid. ``vmap`` over pressure is innermost and
+    the latent network does not depend on p, so it runs once per (member, design, height):
+    the head is polynomial in p."""
+    h = jnp.asarray(grid.h_mm)
+    p = jnp.asarray(grid.p_pa)
+    one = lambda net, pri, x, hh, pp: ens._member(net, pri, x, hh, pp)  # noqa: E731
+    f = jax.vmap(one, in_axes=(None, None, None, None, 0))  # p
+    f = jax.vmap(f, in_axes=(None, None, None, 0, None))  # h
+    f = jax.vmap(f, in_axes=(None, None, 0, None, None))  # designs
+    f = eqx.filter_vmap(f, in_axes=(eqx.if_array(0), eqx.if_array(0), None, None, None))  # members
+    out = f(ens.trainable, ens.prior, design, h, p)
+    return out.reshape(out.shape[0], out.shape[1], -1).astype(jnp.result_type(float))
+
+
+class EnsemblePredictor(eqx.Module):
+    """The rig-only paper case: the members of one RPN :class:`~mfdesign.models.ensemble.Ensemble`."""
+
+    ensemble: Any
+    fidelities: tuple[str, ...] = eqx.field(static=True, default=("rig",))
+
+    def grid_members(self, fidelity, design, grid):
+        _check_fidelity(self, fidelity)
+        return _ensemble_grid(self.ensemble, design, grid)
+
+
+class SplitPredictor(eqx.Module):
+    """Simulator surrogate + discrepancy: ``rig_m = sim_m + disc_m``, ``sim_m = sim_m``.
+
+    ``sim``: an ensemble fitted to simulator output (its spread is what simulator runs
+    inform); ``discrepancy``: an ensemble fitted to rig minus simulator surrogate (only rig
+    runs inform it). Both need the same number of members (member m pairs with member m).
+    """
+
+    sim: Any
+    discrepancy: Any
+    fidelities: tuple[str, ...] = eqx.field(static=True, default=("rig", "sim"))
+
+    def __check_init__(self):
+        if self.sim.n_members != self.discrepancy.n_members:
+            raise ValueError(f"sim ({self.sim.n_members}) and discrepancy ({self.discrepancy.n_members}) "
+                             "ensembles need the same number of members")
+
+    def grid_members(self, fidelity, design, grid):
+        _check_fidelity(self, fidelity)
+        s = _ensemble_grid(self.sim, design, grid)
+        return s if fidelity == "sim" else s + _ensemble_grid(self.discrepancy, design, grid)
+
+
+class FunctionPredictor(eqx.Module):
+    """Any pointwise model: ``functions[fidelity](design [N, 6], h_mm [N], p_pa [N]) -> [M, N]``."""
+
+    functions: tuple[tuple[str, Callable], ...] = eqx.field(static=True)
+    fidelities: tuple[str, ...] = eqx.field(static=True)
+
+    def __init__(self, functions: Mapping[str, Callable]):
+        if not functions:
+            raise ValueError("FunctionPredictor needs at least one fidelity")
+        self.functions = tuple(dict(functions).items())  # hashable: jit caches on it
+        self.fidelities = tuple(dict(functions))
+
+    def grid_members(self, fidelity, design, grid):
+        _check_fidelity(self, fidelity)
+        h, p = (jnp.asarray(a) for a in grid.points())
+        b, g = design.shape[0], h.shape[0]
+        rows = jnp.repeat(design, g, axis=0)
+        out = dict(self.functions)[fidelity](rows, jnp.tile(h, b), jnp.tile(p, b))
+        return out.reshape(out.shape[0], b, g)
+
+
+def _check_fidelity(predictor, fidelity):
+    if fidelity not in predictor.fidelities:
+        raise ValueError(f"fidelity {fidelity!r} not offered by this predictor; allowed: {list(predictor.fidelities)}")
+
+
+# --------------------------------------------------------------------------- design decoding
+def decode_unit(space: DesignSpace, u, n_rings: int):
+    """JAX twin of :meth:`DesignSpace.decode_array`: unit cube ``[..., 2 + 2 n]`` -> ``[..., 6]`` mm.
+
+    Same piecewise-linear map (widths first, then slack fractions); differentiable, so the
+    optimiser can follow it. NaN fills the absent ring slots.
+    """
+    u = jnp.clip(u, 0.0, 1.0)
+    if u.shape[-1] != space.dim(n_rings):
+        raise DesignError(f"expected {space.dim(n_rings)} unit-cube coordinates, got {u.shape[-1]}")
+    (t_lo, t_hi), (c_lo, c_hi), (w_lo, w_hi) = space.thickness_mm, space.contact_radius_mm, space.half_width_mm
+    t = t_lo + (t_hi - t_lo) * u[..., 0]
+    c = c_lo + (c_hi - c_lo) * u[..., 1]
+    cols = [t, c]
+    if n_rings:
+        gap, R = space.gap_mm, space.outer_radius_mm
+        span = R - c - (n_rings + 1) * gap
+        room = span - 2 * n_rings * w_lo
+        widths = []
+        for k in range(n_rings):
+            w = w_lo + u[..., 2 + k] * jnp.minimum(w_hi - w_lo, room / 2.0)
+            room = room - 2.0 * (w - w_lo)
+            widths.append(w)
+        left = span - 2.0 * sum(widths)
+        edge = c + gap
+        for k in range(n_rings):
+            take = left * u[..., 2 + n_rings + k]
+            left = left - take
+            inner = edge + take
+            cols += [inner + widths[k], widths[k]]
+            edge = inner + 2 * widths[k] + gap
+    nan = jnp.full_like(t, jnp.nan)
+    cols += [nan] * (6 - len(cols))
+    return jnp.stack(cols, axis=-1)
+
+
+def _to_unit(z):
+    """MINUIT sine transform: unconstrained ``z`` -> ``u = (1 + sin z) / 2`` in [0, 1]."""
+    return 0.5 * (1.0 + jnp.sin(z))
+
+
+# --------------------------------------------------------------------------- score
+def deviations(members):
+    """``d[m, b] = ||F[m, b, :] - mean_k F[k, b, :]||_2`` (N) from members ``[M, B, G]``."""
+    dev = members - members.mean(axis=0, keepdims=True)
+    return jnp.sqrt(jnp.sum(dev**2, axis=-1) + 1e-30)
+
+
+def batch_utility(dev):
+    """Paper's batch score ``sum_m max_j d[m, j]`` (N) from deviations ``[M, q]``."""
+    return jnp.sum(jnp.max(dev, axis=-1), axis=0)
+
+
+def evaluate(predictor: Predictor, designs, fidelities: Sequence[str], grid: Grid = Grid(),
+             costs: Mapping[str, float] | None = None) -> dict:
+    """Score a given batch: ``designs`` (Membranes or ``[q, 6]`` rows), one fidelity each.
+
+    Returns ``utility`` (N, the paper's number for an all-rig batch), ``cost``, ``score``
+    = utility / cost and ``deviation`` ``[q, M]``.
+    """
+    rows = np.stack([d.to_array() if isinstance(d, Membrane) else np.asarray(d, float) for d in designs])
+    if len(fidelities) != len(rows):
+        raise ValueError(f"one fidelity per design: {len(rows)} designs, {len(fidelities)} fidelities")
+    costs = _check_costs(fidelities, costs)
+    dev = np.stack([np.asarray(deviations(predictor.grid_members(f, jnp.asarray(r[None]), grid)))[:, 0]
+                    for r, f in zip(rows, fidelities)], axis=0)  # [q, M]
+    utility = float(dev.max(axis=0).sum())
+    cost = float(sum(costs[f] for f in fidelities))
+    return {"utility": utility, "cost": cost, "score": utility / cost, "deviation": dev}
+
+
+# --------------------------------------------------------------------------- optimiser
+@eqx.filter_jit
+def _optimise_arm(predictor, z0, fidelity, grid, space, n_rings, n_steps):
+    """``z0 [R, q, dim] -> (u [R, q, dim], dev [R, q, M])``: every restart runs ``n_steps``
+    L-BFGS iterations on ``-U`` (``jax.vmap`` over restarts, one compiled call; the compiled
+    code is reused for any predictor of the same structure, e.g. a refitted ensemble)."""
+    opt = optax.lbfgs(linesearch=optax.scale_by_backtracking_linesearch(max_backtracking_steps=10, store_grad=True))
+
+    def dev_of(z):
+        design = decode_unit(space, _to_unit(z), n_rings)  # [q, 6]
+        return deviations(predictor.grid_members(fidelity, design, grid))  # [M, q]
+
+    def loss(z):
+        return -batch_utility(dev_of(z))
+
+    value_and_grad = optax.value_and_grad_from_state(loss)
+
+    def one(z):
+        def step(carry, _):
+            z, state = carry
+            value, grad = value_and_grad(z, state=state)
+            updates, state = opt.update(grad, state, z, value=value, grad=grad, value_fn=loss)
+            return (optax.apply_updates(z, updates), state), None
+
+        (z, _), _ = jax.lax.scan(step, (z, opt.init(z)), None, length=n_steps)
+        return _to_unit(z), dev_of(z).T
+
+    return jax.vmap(one)(z0)
+
+
+# --------------------------------------------------------------------------- proposal
+@dataclasses.dataclass(frozen=True)
+class Proposal:
+    """The chosen batch: ``designs[j]`` to run at ``fidelities[j]``.
+
+    ``scores[j]``: design j alone, ``sum_m d_m(x_j) / c_j`` (N per cost unit);
+    ``utility``: ``U(B)`` in N (the paper's score for an all-rig batch); ``cost``; ``score`` =
+    utility / cost; ``deviation`` ``[q, M]``; ``arms``: per (ring count, fidelity) the best
+    joint batch found and its restarts' utilities; ``wall_s``.
+    """
+
+    designs: tuple[Membrane, ...]
+    fidelities: tuple[str, ...]
+    scores: tuple[float, ...]
+    utility: float
+    cost: float
+    score: float
+    deviation: np.ndarray
+    arms: tuple[dict, ...]
+    wall_s: float
+
+    def to_json(self) -> dict:
+        return {
+            "designs": [d.key() for d in self.designs], "fidelities": list(self.fidelities),
+            "scores": list(self.scores), "utility_n": self.utility, "cost": self.cost,
+            "score": self.score, "wall_s": self.wall_s,
+            "arms": [{k: v for k, v in a.items() if k not in ("u", "dev", "restart_utility")}
+                     | {"restart_utility_quantiles": np.quantile(a["restart_utility"], [0, 0.5, 0.9, 1]).tolist()}
+                     for a in self.arms],
+        }
+
+    def save(self, path) -> None:
+        from pathlib import Path
+
+        Path(path).write_text(json.dumps(self.to_json(), indent=2))
+
+
+def _check_costs(fidelities, costs):
+    costs = dict(DEFAULT_COSTS if costs is None else costs)
+    for f in fidelities:
+        c = costs.get(f)
+        if c is None:
+            raise ValueError(f"no cost given for fidelity {f!r}; give costs={{{f!r}: positive number}}")
+        if not (isinstance(c, (int, float)) and math.isfinite(c) and c > 0):
+            raise ValueError(f"cost of fidelity {f!r} must be a positive finite number, got {c!r}")
+    return costs
+
+
+def _greedy(dev, cost, q):
+    """Cost-benefit greedy (Leskovec et al. 2007): add the candidate that maximises the
+    batch's ``U / cost``; ``dev`` [K, M] deviations, ``cost`` [K]. Returns indices [q]."""
+    chosen, best = [], np.zeros(dev.shape[1])
+    spent = 0.0
+    for _ in range(q):
+        gain = np.maximum(dev, best[None, :]).sum(1) / (spent + cost)
+        if chosen:
+            gain[chosen] = -np.inf
+        j = int(np.argmax(gain))
+        chosen.append(j)
+        best = np.maximum(best, dev[j])
+        spent += cost[j]
+    return chosen
+
+
+def propose(predictor: Predictor, q: int, fidelities: Sequence[str] = ("rig",),
+            costs: Mapping[str, float] | None = None, n_restarts: int = 1000,
+            n_rings: Sequence[int] = (0, 1, 2), grid: Grid = Grid(), key=0,
+            space: DesignSpace = DesignSpace(), n_steps: int = 20, progress: bool = False) -> Proposal:
+    """Choose ``q`` (design, fidelity) pairs maximising ``U / cost`` (module docstring).
+
+    ``n_restarts`` joint batches per (ring count, fidelity), each refined by ``n_steps``
+    L-BFGS iterations, all restarts in one vmapped, jitted call; ``key``: int seed or
+    ``jax.random`` key. Raises ``ValueError`` on bad arguments.
+    """
+    t0 = time.perf_counter()
+    if not isinstance(q, (int, np.integer)) or isinstance(q, bool) or q < 1:
+        raise ValueError(f"q (batch size) must be an integer >= 1, got {q!r}")
+    if not isinstance(n_restarts, (int, np.integer)) or n_restarts < 1:
+        raise ValueError(f"n_restarts must be an integer >= 1, got {n_restarts!r}")
+    if not isinstance(n_steps, (int, np.integer)) or n_steps < 0:
+        raise ValueError(f"n_steps must be an integer >= 0, got {n_steps!r}")
+    fidelities = tuple(dict.fromkeys(fidelities))
+    if not fidelities:
+        raise ValueError(f"give at least one fidelity; allowed: {list(predictor.fidelities)}")
+    for f in fidelities:
+        if f not in predictor.fidelities:
+            raise ValueError(f"fidelity {f!r} not offered by this model; allowed: {list(predictor.fidelities)}")
+    costs = _check_costs(fidelities, costs)
+    n_rings = tuple(dict.fromkeys(n_rings))
+    if not n_rings or any(n not in (0, 1, 2) for n in n_rings):
+        raise ValueError(f"n_rings must be a non-empty subset of (0, 1, 2), got {n_rings!r}")
+    key = jax.random.PRNGKey(key) if isinstance(key, (int, np.integer)) else key
+
+    from tqdm.auto import tqdm
+
+    arms, pool_u, pool_dev, pool_cost, pool_arm = [], [], [], [], []
+    combos = [(n, f) for n in n_rings for f in fidelities]
+    for (n, f), k in zip(tqdm(combos, desc="acquisition arms", disable=not progress),
+                         jax.random.split(key, len(combos))):
+        dim = space.dim(n)
+        u0 = jax.random.uniform(k, (n_restarts, q, dim), minval=0.0, maxval=1.0)
+        z0 = jnp.arcsin(2.0 * u0 - 1.0)
+        ta = time.perf_counter()
+        u, dev = _optimise_arm(predictor, z0, f, grid, space, n, int(n_steps))
+        u, dev = np.asarray(u), np.asarray(dev)  # [R, q, dim], [R, q, M]
+        util = dev.max(axis=1).sum(axis=1)  # [R]
+        util = np.where(np.isfinite(util), util, -np.inf)
+        r = int(np.argmax(util))
+        arms.append({"n_rings": n, "fidelity": f, "best_utility_n": float(util[r]),
+                     "best_score": float(util[r] / (q * costs[f])), "wall_s": time.perf_counter() - ta,
+                     "u": u[r], "dev": dev[r], "restart_utility": util})
+        pool_u += [(n, x) for x in u.reshape(-1, dim)]
+        pool_dev.append(dev.reshape(-1, dev.shape[-1]))
+        pool_cost.append(np.full(n_restarts * q, costs[f]))
+        pool_arm += [f] * (n_restarts * q)
+
+    # (a) best joint batch of one arm, (b) cost-benefit greedy mix over the pool.
+    cands = []
+    for a in arms:
+        cands.append(([(a["n_rings"], x) for x in a["u"]], [a["fidelity"]] * q, a["dev"]))
+    dev_all = np.concatenate(pool_dev)
+    dev_all = np.where(np.isfinite(dev_all), dev_all, 0.0)
+    idx = _greedy(dev_all, np.concatenate(pool_cost), q)
+    cands.append(([pool_u[i] for i in idx], [pool_arm[i] for i in idx], dev_all[idx]))
+    best = max(cands, key=lambda c: c[2].max(axis=0).sum() / sum(costs[f] for f in c[1]))
+    units, fids, dev = best
+    designs = tuple(space.decode(np.asarray(x), n) for n, x in units)
+    utility = float(dev.max(axis=0).sum())
+    cost = float(sum(costs[f] for f in fids))
+    scores = tuple(float(dev[j].sum() / costs[fids[j]]) for j in range(q))
+    return Proposal(designs, tuple(fids), scores, utility, cost, utility / cost, dev,
+                    tuple(arms), time.perf_counter() - t0)

@@ -1,0 +1,298 @@
+"""Bayesian calibration of the hierarchical model with emcee (Foreman-Mackey et al. 2013).
+
+Steps of :func:`calibrate`:
+
+1. rows: at most ``max_rows`` of the Measurements, evenly within each trial
+   (:class:`~mfdesign.models.hierarchical.CalibrationData`);
+2. MAP: ``optimistix.BFGS`` on the negative log posterior in the unconstrained
+   parameterisation ``u`` (see :mod:`mfdesign.models.hierarchical`), from ``map_starts``
+   starts at once (``jax.vmap``), the best kept; the Hessian ``H`` there by autodiff;
+3. walkers: a small Gaussian ball around the MAP, per-coordinate width
+   ``ball * sqrt(diag H^-1)`` (Laplace widths; 1e-3 where H is not positive definite);
+4. emcee's ensemble sampler (differential-evolution moves by default, ter Braak 2006) with a jitted,
+   vectorised log posterior (``vectorize=True``: one JAX call per step for all walkers; a
+   ``pool`` splits that batch over its workers), ``emcee.backends.HDFBackend`` so that a
+   killed run resumes at the stored iteration (same file, same model: the chain goes on);
+5. convergence: integrated autocorrelation time tau per parameter (Sokal 1989, emcee's
+   estimator), chain length >= 50 tau, mean acceptance fraction in [0.2, 0.7]; a
+   :class:`ConvergenceWarning` when one fails; burn-in ``2 max tau``, thinning ``min tau / 2``;
+6. a :class:`~mfdesign.calibration.posterior.Posterior` (physical units): samples, summary
+   table (median, 5 / 95 %), MAP, BIC and the Laplace log evidence.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import warnings
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mfdesign.calibration.posterior import Posterior
+from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
+
+__all__ = ["ConvergenceWarning", "LogPosterior", "MapResult", "build_model", "calibrate",
+           "convergence_report", "find_map"]
+
+MIN_TAU_RATIO = 50.0
+ACCEPTANCE_RANGE = (0.2, 0.7)
+
+
+class ConvergenceWarning(UserWarning):
+    """The chain is too short for its autocorrelation time, or the acceptance is off."""
+
+
+def build_model(force_model, data: CalibrationData, effects: Sequence[str] = (), **kwargs) -> HierarchicalModel:
+    """A :class:`HierarchicalModel` with one thickness latent per membrane of ``data``."""
+    return HierarchicalModel(force_model=force_model, effects=tuple(effects),
+                             n_membranes=len(data.design_keys), **kwargs)
+
+
+@eqx.filter_jit
+def _batch_log_post(model: HierarchicalModel, u, data: CalibrationData):
+    """log p(u | D) for a batch ``u`` [W, dim]; module-level so that the compiled code is
+    shared by every call with an equal model and data of the same shapes."""
+    return jax.vmap(model.log_posterior_u, in_axes=(0, None))(u, data)
+
+
+class LogPosterior:
+    """``u [W, dim] -> log p(u | D) [W]`` (NumPy in, NumPy out) for emcee, jitted and vmapped.
+
+    Picklable (for a multiprocessing / MPI ``pool``). With ``pool``, a batch is split into
+    one chunk per worker (``pool.map``), each chunk one JAX call.
+    """
+
+    def __init__(self, model: HierarchicalModel, data: CalibrationData, pool=None, chunks: int | None = None):
+        self.model, self.data, self.pool = model, data, pool
+        self.chunks = chunks or getattr(pool, "size", None) or getattr(pool, "_processes", None) or os.cpu_count() or 1
+
+    def __getstate__(self):
+        return {"model": self.model, "data": self.data, "pool": None, "chunks": self.chunks}
+
+    def batch(self, u: np.ndarray) -> np.ndarray:
+        return np.asarray(_batch_log_post(self.model, jnp.asarray(u, float), self.data))
+
+    def __call__(self, u) -> np.ndarray:
+        u = np.atleast_2d(np.asarray(u, float))
+        if self.pool is None:
+            return self.batch(u)
+        parts = [p for p in np.array_split(u, min(self.chunks, len(u))) if len(p)]
+        return np.concatenate(list(self.pool.map(self.batch, parts)))
+
+
+class MapResult(eqx.Module):
+    """MAP in ``u`` (unconstrained) and ``x`` (physical), log posterior, Hessian of -log p in u."""
+
+    u: jax.Array
+    x: jax.Array
+    log_post: jax.Array
+    hessian: jax.Array
+    converged: jax.Array
+
+
+def _neg_log_post(u, args):
+    model, data = args
+    return -model.log_posterior_u(u, data)
+
+
+@eqx.filter_jit
+def _map_kernel(model: HierarchicalModel, inits, data: CalibrationData, max_steps: int):
+    """BFGS from every start at once, and the Hessian at every end point (one compile)."""
+    import optimistix as optx
+
+    solver = optx.BFGS(rtol=1e-7, atol=1e-7)
+
+    def one(u):
+        sol = optx.minimise(_neg_log_post, solver, u, args=(model, data), max_steps=max_steps, throw=False)
+        u = sol.value
+        hess = jax.hessian(_neg_log_post)(u, (model, data))
+        return u, sol.result == optx.RESULTS.successful, -_neg_log_post(u, (model, data)), hess
+
+    return jax.vmap(one)(inits)
+
+
+def find_map(model: HierarchicalModel, data: CalibrationData, starts: int = 4, seed: int = 0,
+             max_steps: int = 1000) -> MapResult:
+    """MAP by ``optimistix.BFGS`` from ``starts`` points at once (``jax.vmap``): the
+    prior-median start and Gaussian perturbations of it (sd 0.3 in u); the best is kept."""
+    u0 = model.to_unconstrained(model.initial_physical())
+    rng = np.random.default_rng(seed)
+    inits = u0 + np.vstack([np.zeros(model.dim), 0.3 * rng.standard_normal((max(starts, 1) - 1, model.dim))])
+    us, ok, vals, hess = _map_kernel(model, jnp.asarray(inits), data, max_steps)
+    vals = jnp.where(jnp.isfinite(vals), vals, -jnp.inf)
+    best = int(jnp.argmax(vals))
+    return MapResult(us[best], model.to_physical(us[best]), vals[best], hess[best], ok[best])
+
+
+def _ball(result: MapResult, n_walkers: int, scale: float, rng: np.random.Generator) -> np.ndarray:
+    h = np.asarray(result.hessian)
+    width = np.full(h.shape[0], 1e-3)
+    try:
+        cov = np.linalg.inv(0.5 * (h + h.T))
+        d = np.diag(cov)
+        if np.all(np.isfinite(d)) and np.all(d > 0):
+            width = np.clip(scale * np.sqrt(d), 1e-5, 0.5)
+    except np.linalg.LinAlgError:
+        pass
+    return np.asarray(result.u)[None, :] + width[None, :] * rng.standard_normal((n_walkers, h.shape[0]))
+
+
+def convergence_report(sampler, names: Sequence[str], min_ratio: float = MIN_TAU_RATIO,
+                       warn: bool = True) -> dict[str, Any]:
+    """Integrated autocorrelation times, chain length / tau, mean acceptance; warns when
+    the chain is shorter than ``min_ratio`` tau or the acceptance is outside [0.2, 0.7]."""
+    import emcee
+
+    chain = sampler.get_chain()
+    n_steps = int(chain.shape[0])
+    tau = np.asarray(emcee.autocorr.integrated_time(chain, tol=0, quiet=True), float)
+    acc = float(np.mean(sampler.acceptance_fraction))
+    ratio = float(n_steps / np.max(tau)) if np.all(np.isfinite(tau)) else 0.0
+    report = {"n_steps": n_steps, "n_walkers": int(chain.shape[1]),
+              "tau": {n: float(t) for n, t in zip(names, tau)}, "tau_max": float(np.max(tau)),
+              "steps_over_tau": ratio, "min_steps_over_tau": min_ratio, "acceptance": acc,
+              "acceptance_range": list(ACCEPTANCE_RANGE)}
+    problems = []
+    if ratio < min_ratio:
+        worst = names[int(np.argmax(tau))]
+        problems.append(f"chain of {n_steps} steps is {ratio:.1f} tau long (tau_max {np.max(tau):.1f} for "
+                        f"{worst}); want >= {min_ratio:g} tau, i.e. >= {math.ceil(min_ratio * np.max(tau))} steps")
+    if not ACCEPTANCE_RANGE[0] <= acc <= ACCEPTANCE_RANGE[1]:
+        problems.append(f"mean acceptance fraction {acc:.2f} outside {list(ACCEPTANCE_RANGE)}")
+    report["converged"] = not problems
+    report["problems"] = problems
+    if problems and warn:
+        warnings.warn("; ".join(problems), ConvergenceWarning, stacklevel=2)
+    return report
+
+
+def _fingerprint(model: HierarchicalModel, data: CalibrationData) -> str:
+    h = hashlib.sha256()
+    h.update(json.dumps({"names": model.names, "effects": model.effects, "lik": model.likelihood}).encode())
+    for a in (data.force_n, data.rows.h_mm, data.rows.p_pa):
+        h.update(np.asarray(a).tobytes())
+    return h.hexdigest()[:20]
+
+
+def _stored_map(path: Path, fingerprint: str):
+    import h5py
+
+    if not path.exists():
+        return None
+    with h5py.File(path, "r") as f:
+        if "mfdesign" not in f:
+            return None
+        g = f["mfdesign"]
+        if g.attrs.get("fingerprint") != fingerprint:
+            raise ValueError(
+                f"{path} holds a chain of another model or data set (fingerprint {g.attrs.get('fingerprint')} "
+                f"!= {fingerprint}); use a new file or resume=False to overwrite it")
+        return {k: np.asarray(g[k]) for k in ("u", "x", "hessian")} | {"log_post": float(g.attrs["log_post"]),
+                                                                     "converged": bool(g.attrs["converged"])}
+
+
+def _store_map(path: Path, fingerprint: str, res: MapResult, names) -> None:
+    import h5py
+
+    with h5py.File(path, "a") as f:
+        if "mfdesign" in f:
+            del f["mfdesign"]
+        g = f.create_group("mfdesign")
+        g.attrs["fingerprint"] = fingerprint
+        g.attrs["names"] = json.dumps(list(names))
+        g.attrs["log_post"] = float(res.log_post)
+        g.attrs["converged"] = bool(res.converged)
+        for k in ("u", "x", "hessian"):
+            g.create_dataset(k, data=np.asarray(getattr(res, k)))
+
+
+def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n_steps: int = 3000,
+              chain_path: str | os.PathLike | None = None, resume: bool = True, pool=None, seed: int = 0,
+              progress: bool = True, max_rows: int | None = 3000, map_starts: int = 4, ball: float = 0.1,
+              callback: Callable[[int], None] | None = None, warn: bool = True, moves=None) -> Posterior:
+    """Sample the posterior of ``model`` given ``data`` (Measurements or CalibrationData).
+
+    ``n_steps``: total chain length (a resumed run samples only the missing steps);
+    ``chain_path``: HDF5 file for the chain (``emcee.backends.HDFBackend``, group
+    ``"mcmc"``; the MAP is stored beside it, group ``"mfdesign"``); ``resume=False``
+    starts over; ``pool``: anything with ``map`` (multiprocessing, schwimmbad MPI);
+    ``callback(iteration)`` after every step (progress hooks, tests); ``moves``: emcee
+    moves, default differential evolution mixed with its snooker update (ter Braak 2006;
+    ter Braak & Vrugt 2008), which mixes faster than the stretch move on these posteriors.
+    """
+    import emcee
+
+    if not isinstance(data, CalibrationData):
+        data = CalibrationData.from_measurements(data, max_rows=max_rows, seed=seed)
+    if model.uses_latents and model.n_membranes != len(data.design_keys):
+        raise ValueError(f"model has {model.n_membranes} membrane latents but the data hold "
+                         f"{len(data.design_keys)} membranes; build it with build_model(force_model, data)")
+    dim = model.dim
+    n_walkers = int(n_walkers or max(32, 2 * dim + 2))
+    if n_walkers < 2 * dim:
+        raise ValueError(f"emcee needs n_walkers >= 2 * dim = {2 * dim}, got {n_walkers}")
+    if n_steps < 1:
+        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    logp = LogPosterior(model, data, pool=pool)
+    fp = _fingerprint(model, data)
+
+    backend, stored = None, None
+    if chain_path is not None:
+        chain_path = Path(chain_path)
+        chain_path.parent.mkdir(parents=True, exist_ok=True)
+        if not resume and chain_path.exists():
+            chain_path.unlink()
+        stored = _stored_map(chain_path, fp) if resume else None
+        backend = emcee.backends.HDFBackend(str(chain_path), name="mcmc")
+    if stored is not None:
+        res = MapResult(*(jnp.asarray(stored[k]) for k in ("u", "x", "log_post", "hessian", "converged")))
+    else:
+        res = find_map(model, data, starts=map_starts, seed=seed)
+        if backend is not None:
+            backend.reset(n_walkers, dim)
+            _store_map(chain_path, fp, res, model.names)
+    if not bool(res.converged):
+        warnings.warn("the MAP search (BFGS) did not report convergence; walkers start at its best point",
+                      ConvergenceWarning, stacklevel=2)
+
+    if moves is None:
+        moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    sampler = emcee.EnsembleSampler(n_walkers, dim, logp, vectorize=True, backend=backend, moves=moves)
+    done = 0 if backend is None else int(backend.iteration)
+    if done and backend.shape != (n_walkers, dim):
+        raise ValueError(f"{chain_path} holds {backend.shape} walkers x dim, asked for {(n_walkers, dim)}")
+    rng = np.random.default_rng(seed)
+    if done == 0:
+        sampler.random_state = np.random.RandomState(seed).get_state()
+        start = _ball(res, n_walkers, ball, rng)
+    else:
+        start = None  # emcee continues from the last stored sample and random state
+    for _ in sampler.sample(start, iterations=max(n_steps - done, 0), progress=progress):
+        if callback is not None:
+            callback(int(sampler.iteration))
+
+    report = convergence_report(sampler, model.names, warn=warn)
+    tau_max = report["tau_max"] if np.isfinite(report["tau_max"]) else 1.0
+    burn = int(min(max(2 * tau_max, 1), sampler.iteration // 2))
+    thin = max(1, int(min(report["tau"].values()) / 2)) if report["tau"] else 1
+    report.update(burn=burn, thin=thin, map_converged=bool(res.converged), resumed_from=done)
+    u_s = sampler.get_chain(discard=burn, thin=thin, flat=True)
+    lp_s = sampler.get_log_prob(discard=burn, thin=thin, flat=True)
+    x_s = np.asarray(model.to_physical(u_s))
+
+    x_map = np.asarray(res.x)
+    ll_map = float(model.log_lik(res.x, data))
+    n_rows = float(np.sum(np.asarray(data.weight)))
+    sign, logdet = np.linalg.slogdet(np.asarray(res.hessian))
+    laplace = float(res.log_post) + 0.5 * dim * math.log(2 * math.pi) - 0.5 * logdet if sign > 0 else float("nan")
+    bic = dim * math.log(n_rows) - 2.0 * ll_map
+    units = tuple(s.unit for s in model.specs)
+    return Posterior(model.names, units, x_s, lp_s, x_map, ll_map, n_rows, bic, laplace, report,
+                     tuple(data.design_keys), tuple(model.effects))

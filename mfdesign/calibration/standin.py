@@ -1,0 +1,69 @@
+"""A cheap, differentiable stand-in for the simulator (tests, CI, tutorials): no physics.
+
+Same call signature as the emulator (``mfdesign.models.emulator``), so every calibration
+code path runs in milliseconds::
+
+    force_model(design [N, 6] mm, h_mm [N], p_pa [N], params: SimParams) -> F [N] N
+
+with ``params`` fields scalar or ``[N]``. The force is shaped like the real planes (zero
+until the membrane reaches the plate, then rising and stiffening with pressure)::
+
+    s      = mu t tf / (31.7 kPa * 1 mm)                     membrane stiffness scale
+    p_c    = 40 Pa/mm * s * h * (1 + 0.4 n_rings)            contact pressure [Pa]
+    p_lock = 250 Pa * J_m * s                                Gent-like stiffening scale [Pa]
+    F      = 1.6 pi (c + dc)^2 * w softplus((p - p_c) / w) * (1 + p / p_lock),  w = 50 Pa
+
+(c the disk radius [m], dc the contact offset). Unlike
+:func:`mfdesign.rig.virtual.analytic_plane` it depends on J_m, so both Gent constants are
+identifiable (mu through the height dependence, J_m through the curvature in p).
+:func:`standin_plane` wraps it as a ``simulator`` for :class:`~mfdesign.rig.virtual.VirtualRig`.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mfdesign.physics.params import SimParams
+from mfdesign.physics.status import Status
+
+__all__ = ["standin_force", "standin_plane"]
+
+_W_PA = 50.0
+
+
+def _formula(xp, softplus, design, h_mm, p_pa, params: SimParams):
+    """The module doc's formula in the array namespace ``xp`` (jax.numpy or numpy)."""
+    n_rings = (~xp.isnan(design[:, 2])).astype(float) + (~xp.isnan(design[:, 4])).astype(float)
+    stiff = params.mu_pa * design[:, 0] * params.thickness_factor / 31.7e3
+    p_c = 40.0 * stiff * h_mm * (1.0 + 0.4 * n_rings)
+    p_lock = 250.0 * params.jm * stiff
+    r_m = (design[:, 1] + params.contact_offset_mm) * 1e-3
+    push = _W_PA * softplus((p_pa - p_c) / _W_PA)
+    return 1.6 * xp.pi * r_m**2 * push * (1.0 + p_pa / p_lock), p_lock
+
+
+def standin_force(design, h_mm, p_pa, params: SimParams = SimParams()) -> jax.Array:
+    """Stand-in force [N] at rows ``design`` [N, 6] (mm), ``h_mm`` [N], ``p_pa`` [N] (module doc)."""
+    design, h_mm, p_pa = (jnp.asarray(a, float) for a in (design, h_mm, p_pa))
+    return _formula(jnp, jax.nn.softplus, design, h_mm, p_pa, params)[0]
+
+
+def standin_plane(design, h_grid, p_grid, params: SimParams = SimParams()):
+    """:func:`standin_force` on ``h_grid x p_grid`` in the ``force_plane`` result layout
+    (NumPy: the virtual rig calls it with many shapes, where JAX would compile each).
+
+    Locking ``(p / p_lock)^2 / 2`` stays far below bursting; ``rise = p / 250 - h / 2`` mm
+    (as ``analytic_plane``), which ends ringless force trials at the rig's contact limit.
+    """
+    H, P = np.meshgrid(np.asarray(h_grid, float), np.asarray(p_grid, float), indexing="ij")
+    d = np.broadcast_to(np.asarray(design.to_array(), float), (H.size, 6))
+    params = jax.tree.map(lambda a: np.asarray(a, float), params)
+    f, p_lock = _formula(np, lambda x: np.logaddexp(0.0, x), d, H.ravel(), P.ravel(), params)
+    locking = 0.5 * (P.ravel() / p_lock) ** 2
+    status = np.full(H.shape, int(Status.OK), np.int8)
+    return SimpleNamespace(force_n=f.reshape(H.shape), status=status, max_locking=locking.reshape(H.shape),
+                           max_rise_mm=P / 250.0 - H / 2.0)

@@ -1,0 +1,159 @@
+"""``mfdesign diagnose``: compare a model with measurements, find the missing effect, add it.
+
+    mfdesign diagnose DATA [--model DIR] [--effects NAME ...] [--theta JSON] [--config FILE]
+                      [--effects-module FILE.py ...] [--simulator full|analytic] --out DIR
+
+``DATA``: a Measurements Parquet file or ``mass-lift``. Without ``--model`` the model is
+the plain simulator (authors' constants); ``--effects`` adds effects to it (calibrated
+unless ``--theta`` fixes every parameter), giving a before/after report. A config file
+(TOML or JSON) may hold any of ``effects``, ``theta``, ``effects_module``, ``model``,
+``simulator``, ``candidates``; command-line values win.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+SIMULATORS = ("full", "analytic")
+
+
+def load_config(path: Path) -> dict:
+    """Options from a TOML (``.toml``) or JSON file; unknown keys are an error."""
+    allowed = {"effects", "theta", "effects_module", "model", "simulator", "candidates"}
+    if not path.is_file():
+        raise ValueError(f"config file {path} does not exist")
+    text = path.read_text()
+    if path.suffix == ".toml":
+        import tomllib
+
+        try:
+            cfg = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as err:
+            raise ValueError(f"config file {path} is not valid TOML: {err}") from None
+    else:
+        try:
+            cfg = json.loads(text)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"config file {path} is not valid JSON ({err}); use .toml for TOML") from None
+    if not isinstance(cfg, dict):
+        raise ValueError(f"config file {path} must hold a table/object, got {type(cfg).__name__}")
+    bad = sorted(set(cfg) - allowed)
+    if bad:
+        raise ValueError(f"config file {path}: unknown key(s) {bad}; allowed: {sorted(allowed)}")
+    return cfg
+
+
+def load_effects_module(path: Path) -> None:
+    """Import a user's effects file (its ``@register_effect`` classes join the library)."""
+    import importlib.util
+
+    path = Path(path)
+    if not path.is_file() or path.suffix != ".py":
+        raise ValueError(f"--effects-module {path}: not a Python file")
+    spec = importlib.util.spec_from_file_location(f"mfdesign_user_effects_{path.stem}", path)
+    module = importlib.util.module_from_spec(spec)
+    try:
+        spec.loader.exec_module(module)
+    except Exception as err:  # noqa: BLE001 -- report any failure of the user's file in one line
+        raise ValueError(f"--effects-module {path} failed to import: {type(err).__name__}: {err}") from None
+
+
+def _split(values) -> list[str]:
+    out = []
+    for v in values or []:
+        out += [s.strip() for s in str(v).split(",") if s.strip()]
+    return out
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def diagnose(
+        data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
+        out: Path = typer.Option(..., help="Folder for report.html, diagnosis.json and the PNGs."),
+        model: Optional[Path] = typer.Option(None, help="Saved ensemble folder (default: the plain simulator)."),
+        effects: Optional[List[str]] = typer.Option(None, "--effects", help="Effects to add (repeat or comma-separate)."),
+        theta: Optional[str] = typer.Option(None, help='Effect parameters as JSON, e.g. \'{"pressure_sensor.offset_pa": 150}\'.'),
+        config: Optional[Path] = typer.Option(None, help="TOML/JSON file with effects, theta, effects_module, ..."),
+        effects_module: Optional[List[Path]] = typer.Option(None, "--effects-module", help="Python file(s) registering new effects."),
+        candidates: Optional[List[str]] = typer.Option(None, "--candidates", help="Effects the search may try (default: all)."),
+        simulator: str = typer.Option("full", help="full (the membrane simulator) | analytic (a cheap stand-in for trials)."),
+        search: bool = typer.Option(True, help="Search for the missing effect."),
+        check_top: int = typer.Option(3, min=1, help="Candidates given the full check."),
+        max_steps: int = typer.Option(2, min=1, help="Rounds of forward selection."),
+        nfev_mechanical: int = typer.Option(0, min=0, help="Simulator evaluations per mechanical candidate in the full check (0 = linearised on the screen's planes)."),
+        shapes: bool = typer.Option(True, help="Plot the simulated shape at the worst points (full simulator only)."),
+        cache_dir: Optional[Path] = typer.Option(None, help="Plane cache (default ~/.cache/mfdesign/planes)."),
+    ) -> None:
+        """Residuals by height, pressure, design, trial and phase; worst regions in words; which
+        effect is missing (screen + full check); before/after with --effects. Writes HTML + JSON."""
+        from mfdesign.cli import fail
+
+        try:
+            cfg = load_config(config) if config is not None else {}
+            for f in _split(effects_module) or _split(cfg.get("effects_module", [])):
+                load_effects_module(Path(f))
+            from mfdesign.physics import effects as fx
+
+            names = _split(effects) or _split(cfg.get("effects", []))
+            for n in names + _split(candidates or cfg.get("candidates", [])):
+                if n not in fx.EFFECTS:
+                    raise ValueError(f"unknown effect {n!r}; registered: {sorted(fx.EFFECTS)}")
+            th = cfg.get("theta", {})
+            if theta:
+                try:
+                    th = json.loads(theta)
+                except json.JSONDecodeError as err:
+                    raise ValueError(f"--theta is not valid JSON: {err}") from None
+            if not isinstance(th, dict):
+                raise ValueError("theta must be an object {\"effect.parameter\": value}")
+            fx.split_theta(names, th) if names else (th and fx.split_theta([], th))
+            sim_name = cfg.get("simulator", simulator) if simulator == "full" else simulator
+            if sim_name not in SIMULATORS:
+                raise ValueError(f"--simulator must be one of {SIMULATORS}, got {sim_name!r}")
+            model_dir = model if model is not None else (Path(cfg["model"]) if cfg.get("model") else None)
+            from mfdesign.models.commands import load_data
+
+            meas = load_data(data)
+        except (ValueError, KeyError) as err:
+            fail(str(err).strip('"'))
+        import numpy as np
+
+        from mfdesign.diagnose.expected import PlaneSimulator
+        from mfdesign.diagnose.pipeline import diagnose as run
+        from mfdesign.diagnose.report import write_report
+        from mfdesign.rig.virtual import analytic_plane
+
+        predict, model_name = None, "simulator"
+        if model_dir is not None:
+            from mfdesign.models.ensemble import Ensemble
+
+            try:
+                ens = Ensemble.load(model_dir)
+            except (FileNotFoundError, ValueError) as err:
+                fail(f"--model {model_dir}: {err}")
+
+            def predict(m):
+                a = m.arrays()
+                return np.asarray(ens.mean_std(a["design"], a["height_mm"], a["pressure_pa"])[0], float)
+
+            model_name = f"ensemble {model_dir}"
+        cache = cache_dir or Path.home() / ".cache" / "mfdesign" / "planes"
+        sim = PlaneSimulator(simulator=analytic_plane if sim_name == "analytic" else None, cache_dir=cache, progress=True)
+        diag = run(meas, sim, model=predict, model_name=model_name, effects=names, theta=th,
+                   candidates=_split(candidates) or _split(cfg.get("candidates", [])) or None, search=search,
+                   check_top=check_top, max_steps=max_steps, max_nfev_mechanical=nfev_mechanical, progress=True)
+        paths = write_report(diag, out, shapes=shapes and sim_name == "full")
+        b = diag.before
+        typer.echo(f"before: RMSE {b.rmse_n:.3f} N, noise floor {b.noise_floor_n:.3f} N")
+        for w in (diag.to_json()["before"]["worst_regions"]):
+            typer.echo(f"  {w['words']}")
+        for i, s in enumerate(diag.steps):
+            typer.echo(f"round {i + 1}: screen " + ", ".join(f"{r.effect} {r.explained_fraction:.2f}" for r in s["screen"][:5]))
+            typer.echo(f"  {s['verdict']['words']}")
+        if diag.after is not None:
+            typer.echo(f"after ({', '.join(diag.effects)}): RMSE {diag.after.rmse_n:.3f} N")
+        typer.echo(f"wrote {paths['html']} and {paths['json']}")

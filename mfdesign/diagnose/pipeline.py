@@ -1,0 +1,123 @@
+"""The whole diagnosis in one call: residuals -> where it fails -> which effect -> add it.
+
+:func:`diagnose` takes measurements and a model (the plain simulator by default, or any
+``predict(measurements) -> force [N]``), optionally effects the user adds, and returns a
+:class:`Diagnosis`:
+
+* ``before``: residuals of the model as given; ``after``: with the user's effects
+  (calibrated) or, when the search claims one, with the claimed effects;
+* ``steps``: forward selection (Efroymson 1960), at most ``max_steps`` rounds of: screen
+  every candidate on the current residuals (:func:`~mfdesign.diagnose.screen.screen`), full
+  check of the ``check_top`` best (:func:`~mfdesign.diagnose.check.full_check`), verdict
+  (:func:`~mfdesign.diagnose.check.verdict`); a claimed effect joins the model and the next
+  round asks what is still missing. It stops at the first round that claims nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from mfdesign.data.measurements import Measurements
+from mfdesign.diagnose.check import calibrate_effects, full_check, verdict
+from mfdesign.diagnose.expected import PlaneSimulator
+from mfdesign.diagnose.residuals import Residuals, breakdowns, compute_residuals, trend_words, worst_regions
+from mfdesign.diagnose.screen import screen
+from mfdesign.physics import effects as fx
+
+__all__ = ["Diagnosis", "diagnose"]
+
+
+@dataclass
+class Diagnosis:
+    before: Residuals
+    after: Residuals | None = None
+    effects: list = field(default_factory=list)
+    theta: dict = field(default_factory=dict)
+    steps: list = field(default_factory=list)
+    model: str = "simulator"
+
+    @property
+    def found(self) -> list[str]:
+        """Effects the search claimed (in order)."""
+        return [e for s in self.steps for e in s["verdict"].get("effects", []) if e not in s.get("base_effects", [])]
+
+    def to_json(self) -> dict:
+        def part(res: Residuals | None):
+            if res is None:
+                return None
+            return {"summary": res.summary(), "breakdowns": breakdowns(res), "worst_regions": worst_regions(res),
+                    "trends": trend_words(res)}
+
+        return {"model": self.model, "effects_added": self.effects, "theta": self.theta,
+                "before": part(self.before), "after": part(self.after),
+                "search": [{"base_effects": s["base_effects"],
+                            "screen": [r.to_json() for r in s["screen"]],
+                            "checks": [c.to_json() for c in s["checks"]],
+                            "verdict": s["verdict"]} for s in self.steps],
+                "found": self.found}
+
+
+def diagnose(meas: Measurements, sim: PlaneSimulator | None = None,
+             model: Callable[[Measurements], np.ndarray] | None = None, model_name: str = "simulator",
+             effects: Sequence[str | fx.Effect] = (), theta: Mapping[str, Any] | None = None,
+             candidates: Sequence[str] | None = None, search: bool = True, check_top: int = 3,
+             max_steps: int = 2, n_folds: int = 3, max_nfev: int = 30, max_nfev_mechanical: int | None = None,
+             progress: bool = False) -> Diagnosis:
+    """Diagnose ``model`` (default: the plain simulator of ``sim``) on ``meas`` (module doc).
+
+    ``effects``: effects the user adds; their ``theta`` is calibrated unless every
+    parameter is given in ``theta``. ``candidates``: effects the search may try (default:
+    all registered). ``search=False`` skips the effect search.
+    """
+    sim = sim or PlaneSimulator(progress=progress)
+    effects = [fx.effect(e) for e in effects]
+    e0 = sim.expected_force(meas)
+    base_pred = e0 if model is None else np.asarray(model(meas), float)
+    offset = None if model is None else base_pred - e0
+    before = compute_residuals(meas, base_pred)
+    out = Diagnosis(before=before, model=model_name)
+    cur_res, cur_effects, cur_theta = before, [], {}
+    if effects:
+        given = dict(theta or {})
+        needed = [e.qualified(p.name) for e in effects for p in e.parameters]
+        if all(k in given for k in needed):
+            th = {k: float(given[k]) for k in needed}
+            pred = sim.expected_force(meas, effects, th) + (0.0 if offset is None else offset)
+        else:
+            th, pred = calibrate_effects(sim, meas, before, effects, given, offset, max_nfev=max_nfev)
+        cur_res, cur_effects, cur_theta = compute_residuals(meas, pred), effects, th
+        out.after, out.effects, out.theta = cur_res, [e.name for e in effects], th
+    if not search:
+        return out
+    pool = list(candidates) if candidates is not None else sorted(fx.EFFECTS)
+    for _ in range(max_steps):
+        names = [e.name for e in cur_effects]
+        cands = [c for c in pool if c not in names]
+        if not cands:
+            break
+        ranked = screen(cur_res, meas, sim, cands, cur_effects, cur_theta, progress=progress)
+        if verdict(cur_res, [])["status"] == "at_noise_floor":  # nothing to explain: no full check
+            out.steps.append({"base_effects": names, "screen": ranked, "checks": [], "verdict": verdict(cur_res, [])})
+            break
+        sets = [[*names, r.effect] for r in ranked[:check_top]]
+        # base for the check: the current model (``offset`` carries a non-simulator base model)
+        checks = full_check(sim, meas, cur_res, sets, theta0={**cur_theta, **{k: v for r in ranked[:check_top] for k, v in r.theta.items()}},
+                            base_pred=None if offset is None else e0 + offset, n_folds=n_folds,
+                            max_nfev=max_nfev, max_nfev_mechanical=max_nfev_mechanical, progress=progress)
+        v = verdict(cur_res, checks)
+        out.steps.append({"base_effects": names, "screen": ranked, "checks": checks, "verdict": v})
+        if v["status"] not in ("explained", "partly_explained"):
+            break
+        best = next(c for c in checks if list(c.effects) == v["effects"])
+        cur_effects = [fx.effect(n) for n in best.effects]
+        cur_theta = dict(best.theta)
+        pred = sim.expected_force(meas, cur_effects, cur_theta) + (0.0 if offset is None else offset)
+        cur_res = compute_residuals(meas, pred)
+        if not effects:  # no user effects: "after" is the model with what the search found
+            out.after, out.effects, out.theta = cur_res, [e.name for e in cur_effects], cur_theta
+        if v["status"] == "explained":
+            break
+    return out

@@ -1,0 +1,253 @@
+"""Pictures, HTML and JSON of a :class:`~mfdesign.diagnose.pipeline.Diagnosis`.
+
+``write_report(diagnosis, out_dir)`` writes ``diagnosis.json``, ``report.html`` (which
+links the PNGs by relative path, so the folder can be moved) and:
+
+* ``maps_before.png`` / ``maps_after.png``: per-membrane height x pressure maps of the mean
+  residual (observed - predicted, N; red = model under-predicts), one colour scale;
+* ``parity.png``: observed vs predicted force; ``trial_order.png``: mean residual per trial;
+* ``breakdown.png``: RMS residual by height, pressure, ring count, phase, trial order;
+* ``screen.png``: explained fraction per candidate effect;
+* ``shapes.png`` (optional, the real simulator only): the simulated membrane at the worst points.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mfdesign.diagnose.residuals import Residuals, breakdowns
+
+__all__ = ["write_report"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def residual_maps(res: Residuals, path: Path, title: str, vmax: float | None = None) -> float:
+    """Per-membrane mean-residual maps on 5 mm x 500 Pa cells; returns the colour limit used."""
+    plt = _plt()
+    f = res.frame
+    keys = list(dict.fromkeys(f["design_key"]))
+    n = max(len(keys), 1)
+    cols = min(3, n)
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
+    he = np.arange(0.0, max(float(f["height_mm"].max()) + 5.0, 10.0), 5.0) if len(f) else np.arange(0, 10, 5.0)
+    pe = np.arange(0.0, max(float(f["pressure_pa"].max()) + 500.0, 1000.0), 500.0) if len(f) else np.arange(0, 1000, 500.0)
+    grids = []
+    for k in keys:
+        g = f[f["design_key"] == k]
+        s, _, _ = np.histogram2d(g["height_mm"], g["pressure_pa"], [he, pe], weights=g["residual_n"])
+        c, _, _ = np.histogram2d(g["height_mm"], g["pressure_pa"], [he, pe])
+        grids.append(np.where(c > 0, s / np.maximum(c, 1), np.nan))
+    if vmax is None:
+        finite = np.concatenate([np.abs(m[np.isfinite(m)]) for m in grids]) if grids else np.array([1.0])
+        vmax = float(np.quantile(finite, 0.98)) if finite.size else 1.0
+        vmax = max(vmax, 1e-3)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    im = None
+    for ax, k, m in zip(axes.ravel(), keys, grids):
+        im = ax.pcolormesh(pe / 1e3, he, m, cmap="RdBu_r", vmin=-vmax, vmax=vmax, shading="flat")
+        ax.set_title(k, fontsize=8)
+        ax.set_xlabel("pressure [kPa]")
+        ax.set_ylabel("height [mm]")
+    if im is not None:
+        fig.colorbar(im, ax=axes.ravel().tolist(), label="mean residual (obs - model) [N]")
+    fig.suptitle(f"{title}: RMSE {res.rmse_n:.3f} N, noise floor {res.noise_floor_n:.3f} N")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return vmax
+
+
+def parity(res: Residuals, path: Path, after: Residuals | None = None) -> None:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5, 5))
+    rng = np.random.default_rng(0)
+    for r, label, c in ((res, "before", "tab:red"), (after, "after", "tab:blue")):
+        if r is None or not len(r.frame):
+            continue
+        idx = rng.choice(len(r.frame), size=min(len(r.frame), 8000), replace=False)
+        ax.scatter(r.frame["predicted_n"].to_numpy()[idx], r.frame["observed_n"].to_numpy()[idx], s=2, alpha=0.3,
+                   c=c, label=f"{label} (RMSE {r.rmse_n:.2f} N)")
+    top = float(res.frame[["observed_n", "predicted_n"]].max().max()) if len(res.frame) else 1.0
+    ax.plot([0, top], [0, top], "k--", lw=1)
+    ax.set_xlabel("model force [N]")
+    ax.set_ylabel("observed force [N]")
+    ax.legend(markerscale=4, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def trial_plot(res: Residuals, path: Path, after: Residuals | None = None) -> None:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    for r, ls in ((res, "-"), (after, ":")):
+        if r is None:
+            continue
+        for k, g in r.frame.groupby("design_key", sort=False):
+            m = g.groupby("trial_order")["residual_n"].mean()
+            ax.plot(m.index, m.values, ls, marker=".", label=k if r is res else None)
+    ax.axhline(0, color="k", lw=0.8)
+    ax.set_xlabel("trial order in the membrane's life (0 = first)")
+    ax.set_ylabel("mean residual [N]")
+    ax.legend(fontsize=6, loc="upper right")
+    ax.set_title("residual vs trial order (solid: before, dotted: after)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def breakdown_plot(res: Residuals, path: Path, after: Residuals | None = None) -> None:
+    plt = _plt()
+    names = ("height", "pressure", "ring_count", "phase", "trial_order", "force_level")
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6))
+    b0 = breakdowns(res)
+    b1 = breakdowns(after) if after is not None else {}
+    for ax, name in zip(axes.ravel(), names):
+        bins = b0.get(name, [])
+        x = np.arange(len(bins))
+        ax.bar(x - 0.2, [b["rms_n"] for b in bins], 0.4, label="before", color="tab:red")
+        if name in b1:
+            m = {b["bin"]: b["rms_n"] for b in b1[name]}
+            ax.bar(x + 0.2, [m.get(b["bin"], np.nan) for b in bins], 0.4, label="after", color="tab:blue")
+        ax.axhline(res.noise_floor_n, color="k", ls="--", lw=0.8, label="noise floor")
+        ax.set_xticks(x, [b["bin"] for b in bins], rotation=60, fontsize=6)
+        ax.set_title(f"RMS residual by {name.replace('_', ' ')}")
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def screen_plot(step: dict, path: Path) -> None:
+    plt = _plt()
+    rows = step["screen"]
+    fig, ax = plt.subplots(figsize=(6, 0.35 * len(rows) + 1.2))
+    y = np.arange(len(rows))[::-1]
+    ax.barh(y, [r.explained_fraction for r in rows], color="tab:green")
+    ax.set_yticks(y, [r.effect for r in rows])
+    ax.set_xlim(0, 1)
+    ax.set_xlabel("fraction of residual mean square explained (first order)")
+    ax.set_title("effect screen" + (f" (model already has {', '.join(step['base_effects'])})" if step["base_effects"] else ""))
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def shapes_plot(res: Residuals, path: Path, params=None, n: int = 3) -> list[dict]:
+    """The simulated meridian (``solve.shape``) at the ``n`` points with the largest |residual|."""
+    from mfdesign.design import Membrane
+    from mfdesign.physics.params import SimParams
+    from mfdesign.physics.solve import shape
+
+    plt = _plt()
+    f = res.frame[res.frame["experiment"] == "force"] if (res.frame["experiment"] == "force").any() else res.frame
+    worst = f.reindex(f["residual_n"].abs().sort_values(ascending=False).index)
+    picked, seen = [], set()
+    for _, row in worst.iterrows():
+        if row.design_key in seen:
+            continue
+        seen.add(row.design_key)
+        picked.append(row)
+        if len(picked) >= n:
+            break
+    fig, ax = plt.subplots(figsize=(7, 4))
+    out = []
+    for row in picked:
+        s = shape(Membrane.from_key(row.design_key), float(row.height_mm), float(row.pressure_pa), params or SimParams())
+        ax.plot(s.R_mm, s.Z_mm - s.Z_mm[-1], label=f"{row.design_key} h={row.height_mm:g} mm p={row.pressure_pa/1e3:.2f} kPa r={row.residual_n:+.2f} N")
+        out.append({"design_key": row.design_key, "height_mm": float(row.height_mm), "pressure_pa": float(row.pressure_pa),
+                    "residual_n": float(row.residual_n), "status": int(s.status)})
+    ax.set_xlabel("R [mm]")
+    ax.set_ylabel("Z above the clamp [mm]")
+    ax.legend(fontsize=6, loc="upper right")
+    ax.set_title("simulated membrane at the worst points")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return out
+
+
+def _table(rows: list[dict], cols: list[str]) -> str:
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(_fmt(r.get(c)))}</td>" for c in cols) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, dict):
+        return ", ".join(f"{k} = {_fmt(x)}" for k, x in v.items())
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_fmt(x) for x in v)
+    return "" if v is None else str(v)
+
+
+def write_report(diag, out_dir, shapes: bool = False, params=None) -> dict[str, Path]:
+    """Write JSON, PNGs and ``report.html`` into ``out_dir``; returns the paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    data = diag.to_json()
+    vmax = residual_maps(diag.before, out / "maps_before.png", "before")
+    paths["maps_before"] = out / "maps_before.png"
+    if diag.after is not None:
+        residual_maps(diag.after, out / "maps_after.png", "after (" + ", ".join(diag.effects) + ")", vmax=vmax)
+        paths["maps_after"] = out / "maps_after.png"
+    parity(diag.before, out / "parity.png", diag.after)
+    trial_plot(diag.before, out / "trial_order.png", diag.after)
+    breakdown_plot(diag.before, out / "breakdown.png", diag.after)
+    paths.update(parity=out / "parity.png", trial_order=out / "trial_order.png", breakdown=out / "breakdown.png")
+    for i, step in enumerate(diag.steps):
+        screen_plot(step, out / f"screen_{i + 1}.png")
+        paths[f"screen_{i + 1}"] = out / f"screen_{i + 1}.png"
+    if shapes:
+        data["worst_point_shapes"] = shapes_plot(diag.before, out / "shapes.png", params)
+        paths["shapes"] = out / "shapes.png"
+    (out / "diagnosis.json").write_text(json.dumps(data, indent=1, default=str))
+    paths["json"] = out / "diagnosis.json"
+    paths["html"] = out / "report.html"
+    (out / "report.html").write_text(_html(diag, data, paths))
+    return paths
+
+
+def _html(diag, data: dict, paths: dict) -> str:
+    img = lambda k: f'<img src="{paths[k].name}" style="max-width:100%">' if k in paths else ""
+    b = data["before"]["summary"]
+    parts = [f"<h1>Diagnosis of the {html.escape(diag.model)}</h1>",
+             f"<p>{b['n']} usable rows of {b['membranes']} membranes; RMSE {b['rmse_n']:.3f} N, bias "
+             f"{b['bias_n']:+.3f} N, noise floor {b['noise_floor_n']:.3f} N (ratio {_fmt(b['rmse_over_noise'])}); "
+             f"left out: {_fmt(b['dropped'])}.</p>",
+             "<h2>Where it fails</h2><ul>" + "".join(f"<li>{html.escape(w['words'])}</li>" for w in data["before"]["worst_regions"])
+             + "".join(f"<li>{html.escape(t)}</li>" for t in data["before"]["trends"]) + "</ul>",
+             img("maps_before"), img("breakdown"), img("parity"), img("trial_order"), img("shapes")]
+    for i, (step, js) in enumerate(zip(diag.steps, data["search"])):
+        parts.append(f"<h2>Which effect is missing (round {i + 1})</h2>")
+        parts.append(_table(js["screen"], ["effect", "explained_fraction", "structure_explained_fraction", "theta", "stderr", "delta_bic"]))
+        parts.append(img(f"screen_{i + 1}"))
+        parts.append("<h3>Full check</h3>" + _table(js["checks"], ["effects", "theta", "stderr", "rmse_n", "heldout_rmse_base_n", "heldout_rmse_n", "heldout_over_noise", "delta_bic"]))
+        parts.append(f"<p><b>{html.escape(js['verdict']['words'])}</b></p>")
+    if diag.after is not None:
+        a = data["after"]["summary"]
+        parts.append(f"<h2>After adding {html.escape(', '.join(diag.effects))}</h2>"
+                     f"<p>theta: {html.escape(_fmt(diag.theta))}; RMSE {b['rmse_n']:.3f} &rarr; {a['rmse_n']:.3f} N "
+                     f"(noise floor {a['noise_floor_n']:.3f} N)</p><ul>"
+                     + "".join(f"<li>{html.escape(w['words'])}</li>" for w in data["after"]["worst_regions"]) + "</ul>"
+                     + img("maps_after"))
+    style = "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #ccc;padding:3px}</style>"
+    return f"<!doctype html><html><head><meta charset='utf-8'><title>mfdesign diagnosis</title>{style}</head><body>{''.join(parts)}</body></html>"

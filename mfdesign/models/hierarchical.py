@@ -1,0 +1,343 @@
+"""Hierarchical multi-fidelity model of the plate force (Kennedy & O'Hagan 2001, modular).
+
+For row i of membrane m(i), recorded at height h_i [mm] and pressure p_i [Pa]::
+
+    F_i = E_i(theta_global, t_m(i)) + delta(design_i, h_i, p_i) + eps_i
+
+* ``E_i``: the expected RECORDED force: the force model (emulator of the simulator, or
+  any ``force_model(design [N, 6], h [N], p [N], SimParams) -> F [N]``) run with
+  SimParams built from the global parameters and the row (mechanical effects,
+  :func:`~mfdesign.physics.effects.apply_row_sim_params`), then passed through the
+  measurement effects (:func:`~mfdesign.physics.effects.apply_expected_force`).
+* ``theta_global``: ``mu_pa`` [Pa] (Gent shear modulus, prior log-normal around the
+  paper's 31.7 kPa, sd 0.5 in log), ``jm`` [1] (Gent J_m, log-normal around 39.6, sd 0.6
+  in log) and the active effects' parameters with the effects' own priors and units.
+* ``theta_membrane``: per-membrane relative thickness ``t_m = sigma_t z_m`` with
+  ``z_m ~ N(0, 1)`` (non-centred parameterisation, Papaspiliopoulos, Roberts & Skold 2007)
+  and the population spread ``sigma_t`` [1] a hyper-parameter (log-normal prior, median
+  0.05): that is the hierarchy. The simulator sees ``thickness_factor * (1 + t_m)``; an
+  active ``thickness_deviation`` effect then acts as the population mean.
+* ``eps``: noise of scale ``noise_n`` [N] (fitted; Gaussian or Student-t with ``nu``).
+* ``delta``: the discrepancy, an RPN ensemble (:mod:`mfdesign.models.ensemble`) fitted to
+  the residuals ``F - E(theta_MAP)`` (:func:`fit_discrepancy`). Calibration of theta uses
+  the likelihood without delta and delta is fitted afterwards: a modular ("cut")
+  analysis (Liu, Bayarri & Berger 2009), which keeps the flexible ensemble from absorbing
+  what the physical constants should explain.
+
+Sampling happens in an unconstrained vector ``u`` (one entry per parameter): a
+parameter whose prior has bounds ``[lo, hi]`` is ``lo + (hi - lo) sigmoid(u)``, one
+with only ``lo`` is ``lo + exp(u)``, an unbounded one is ``u``; the log-Jacobian enters
+the log-density so the posterior of the physical value is exact.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mfdesign.physics import effects as fx
+from mfdesign.physics.effects import LogNormal, Normal, Rows
+from mfdesign.physics.params import SimParams
+
+__all__ = ["CalibrationData", "HierarchicalModel", "ParamSpec", "fit_discrepancy"]
+
+ForceModel = Callable[..., jax.Array]
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamSpec:
+    """One sampled parameter: ``name``, ``unit``, ``prior`` (effects' prior classes), ``doc``."""
+
+    name: str
+    unit: str
+    prior: object
+    doc: str = ""
+
+    def to_physical(self, u):
+        lo, hi = self.prior.bounds
+        if math.isfinite(lo) and math.isfinite(hi):
+            return lo + (hi - lo) * jax.nn.sigmoid(u)
+        if math.isfinite(lo):
+            return lo + jnp.exp(u)
+        if math.isfinite(hi):
+            return hi - jnp.exp(u)
+        return u
+
+    def log_jacobian(self, u):
+        lo, hi = self.prior.bounds
+        if math.isfinite(lo) and math.isfinite(hi):
+            return math.log(hi - lo) + jax.nn.log_sigmoid(u) + jax.nn.log_sigmoid(-u)
+        if math.isfinite(lo) or math.isfinite(hi):
+            return u
+        return jnp.zeros_like(u)
+
+    def to_unconstrained(self, x):
+        lo, hi = self.prior.bounds
+        x = np.asarray(x, float)
+        if math.isfinite(lo) and math.isfinite(hi):
+            q = np.clip((x - lo) / (hi - lo), 1e-12, 1 - 1e-12)
+            return np.log(q) - np.log1p(-q)
+        if math.isfinite(lo):
+            return np.log(np.maximum(x - lo, 1e-300))
+        if math.isfinite(hi):
+            return np.log(np.maximum(hi - x, 1e-300))
+        return x
+
+
+class CalibrationData(eqx.Module):
+    """Rows a likelihood sees: ``design`` [N, 6] mm, ``rows`` (:class:`Rows`: recorded h
+    [mm], p [Pa], kinds), ``force_n`` [N] recorded force (or lifted weight), ``weight`` [N]
+    (normalised to mean 1). ``design_keys`` (static) names the membranes ``rows.membrane``
+    indexes."""
+
+    design: jax.Array
+    rows: Rows
+    force_n: jax.Array
+    weight: jax.Array
+    design_keys: tuple[str, ...] = eqx.field(static=True)
+
+    @classmethod
+    def from_measurements(cls, table, max_rows: int | None = 3000, seed: int = 0,
+                          design_keys: Sequence[str] | None = None,
+                          min_lift_height_mm: float = 2.0) -> "CalibrationData":
+        """From a Measurements table; at most ``max_rows`` rows, drawn evenly within each
+        trial (the ramps are densely sampled: neighbouring rows carry little new information).
+
+        Lift rows recorded below ``min_lift_height_mm`` are dropped: the plate still rests on
+        its support there, so the membrane's force is only bounded (F <= W), not equal to W.
+        """
+        df = table.df if hasattr(table, "df") else table
+        df = df[~((df["experiment"] == "lift") & (df["height_mm"] < min_lift_height_mm))]
+        if len(df) == 0:
+            raise ValueError("calibration data: no usable rows (empty table, or only unlifted lift rows)")
+        if max_rows is not None and len(df) > max_rows:
+            if max_rows < 10:
+                raise ValueError(f"max_rows must be >= 10, got {max_rows}")
+            rng = np.random.default_rng(seed)
+            # every trial keeps its share of rows, evenly spaced along the ramp (random phase)
+            keep = []
+            frac = max_rows / len(df)
+            for _, idx in df.groupby(["design_key", "trial"], sort=False).indices.items():
+                k = max(1, int(round(frac * len(idx))))
+                pos = (rng.uniform() + np.arange(k)) * len(idx) / k
+                keep.append(idx[np.minimum(pos.astype(int), len(idx) - 1)])
+            df = df.iloc[np.sort(np.concatenate(keep))]
+        keys = tuple(design_keys) if design_keys is not None else tuple(dict.fromkeys(df["design_key"]))
+        from mfdesign.design import Membrane
+
+        table_keys = {k: Membrane.from_key(k).to_array() for k in keys}
+        design = np.stack([table_keys[k] for k in df["design_key"]])
+        w = df["weight"].to_numpy(float)
+        w = w / w.mean() if w.sum() > 0 else np.ones_like(w)
+        return cls(jnp.asarray(design), Rows.from_measurements(df, keys),
+                   jnp.asarray(df["force_n"].to_numpy(float)), jnp.asarray(w), keys)
+
+    def __len__(self) -> int:
+        return int(self.force_n.shape[0])
+
+    def padded(self, n: int) -> "CalibrationData":
+        """The same data padded to ``n`` rows with weight-0 copies of row 0 (equal shapes
+        across data sets share one compiled likelihood)."""
+        extra = n - len(self)
+        if extra < 0:
+            raise ValueError(f"cannot pad {len(self)} rows down to {n}")
+        idx = jnp.concatenate([jnp.arange(len(self)), jnp.zeros(extra, int)])
+        w = jnp.concatenate([self.weight, jnp.zeros(extra)])
+        return CalibrationData(self.design[idx], self.rows.take(idx), self.force_n[idx], w, self.design_keys)
+
+
+def _effect_names(effects) -> tuple[str, ...]:
+    return tuple(fx.effect(e).name for e in effects)
+
+
+class HierarchicalModel(eqx.Module):
+    """The parameter layout, priors, transforms and log-density of the model (module doc).
+
+    ``force_model``: the fidelity-"sim" force model (emulator / stand-in; a function or an
+    ``eqx.Module``, whose arrays are then traced, not baked into compiled code);
+    ``effects``: names of the active effects; ``n_membranes``: how many membranes the data
+    hold (one latent thickness each; 0 or ``membrane_latents=False``: none);
+    ``likelihood``: ``"gaussian"`` or ``"student_t"`` (``nu`` degrees of freedom);
+    ``base``: SimParams of everything not sampled (ring constants, ...).
+    """
+
+    force_model: ForceModel
+    effects: tuple[str, ...] = eqx.field(default=(), converter=_effect_names, static=True)
+    n_membranes: int = eqx.field(default=0, static=True)
+    membrane_latents: bool = eqx.field(default=True, static=True)
+    likelihood: str = eqx.field(default="gaussian", static=True)
+    nu: float = eqx.field(default=4.0, static=True)
+    mu_prior: object = eqx.field(default=LogNormal(31.7e3, 0.5, 3e3, 300e3), static=True)
+    jm_prior: object = eqx.field(default=LogNormal(39.6, 0.6, 2.0, 1000.0), static=True)
+    noise_prior: object = eqx.field(default=LogNormal(1.0, 1.5, 1e-4, 1e3), static=True)
+    thickness_sd_prior: object = eqx.field(default=LogNormal(0.05, 0.8, 1e-3, 0.5), static=True)
+    base: SimParams = SimParams()
+
+    def __check_init__(self):
+        for e in self.effects:
+            if not fx.effect(e).has_likelihood:
+                raise ValueError(f"effect {e!r} has no likelihood hook; it cannot be calibrated")
+        if self.likelihood not in ("gaussian", "student_t"):
+            raise ValueError(f"likelihood must be 'gaussian' or 'student_t', got {self.likelihood!r}")
+        if not (isinstance(self.n_membranes, (int, np.integer)) and self.n_membranes >= 0):
+            raise ValueError(f"n_membranes must be an integer >= 0, got {self.n_membranes!r}")
+
+    # -- layout -----------------------------------------------------------------------------
+    @property
+    def uses_latents(self) -> bool:
+        return self.membrane_latents and self.n_membranes > 0
+
+    @property
+    def specs(self) -> tuple[ParamSpec, ...]:
+        out = [ParamSpec("mu_pa", "Pa", self.mu_prior, "Gent shear modulus of the rubber"),
+               ParamSpec("jm", "1", self.jm_prior, "Gent locking parameter J_m")]
+        for name in self.effects:
+            e = fx.effect(name)
+            out += [ParamSpec(e.qualified(p.name), p.unit, p.prior, p.doc) for p in e.parameters]
+        out.append(ParamSpec("noise_n", "N", self.noise_prior, "noise scale of a recorded force"))
+        if self.uses_latents:
+            out.append(ParamSpec("thickness_sd", "1", self.thickness_sd_prior,
+                                 "population spread of the membranes' relative thickness"))
+            out += [ParamSpec(f"z_thickness[{m}]", "1", Normal(0.0, 1.0),
+                              "standardised thickness latent of membrane m (t_m = thickness_sd z_m)")
+                    for m in range(self.n_membranes)]
+        return tuple(out)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.specs)
+
+    @property
+    def dim(self) -> int:
+        return len(self.specs)
+
+    def to_physical(self, u) -> jax.Array:
+        """``u`` [..., dim] unconstrained -> physical values [..., dim]."""
+        u = jnp.asarray(u)
+        return jnp.stack([s.to_physical(u[..., i]) for i, s in enumerate(self.specs)], -1)
+
+    def to_unconstrained(self, x) -> np.ndarray:
+        x = np.asarray(x, float)
+        return np.stack([s.to_unconstrained(x[..., i]) for i, s in enumerate(self.specs)], -1)
+
+    def initial_physical(self) -> np.ndarray:
+        """A sensible starting point: prior medians (mu, J_m, noise, sigma_t), effects neutral, z = 0."""
+        start = {"mu_pa": self.mu_prior.median if hasattr(self.mu_prior, "median") else 31.7e3,
+                 "jm": self.jm_prior.median if hasattr(self.jm_prior, "median") else 39.6,
+                 "noise_n": getattr(self.noise_prior, "median", 1.0),
+                 "thickness_sd": getattr(self.thickness_sd_prior, "median", 0.05)}
+        start.update(fx.neutral_theta(self.effects))
+        x = []
+        for s in self.specs:
+            v = start.get(s.name, 0.0)
+            lo, hi = s.prior.bounds
+            span = (hi - lo) if math.isfinite(hi - lo) else 1.0
+            x.append(float(np.clip(v, lo + 1e-3 * span, hi - 1e-3 * span)))  # inside, not on, a bound
+        return np.asarray(x)
+
+    def unpack(self, x) -> dict[str, jax.Array]:
+        """Physical vector [dim] -> ``{name: value}`` (``z_thickness`` as one [M] array)."""
+        out = {s.name: x[i] for i, s in enumerate(self.specs) if not s.name.startswith("z_thickness")}
+        if self.uses_latents:
+            k = self.names.index("z_thickness[0]")
+            out["z_thickness"] = x[k:k + self.n_membranes]
+        return out
+
+    # -- densities --------------------------------------------------------------------------
+    def log_prior_u(self, u) -> jax.Array:
+        """log p(x(u)) + log |dx/du| for one unconstrained vector ``u`` [dim]."""
+        x = self.to_physical(u)
+        terms = [s.prior.logpdf_jax(x[i]) + s.log_jacobian(u[i]) for i, s in enumerate(self.specs)]
+        return jnp.sum(jnp.stack(terms))
+
+    def sim_params(self, x, data: CalibrationData, thickness_rel=None) -> SimParams:
+        """Row-wise SimParams at physical ``x``: mechanical effects, then the latent thickness
+        (``thickness_rel`` [N] overrides the membranes' latents, e.g. for a new membrane)."""
+        v = self.unpack(x)
+        theta_fx = {k: v[k] for k in fx.neutral_theta(self.effects)}
+        base = dataclasses.replace(self.base, mu_pa=v["mu_pa"], jm=v["jm"])
+        params = fx.apply_row_sim_params(self.effects, theta_fx, base, data.rows)
+        if thickness_rel is None and self.uses_latents:
+            thickness_rel = (v["thickness_sd"] * v["z_thickness"])[data.rows.membrane]
+        if thickness_rel is not None:
+            params = dataclasses.replace(params, thickness_factor=params.thickness_factor * (1.0 + thickness_rel))
+        return params
+
+    def expected_force(self, x, data: CalibrationData, thickness_rel=None) -> jax.Array:
+        """Expected recorded force [N] of every row at physical ``x`` (fidelity "sim" + effects)."""
+        v = self.unpack(x)
+        theta_fx = {k: v[k] for k in fx.neutral_theta(self.effects)}
+        params = self.sim_params(x, data, thickness_rel)
+        force_fn = lambda h, p: self.force_model(data.design, h, p, params)  # noqa: E731
+        return fx.apply_expected_force(self.effects, theta_fx, force_fn, data.rows)
+
+    def pointwise_log_lik(self, x, data: CalibrationData) -> jax.Array:
+        """log p(F_i | x) [N] (unweighted)."""
+        sigma = self.unpack(x)["noise_n"]
+        r = (data.force_n - self.expected_force(x, data)) / sigma
+        if self.likelihood == "gaussian":
+            ll = -0.5 * r**2 - jnp.log(sigma) - 0.5 * math.log(2 * math.pi)
+        else:
+            nu = self.nu
+            c = (math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2) - 0.5 * math.log(nu * math.pi))
+            ll = c - jnp.log(sigma) - 0.5 * (nu + 1) * jnp.log1p(r**2 / nu)
+        return jnp.where(jnp.isfinite(ll), ll, -1e10)  # a NaN force (emulator out of range) is "very unlikely"
+
+    def log_lik(self, x, data: CalibrationData) -> jax.Array:
+        return jnp.sum(data.weight * self.pointwise_log_lik(x, data))
+
+    def log_posterior_u(self, u, data: CalibrationData) -> jax.Array:
+        """Unnormalised log posterior at one unconstrained vector ``u`` [dim]."""
+        lp = self.log_prior_u(u)
+        ll = self.log_lik(self.to_physical(u), data)
+        out = lp + ll
+        return jnp.where(jnp.isfinite(out), out, -jnp.inf)
+
+    # -- prediction -------------------------------------------------------------------------
+    def thickness_for(self, x_samples, data: CalibrationData, key=None) -> jax.Array:
+        """Relative thickness [S, N] of each row for each posterior sample: the membrane's own
+        latent where the row's design key was calibrated, else a draw from the population
+        prior N(0, sigma_t) (a new membrane)."""
+        x_samples = jnp.atleast_2d(x_samples)
+        S, N = x_samples.shape[0], len(data)
+        if not self.uses_latents:
+            return jnp.zeros((S, N))
+        sd = x_samples[:, self.names.index("thickness_sd")]
+        k = self.names.index("z_thickness[0]")
+        z = x_samples[:, k:k + self.n_membranes]
+        known = z[:, jnp.clip(data.rows.membrane, 0, self.n_membranes - 1)]
+        key = jax.random.PRNGKey(0) if key is None else key
+        n_keys = len(data.design_keys)
+        fresh = jax.random.normal(key, (S, n_keys))[:, data.rows.membrane]
+        z_rows = jnp.where((data.rows.membrane < self.n_membranes)[None, :], known, fresh)
+        return sd[:, None] * z_rows
+
+    def sample_force(self, x_samples, data: CalibrationData, key=None) -> jax.Array:
+        """Expected recorded force [S, N] for posterior samples ``x_samples`` [S, dim]
+        (``data.rows.membrane`` indexes the calibrated membranes first; higher indices are
+        new membranes whose thickness comes from the population prior)."""
+        t = self.thickness_for(x_samples, data, key)
+        return jax.vmap(lambda x, tr: self.expected_force(x, data, tr))(jnp.atleast_2d(x_samples), t)
+
+
+def fit_discrepancy(model: HierarchicalModel, x_ref, table, design_keys: Sequence[str], config, *,
+                    key=0, progress=False):
+    """The discrepancy delta: an RPN ensemble fitted to ``F - E(x_ref)`` over all rows of
+    ``table`` (Measurements of the calibrated membranes; ``design_keys`` in the
+    calibration's order, so that each row gets its membrane's latent thickness), with
+    ``x_ref`` the MAP or posterior median (physical). Use a non-monotone ``config``:
+    residuals need not grow with pressure. Returns the fitted ensemble."""
+    from mfdesign.models.ensemble import fit_ensemble
+
+    data = CalibrationData.from_measurements(table, max_rows=None, design_keys=design_keys)
+    resid = np.asarray(data.force_n - model.expected_force(jnp.asarray(x_ref), data))
+    ok = np.isfinite(resid)
+    a = table.arrays()
+    return fit_ensemble(config, a["design"][ok], a["height_mm"][ok], a["pressure_pa"][ok], resid[ok],
+                        a["weight"][ok], key=key, progress=progress)

@@ -1,0 +1,113 @@
+"""Predictive distribution of the multi-fidelity model: posterior theta x discrepancy ensemble.
+
+For posterior draw s (physical theta_s, a latent thickness t_s per row: the membrane's own
+if it was calibrated, else a draw from the population prior N(0, sigma_t,s)) and ensemble
+member m(s) = s mod M of the discrepancy delta::
+
+    F_s(x) = E(x; theta_s, t_s) + delta_m(s)(x)          (x = design, h [mm], p [Pa])
+    y_s    = F_s(x) + sigma_eps * e,  e ~ N(0, 1)
+
+``sigma_eps`` [N] is the RMS of the training residuals after the discrepancy (fitted on
+training rows only). Central intervals are Monte-Carlo quantiles of ``y``; ``predict``
+returns ``F_s`` as ``[S, N]`` so that every consumer of the ``ForceModel`` protocol
+(``models.cv``, ``models.trajectory``) can use the model.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
+
+__all__ = ["MultiFidelity", "coverage"]
+
+
+class MultiFidelity(eqx.Module):
+    """Posterior draws ``theta`` [S, dim] (physical) of ``model``, discrepancy ``delta``
+    (an RPN ``Ensemble`` or None), residual noise ``noise_n`` [N]; ``design_keys`` are the
+    calibrated membranes in latent order."""
+
+    model: HierarchicalModel
+    theta: jax.Array
+    delta: object
+    noise_n: float = eqx.field(static=True)
+    design_keys: tuple[str, ...] = eqx.field(static=True)
+
+    @classmethod
+    def from_posterior(cls, model, posterior, delta=None, noise_n: float | None = None, max_draws: int = 128,
+                       seed: int = 0) -> "MultiFidelity":
+        """Thin the posterior to at most ``max_draws`` draws (``noise_n`` default: the
+        posterior median noise scale)."""
+        idx = np.random.default_rng(seed).permutation(len(posterior.samples))[:max_draws]
+        noise = float(np.median(posterior.samples[:, posterior.names.index("noise_n")])) if noise_n is None else noise_n
+        return cls(model, jnp.asarray(posterior.samples[idx]), delta, float(noise), tuple(posterior.design_keys))
+
+    def data_for(self, design, h_mm, p_pa, table=None, min_lift_height_mm: float = 2.0) -> CalibrationData:
+        """Rows to predict: from a Measurements ``table`` (its kinds of rows; unlifted lift
+        rows dropped as in calibration), or plain force rows at ``design`` [N, 6], ``h_mm``
+        [N], ``p_pa`` [N]."""
+        if table is not None:
+            keys = list(self.design_keys) + [k for k in dict.fromkeys(table.df["design_key"]) if k not in self.design_keys]
+            return CalibrationData.from_measurements(table, max_rows=None, design_keys=keys,
+                                                     min_lift_height_mm=min_lift_height_mm)
+        from mfdesign.design import Membrane
+        from mfdesign.physics.effects import Rows
+
+        design = np.atleast_2d(np.asarray(design, float))
+        h_mm, p_pa = (np.broadcast_to(np.asarray(a, float), (len(design),)) for a in (h_mm, p_pa))
+        row_keys = [Membrane.from_array(d).key() for d in design]
+        keys = list(self.design_keys) + [k for k in dict.fromkeys(row_keys) if k not in self.design_keys]
+        index = {k: i for i, k in enumerate(keys)}
+        n = len(design)
+        rows = Rows(jnp.asarray(h_mm), jnp.asarray(p_pa), jnp.ones(n, bool), jnp.zeros(n, bool), jnp.zeros(n, bool),
+                    jnp.asarray([index[k] for k in row_keys], dtype=jnp.int32))
+        return CalibrationData(jnp.asarray(design), rows, jnp.zeros(n), jnp.ones(n), tuple(keys))
+
+    def sample_data(self, data: CalibrationData, key=0) -> jax.Array:
+        """``F_s`` [S, N] at the rows of ``data`` (module doc)."""
+        key = jax.random.PRNGKey(key) if isinstance(key, int) else key
+        f = _sim_draws(self.model, self.theta, data, key)
+        if self.delta is not None:
+            d = jnp.asarray(self.delta.predict(data.design, data.rows.h_mm, data.rows.p_pa))
+            f = f + d[jnp.arange(f.shape[0]) % d.shape[0]]
+        return f
+
+    def predict(self, design, h_mm, p_pa):
+        """``ForceModel`` protocol: draws ``F_s`` [S, N] N at force rows (new designs draw
+        their thickness from the population)."""
+        return self.sample_data(self.data_for(design, h_mm, p_pa))
+
+    def interval(self, data: CalibrationData, level: float = 0.9, n_noise: int = 8, key=0):
+        """Mean [N] and central ``level`` interval ``(lo, hi)`` [N] of the observation ``y``."""
+        if not 0 < level < 1:
+            raise ValueError(f"level must be in (0, 1), got {level}")
+        f = np.asarray(self.sample_data(data, key))
+        rng = np.random.default_rng(0 if not isinstance(key, int) else key)
+        y = f[None] + self.noise_n * rng.standard_normal((n_noise,) + f.shape)
+        y = y.reshape(-1, f.shape[1])
+        a = (1 - level) / 2
+        lo, hi = np.quantile(y, [a, 1 - a], axis=0)
+        return f.mean(0), lo, hi
+
+
+@eqx.filter_jit
+def _sim_draws(model: HierarchicalModel, theta, data: CalibrationData, key):
+    return model.sample_force(theta, data, key)
+
+
+def coverage(mf: MultiFidelity, table, level: float = 0.9, key=0) -> dict:
+    """RMSE [N] of the mean and the fraction of rows of ``table`` (Measurements) inside the
+    central ``level`` interval, overall and per membrane."""
+    data = mf.data_for(None, None, None, table=table)
+    mean, lo, hi = mf.interval(data, level, key=key)
+    f = np.asarray(data.force_n)
+    inside = (f >= lo) & (f <= hi)
+    keys = np.asarray(data.design_keys, dtype=object)[np.asarray(data.rows.membrane)]
+    per = pd.DataFrame({"k": keys, "in": inside, "e2": (f - mean) ** 2}).groupby("k", sort=False).mean()
+    return {"level": level, "coverage": float(inside.mean()), "rmse_n": float(np.sqrt(np.mean((f - mean) ** 2))),
+            "per_membrane": {k: {"coverage": float(r["in"]), "rmse_n": float(np.sqrt(r["e2"]))} for k, r in per.iterrows()},
+            "mean_width_n": float(np.mean(hi - lo))}

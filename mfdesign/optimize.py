@@ -1,0 +1,601 @@
+"""Membrane design for a lift task (Campbell et al. 2025, "Active Learning Design: Modeling
+Force Output for Axisymmetric Soft Pneumatic Actuators", section on design optimisation).
+
+Two problems over the unit-cube decoding of :class:`~mfdesign.design.DesignSpace` (every
+point of ``[0, 1]^(2 + 2 n_rings)`` is a valid membrane), for 0, 1 and 2 rings:
+
+**Height maximisation.** Targets ``(F_j, p_j)`` (N, Pa): a mass ``F_j`` lifted at chamber
+pressure ``p_j``. The lift height ``h_j(x)`` of design ``x`` is the height where the
+predicted mean force, falling with height, first drops to the load (quasi-static
+inflation from ``h = 0``: the branch :func:`mfdesign.physics.solve.height_at` reports).
+It is found on a height grid by the first crossing of the piecewise-linear interpolant,
+which is differentiable in the forces, hence in ``x``. The loss (to minimise) is::
+
+    L(x) = -k_h smin_tau(h(x)) / h_s + k_f mean_j (max(F_j - F(x, 0, p_j), 0) / F_s)^2
+
+    smin_tau(h) = -tau log sum_j exp(-h_j / tau)      (LogSumExp smooth minimum, mm)
+
+``smin_tau <= min_j h_j <= smin_tau + tau log K``, and it tends to the minimum as
+``tau -> 0``. The constants are the authors' (``design_optimization.py`` and
+``Membrane_Optimization.ipynb`` of gmcampbell/SPA_Design): ``k_h = 1``, ``k_f = k_p =
+5000``, ``h_s = 70 mm``, ``F_s = 60 N``, LogSumExp scale ``h_s / 15`` on ``h / h_s``, i.e.
+``tau = 15 mm``. The authors optimise the heights and pressures as free variables with
+penalties on the force and pressure mismatch; here the heights are eliminated exactly by
+the inversion and the pressures are the targets, so the pressure penalty is zero and the
+force penalty acts only where a target cannot be lifted at all (``F(x, 0, p_j) < F_j``).
+
+**Trajectory targeting.** Way-points ``(F_i, p_i, h_i)`` with weights ``w_i``: the model
+pressure ``p^_i(x)`` at which the mean force at height ``h_i`` first reaches ``F_i`` (a
+grid inversion in pressure, as in :func:`mfdesign.models.trajectory.model_pressure`)::
+
+    L(x) = k_p sum_i w_i ((p^_i - p_i) / p_max)^2 / sum_i w_i
+           + k_f mean_i (max(F_i - F(x, h_i, p_hi), 0) / F_t)^2
+
+with ``p_max = 10 kPa`` (the paper's scaled trajectory error: ``sqrt`` of the first term
+over ``k_p`` is :func:`mfdesign.models.trajectory.trajectory_errors`'s ``e_p``), ``F_t =
+150 N`` (the authors' force scale for trajectories) and ``p_hi`` the top of the pressure
+grid (an unreachable way-point gets ``p_hi`` and the force penalty).
+
+**Optimiser.** ``n_starts`` uniform random points of the unit cube, all scored at once;
+the best ``n_refine`` (default: all) are refined by projected Adam (Kingma & Ba 2015;
+``optax.adam`` followed by ``optax.projections.projection_box`` onto ``[0, 1]^d``), every
+start under ``jax.vmap`` inside one ``lax.scan``, chunked by ``jax.lax.map(batch_size=)``
+to bound memory. Each start keeps the best point it visited.
+
+The model is any :class:`Predictor`: ``members(design [N, 6], h_mm [N], p_pa [N]) -> [M,
+N]`` forces (N), traceable in all inputs. The optimiser uses the member mean; the member
+spread is reported as the uncertainty of the winner's lift heights and trajectories.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any, Callable, Protocol, Sequence, runtime_checkable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from mfdesign.acquire import decode_unit
+from mfdesign.design import DesignSpace, Membrane
+from mfdesign.models.trajectory import P_MAX_PA
+
+__all__ = [
+    "MASSES_N", "TARGET_SETS", "Weights", "PAPER_WEIGHTS", "HeightTargets", "Waypoints",
+    "Predictor", "EnsembleMembers", "as_predictor", "smooth_min", "first_crossing",
+    "lift_heights", "model_pressures", "HeightLoss", "height_loss", "TrajectoryLoss",
+    "trajectory_loss", "multistart",
+    "Result", "optimize", "lift_curves", "pressure_curves", "check_with_simulator",
+]
+
+G_N = 9.81  # m/s^2, as in the data files (1.5 kg -> 14.715 N)
+MASSES_N = (1.5 * G_N, 2.5 * G_N, 4.0 * G_N)  # the paper's three masses: 14.715, 24.525, 39.24 N
+PSI_PA = 6894.757
+
+
+# --------------------------------------------------------------------------- problems
+@dataclasses.dataclass(frozen=True)
+class Weights:
+    """Penalty weights and scales (dimensionless weights; scales in N, mm, Pa).
+
+    Defaults: the authors' values (module docstring). ``temperature_mm`` is the
+    LogSumExp temperature ``tau`` of the smooth minimum of the lift heights.
+    """
+
+    k_force: float = 5000.0
+    k_pressure: float = 5000.0
+    k_height: float = 1.0
+    force_scale_n: float = 60.0  # height maximisation (authors: f_max = 60)
+    trajectory_force_scale_n: float = 150.0  # trajectory targeting (authors: f_max = 150)
+    height_scale_mm: float = 70.0  # authors: h_max = 70
+    pressure_scale_pa: float = P_MAX_PA  # the paper's p_max = 10 kPa
+    temperature_mm: float = 15.0  # authors: scale h_max / 15 on h / h_max
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"Weights.{f.name} must be a finite number >= 0, got {v!r}")
+        for name in ("force_scale_n", "trajectory_force_scale_n", "height_scale_mm",
+                     "pressure_scale_pa", "temperature_mm"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"Weights.{name} must be > 0, got {getattr(self, name)!r}")
+
+
+PAPER_WEIGHTS = Weights()
+
+
+def _vector(name: str, values, n: int | None = None, positive: bool = False) -> tuple[float, ...]:
+    try:
+        arr = np.asarray(values, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a list of numbers, got {values!r}") from None
+    if arr.size == 0 or (n is not None and arr.size != n):
+        raise ValueError(f"{name} needs {n if n else 'at least one'} value(s), got {arr.size}")
+    if not np.all(np.isfinite(arr)) or np.any(arr < 0) or (positive and np.any(arr <= 0)):
+        raise ValueError(f"{name} must be finite and {'> 0' if positive else '>= 0'}, got {arr.tolist()}")
+    return tuple(float(v) for v in arr)
+
+
+@dataclasses.dataclass(frozen=True)
+class HeightTargets:
+    """Height maximisation targets: lift ``force_n[j]`` (N, > 0) at ``p_pa[j]`` (Pa, > 0)."""
+
+    force_n: tuple[float, ...]
+    p_pa: tuple[float, ...]
+
+    def __post_init__(self):
+        f = _vector("force_n", self.force_n, positive=True)
+        object.__setattr__(self, "force_n", f)
+        object.__setattr__(self, "p_pa", _vector("p_pa", self.p_pa, len(f), positive=True))
+
+
+@dataclasses.dataclass(frozen=True)
+class Waypoints:
+    """Trajectory way-points: at load ``force_n[i]`` (N) the plate is at ``h_mm[i]`` (mm)
+    when the pressure is ``p_pa[i]`` (Pa); ``weight[i] >= 0`` (default 1)."""
+
+    force_n: tuple[float, ...]
+    p_pa: tuple[float, ...]
+    h_mm: tuple[float, ...]
+    weight: tuple[float, ...] | None = None
+
+    def __post_init__(self):
+        f = _vector("force_n", self.force_n, positive=True)
+        object.__setattr__(self, "force_n", f)
+        object.__setattr__(self, "p_pa", _vector("p_pa", self.p_pa, len(f)))
+        object.__setattr__(self, "h_mm", _vector("h_mm", self.h_mm, len(f)))
+        w = (1.0,) * len(f) if self.weight is None else _vector("weight", self.weight, len(f))
+        if sum(w) <= 0:
+            raise ValueError("Waypoints.weight sums to zero: nothing to target")
+        object.__setattr__(self, "weight", w)
+
+
+# The paper's height-maximisation target sets: the three masses at one pressure each
+# (set A 6.9 kPa = 1.0 psi, set B 8.3 kPa = 1.2 psi; the authors' notebook uses 6895 and 8273 Pa).
+TARGET_SETS = {
+    "A": HeightTargets(MASSES_N, (6895.0,) * 3),
+    "B": HeightTargets(MASSES_N, (8273.0,) * 3),
+}
+
+
+# --------------------------------------------------------------------------- predictors
+@runtime_checkable
+class Predictor(Protocol):
+    """``members(design [N, 6] mm, h_mm [N], p_pa [N]) -> [M, N]`` forces in N; traceable."""
+
+    def members(self, design, h_mm, p_pa) -> jax.Array: ...
+
+
+class EnsembleMembers(eqx.Module):
+    """Adapter: any model with ``predict(design, h, p) -> [M, N]`` (the RPN ensemble)."""
+
+    model: Any
+
+    def members(self, design, h_mm, p_pa):
+        return self.model.predict(design, h_mm, p_pa)
+
+
+def as_predictor(model) -> Predictor:
+    """A :class:`Predictor` from a model with ``members`` or ``predict``."""
+    if hasattr(model, "members"):
+        return model
+    if hasattr(model, "predict"):
+        return EnsembleMembers(model)
+    raise TypeError(f"{type(model).__name__} has neither members(design, h, p) nor predict(design, h, p)")
+
+
+def _members_at(predictor, design, h, p):
+    """Members [M] at one point (design [6], scalars h, p); vmap it over grids so that work
+    not depending on the mapped input (e.g. the ensemble's latent net over a p grid) runs once."""
+    return predictor.members(design[None], jnp.reshape(h, (1,)), jnp.reshape(p, (1,)))[:, 0]
+
+
+# --------------------------------------------------------------------------- building blocks
+def smooth_min(x, temperature, axis: int = -1):
+    """LogSumExp smooth minimum ``-T log sum exp(-x / T)`` (same units as ``x``).
+
+    Lower-bounds ``min(x)``, within ``T log n`` of it; tends to ``min(x)`` as ``T -> 0``.
+    """
+    return -temperature * jax.nn.logsumexp(-jnp.asarray(x) / temperature, axis=axis)
+
+
+def first_crossing(x, y, level):
+    """Where ``y`` first reaches ``level`` along the grid ``x`` (JAX, differentiable in ``y``).
+
+    ``x`` [G] increasing, ``y`` [..., G], ``level`` [...]. Linear interpolation between
+    the grid points that bracket the first ``y >= level``; ``x[0]`` if already there at
+    ``x[0]``; ``x[-1]`` and ``reached = False`` if never. Returns ``(x*, reached)``. The
+    NumPy twin (NaN when unreached) is :func:`mfdesign.models.trajectory.first_crossing`.
+    """
+    x, y = jnp.asarray(x), jnp.asarray(y)
+    level = jnp.asarray(level)
+    above = y >= level[..., None]
+    reached = above.any(-1)
+    j = jnp.argmax(above, axis=-1)
+    jm = jnp.maximum(j - 1, 0)
+    y0 = jnp.take_along_axis(y, jm[..., None], -1)[..., 0]
+    y1 = jnp.take_along_axis(y, j[..., None], -1)[..., 0]
+    dy = y1 - y0
+    frac = jnp.clip((level - y0) / jnp.where(dy != 0, dy, 1.0), 0.0, 1.0)
+    frac = jnp.where(dy != 0, frac, 0.0)
+    out = jnp.where(j == 0, x[0], x[jm] + frac * (x[j] - x[jm]))
+    return jnp.where(reached, out, x[-1]), reached
+
+
+def lift_heights(predictor, design, force_n, p_pa, h_grid, members: bool = False):
+    """Lift heights (mm) of one design ``[6]`` at loads ``force_n`` [K] and pressures ``p_pa`` [K].
+
+    The first height on ``h_grid`` [G] (from 0) where the predicted force falls to the load,
+    linearly interpolated; 0 when the force at ``h_grid[0]`` is already below the load (not
+    lifted), ``h_grid[-1]`` when it never falls (saturated). Mean force by default; per
+    member with ``members=True`` (leading axis M). Returns ``(h, force at h_grid[0])``.
+    """
+    predictor, h_grid = as_predictor(predictor), jnp.asarray(h_grid)
+    f = jax.vmap(jax.vmap(lambda h, p: _members_at(predictor, design, h, p), (0, None)), (None, 0))(
+        h_grid, jnp.asarray(p_pa))  # [K, G, M]
+    f = jnp.moveaxis(f, -1, 0)  # [M, K, G]
+    if not members:
+        f = f.mean(0)
+    h, _ = first_crossing(h_grid, -f, -jnp.asarray(force_n))
+    return h, f[..., 0]
+
+
+def model_pressures(predictor, design, force_n, h_mm, p_grid, members: bool = False):
+    """Pressures (Pa) at which the predicted force at height ``h_mm`` [K] first reaches
+    ``force_n`` [K], on ``p_grid`` [G] (``p_grid[-1]`` when never). Returns ``(p, force at
+    p_grid[-1])``; per member with ``members=True``."""
+    predictor, p_grid = as_predictor(predictor), jnp.asarray(p_grid)
+    f = jax.vmap(jax.vmap(lambda h, p: _members_at(predictor, design, h, p), (None, 0)), (0, None))(
+        jnp.asarray(h_mm), p_grid)  # [K, G, M]
+    f = jnp.moveaxis(f, -1, 0)
+    if not members:
+        f = f.mean(0)
+    p, _ = first_crossing(p_grid, f, jnp.asarray(force_n))
+    return p, f[..., -1]
+
+
+def _mean_force(predictor, design, h, p):
+    """Member-mean force (N) at heights ``h`` [K] and pressures ``p`` [K] of one design."""
+    return jax.vmap(lambda hh, pp: _members_at(predictor, design, hh, pp).mean())(h, p)
+
+
+def _invert(force_of, x, level, decreasing: bool):
+    """First crossing of ``force_of(x_k) = level_k`` along the grid ``x`` [G], per target k.
+
+    Same value as :func:`first_crossing` on the mean force, but the grid pass carries no
+    gradient: the two bracketing points are evaluated again with gradient, which is all the
+    linear interpolation depends on (one backward pass through 2 points per target instead
+    of G). Returns ``(x*, force at the lower bracket)``: the force at ``x[0]`` when the
+    level is already crossed there, at ``x[-1]`` when it is never reached.
+    """
+    fg = jax.lax.stop_gradient(jax.vmap(force_of, out_axes=-1)(jnp.broadcast_to(x[:, None], (x.shape[0],) + level.shape)))
+    sign = -1.0 if decreasing else 1.0
+    above = sign * fg >= sign * level[:, None]
+    reached = above.any(-1)
+    j = jnp.argmax(above, axis=-1)
+    g = x.shape[0] - 1
+    j = jnp.where(reached, j, g)
+    jm = jnp.where(reached, jnp.maximum(j - 1, 0), g)
+    f0, f1 = force_of(x[jm]), force_of(x[j])
+    y0, y1, lv = sign * f0, sign * f1, sign * level
+    dy = y1 - y0
+    frac = jnp.where(dy != 0, jnp.clip((lv - y0) / jnp.where(dy != 0, dy, 1.0), 0.0, 1.0), 0.0)
+    out = jnp.where(reached, jnp.where(j == 0, x[0], x[jm] + frac * (x[j] - x[jm])), x[-1])
+    return out, f0
+
+
+# --------------------------------------------------------------------------- losses
+class HeightLoss(eqx.Module):
+    """``u [dim] -> (loss, aux)`` of height maximisation (module docstring); aux: heights
+    [K] mm, smooth minimum (the score, mm) and the force-deficit penalty. A pytree (the
+    predictor's arrays are leaves), so compiled multi-starts are reused across models."""
+
+    predictor: Any
+    force_n: jax.Array
+    p_pa: jax.Array
+    h_grid: jax.Array
+    space: DesignSpace = eqx.field(static=True)
+    n_rings: int = eqx.field(static=True)
+    weights: Weights = eqx.field(static=True)
+
+    def __call__(self, u):
+        w = self.weights
+        design = decode_unit(self.space, u, self.n_rings)
+        h, f0 = _invert(lambda hh: _mean_force(self.predictor, design, hh, self.p_pa), self.h_grid,
+                        self.force_n, decreasing=True)
+        f0 = jnp.where(h <= self.h_grid[0], f0, jnp.inf)  # the deficit counts only where not lifted
+        score = smooth_min(h, w.temperature_mm)
+        penalty = w.k_force * jnp.mean((jnp.maximum(self.force_n - f0, 0.0) / w.force_scale_n) ** 2)
+        return -w.k_height * score / w.height_scale_mm + penalty, dict(heights_mm=h, score_mm=score,
+                                                                        penalty=penalty)
+
+
+def height_loss(predictor, targets: HeightTargets, space: DesignSpace, n_rings: int,
+                weights: Weights = PAPER_WEIGHTS, h_grid=None) -> HeightLoss:
+    """The height-maximisation loss; ``h_grid`` default 0-80 mm in 5 mm steps."""
+    h_grid = jnp.linspace(0.0, 80.0, 17) if h_grid is None else jnp.asarray(h_grid, float)
+    space.dim(n_rings)
+    return HeightLoss(as_predictor(predictor), jnp.asarray(targets.force_n), jnp.asarray(targets.p_pa),
+                      h_grid, space, int(n_rings), weights)
+
+
+class TrajectoryLoss(eqx.Module):
+    """``u [dim] -> (loss, aux)`` of trajectory targeting (module docstring); aux: model
+    pressures [K] Pa, the scaled trajectory RMSE ``e_p`` and the unreachable penalty."""
+
+    predictor: Any
+    force_n: jax.Array
+    p_pa: jax.Array
+    h_mm: jax.Array
+    weight: jax.Array
+    p_grid: jax.Array
+    space: DesignSpace = eqx.field(static=True)
+    n_rings: int = eqx.field(static=True)
+    weights: Weights = eqx.field(static=True)
+
+    def __call__(self, u):
+        w = self.weights
+        design = decode_unit(self.space, u, self.n_rings)
+        p_hat, f_lo = _invert(lambda pp: _mean_force(self.predictor, design, self.h_mm, pp), self.p_grid,
+                              self.force_n, decreasing=False)
+        f_hi = jnp.where(p_hat >= self.p_grid[-1], f_lo, jnp.inf)  # the deficit counts only where unreached
+        e2 = jnp.sum(self.weight * ((p_hat - self.p_pa) / w.pressure_scale_pa) ** 2)
+        penalty = w.k_force * jnp.mean((jnp.maximum(self.force_n - f_hi, 0.0) / w.trajectory_force_scale_n) ** 2)
+        return w.k_pressure * e2 + penalty, dict(pressures_pa=p_hat, traj_rmse=jnp.sqrt(e2), penalty=penalty)
+
+
+def trajectory_loss(predictor, waypoints: Waypoints, space: DesignSpace, n_rings: int,
+                    weights: Weights = PAPER_WEIGHTS, p_grid=None) -> TrajectoryLoss:
+    """The trajectory-targeting loss; ``p_grid`` default 0-20 kPa in 250 Pa steps."""
+    p_grid = jnp.linspace(0.0, 2.0 * P_MAX_PA, 81) if p_grid is None else jnp.asarray(p_grid, float)
+    space.dim(n_rings)
+    wt = np.asarray(waypoints.weight) / sum(waypoints.weight)
+    return TrajectoryLoss(as_predictor(predictor), *(jnp.asarray(getattr(waypoints, k)) for k in ("force_n", "p_pa", "h_mm")),
+                          jnp.asarray(wt), p_grid, space, int(n_rings), weights)
+
+
+# --------------------------------------------------------------------------- multi-start
+@eqx.filter_jit
+def _screen(loss, u0, batch_size: int):
+    return jax.lax.map(lambda u: loss(u)[0], u0, batch_size=batch_size)
+
+
+@eqx.filter_jit
+def _refine(loss, u0, steps: int, lr: float, batch_size: int):
+    """Projected Adam from every row of ``u0`` [R, d] (vmapped, chunked); best visited point."""
+    opt = optax.adam(lr)
+
+    def one(u):
+        def step(carry, _):
+            u, state, best_u, best_l = carry
+            (val, _), g = jax.value_and_grad(loss, has_aux=True)(u)
+            g = jnp.where(jnp.isfinite(g), g, 0.0)
+            better = val < best_l
+            best_u, best_l = jnp.where(better, u, best_u), jnp.where(better, val, best_l)
+            upd, state = opt.update(g, state, u)
+            u = optax.projections.projection_box(optax.apply_updates(u, upd), 0.0, 1.0)
+            return (u, state, best_u, best_l), val
+
+        init = (u, opt.init(u), u, jnp.asarray(jnp.inf, u.dtype))
+        (u, _, best_u, best_l), _ = jax.lax.scan(step, init, None, length=steps)
+        last = loss(u)[0]
+        better = last < best_l
+        return jnp.where(better, u, best_u), jnp.where(better, last, best_l)
+
+    return jax.lax.map(one, u0, batch_size=batch_size)
+
+
+def multistart(loss: Callable, dim: int, n_starts: int = 2500, steps: int = 100, lr: float = 0.03,
+               n_refine: int | None = None, seed: int = 0, batch_size: int = 250) -> dict:
+    """Minimise ``loss(u)[0]`` over ``[0, 1]^dim`` from ``n_starts`` random starts.
+
+    All starts are scored; the best ``n_refine`` (all if None) run ``steps`` projected Adam
+    steps. Returns u (best), loss, per-refined-start final losses and wall times (s; the
+    first call of a shape includes compilation).
+    """
+    for name, v, low in (("n_starts", n_starts, 1), ("steps", steps, 0), ("batch_size", batch_size, 1), ("dim", dim, 1)):
+        if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
+    n_refine = n_starts if n_refine is None else int(n_refine)
+    if not 1 <= n_refine <= n_starts:
+        raise ValueError(f"n_refine must be between 1 and n_starts={n_starts}, got {n_refine}")
+    if not (math.isfinite(lr) and lr > 0):
+        raise ValueError(f"lr must be a positive number, got {lr!r}")
+    u0 = jax.random.uniform(jax.random.PRNGKey(seed), (n_starts, dim), dtype=jnp.float64)
+    t0 = time.perf_counter()
+    if n_refine < n_starts:
+        first = np.asarray(_screen(loss, u0, min(batch_size, n_starts)))
+        first = np.where(np.isfinite(first), first, np.inf)
+        u0 = u0[np.argsort(first)[:n_refine]]
+    t1 = time.perf_counter()
+    u, final = _refine(loss, u0, steps, lr, min(batch_size, n_refine))
+    final = np.asarray(final)
+    t2 = time.perf_counter()
+    k = int(np.nanargmin(np.where(np.isfinite(final), final, np.nan))) if np.isfinite(final).any() else 0
+    return dict(u=np.asarray(u[k]), loss=float(final[k]), losses=final, screen_s=t1 - t0, refine_s=t2 - t1)
+
+
+# --------------------------------------------------------------------------- result
+@dataclasses.dataclass(frozen=True)
+class Result:
+    """The optimised design and its predicted behaviour (JSON-able via :meth:`to_json`).
+
+    ``problem``: "height" or "trajectory"; ``per_rings``: best loss, design and timings per
+    ring count; ``prediction``: the winner's targets with mean and member spread;
+    ``curves``: predicted trajectories (per force: mean and 5/95 % member band);
+    ``simulator``: the winner checked by the simulator (None if not run).
+    """
+
+    problem: str
+    design_key: str
+    n_rings: int
+    loss: float
+    per_rings: dict
+    prediction: dict
+    curves: dict
+    simulator: dict | None = None
+    settings: dict = dataclasses.field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def lift_curves(predictor, design, forces, p_grid, h_grid) -> dict:
+    """Per force: lift height (mm) vs pressure ``p_grid`` (Pa), member mean and 5/95 % band."""
+    d, predictor = jnp.asarray(design), as_predictor(predictor)
+    fn = jax.jit(lambda F, pp: lift_heights(predictor, d, jnp.full_like(pp, F), pp, h_grid, members=True)[0])
+    out = {}
+    for F in forces:
+        h = np.asarray(fn(F, jnp.asarray(p_grid)))  # [M, P]
+        out[f"{F:.3f}"] = dict(p_pa=np.asarray(p_grid).tolist(), h_mean_mm=h.mean(0).tolist(),
+                               h_lo_mm=np.percentile(h, 5, 0).tolist(), h_hi_mm=np.percentile(h, 95, 0).tolist())
+    return out
+
+
+def pressure_curves(predictor, design, forces, h_grid, p_grid) -> dict:
+    """Per force: pressure (Pa) to hold the load at heights ``h_grid`` (mm), mean and 5/95 % band."""
+    d, predictor = jnp.asarray(design), as_predictor(predictor)
+    fn = jax.jit(lambda F, hh: model_pressures(predictor, d, jnp.full_like(hh, F), hh, p_grid, members=True)[0])
+    out = {}
+    for F in forces:
+        p = np.asarray(fn(F, jnp.asarray(h_grid)))
+        out[f"{F:.3f}"] = dict(h_mm=np.asarray(h_grid).tolist(), p_mean_pa=p.mean(0).tolist(),
+                               p_lo_pa=np.percentile(p, 5, 0).tolist(), p_hi_pa=np.percentile(p, 95, 0).tolist())
+    return out
+
+
+def check_with_simulator(design: Membrane, force_n, p_pa, predicted_h_mm, params=None,
+                         h_max_mm: float = 80.0, n_heights: int = 17) -> dict:
+    """Simulated lift heights (``mfdesign.physics.solve.height_at``) at the targets vs the
+    model's; ``params``: calibrated :class:`SimParams` or the paper's defaults."""
+    from mfdesign.physics.params import SimParams
+    from mfdesign.physics.solve import height_at
+    from mfdesign.physics.status import Status
+
+    params = SimParams() if params is None else params
+    t0 = time.perf_counter()
+    h, status = height_at(design, np.asarray(force_n, float), np.asarray(p_pa, float), params,
+                          h_max_mm=h_max_mm, n_heights=n_heights)
+    h = np.asarray(h, float)
+    diff = h - np.asarray(predicted_h_mm, float)
+    return dict(force_n=list(map(float, force_n)), p_pa=list(map(float, p_pa)),
+                h_sim_mm=[None if not np.isfinite(v) else float(v) for v in h],
+                status=[Status(int(s)).name for s in np.asarray(status)],
+                h_model_mm=list(map(float, predicted_h_mm)),
+                diff_mm=[None if not np.isfinite(v) else float(v) for v in diff],
+                mae_mm=float(np.nanmean(np.abs(diff))) if np.isfinite(diff).any() else None,
+                params=_param_dict(params), seconds=time.perf_counter() - t0)
+
+
+def _param_dict(params) -> dict:
+    out = {}
+    for f in dataclasses.fields(params):
+        try:
+            out[f.name] = float(getattr(params, f.name))
+        except (TypeError, ValueError):
+            out[f.name] = repr(getattr(params, f.name))
+    return out
+
+
+def optimize(model, problem: HeightTargets | Waypoints, rings: Sequence[int] = (0, 1, 2),
+             space: DesignSpace = DesignSpace(), weights: Weights = PAPER_WEIGHTS, n_starts: int = 2500,
+             steps: int = 100, lr: float = 0.03, n_refine: int | None = None, seed: int = 0,
+             batch_size: int = 250, check: bool = False, sim_params=None, progress: bool = True) -> Result:
+    """Optimise a design for ``problem`` with ``model`` (a :class:`Predictor` or an ensemble).
+
+    One :func:`multistart` per ring count in ``rings``; the lowest loss wins. The winner's
+    per-member predictions and trajectories are reported, and with ``check`` its lift
+    heights are recomputed by the simulator (slow: minutes on 2 CPU cores).
+    """
+    from tqdm.auto import tqdm
+
+    predictor = as_predictor(model)
+    rings = tuple(int(r) for r in rings)
+    if not rings or any(r not in (0, 1, 2) for r in rings):
+        raise ValueError(f"rings must be a non-empty subset of (0, 1, 2), got {rings}")
+    height = isinstance(problem, HeightTargets)
+    if not height and not isinstance(problem, Waypoints):
+        raise TypeError(f"problem must be HeightTargets or Waypoints, got {type(problem).__name__}")
+    make = height_loss if height else trajectory_loss
+    per, best = {}, None
+    for r in tqdm(rings, desc="optimise (ring counts)", disable=not progress):
+        loss = make(predictor, problem, space, r, weights)
+        res = multistart(loss, space.dim(r), n_starts, steps, lr, n_refine, seed, batch_size)
+        design = Membrane.from_array(np.asarray(decode_unit(space, jnp.asarray(res["u"]), r)))
+        per[str(r)] = dict(loss=res["loss"], design_key=design.key(), u=res["u"].tolist(),
+                           screen_s=res["screen_s"], refine_s=res["refine_s"],
+                           n_finite=int(np.isfinite(res["losses"]).sum()))
+        if best is None or res["loss"] < best[0]:
+            best = (res["loss"], r, design, res["u"])
+    loss_val, r, design, u = best
+    d = jnp.asarray(design.to_array())
+    F = np.asarray(problem.force_n)
+    p = np.asarray(problem.p_pa)
+    pred = {"force_n": F.tolist(), "p_pa": p.tolist()}
+    _, aux = make(predictor, problem, space, r, weights)(jnp.asarray(u))
+    if height:
+        hg = jnp.linspace(0.0, 80.0, 17)
+        hm, _ = lift_heights(predictor, d, jnp.asarray(F), jnp.asarray(p), hg, members=True)
+        hm = np.asarray(hm)
+        pred.update(h_mean_force_mm=np.asarray(aux["heights_mm"]).tolist(), score_mm=float(aux["score_mm"]),
+                    min_h_mm=float(np.min(aux["heights_mm"])), h_member_mean_mm=hm.mean(0).tolist(),
+                    h_member_std_mm=hm.std(0).tolist(), penalty=float(aux["penalty"]))
+        curves = lift_curves(predictor, d, sorted(set(F.tolist())), np.linspace(0, 1.2e4, 49), hg)
+    else:
+        pg = jnp.linspace(0.0, 2.0 * P_MAX_PA, 81)
+        pm, _ = model_pressures(predictor, d, jnp.asarray(F), jnp.asarray(problem.h_mm), pg, members=True)
+        pm = np.asarray(pm)
+        pred.update(h_mm=list(problem.h_mm), p_model_pa=np.asarray(aux["pressures_pa"]).tolist(),
+                    p_member_std_pa=pm.std(0).tolist(), traj_rmse=float(aux["traj_rmse"]),
+                    penalty=float(aux["penalty"]))
+        curves = pressure_curves(predictor, d, sorted(set(F.tolist())), np.linspace(0, 60, 31), pg)
+    sim = None
+    if check:
+        model_h = pred["h_mean_force_mm"] if height else list(problem.h_mm)
+        sim = check_with_simulator(design, F, p, model_h, sim_params)
+    settings = dict(n_starts=n_starts, steps=steps, lr=lr, n_refine=n_refine, seed=seed,
+                    weights=dataclasses.asdict(weights), rings=list(rings))
+    return Result("height" if height else "trajectory", design.key(), r, float(loss_val), per, pred,
+                  curves, sim, settings)
+
+
+def plot(result: Result, path, title: str = "") -> None:
+    """Predicted trajectories of the winner with the member band; targets as markers."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    pred = result.prediction
+    for k, (F, c) in enumerate(result.curves.items()):
+        col = f"C{k}"
+        if result.problem == "height":
+            x = np.asarray(c["p_pa"]) / 1e3
+            ax.plot(x, c["h_mean_mm"], color=col, label=f"{float(F):.1f} N")
+            ax.fill_between(x, c["h_lo_mm"], c["h_hi_mm"], color=col, alpha=0.2)
+        else:
+            y = np.asarray(c["h_mm"])
+            ax.plot(np.asarray(c["p_mean_pa"]) / 1e3, y, color=col, label=f"{float(F):.1f} N")
+            ax.fill_betweenx(y, np.asarray(c["p_lo_pa"]) / 1e3, np.asarray(c["p_hi_pa"]) / 1e3, color=col, alpha=0.2)
+    keys = list(result.curves)
+    for i, F in enumerate(pred["force_n"]):
+        col = f"C{min(range(len(keys)), key=lambda k: abs(float(keys[k]) - F))}"
+        h = pred["h_mean_force_mm"][i] if result.problem == "height" else pred["h_mm"][i]
+        ax.plot(pred["p_pa"][i] / 1e3, h, "o", color=col, mec="k")
+    if result.simulator:
+        s = result.simulator
+        hs = [np.nan if v is None else v for v in s["h_sim_mm"]]
+        ax.plot(np.asarray(s["p_pa"]) / 1e3, hs, "kx", ms=9, label="simulator check")
+    ax.set_xlabel("pressure [kPa]")
+    ax.set_ylabel("lift height [mm]")
+    ax.set_title(title or f"{result.problem}: {result.design_key}", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,224 @@
+"""Batch acquisition: decoding, the paper's score, validity, diversity, CLI errors."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import mfdesign  # noqa: F401  (float64)
+from mfdesign.acquire import (EnsemblePredictor, FunctionPredictor, Grid, SplitPredictor, decode_unit, evaluate,
+                              propose)
+from mfdesign.design import DesignSpace, Membrane
+from mfdesign.models.ensemble import EnsembleConfig, Normaliser, fit_ensemble, init_ensemble
+
+SPACE = DesignSpace()
+GRID = Grid(h_mm=(0.0, 20.0, 40.0), p_pa=(2000.0, 5000.0))
+M = 6
+W = np.random.default_rng(3).normal(size=(M, 6))
+
+
+def toy_members(d, h, p):
+    """Member m: a linear function of the design (NaN ring slots -> 0), scaled by p, plus h."""
+    x = jnp.nan_to_num(d, nan=0.0)
+    return (x @ jnp.asarray(W).T).T * (p / 1000.0)[None] + 0.1 * h[None]
+
+
+def toy_members_np(d, h, p):
+    x = np.nan_to_num(d, nan=0.0)
+    return (x @ W.T).T * (p / 1000.0)[None] + 0.1 * h[None]
+
+
+def tiny_ensemble(members=3, seed=0):
+    design = np.array([[2.0, 25.4, np.nan, np.nan, np.nan, np.nan], [1.5, 30.0, 45.0, 6.0, 60.0, 5.0]])
+    norm = Normaliser.fit(design, np.array([0.0, 40.0]), np.array([1e3, 8e3]), np.array([1.0, 30.0]))
+    cfg = EnsembleConfig(n_members=members, latent_width=8, latent_depth=1, ring_embed_dim=4)
+    return init_ensemble(cfg, norm, jax.random.PRNGKey(seed))
+
+
+def test_decode_unit_matches_numpy_decoding():
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 2):
+        u = rng.uniform(-0.1, 1.1, size=(40, SPACE.dim(n)))
+        np.testing.assert_allclose(np.asarray(decode_unit(SPACE, jnp.asarray(u), n)), SPACE.decode_array(u, n),
+                                   rtol=1e-12, equal_nan=True)
+
+
+# One predictor and one set of optimiser settings for every toy proposal: the compiled
+# optimiser of each (ring count, fidelity) arm is then shared by the tests.
+PRED = FunctionPredictor({"rig": toy_members, "sim": toy_members, "flat": lambda d, h, p: 0.0 * toy_members(d, h, p)})
+COSTS = {"rig": 1.0, "sim": 0.01, "flat": 0.01}
+SETTINGS = dict(n_restarts=8, grid=GRID, n_steps=4, costs=COSTS)
+
+
+@pytest.fixture(scope="module")
+def rig_proposal():
+    return propose(PRED, 2, n_rings=(0, 1, 2), key=1, **SETTINGS)
+
+
+def test_proposals_are_valid_designs_for_every_ring_count(rig_proposal):
+    prop = rig_proposal
+    assert len(prop.designs) == 2 and prop.fidelities == ("rig", "rig")
+    assert sorted(a["n_rings"] for a in prop.arms) == [0, 1, 2]
+    for arm in prop.arms:  # every arm's best batch decodes to valid designs with its ring count
+        for u in arm["u"]:
+            d = Membrane.from_key(SPACE.decode(u, arm["n_rings"]).key())  # re-validates every rule
+            assert d.n_rings == arm["n_rings"] and SPACE.contains(d)
+            assert np.all((u >= 0) & (u <= 1))
+    for d in prop.designs:
+        assert SPACE.contains(Membrane.from_key(d.key()))
+    assert all(np.isfinite(prop.scores)) and prop.utility > 0
+
+
+def test_rig_only_utility_is_the_papers_formula(rig_proposal):
+    prop = rig_proposal
+    h, p = GRID.points()
+    dev = []
+    for d in prop.designs:
+        f = toy_members_np(np.repeat(d.to_array()[None], len(h), 0), h, p)  # [M, G]
+        dev.append(np.sqrt(((f - f.mean(0)) ** 2).sum(1)))  # L2 over the grid, per member
+    paper = np.max(np.stack(dev), axis=0).sum()  # sum over members of the max over the batch
+    np.testing.assert_allclose(prop.utility, paper, rtol=1e-9)
+    np.testing.assert_allclose(evaluate(PRED, prop.designs, ["rig"] * 2, GRID)["utility"], paper, rtol=1e-9)
+    assert prop.cost == 2.0 and np.isclose(prop.score, paper / 2.0)
+    # the best arm's best restart is what was returned (nothing better was thrown away)
+    assert prop.utility >= max(a["best_utility_n"] for a in prop.arms) - 1e-9
+
+
+def test_score_is_invariant_to_ring_order():
+    pred = EnsemblePredictor(tiny_ensemble())
+    row = np.array([2.0, 26.0, 36.0, 6.0, 55.0, 8.0])
+    swapped = row[[0, 1, 4, 5, 2, 3]]
+    a = evaluate(pred, [row], ["rig"], GRID)
+    b = evaluate(pred, [swapped], ["rig"], GRID)
+    assert a["utility"] > 0
+    np.testing.assert_allclose(a["utility"], b["utility"], rtol=1e-10)
+
+
+def test_ensemble_grid_members_match_predict():
+    ens = tiny_ensemble()
+    d = np.array([[2.0, 26.0, 36.0, 6.0, np.nan, np.nan], [1.2, 30.0, np.nan, np.nan, np.nan, np.nan]])
+    got = np.asarray(EnsemblePredictor(ens).grid_members("rig", jnp.asarray(d), GRID))  # [M, 2, G]
+    h, p = GRID.points()
+    for b in range(2):
+        want = np.asarray(ens.predict(np.repeat(d[b:b + 1], len(h), 0), h, p))
+        np.testing.assert_allclose(got[:, b], want, rtol=1e-6, atol=1e-9)
+
+
+def test_far_design_scores_higher_than_a_design_on_the_data():
+    """A small RPN ensemble fitted on thick small-disk ringless membranes disagrees more on a
+    thin, large-disk two-ring membrane than on a training design."""
+    rng = np.random.default_rng(0)
+    train = [Membrane(t, c) for t, c in [(2.0, 25.4), (2.2, 26.5), (1.8, 27.0), (2.1, 25.9)]]
+    rows, hs, ps, fs = [], [], [], []
+    for m in train:
+        h = rng.uniform(0, 60, 150)
+        p = rng.uniform(500, 8000, 150)
+        f = np.maximum(0.0, 1e-3 * m.contact_radius_mm**2 * (p - 40 * m.thickness_mm * h) / 100.0)
+        rows.append(np.repeat(m.to_array()[None], 150, 0))
+        hs.append(h), ps.append(p), fs.append(f)
+    cfg = EnsembleConfig(n_members=6, steps=400, chunk=400, latent_width=16, latent_depth=2, monotone=True)
+    ens = fit_ensemble(cfg, np.concatenate(rows), np.concatenate(hs), np.concatenate(ps), np.concatenate(fs),
+                       key=0, progress=False)
+    pred = EnsemblePredictor(ens)
+    grid = Grid(h_mm=(0.0, 20.0, 40.0), p_pa=(2000.0, 5000.0, 8000.0))
+    on = evaluate(pred, [train[0]], ["rig"], grid)["utility"]
+    far = evaluate(pred, [Membrane(1.0, 38.1, [(48.0, 5.0), (60.0, 5.0)])], ["rig"], grid)["utility"]
+    assert far > 1.5 * on
+
+
+def test_batch_is_diverse_when_diversity_pays():
+    """Half the members disagree only at thin membranes, half only at thick ones: the best
+    pair covers both, and two copies of one design would score half as much."""
+    signs = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
+    centre = np.array([1.2, 1.2, 1.2, 2.8, 2.8, 2.8])
+
+    def members(d, h, p):
+        t = d[:, 0]
+        bump = jnp.exp(-(((t[None, :] - jnp.asarray(centre)[:, None]) / 0.25) ** 2))
+        return jnp.asarray(signs)[:, None] * bump * (1.0 + 0.0 * h[None] + p[None] / 1e4)
+
+    pred = FunctionPredictor({"rig": members})
+    prop = propose(pred, 2, n_restarts=24, n_rings=(0,), grid=GRID, n_steps=15, key=0)
+    t = sorted(d.thickness_mm for d in prop.designs)
+    assert t[0] < 1.6 and t[1] > 2.4, t
+    one = evaluate(pred, [prop.designs[0]] * 2, ["rig", "rig"], GRID)["utility"]
+    assert prop.utility > 1.5 * one
+
+
+def test_cheap_fidelity_wins_when_it_explains_the_spread():
+    """``sim`` members carry the whole spread at 1/100 of the cost: the batch goes to sim;
+    ``flat`` (as cheap) carries none of it: the batch goes to the rig."""
+    prop = propose(PRED, 2, fidelities=("rig", "sim"), n_rings=(0,), **SETTINGS)
+    assert prop.fidelities == ("sim", "sim") and np.isclose(prop.cost, 0.02)
+    prop = propose(PRED, 2, fidelities=("rig", "flat"), n_rings=(0,), **SETTINGS)
+    assert prop.fidelities == ("rig", "rig")
+
+
+def test_split_predictor_members_add():
+    sim, disc = tiny_ensemble(seed=0), tiny_ensemble(seed=1)
+    pred = SplitPredictor(sim, disc)
+    d = jnp.asarray([[2.0, 26.0, np.nan, np.nan, np.nan, np.nan]])
+    rig = pred.grid_members("rig", d, GRID)
+    s = EnsemblePredictor(sim).grid_members("rig", d, GRID)
+    q = EnsemblePredictor(disc).grid_members("rig", d, GRID)
+    np.testing.assert_allclose(rig, s + q)
+    np.testing.assert_allclose(pred.grid_members("sim", d, GRID), s)
+
+
+def test_bad_arguments_say_what_is_allowed():
+    pred = PRED
+    with pytest.raises(ValueError, match="q \\(batch size\\) must be an integer >= 1"):
+        propose(pred, 0)
+    with pytest.raises(ValueError, match="not offered by this model; allowed: \\['rig', 'sim', 'flat'\\]"):
+        propose(pred, 1, fidelities=("lab",))
+    with pytest.raises(ValueError, match="subset of \\(0, 1, 2\\)"):
+        propose(pred, 1, n_rings=(3,))
+    with pytest.raises(ValueError, match="positive finite"):
+        propose(pred, 1, costs={"rig": -1.0})
+    with pytest.raises(ValueError, match="Grid.p_pa must be finite"):
+        Grid(p_pa=(1.0, float("nan")))
+
+
+runner = CliRunner()
+
+
+def _text(r):
+    return (r.stdout or "") + (getattr(r, "stderr", "") or "")
+
+
+def test_cli_bad_input_fails_with_one_line(tmp_path):
+    from mfdesign.cli import app
+
+    tiny_ensemble().save(tmp_path / "m")
+    cases = [
+        (["--model", str(tmp_path / "nope")], "is not a folder"),
+        (["--model", str(tmp_path)], "holds no ensemble.json"),
+        (["--model", str(tmp_path / "m"), "--q", "0"], "--q must be an integer >= 1"),
+        (["--model", str(tmp_path / "m"), "--fidelity", "lab"], "--fidelity must be rig or sim"),
+        (["--model", str(tmp_path / "m"), "--rings", "3"], "--rings must be 0, 1 or 2"),
+        (["--model", str(tmp_path / "m"), "--cost-sim", "-1", "--fidelity", "sim"], "--cost-sim must be a positive"),
+        (["--model", str(tmp_path / "m"), "--fidelity", "sim"], "offers fidelities ['rig'], not 'sim'"),
+    ]
+    for args, msg in cases:
+        r = runner.invoke(app, ["propose", *args, "--out", str(tmp_path / "o")])
+        text = _text(r).strip()
+        assert r.exit_code == 2, (args, text)
+        assert msg in text and len(text.splitlines()) == 1, (args, text)
+
+
+def test_cli_writes_json_and_png(tmp_path):
+    from mfdesign.cli import app
+
+    tiny_ensemble().save(tmp_path / "m")
+    r = runner.invoke(app, ["propose", "--model", str(tmp_path / "m"), "--q", "2", "--rings", "1",
+                            "--restarts", "4", "--steps", "2", "--out", str(tmp_path / "o")])
+    assert r.exit_code == 0, _text(r)
+    out = json.loads((tmp_path / "o" / "proposal.json").read_text())
+    assert len(out["designs"]) == 2 and out["fidelities"] == ["rig", "rig"]
+    assert all(Membrane.from_key(k).n_rings == 1 for k in out["designs"])
+    assert (tmp_path / "o" / "proposal.png").stat().st_size > 1000

@@ -1,0 +1,89 @@
+"""``mfdesign diagnose`` on the analytic stand-in: report files, --effects, config, user effects, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from mfdesign.cli import app
+from mfdesign.design import Membrane
+from mfdesign.physics import effects as fx
+from mfdesign.rig.virtual import Protocol, VirtualRig, analytic_plane
+
+runner = CliRunner()
+KEYS = ("[2.0, 25.4, nan, nan, nan, nan]", "[1.5, 30.0, 45.0, 6.0, nan, nan]")
+
+USER_EFFECT = '''
+from dataclasses import dataclass
+from mfdesign.physics.effects import Effect, Normal, Parameter, register_effect
+
+
+@register_effect
+@dataclass(frozen=True)
+class ForceGainTest(Effect):
+    name = "force_gain_test"
+    story = "the load cell reads a few per cent high"
+    parameters = (Parameter("gain", "1", Normal(1.0, 0.05, 0.5, 1.5), 1.0, 1.05),)
+
+    def observe(self, theta, sample, context):
+        if context.experiment != "force":
+            return sample
+        return sample.replace(force_n=theta["gain"] * sample.force_n)
+'''
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    path = tmp_path_factory.mktemp("diag") / "m.parquet"
+    rig = VirtualRig(effects=["load_cell_offset"], theta={"load_cell_offset.offset_n": 0.8}, seed=2,
+                     simulator=analytic_plane, protocol=Protocol(sample_hz=1.0))
+    rig.run([Membrane.from_key(k) for k in KEYS], progress=False).to_parquet(path)
+    return path
+
+
+def test_effects_give_a_before_after_report(data, tmp_path):
+    out = tmp_path / "rep"
+    r = runner.invoke(app, ["diagnose", str(data), "--simulator", "analytic", "--effects", "load_cell_offset",
+                            "--no-search", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    js = json.loads((out / "diagnosis.json").read_text())
+    assert js["effects_added"] == ["load_cell_offset"]
+    assert js["theta"]["load_cell_offset.offset_n"] == pytest.approx(0.8, abs=0.05)
+    assert js["after"]["summary"]["rmse_n"] < 0.5 * js["before"]["summary"]["rmse_n"]
+    html = (out / "report.html").read_text()
+    for png in ("maps_before.png", "maps_after.png", "parity.png", "trial_order.png", "breakdown.png"):
+        assert (out / png).is_file() and f'src="{png}"' in html
+
+
+def test_config_file_and_user_effect_module(data, tmp_path):
+    mod = tmp_path / "my_effects.py"
+    mod.write_text(USER_EFFECT)
+    cfg = tmp_path / "diag.toml"
+    cfg.write_text(f'effects = ["force_gain_test"]\neffects_module = ["{mod}"]\nsimulator = "analytic"\n'
+                   '[theta]\n"force_gain_test.gain" = 1.0\n')
+    out = tmp_path / "rep"
+    r = runner.invoke(app, ["diagnose", str(data), "--config", str(cfg), "--no-search", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    js = json.loads((out / "diagnosis.json").read_text())
+    assert js["effects_added"] == ["force_gain_test"]
+    assert "force_gain_test" in fx.EFFECTS
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--effects", "no_such_effect"], "unknown effect 'no_such_effect'"),
+    (["--theta", "{not json"], "--theta is not valid JSON"),
+    (["--simulator", "quantum"], "--simulator must be one of"),
+    (["--effects-module", "nothere.py"], "not a Python file"),
+])
+def test_bad_input_is_one_line_exit_2(data, tmp_path, args, words):
+    r = runner.invoke(app, ["diagnose", str(data), "--out", str(tmp_path / "x"), *args])
+    assert r.exit_code == 2
+    assert words in r.output
+    assert len(r.output.strip().splitlines()) == 1
+
+
+def test_missing_data_file(tmp_path):
+    r = runner.invoke(app, ["diagnose", str(tmp_path / "none.parquet"), "--out", str(tmp_path / "x")])
+    assert r.exit_code == 2 and "does not exist" in r.output

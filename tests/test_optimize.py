@@ -1,0 +1,188 @@
+"""Design optimisation: decoding, smooth minimum, inversions, losses, multi-start, CLI."""
+
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import mfdesign  # noqa: F401  (float64)
+from mfdesign import optimize as opt
+from mfdesign.design import DesignSpace, Membrane
+from mfdesign.models.trajectory import first_crossing as np_first_crossing
+
+SPACE = DesignSpace()
+
+
+class Toy(eqx.Module):
+    """Analytic two-member force model (N): rises with p, falls with h; a thin membrane with a
+    large disk lifts highest; rings stiffen it (lower lift)."""
+
+    def members(self, d, h, p):
+        t, c = d[:, 0], d[:, 1]
+        rings = jnp.nan_to_num(d[:, 3]) + jnp.nan_to_num(d[:, 5])
+        f = (c / 25.0) * p / 100.0 - (2.0 * t + 0.3 + 0.02 * rings) * h
+        return jnp.stack([f, 1.1 * f])
+
+
+@pytest.mark.parametrize("n_rings", [0, 1, 2])
+def test_decoded_designs_are_valid_and_match_numpy(n_rings):
+    u = np.random.default_rng(n_rings).uniform(-0.2, 1.2, size=(200, SPACE.dim(n_rings)))
+    d = np.asarray(opt.decode_unit(SPACE, jnp.asarray(u), n_rings))
+    np.testing.assert_allclose(d, SPACE.decode_array(u, n_rings), equal_nan=True)
+    for row in d:
+        m = Membrane.from_array(row)  # raises on an invalid design
+        assert m.n_rings == n_rings and SPACE.contains(m)
+
+
+def test_smooth_min_lower_bounds_min_and_converges():
+    x = jnp.array([12.0, 30.0, 14.0])
+    gaps = []
+    for T in (15.0, 5.0, 1.0, 0.1):
+        s = float(opt.smooth_min(x, T))
+        assert s <= 12.0 + 1e-12
+        assert s >= 12.0 - T * np.log(3) - 1e-12
+        gaps.append(12.0 - s)
+    assert all(a > b for a, b in zip(gaps, gaps[1:])) and gaps[-1] < 1e-6
+
+
+def test_first_crossing_matches_numpy_twin():
+    rng = np.random.default_rng(0)
+    x = np.linspace(0, 10, 21)
+    y = np.cumsum(rng.uniform(-0.2, 1, size=(50, 21)), 1)
+    level = rng.uniform(-1, 15, 50)
+    got, reached = opt.first_crossing(x, y, level)
+    ref = np_first_crossing(x, y, level)
+    np.testing.assert_allclose(np.asarray(got)[np.asarray(reached)], ref[np.asarray(reached)])
+    assert np.all(np.isnan(ref[~np.asarray(reached)])) and np.all(np.asarray(got)[~np.asarray(reached)] == 10)
+
+
+def test_lift_height_reproduces_forward_force():
+    toy = Toy()
+    d = jnp.asarray(Membrane.from_key("[1.5, 30.0, nan, nan, nan, nan]").to_array())
+    F = jnp.array([14.7, 24.5, 39.2])
+    p = jnp.array([4000.0, 6000.0, 8000.0])
+    h, _ = jax.jit(opt.lift_heights, static_argnums=0)(toy, d, F, p, jnp.linspace(0, 80, 161))
+    assert np.all((np.asarray(h) > 0) & (np.asarray(h) < 80))
+    back = toy.members(jnp.tile(d, (3, 1)), h, p).mean(0)
+    np.testing.assert_allclose(np.asarray(back), np.asarray(F), atol=1e-9)  # linear in h: exact
+    pr, _ = jax.jit(opt.model_pressures, static_argnums=0)(toy, d, F, h, jnp.linspace(0, 2e4, 401))
+    np.testing.assert_allclose(np.asarray(pr), np.asarray(p), rtol=1e-9)
+
+
+@pytest.mark.parametrize("n_rings", [0, 2])
+def test_losses_finite_and_differentiable(n_rings):
+    toy = Toy()
+    u = jnp.asarray(np.random.default_rng(1).uniform(size=(8, SPACE.dim(n_rings))))
+    wp = opt.Waypoints([14.7, 24.5], [3000.0, 5000.0], [5.0, 40.0])
+    for loss in (opt.height_loss(toy, opt.TARGET_SETS["A"], SPACE, n_rings),
+                 opt.trajectory_loss(toy, wp, SPACE, n_rings)):
+        f = jax.jit(lambda x: loss(x)[0])
+        val, g = jax.jit(jax.vmap(jax.value_and_grad(f)))(u)
+        assert np.all(np.isfinite(val)) and np.all(np.isfinite(g))
+        assert np.any(np.abs(np.asarray(g)) > 0)
+        # the gradient is the derivative of the loss (central differences, away from kinks)
+        e = np.zeros(SPACE.dim(n_rings))
+        e[0] = 1e-5
+        fd = (f(u[0] + e) - f(u[0] - e)) / 2e-5
+        np.testing.assert_allclose(float(g[0, 0]), float(fd), rtol=1e-4, atol=1e-8)
+
+
+def test_height_grid_inversion_matches_member_path():
+    toy = Toy()
+    loss = opt.height_loss(toy, opt.TARGET_SETS["B"], SPACE, 1)
+    for u in np.random.default_rng(2).uniform(size=(5, 4)):
+        d = opt.decode_unit(SPACE, jnp.asarray(u), 1)
+        ref, _ = jax.jit(opt.lift_heights, static_argnums=0)(toy, d, loss.force_n, loss.p_pa, loss.h_grid)
+        np.testing.assert_allclose(np.asarray(eqx.filter_jit(loss)(jnp.asarray(u))[1]["heights_mm"]), np.asarray(ref))
+
+
+def test_multistart_improves_every_start_and_finds_optimum():
+    class Bowl(eqx.Module):
+        def __call__(self, u):
+            return jnp.sum((u - jnp.array([0.3, 0.8])) ** 2) + 0.1 * jnp.sin(5 * u[0]) ** 2, {}
+
+    u0 = jax.random.uniform(jax.random.PRNGKey(0), (40, 2), dtype=jnp.float64)
+    start = np.asarray(jax.vmap(lambda u: Bowl()(u)[0])(u0))
+    u, final = opt._refine(Bowl(), u0, 150, 0.03, 40)
+    assert np.all(np.asarray(final) <= start) and np.all((np.asarray(u) >= 0) & (np.asarray(u) <= 1))
+    assert np.mean(np.asarray(final) < start - 1e-3) > 0.9
+    res = opt.multistart(Bowl(), 2, n_starts=40, steps=150, n_refine=8)
+    g = np.stack(np.meshgrid(np.linspace(0, 1, 401), np.linspace(0, 1, 401), indexing="ij"), -1).reshape(-1, 2)
+    vals = np.asarray(jax.vmap(lambda u: Bowl()(u)[0])(jnp.asarray(g)))
+    np.testing.assert_allclose(res["u"], g[np.argmin(vals)], atol=0.01)
+    assert res["loss"] <= vals.min() + 1e-6
+
+
+def test_height_loss_multistart_finds_thin_wide_membrane():
+    loss = opt.height_loss(Toy(), opt.TARGET_SETS["A"], SPACE, 0)
+    res = opt.multistart(loss, 2, n_starts=64, steps=40, n_refine=8)
+    np.testing.assert_allclose(res["u"], [0.0, 1.0], atol=0.02)  # thinnest, widest disk lifts highest
+
+
+@pytest.mark.slow
+def test_height_maximisation_on_toy_picks_thin_wide_ringless():
+    res = opt.optimize(Toy(), opt.TARGET_SETS["A"], rings=(0, 1), n_starts=64, steps=40, n_refine=8,
+                       progress=False)
+    m = Membrane.from_key(res.design_key)
+    assert m.n_rings == 0 and m.thickness_mm < 1.05 and m.contact_radius_mm > 38.0
+    assert res.prediction["score_mm"] <= res.prediction["min_h_mm"]
+    assert set(res.curves) == {f"{F:.3f}" for F in opt.MASSES_N}
+
+
+@pytest.mark.slow
+def test_trajectory_targeting_recovers_the_generating_design():
+    toy = Toy()
+    truth = Membrane.from_key("[1.8, 31.0, nan, nan, nan, nan]")
+    F = np.repeat(opt.MASSES_N, 3)
+    h = np.tile([5.0, 40.0, 50.0], 3)
+    p, _ = opt.model_pressures(toy, jnp.asarray(truth.to_array()), jnp.asarray(F), jnp.asarray(h),
+                               jnp.linspace(0, 2e4, 801))
+    res = opt.optimize(toy, opt.Waypoints(F, np.asarray(p), h), rings=(0,), n_starts=64, steps=80,
+                       n_refine=16, progress=False)
+    assert res.prediction["traj_rmse"] < 0.01
+    m = Membrane.from_key(res.design_key)
+    # the toy's force depends on t and c only through c / 25 and 2 t: both identifiable
+    assert abs(m.thickness_mm - 1.8) < 0.1 and abs(m.contact_radius_mm - 31.0) < 1.0
+
+
+def test_problem_validation_messages():
+    with pytest.raises(ValueError, match="p_pa needs 3"):
+        opt.HeightTargets([1.0, 2.0, 3.0], [1.0])
+    with pytest.raises(ValueError, match="force_n must be finite and > 0"):
+        opt.Waypoints([-1.0], [1.0], [1.0])
+    with pytest.raises(ValueError, match="n_refine"):
+        opt.multistart(lambda u: (u.sum(), {}), 2, n_starts=4, n_refine=9)
+
+
+def test_cli_bad_input_fails_with_one_line(tmp_path):
+    from mfdesign.cli import app
+
+    runner = CliRunner()
+    bad = tmp_path / "t.csv"
+    bad.write_text("force,pressure\n1,2\n")
+    cases = [
+        (["optimize", "--model", str(tmp_path), "--out", str(tmp_path)], "exactly one of"),
+        (["optimize", "--model", str(tmp_path), "--out", str(tmp_path), "--target-set", "C"], "--target-set must be one of"),
+        (["optimize", "--model", str(tmp_path), "--out", str(tmp_path), "--target-set", "A", "--rings", "3"], "--rings"),
+        (["optimize", "--model", str(tmp_path), "--out", str(tmp_path), "--targets", str(bad)], "need columns force_n"),
+        (["optimize", "--model", str(tmp_path / "none"), "--out", str(tmp_path), "--target-set", "A"], "does not exist"),
+    ]
+    for args, msg in cases:
+        r = runner.invoke(app, args)
+        assert r.exit_code == 2, r.output
+        lines = [ln for ln in r.output.strip().splitlines() if ln.strip()]
+        assert len(lines) == 1 and msg in lines[0], r.output
+
+
+def test_cli_reads_targets_files(tmp_path):
+    from mfdesign.cli_optimize import read_targets
+
+    (tmp_path / "h.json").write_text(json.dumps({"targets": [{"force_n": 14.7, "pressure_pa": 6895}]}))
+    assert isinstance(read_targets(tmp_path / "h.json"), opt.HeightTargets)
+    (tmp_path / "w.csv").write_text("force_n,pressure_pa,height_mm\n14.7,3000,5\n14.7,4000,40\n")
+    wp = read_targets(tmp_path / "w.csv")
+    assert isinstance(wp, opt.Waypoints) and wp.h_mm == (5.0, 40.0)
