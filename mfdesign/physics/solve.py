@@ -311,6 +311,43 @@ def _height_kernel(geom, params, F, p_mpa, a0):
     return jax.vmap(one)(F, p_mpa, a0)
 
 
+def _first_crossing(F, p, Fh):
+    """Where each load ``F[i]`` is first crossed from above along its row ``Fh[i]`` of
+    forces on the height grid (NaN = unsolved). Vectorised bookkeeping for :func:`height_at`.
+
+    Returns ``(height, status, lo_idx, refine)``: ``refine[i]`` when the crossing lies in
+    ``[hg[lo_idx], hg[lo_idx + 1]]`` with every height from the first solved one up to it
+    solved; ``NOT_LIFTED`` (height 0) when the force at ``h = 0`` is below the load;
+    ``INVALID_INPUT`` for a non-finite or negative load or pressure; ``NOT_CONVERGED``
+    otherwise. When the lowest heights did not converge (narrow rubber gaps beside stiff
+    rings near the Gent limit at h ~ 0), a force above the load at the first solved height
+    still shows that the plate is lifted past it.
+    """
+    n_q, n_h = Fh.shape
+    valid = np.isfinite(F) & np.isfinite(p) & (p >= 0) & (F >= 0)
+    row_ok = np.isfinite(Fh)
+    above = Fh >= F[:, None]
+    has_ok = row_ok.any(1)
+    start = np.argmax(row_ok, axis=1)
+    rows = np.arange(n_q)
+    above_start = above[rows, start]
+    cols = np.arange(n_h)[None, :]
+    below = ~above & row_ok & (cols >= start[:, None])
+    has_below = below.any(1)
+    j = np.argmax(below, axis=1)
+    # Unsolved heights between the first solved one and the crossing: a gap, unknown.
+    gaps = np.cumsum(~row_ok, axis=1)
+    gap = (gaps[rows, j] - gaps[rows, start]) > 0
+    not_lifted = valid & has_ok & ~above_start & (start == 0)
+    refine = valid & has_ok & above_start & has_below & ~gap
+    height = np.where(not_lifted, 0.0, np.nan)
+    status = np.full(n_q, int(Status.NOT_CONVERGED), dtype=np.int8)
+    status[not_lifted] = Status.NOT_LIFTED
+    status[refine] = Status.OK
+    status[~valid] = Status.INVALID_INPUT
+    return height, status, np.where(refine, j - 1, 0), refine
+
+
 def height_at(
     design: Membrane,
     force_n,
@@ -334,57 +371,78 @@ def height_at(
     hg = np.linspace(0.0, h_max_mm, n_heights)
     Hq = np.broadcast_to(hg[None, :], (F.size, n_heights))
     Pq = np.broadcast_to(p[:, None], (F.size, n_heights))
-    plane = force_at(design, Hq, Pq, params)
-    Fh = plane.force_n
-    above = Fh >= F[:, None]
-    height = np.full(F.size, np.nan)
-    status = np.full(F.size, int(Status.NOT_CONVERGED), dtype=np.int8)
-    lo_idx = np.zeros(F.size, int)
-    for_refine = np.zeros(F.size, bool)
-    for i in range(F.size):  # bookkeeping on a small table per query; solves are batched
-        row_ok = np.isfinite(Fh[i])
-        if not (np.isfinite(F[i]) and np.isfinite(p[i]) and p[i] >= 0 and F[i] >= 0):
-            status[i] = Status.INVALID_INPUT
-            continue
-        ok_idx = np.nonzero(row_ok)[0]
-        if ok_idx.size == 0:
-            continue
-        start = ok_idx[0]
-        if not above[i, start]:
-            if start == 0:
-                height[i], status[i] = 0.0, Status.NOT_LIFTED
-            continue  # below the load above an unsolved band near h = 0: unknown
-        # (When the lowest heights did not converge -- narrow rubber gaps beside stiff
-        # rings near the Gent limit at h ~ 0 -- a force above the load at the first
-        # solved height still shows the plate is lifted past it.)
-        below = np.nonzero(~above[i, start:] & row_ok[start:])[0]
-        if below.size == 0 or not row_ok[start: start + below[0] + 1].all():
-            continue  # never falls below the load within h_max, or a gap: unconverged
-        j = start + below[0]
-        lo_idx[i], for_refine[i] = j - 1, True
-        status[i] = Status.OK
-    idx = np.nonzero(for_refine)[0]
-    if idx.size:
-        # Linear interpolation of the crossing, then shooting at fixed force.
-        j = lo_idx[idx]
-        f0, f1 = Fh[idx, j], Fh[idx, j + 1]
-        w = (f0 - F[idx]) / np.where(f0 != f1, f0 - f1, 1.0)
-        h_guess = hg[j] + w * (hg[j + 1] - hg[j])
-        a0 = _a_guess(design, params, h_guess, p[idx])
-        geom = sh.geometry_of(design)
-        m = idx.size
-        h_ref, conv = _height_kernel(
-            geom,
-            params,
-            jnp.asarray(_pad(F[idx], m)),
-            jnp.asarray(_pad(p[idx], m)) * PA_TO_MPA,
-            jnp.asarray(_pad(a0, m)),
-        )
-        h_ref, conv = np.asarray(h_ref)[:m], np.asarray(conv)[:m]
-        good = conv & (np.abs(h_ref - h_guess) < 2.0 * (hg[1] - hg[0]))
-        height[idx] = np.where(good, h_ref, np.nan)
-        status[idx] = np.where(good, status[idx], Status.NOT_CONVERGED)
+    Fh = force_at(design, Hq, Pq, params).force_n
+    height, status, lo_idx, for_refine = _first_crossing(F, p, Fh)
+    _refine_crossings(design, params, F, p, Fh, hg, lo_idx, for_refine, height, status)
     return height.reshape(shape_), status.reshape(shape_)
+
+
+def _refine_crossings(design, params, F, p, Fh, hg, lo_idx, refine, height, status):
+    """Crossings bracketed on the height grid: linear interpolation, then shooting at fixed
+    force (one batched solve). Writes ``height`` and ``status`` in place."""
+    idx = np.nonzero(refine)[0]
+    if not idx.size:
+        return
+    j = lo_idx[idx]
+    f0, f1 = Fh[idx, j], Fh[idx, j + 1]
+    w = (f0 - F[idx]) / np.where(f0 != f1, f0 - f1, 1.0)
+    h_guess = hg[j] + w * (hg[j + 1] - hg[j])
+    a0 = _a_guess(design, params, h_guess, p[idx])
+    geom = sh.geometry_of(design)
+    m = idx.size
+    h_ref, conv = _height_kernel(
+        geom,
+        params,
+        jnp.asarray(_pad(F[idx], m)),
+        jnp.asarray(_pad(p[idx], m)) * PA_TO_MPA,
+        jnp.asarray(_pad(a0, m)),
+    )
+    h_ref, conv = np.asarray(h_ref)[:m], np.asarray(conv)[:m]
+    good = conv & (np.abs(h_ref - h_guess) < 2.0 * (hg[1] - hg[0]))
+    height[idx] = np.where(good, h_ref, np.nan)
+    status[idx] = np.where(good, status[idx], Status.NOT_CONVERGED)
+
+
+def lift_curve(
+    design: Membrane,
+    force_n: float,
+    p_grid_pa: Sequence[float],
+    params: SimParams = SimParams(),
+    h_max_mm: float = 100.0,
+    n_heights: int = 41,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Lift height [mm] of a plate carrying ``force_n`` [N] along increasing pressures
+    ``p_grid_pa`` [Pa] (the mass-lift experiment), with snap-through flagged.
+
+    The plane ``F(h, p)`` on ``n_heights`` heights is solved by continuation
+    (:func:`force_plane`); at each pressure the plate sits at the first crossing of the
+    load from above (as in :func:`height_at`), refined by shooting at fixed force. A fold
+    of the ``p``-``h`` relation at fixed load shows in the plane as a row that, beyond the
+    first crossing, rises above the load again: a slightly higher pressure pushes the first
+    crossing past the dip and the plate jumps to the far branch. The pressure where the
+    quasi-statically followed height jumps across such a dip gets ``SNAP_THROUGH`` (its
+    height is the far branch's). Returns ``(height_mm, status)`` per pressure.
+    """
+    p = np.asarray(p_grid_pa, float).ravel()
+    if not (np.isfinite(force_n) and force_n >= 0):
+        raise ValueError(f"force_n must be a finite load >= 0 N, got {force_n}")
+    hg = np.linspace(0.0, h_max_mm, n_heights)
+    Fh = force_plane(design, hg, p, params).force_n.T  # [pressures, heights]
+    F = np.full(p.size, float(force_n))
+    height, status, lo_idx, refine = _first_crossing(F, p, Fh)
+    _refine_crossings(design, params, F, p, Fh, hg, lo_idx, refine, height, status)
+    # Rows whose force re-rises above the load after the first crossing (a dip): the
+    # plate there sits on the near branch; when at the next pressure it sits beyond the
+    # dip's far end, it snapped through.
+    above = Fh >= F[:, None]
+    cols = np.arange(hg.size)[None, :]
+    past_first = cols > lo_idx[:, None] + 1
+    re_rise = refine & (above & past_first & np.isfinite(Fh)).any(1)
+    far_end = np.where(re_rise, hg[np.argmax(above & past_first, axis=1)], np.inf)
+    snapped = np.zeros(p.size, bool)
+    snapped[1:] = re_rise[:-1] & (status[1:] == Status.OK) & (height[1:] >= far_end[:-1])
+    status[snapped] = Status.SNAP_THROUGH
+    return height, status
 
 
 def _final_state(geom, params, h, p_mpa):

@@ -1,0 +1,102 @@
+"""height_at's vectorised bookkeeping equals the straightforward per-query reading of the rules."""
+
+import numpy as np
+import pytest
+
+from mfdesign.physics.solve import _first_crossing
+from mfdesign.physics.status import Status
+
+
+def _reference(F, p, Fh):
+    n_q = F.size
+    height = np.full(n_q, np.nan)
+    status = np.full(n_q, int(Status.NOT_CONVERGED), dtype=np.int8)
+    lo = np.zeros(n_q, int)
+    refine = np.zeros(n_q, bool)
+    above = Fh >= F[:, None]
+    for i in range(n_q):
+        row_ok = np.isfinite(Fh[i])
+        if not (np.isfinite(F[i]) and np.isfinite(p[i]) and p[i] >= 0 and F[i] >= 0):
+            status[i] = Status.INVALID_INPUT
+            continue
+        ok_idx = np.nonzero(row_ok)[0]
+        if ok_idx.size == 0:
+            continue
+        start = ok_idx[0]
+        if not above[i, start]:
+            if start == 0:
+                height[i], status[i] = 0.0, Status.NOT_LIFTED
+            continue
+        below = np.nonzero(~above[i, start:] & row_ok[start:])[0]
+        if below.size == 0 or not row_ok[start: start + below[0] + 1].all():
+            continue
+        lo[i], refine[i], status[i] = start + below[0] - 1, True, Status.OK
+    return height, status, lo, refine
+
+
+def test_first_crossing_matches_reference_on_random_tables():
+    rng = np.random.default_rng(3)
+    n_q, n_h = 4000, 12
+    # Decreasing force rows with holes (NaN), loads around them, some bad inputs.
+    Fh = np.sort(rng.uniform(0, 100, (n_q, n_h)), axis=1)[:, ::-1].copy()
+    Fh[rng.random((n_q, n_h)) < 0.15] = np.nan
+    F = rng.uniform(-5, 110, n_q)
+    F[rng.random(n_q) < 0.02] = np.nan
+    p = rng.uniform(-100, 10_000, n_q)
+    got = _first_crossing(F, p, Fh)
+    want = _reference(F, p, Fh)
+    np.testing.assert_array_equal(got[1], want[1])
+    np.testing.assert_array_equal(got[3], want[3])
+    np.testing.assert_array_equal(got[2][want[3]], want[2][want[3]])
+    np.testing.assert_array_equal(np.isnan(got[0]), np.isnan(want[0]))
+    # Every outcome occurs, so the comparison covers every branch.
+    assert set(np.unique(want[1])) == {Status.OK, Status.NOT_LIFTED, Status.NOT_CONVERGED, Status.INVALID_INPUT}
+
+
+def test_lift_curve_flags_a_jump_over_a_dip(monkeypatch):
+    """A synthetic plane whose force dips below the load between two branches: as the
+    pressure rises the first crossing jumps past the dip; that pressure is SNAP_THROUGH."""
+    from types import SimpleNamespace
+
+    from mfdesign.design import Membrane
+    from mfdesign.physics import solve
+
+    hg = np.linspace(0.0, 100.0, 41)
+    p = np.linspace(1000.0, 5000.0, 9)
+    # F(h, p) = p/100 * (1 - h/100) + a bump centred at 60 mm (the far branch).
+    F = p[None, :] / 100.0 * (1.0 - hg[:, None] / 100.0) + 25.0 * np.exp(-((hg[:, None] - 60.0) / 10.0) ** 2)
+
+    def fake_plane(design, h, pp, params):
+        return SimpleNamespace(force_n=F)
+
+    def interpolate_only(design, params, Fq, pq, Fh, hgrid, lo_idx, refine, height, status):
+        idx = np.nonzero(refine)[0]
+        j = lo_idx[idx]
+        f0, f1 = Fh[idx, j], Fh[idx, j + 1]
+        height[idx] = hgrid[j] + (f0 - Fq[idx]) / (f0 - f1) * (hgrid[1] - hgrid[0])
+
+    monkeypatch.setattr(solve, "force_plane", fake_plane)
+    monkeypatch.setattr(solve, "_refine_crossings", interpolate_only)
+    h, st = solve.lift_curve(Membrane.from_key("[2.0, 25.4, nan, nan, nan, nan]"), 20.0, p)
+    jump = np.argmax(np.diff(h)) + 1
+    assert np.diff(h)[jump - 1] > 20.0  # the plate leaps onto the far branch
+    assert st[jump] == Status.SNAP_THROUGH
+    assert np.sum(st == Status.SNAP_THROUGH) == 1
+    assert np.all(np.isin(st, [Status.OK, Status.SNAP_THROUGH, Status.NOT_LIFTED]))
+
+
+@pytest.mark.slow
+def test_lift_curve_agrees_with_height_at_on_the_simulator():
+    from mfdesign.design import Membrane
+    from mfdesign.physics.solve import force_at, height_at, lift_curve
+
+    d = Membrane.from_key("[2.0, 25.4, nan, nan, nan, nan]")
+    p = np.linspace(2000.0, 8000.0, 7)
+    h, st = lift_curve(d, 25.0, p)
+    h2, st2 = height_at(d, np.full(p.size, 25.0), p)
+    ok = (st == Status.OK) & (st2 == Status.OK)
+    assert ok.sum() >= 4
+    np.testing.assert_allclose(h[ok], h2[ok], atol=1e-3)
+    # And the force there is the load.
+    f = force_at(d, h[ok], p[ok]).force_n
+    np.testing.assert_allclose(f, 25.0, rtol=1e-3)
