@@ -250,6 +250,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=1500)
     ap.add_argument("--cost-sim", type=float, default=0.01)
     ap.add_argument("--target-n", type=float, default=4.0)
+    ap.add_argument("--report-only", action="store_true", help="write JSON/PNG from the checkpoint, run nothing")
     args = ap.parse_args()
     if args.quick:
         args.steps = min(args.steps, 600)
@@ -276,10 +277,11 @@ def main() -> None:
     common = dict(n_members=args.members, steps=args.steps, chunk=min(500, args.steps), batch=100)
     cfgs = {"rig": EnsembleConfig(monotone=True, **common), "disc": EnsembleConfig(monotone=False, **common)}
     t0 = time.perf_counter()
-    lab = Lab(args.quick)
-    print(f"held-out: {len(lab.held['force_n'])} rows of {len(HELD_OUT)} membranes ({time.perf_counter() - t0:.0f} s)",
+    lab = Lab(args.quick) if not args.report_only else None
+    if lab is not None:
+        print(f"held-out: {len(lab.held['force_n'])} rows of {len(HELD_OUT)} membranes ({time.perf_counter() - t0:.0f} s)",
           flush=True)
-    for seed in args.seeds:
+    for seed in [] if args.report_only else args.seeds:
         for arm in args.arms:
             state = results.setdefault(seed, {}).setdefault(arm, {})
             if state.get("curve") and len(state["curve"]) > args.iters:
@@ -296,7 +298,9 @@ def main() -> None:
     out = {"command": "python experiments/active_learning.py " + " ".join(
                f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k not in ("save",)),
            "quick": args.quick, "hidden_effect": {"name": HIDDEN[0], "theta": HIDDEN[1]},
-           "held_out": list(HELD_OUT), "held_out_rows": int(len(lab.held["force_n"])),
+           "held_out": list(HELD_OUT),
+           "complete": all(len(results.get(s, {}).get(a, {}).get("curve", [])) > args.iters
+                           for s in args.seeds for a in args.arms),
            "target_n": args.target_n, "cost_sim": args.cost_sim, "summary": summary,
            "runs": {str(k): v for k, v in results.items()}, "wall_s": time.perf_counter() - t0,
            "note": ("fidelity arm: SplitPredictor (sim ensemble + discrepancy ensemble), our stand-in for the "

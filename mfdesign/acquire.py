@@ -234,6 +234,11 @@ def batch_utility(dev):
     return jnp.sum(jnp.max(dev, axis=-1), axis=0)
 
 
+@eqx.filter_jit
+def _deviation(predictor, fidelity, design, grid):
+    return deviations(predictor.grid_members(fidelity, design, grid))
+
+
 def evaluate(predictor: Predictor, designs, fidelities: Sequence[str], grid: Grid = Grid(),
              costs: Mapping[str, float] | None = None) -> dict:
     """Score a given batch: ``designs`` (Membranes or ``[q, 6]`` rows), one fidelity each.
@@ -245,8 +250,13 @@ def evaluate(predictor: Predictor, designs, fidelities: Sequence[str], grid: Gri
     if len(fidelities) != len(rows):
         raise ValueError(f"one fidelity per design: {len(rows)} designs, {len(fidelities)} fidelities")
     costs = _check_costs(fidelities, costs)
-    dev = np.stack([np.asarray(deviations(predictor.grid_members(f, jnp.asarray(r[None]), grid)))[:, 0]
-                    for r, f in zip(rows, fidelities)], axis=0)  # [q, M]
+    dev = [None] * len(rows)
+    for f in dict.fromkeys(fidelities):  # one compiled call per fidelity
+        idx = [j for j, g in enumerate(fidelities) if g == f]
+        d = np.asarray(_deviation(predictor, f, jnp.asarray(rows[idx]), grid))  # [M, len(idx)]
+        for k, j in enumerate(idx):
+            dev[j] = d[:, k]
+    dev = np.stack(dev, axis=0)  # [q, M]
     utility = float(dev.max(axis=0).sum())
     cost = float(sum(costs[f] for f in fidelities))
     return {"utility": utility, "cost": cost, "score": utility / cost, "deviation": dev}
@@ -332,14 +342,21 @@ def _check_costs(fidelities, costs):
 
 def _greedy(dev, cost, q):
     """Cost-benefit greedy (Leskovec et al. 2007): add the candidate that maximises the
-    batch's ``U / cost``; ``dev`` [K, M] deviations, ``cost`` [K]. Returns indices [q]."""
+    batch's ``U / cost`` among those that add to ``U``; ``dev`` [K, M] deviations, ``cost``
+    [K]. Returns indices [q]."""
     chosen, best = [], np.zeros(dev.shape[1])
     spent = 0.0
     for _ in range(q):
-        gain = np.maximum(dev, best[None, :]).sum(1) / (spent + cost)
+        total = np.maximum(dev, best[None, :]).sum(1)
+        ratio = total / (spent + cost)
+        # A slot must add uncertainty reduction: with q fixed, a cheap candidate that adds
+        # nothing would otherwise win as a filler (it lowers U / cost the least).
+        useless = total - best.sum() <= 1e-9 * max(best.sum(), 1e-300)
+        if not useless.all():
+            ratio[useless] = -np.inf
         if chosen:
-            gain[chosen] = -np.inf
-        j = int(np.argmax(gain))
+            ratio[chosen] = -np.inf
+        j = int(np.argmax(ratio))
         chosen.append(j)
         best = np.maximum(best, dev[j])
         spent += cost[j]

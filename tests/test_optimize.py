@@ -119,7 +119,7 @@ def test_multistart_improves_every_start_and_finds_optimum():
 
 def test_height_loss_multistart_finds_thin_wide_membrane():
     loss = opt.height_loss(Toy(), opt.TARGET_SETS["A"], SPACE, 0)
-    res = opt.multistart(loss, 2, n_starts=64, steps=40, n_refine=8)
+    res = opt.multistart(loss, 2, n_starts=16, steps=40)  # no screening: one compile
     np.testing.assert_allclose(res["u"], [0.0, 1.0], atol=0.02)  # thinnest, widest disk lifts highest
 
 
