@@ -273,7 +273,7 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
         sampler.random_state = np.random.RandomState(seed).get_state()
         start = _ball(res, n_walkers, ball, rng)
     else:
-        start = None  # emcee continues from the last stored sample and random state
+        start = sampler.get_last_sample()  # continue from the stored walkers (and random state)
     for _ in sampler.sample(start, iterations=max(n_steps - done, 0), progress=progress):
         if callback is not None:
             callback(int(sampler.iteration))

@@ -1,0 +1,165 @@
+"""Leave-one-membrane-out on the 7 real mass-lift membranes: five models, three metrics.
+
+Models, each fitted on 6 membranes and scored on the 7th:
+(a) simulator (emulator) with the paper's constants mu = 31.7 kPa, J_m = 39.6, noise = RMS
+    training residual; (b) calibrated simulator (posterior of mu, J_m, thickness latents,
+    noise; the held-out membrane's thickness drawn from the population prior); (c) the
+    data-only RPN ensemble; (d) the curve fit (degree 1, as in real_mass_lift_ensemble.py);
+    (e) the multi-fidelity model (b) + RPN discrepancy on the residuals + residual noise.
+Metrics on held-out rows (lift rows with the plate lifted, h >= 2 mm, force = weight):
+force RMSE [N], the paper's scaled trajectory RMSE (way-points 5/40/50 mm, p_max 10 kPa;
+``mfdesign.models.trajectory``), and the coverage of nominal 90 % intervals. The posterior
+of mu and J_m on all 7 membranes is reported beside the paper's uniaxial 31.5 kPa and 39.6.
+
+CPU budget (2 shared cores): the likelihood uses ``--max-rows`` rows per fit (evenly
+within trials), emcee ``--walkers`` x ``--steps``, ensembles ``--members`` x ``--ens-steps``
+(the paper: 32 x 10,000).
+
+    python experiments/real_mass_lift.py [--steps 1000] [--max-rows 400] [--folds 7]
+
+Writes ``experiments/out/real_mass_lift.{json,png}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+import mfdesign  # noqa: F401  (float64)
+
+OUT = Path(__file__).parent / "out"
+Z90 = 1.6448536269514722
+
+
+class _Mean:
+    """A deterministic model as a ``ForceModel`` ([1, N])."""
+
+    def __init__(self, fn):
+        self.fn = fn
+
+    def predict(self, design, h_mm, p_pa):
+        return np.asarray(self.fn(design, h_mm, p_pa))[None, :]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--walkers", type=int, default=24)
+    ap.add_argument("--max-rows", type=int, default=400)
+    ap.add_argument("--members", type=int, default=8)
+    ap.add_argument("--ens-steps", type=int, default=3000)
+    ap.add_argument("--folds", type=int, default=7)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+
+    from mfdesign.calibration.workflow import _lifted, fit_multi_fidelity, force_model_named
+    from mfdesign.data.spa_design import load_mass_lift
+    from mfdesign.models.baselines import CurveFitConfig
+    from mfdesign.models.cv import predict_mean_std
+    from mfdesign.models.ensemble import EnsembleConfig
+    from mfdesign.models.predictive import MultiFidelity
+    from mfdesign.models.trajectory import measured_waypoints, trajectory_errors
+    from mfdesign.physics.params import SimParams
+
+    warnings.simplefilter("ignore")
+    emu = force_model_named("emulator")
+    data = load_mass_lift()
+    waypoints = measured_waypoints(data)
+    folds = data.leave_one_out()[: args.folds]
+    names = ("a_sim_paper", "b_sim_calibrated", "c_ensemble", "d_curve_fit", "e_multi_fidelity")
+    rows = {n: [] for n in names}
+    t_all = time.perf_counter()
+    for i, (train, test) in enumerate(folds):
+        t0 = time.perf_counter()
+        tr, te = _lifted(train), _lifted(test)
+        a, b = tr.arrays(), te.arrays()
+        key = test.design_keys[0]
+        wp = waypoints[waypoints["design_key"] == key]
+        fit = fit_multi_fidelity(train, emu, (), n_steps=args.steps, n_walkers=args.walkers, max_rows=args.max_rows,
+                                 ensemble_config=EnsembleConfig(n_members=args.members, steps=args.ens_steps,
+                                                                monotone=False), seed=args.seed + i, progress=False)
+        calibrated = MultiFidelity.from_posterior(fit.model, fit.posterior, None, seed=args.seed)
+        paper = _Mean(lambda d, h, p: emu(d, h, p, SimParams()))
+        ens = EnsembleConfig(n_members=args.members, steps=args.ens_steps, monotone=True).fit(
+            a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=args.seed + i, progress=False)
+        curve = CurveFitConfig(degree=1).fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"])
+        for name, model in zip(names, (paper, calibrated, ens, curve, fit.mf)):
+            if isinstance(model, MultiFidelity):
+                dat = model.data_for(None, None, None, table=te)
+                mean, lo, hi = model.interval(dat, 0.9, key=args.seed)
+            else:
+                mu_tr, sd_tr = predict_mean_std(model, a["design"], a["height_mm"], a["pressure_pa"])
+                noise = float(np.sqrt(np.average((a["force_n"] - mu_tr) ** 2, weights=a["weight"])))
+                mean, sd = predict_mean_std(model, b["design"], b["height_mm"], b["pressure_pa"])
+                half = Z90 * np.sqrt(sd**2 + noise**2)
+                lo, hi = mean - half, mean + half
+            f = b["force_n"]
+            _, traj = trajectory_errors(model, wp)
+            rows[name].append({"membrane": key, "rmse_n": float(np.sqrt(np.mean((f - mean) ** 2))),
+                               "coverage90": float(np.mean((f >= lo) & (f <= hi))), "n": int(len(f)),
+                               "traj_rmse_p": traj[key]["traj_rmse_p"], "traj_unreached": traj[key]["unreached"]})
+        s = fit.posterior.summary().set_index("parameter")
+        rows["b_sim_calibrated"][-1].update(mu_pa=float(s.loc["mu_pa", "median"]), jm=float(s.loc["jm", "median"]),
+                                            tau_ratio=fit.posterior.convergence["steps_over_tau"])
+        print(f"fold {i} {key}: " + "  ".join(f"{n[:1]} {rows[n][-1]['rmse_n']:.2f} N/{rows[n][-1]['traj_rmse_p']:.3f}/"
+                                              f"{rows[n][-1]['coverage90']:.2f}" for n in names)
+              + f"  ({time.perf_counter() - t0:.0f} s)", flush=True)
+
+    summary = {}
+    for n in names:
+        r = rows[n]
+        w = np.array([x["n"] for x in r], float)
+        summary[n] = {"rmse_n": float(np.sqrt(np.sum(w * np.array([x["rmse_n"] for x in r]) ** 2) / w.sum())),
+                      "traj_rmse_p": float(np.sqrt(np.mean([x["traj_rmse_p"] ** 2 for x in r]))),
+                      "coverage90": float(np.sum(w * np.array([x["coverage90"] for x in r])) / w.sum())}
+    print("all 7: calibrating on every membrane for the posterior of mu, J_m", flush=True)
+    full = fit_multi_fidelity(data, emu, (), n_steps=args.steps, n_walkers=args.walkers, max_rows=args.max_rows,
+                              ensemble_config=EnsembleConfig(n_members=2, steps=10, monotone=False), seed=args.seed,
+                              progress=False)
+    post = full.posterior.summary().set_index("parameter")
+    out = {"settings": vars(args), "metrics_held_out": summary, "folds": rows,
+           "posterior_all_membranes": full.posterior.to_json(),
+           "mu_pa": {k: float(post.loc["mu_pa", k]) for k in ("median", "q05", "q95")}, "mu_pa_paper_uniaxial": 31.5e3,
+           "jm": {k: float(post.loc["jm", k]) for k in ("median", "q05", "q95")}, "jm_paper": 39.6,
+           "seconds": time.perf_counter() - t_all,
+           "notes": ("held-out rows: lift rows with h >= 2 mm (force = lifted weight); likelihood rows subsampled "
+                     f"to {args.max_rows} per fit; emcee {args.walkers} walkers x {args.steps} steps; ensembles "
+                     f"{args.members} members x {args.ens_steps} steps")}
+    OUT.mkdir(exist_ok=True)
+    (OUT / "real_mass_lift.json").write_text(json.dumps(out, indent=2, default=float))
+    print(json.dumps(summary, indent=1))
+    print(f"mu {out['mu_pa']} (paper 31.5 kPa), J_m {out['jm']} (paper 39.6)")
+    _plot(summary, rows, names, OUT / "real_mass_lift.png")
+
+
+def _plot(summary, rows, names, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
+    for ax, metric, label in zip(axes, ("rmse_n", "traj_rmse_p", "coverage90"),
+                                 ("force RMSE [N]", "scaled trajectory RMSE", "90 % coverage")):
+        for j, n in enumerate(names):
+            vals = [r[metric] for r in rows[n]]
+            ax.scatter(np.full(len(vals), j), vals, s=12, color=f"C{j}", alpha=0.6)
+            ax.bar(j, summary[n][metric], color=f"C{j}", alpha=0.35)
+        ax.set_xticks(range(len(names)), [n.split("_", 1)[0] for n in names])
+        ax.set_title(label, fontsize=9)
+        if metric == "coverage90":
+            ax.axhline(0.9, color="k", lw=0.8, ls="--")
+    fig.suptitle("real mass-lift, leave one membrane out: a sim (paper), b calibrated sim, c ensemble, "
+                 "d curve fit, e multi-fidelity", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,106 @@
+"""The multi-fidelity fit end to end: calibrate theta, fit the discrepancy, build the predictive.
+
+Shared by ``mfdesign calibrate`` / ``mfdesign fit-mf`` and the experiments:
+
+1. :func:`force_model_named`: ``"emulator"`` (the trained emulator of the simulator,
+   ``mfdesign.models.emulator.load_default``) or ``"standin"`` (the analytic stand-in);
+2. :func:`model_for`: a :class:`HierarchicalModel` whose priors of mu [Pa] and J_m are
+   truncated to the emulator's training ranges (outside them it extrapolates);
+3. :func:`fit_multi_fidelity`: emcee calibration, then the RPN discrepancy on the
+   residuals at the posterior median, then the residual noise and the
+   :class:`~mfdesign.models.predictive.MultiFidelity` predictive.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from mfdesign.physics.effects import LogNormal
+
+__all__ = ["FORCE_MODELS", "MFFit", "fit_multi_fidelity", "force_model_named", "model_for"]
+
+FORCE_MODELS = ("emulator", "standin")
+
+
+def force_model_named(name: str):
+    """The force model ``(design, h, p, SimParams) -> F`` called ``name`` (see ``FORCE_MODELS``)."""
+    if name == "emulator":
+        from mfdesign.models.emulator import load_default
+
+        try:
+            return load_default()
+        except FileNotFoundError as err:
+            raise ValueError(f"no trained emulator artifact ({err}); train it or use --simulator standin") from None
+    if name == "standin":
+        from mfdesign.calibration.standin import standin_force
+
+        return standin_force
+    raise ValueError(f"simulator must be one of {FORCE_MODELS}, got {name!r}")
+
+
+def model_for(force_model, data, effects=(), **kwargs):
+    """A hierarchical model with one thickness latent per membrane of ``data``; with an
+    emulator, the priors of mu [Pa], J_m and the thickness spread stay inside its ranges."""
+    from mfdesign.calibrate import build_model
+
+    ranges = getattr(force_model, "range_dict", None)
+    if ranges:
+        mu_lo, mu_hi = ranges.get("mu_pa", (15e3, 50e3))
+        jm_lo, jm_hi = ranges.get("jm", (10.0, 100.0))
+        tf_lo, tf_hi = ranges.get("thickness_factor", (0.7, 1.3))
+        kwargs.setdefault("mu_prior", LogNormal(31.7e3, 0.3, float(mu_lo), float(mu_hi)))
+        kwargs.setdefault("jm_prior", LogNormal(39.6, 0.5, float(jm_lo), float(jm_hi)))
+        kwargs.setdefault("thickness_sd_prior", LogNormal(0.05, 0.8, 1e-3, float(min(1 - tf_lo, tf_hi - 1) / 3)))
+    return build_model(force_model, data, effects, **kwargs)
+
+
+@dataclasses.dataclass(frozen=True)
+class MFFit:
+    """A fitted multi-fidelity model: hierarchical ``model``, ``posterior``, discrepancy
+    ``delta`` (RPN ensemble), residual noise ``noise_n`` [N], predictive ``mf``."""
+
+    model: object
+    posterior: object
+    delta: object
+    noise_n: float
+    mf: object
+    design_keys: tuple[str, ...]
+
+
+def fit_multi_fidelity(table, force_model, effects=(), *, n_steps: int = 2000, n_walkers: int | None = None,
+                       max_rows: int = 1500, chain_path=None, ensemble_config=None, seed: int = 0,
+                       progress: bool = True, likelihood: str = "gaussian", pool=None) -> MFFit:
+    """Calibrate on ``table`` (Measurements), fit delta on the residuals, build the predictive."""
+    from mfdesign.calibrate import calibrate
+    from mfdesign.models.ensemble import EnsembleConfig
+    from mfdesign.models.hierarchical import CalibrationData, fit_discrepancy
+    from mfdesign.models.predictive import MultiFidelity
+
+    data = CalibrationData.from_measurements(table, max_rows=max_rows, seed=seed)
+    n_trials = table.df.groupby(["design_key", "trial"]).ngroups
+    data = data.padded(max(len(data), max_rows + n_trials))  # equal shapes across folds: one compile
+    model = model_for(force_model, data, effects, likelihood=likelihood)
+    post = calibrate(data, model, n_steps=n_steps, n_walkers=n_walkers, chain_path=chain_path, seed=seed,
+                     progress=progress, pool=pool)
+    cfg = ensemble_config or EnsembleConfig(n_members=8, steps=3000, monotone=False)
+    x_ref = post.median()
+    used = table.subset(list(data.design_keys))
+    full = CalibrationData.from_measurements(used, max_rows=None, design_keys=data.design_keys)
+    delta = fit_discrepancy(model, x_ref, _lifted(used), data.design_keys, cfg, key=seed, progress=progress)
+    resid = np.asarray(full.force_n - model.expected_force(x_ref, full))
+    d_mean = np.asarray(delta.predict(full.design, full.rows.h_mm, full.rows.p_pa)).mean(0)
+    w = np.asarray(full.weight)
+    noise = float(np.sqrt(np.average((resid - d_mean) ** 2, weights=w)))
+    mf = MultiFidelity.from_posterior(model, post, delta, noise_n=noise, seed=seed)
+    return MFFit(model, post, delta, noise, mf, tuple(data.design_keys))
+
+
+def _lifted(table, min_lift_height_mm: float = 2.0):
+    """The rows calibration uses (unlifted lift rows dropped), as Measurements."""
+    from mfdesign.data.measurements import Measurements
+
+    df = table.df
+    df = df[~((df["experiment"] == "lift") & (df["height_mm"] < min_lift_height_mm))].reset_index(drop=True)
+    return Measurements(df)
