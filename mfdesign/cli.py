@@ -76,20 +76,30 @@ def simulate(
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("out/demo"), help="Output folder."),
+    out: Path = typer.Option(Path("out/demo"), help="Output folder (report: OUT/index.html)."),
+    quick: bool = typer.Option(False, help="Shrink every stage (a smoke test of the whole loop)."),
+    simulator: str = typer.Option("emulator", help="Force model: emulator (the simulator's) | standin (tests)."),
+    seed: int = typer.Option(0, help="Random seed."),
 ) -> None:
     """The main job on the embedded default (no hardware, no external data).
 
-    Today: simulate the default membrane (2 mm ringless, 25.4 mm disk) on a 36 x 41
-    height-pressure grid and write the plane (Parquet), its picture and a summary.
+    On the bundled virtual-rig dataset: calibrate mu and J_m (emcee), fit the multi-fidelity
+    model, diagnose it and find the hidden effect, add it and refit, propose the next two
+    membranes with their fidelities, optimise a membrane for a lift task, and write one
+    HTML report (OUT/index.html) with JSON beside it.
     """
-    from mfdesign.design import Membrane
-    from mfdesign.simulate_plane import simulate_plane, write_plane
+    import dataclasses
 
-    membrane = Membrane.from_key("[2.0, 25.4, nan, nan, nan, nan]")
-    table = simulate_plane(membrane, 70.0, 10_000.0, 36, 41, progress=True)
-    paths = write_plane(table, membrane, out)
-    typer.echo(f"wrote {paths['parquet']}, {paths['png']} and {paths['json']}")
+    from mfdesign.demo import DemoSettings, run_demo
+
+    if simulator not in ("emulator", "standin"):
+        fail(f"--simulator must be emulator or standin, got {simulator!r}")
+    settings = DemoSettings.quick(simulator) if quick else DemoSettings(force_model=simulator)
+    settings = dataclasses.replace(settings, seed=seed)
+    try:
+        run_demo(out, settings, echo=typer.echo)
+    except (ValueError, FileNotFoundError) as err:
+        fail(str(err))
 
 
 @app.command()

@@ -1,0 +1,300 @@
+"""The lab's whole loop on the bundled virtual dataset: the README's main job.
+
+1. **data**: ``data/bundled_virtual.parquet`` (virtual rig, one hidden effect, see
+   ``data/bundled_card.json``);
+2. **calibrate** mu and J_m (and every membrane's thickness) with emcee on the simulator's
+   emulator, **fit** the multi-fidelity model (discrepancy ensemble on the residuals);
+3. **diagnose** the plain model: where it fails, which effect is missing;
+4. **add** the effect(s) found, recalibrate and refit: the error falls;
+5. **propose** the next two membranes with their fidelities (rig or simulator);
+6. **optimise** a membrane for a lift task (the paper's height maximisation, target set A);
+7. **report**: one HTML page + JSON with the pictures.
+
+Each stage writes its files as soon as it ends (``OUT/<stage>/``), so a crash loses at most
+the stage it was in. ``quick=True`` shrinks every stage (CI, tutorials); the full run
+targets < 10 minutes on a 2-core CPU.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["DemoSettings", "run_demo", "BUNDLED"]
+
+ROOT = Path(__file__).resolve().parents[1]
+BUNDLED = ROOT / "data" / "bundled_virtual.parquet"
+CARD = ROOT / "data" / "bundled_card.json"
+
+
+@dataclass(frozen=True)
+class DemoSettings:
+    """Sizes of every stage (defaults: the full demo)."""
+
+    mcmc_steps: int = 1500
+    max_rows: int = 1500
+    delta_members: int = 8
+    delta_steps: int = 2000
+    propose_restarts: int = 256
+    optimise_starts: int = 2500
+    optimise_refine: int = 32
+    optimise_steps: int = 60
+    force_model: str = "emulator"  # or "standin" (tests)
+    seed: int = 0
+
+    @classmethod
+    def quick(cls, force_model: str = "emulator") -> "DemoSettings":
+        return cls(mcmc_steps=300, max_rows=600, delta_members=4, delta_steps=300, propose_restarts=16,
+                   optimise_starts=256, optimise_refine=8, optimise_steps=20, force_model=force_model)
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+class _Log:
+    """Stage timer and progress lines (stderr-free: the CLI's tqdm bars sit between them)."""
+
+    def __init__(self, echo):
+        self.echo, self.t0, self.times = echo, time.perf_counter(), {}
+
+    def stage(self, name: str):
+        log = self
+
+        class _Stage:
+            def __enter__(self):
+                self.t = time.perf_counter()
+                log.echo(f"[{time.perf_counter() - log.t0:6.1f} s] {name} ...")
+
+            def __exit__(self, *exc):
+                log.times[name] = round(time.perf_counter() - self.t, 2)
+                return False
+
+        return _Stage()
+
+
+def design_members(fit, with_delta: bool = True, key: int = 0, n_draws: int = 16):
+    """Traceable ``(design [N, 6], h_mm [N], p_pa [N]) -> F [S, N]`` of a multi-fidelity fit
+    for NEW membranes: posterior draws of theta through the force model, each draw with a
+    thickness from the population prior, plus (``with_delta``) the discrepancy members.
+    Pressures are the rig's readings (what a lab sets on the same transducer). ``n_draws``
+    posterior draws are used: design searches differentiate through every one of them."""
+    import jax
+    import jax.numpy as jnp
+
+    from mfdesign.models.hierarchical import CalibrationData
+    from mfdesign.physics.effects import Rows
+
+    mf, model = fit.mf, fit.model
+    theta = mf.theta[:n_draws]
+    keys = tuple(fit.design_keys) + ("<new membrane>",)
+    new = len(fit.design_keys)
+
+    def members(design, h, p):
+        n = design.shape[0]
+        rows = Rows(h, p, jnp.ones(n, bool), jnp.zeros(n, bool), jnp.zeros(n, bool), jnp.full(n, new, jnp.int32))
+        data = CalibrationData(design, rows, jnp.zeros(n), jnp.ones(n), keys)
+        f = model.sample_force(theta, data, jax.random.PRNGKey(key))
+        if with_delta and fit.delta is not None:
+            d = fit.delta.predict(design, h, p)
+            f = f + d[jnp.arange(f.shape[0]) % d.shape[0]]
+        return f
+
+    return members
+
+
+def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
+    """Force vs pressure of a few membranes at their set heights: data and each model's mean."""
+    plt = _plt()
+    df = meas.df
+    df = df[df["experiment"] == "force"]
+    keys = list(dict.fromkeys(df["design_key"]))[:n_membranes]
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6), squeeze=False)
+    for ax, key in zip(axes[0], keys):
+        sub = df[df["design_key"] == key]
+        heights = sorted(sub["height_set_mm"].dropna().unique())[::2]
+        for i, hs in enumerate(heights):
+            s = sub[sub["height_set_mm"] == hs]
+            c = plt.cm.viridis(i / max(1, len(heights) - 1))
+            ax.plot(s["pressure_pa"] / 1e3, s["force_n"], ".", ms=1.5, color=c, alpha=0.4)
+            p = np.linspace(max(50.0, s["pressure_pa"].min()), s["pressure_pa"].max(), 40)
+            design = np.tile(np.asarray(json.loads(key.replace("nan", "NaN")), float), (p.size, 1))
+            for (name, fn), ls in zip(fits.items(), ("--", "-")):
+                f = np.asarray(fn(design, np.full(p.size, hs), p)).mean(0)
+                ax.plot(p / 1e3, f, ls, color=c, lw=1.2, label=f"{name}" if i == 0 else None)
+        ax.set_title(key, fontsize=8)
+        ax.set_xlabel("pressure [kPa]")
+        ax.set_ylabel("force [N]")
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle("data (dots) vs model means, one colour per plate height", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _proposal_figure(meas, proposal, path: Path) -> None:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    for key in meas.design_keys:
+        d = json.loads(key.replace("nan", "NaN"))
+        ax.plot(d[1], d[0], "ko", ms=5)
+    for m, fid in zip(proposal.designs, proposal.fidelities):
+        ax.plot(m.contact_radius_mm, m.thickness_mm, "*", ms=14, color="tab:red" if fid == "rig" else "tab:blue",
+                label=f"{fid}: {m.key()}")
+    ax.set_xlabel("contact radius c [mm]")
+    ax.set_ylabel("thickness t [mm]")
+    ax.set_title("black: membranes measured; stars: proposed next", fontsize=9)
+    ax.legend(fontsize=6, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path: str | Path = BUNDLED,
+             echo=print, progress: bool = True) -> dict:
+    """Run the whole loop (module doc) into ``out``; returns the summary written to
+    ``out/summary.json`` (paths of the report, timings, headline numbers)."""
+    import dataclasses
+
+    from mfdesign.acquire import FunctionPredictor, propose
+    from mfdesign.calibration.plots import corner_plot
+    from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named
+    from mfdesign.data.store import read_parquet
+    from mfdesign.diagnose.emulated import EmulatorModel
+    from mfdesign.diagnose.pipeline import diagnose
+    from mfdesign.diagnose.report import write_report
+    from mfdesign.models.ensemble import EnsembleConfig
+    from mfdesign.optimize import TARGET_SETS, optimize, plot as plot_optimum
+    from mfdesign.report import Report
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    s = settings
+    log = _Log(echo)
+    summary: dict = {"settings": dataclasses.asdict(s), "data": str(data_path)}
+    card = json.loads(CARD.read_text()) if Path(data_path) == BUNDLED and CARD.exists() else None
+
+    with log.stage("load data and force model"):
+        meas = read_parquet(data_path)
+        force_model = force_model_named(s.force_model)
+    summary["rows"], summary["membranes"] = len(meas), len(meas.design_keys)
+    ens_cfg = EnsembleConfig(n_members=s.delta_members, steps=s.delta_steps, monotone=False,
+                             chunk=min(1000, s.delta_steps))
+
+    def fit(effects, tag):
+        return fit_multi_fidelity(meas, force_model, effects, n_steps=s.mcmc_steps, max_rows=s.max_rows,
+                                  chain_path=out / tag / "chain.h5", ensemble_config=ens_cfg, seed=s.seed,
+                                  progress=progress)
+
+    def write_posterior(fit_, tag):
+        d = out / tag
+        d.mkdir(parents=True, exist_ok=True)
+        post = fit_.posterior
+        table = post.summary()
+        (d / "posterior.json").write_text(json.dumps(post.to_json(), indent=1, default=str))
+        keep = [i for i, n in enumerate(post.names) if not n.startswith("z_thickness")]
+        corner_plot(post.samples[:, keep], [post.names[i] for i in keep], d / "corner.png")
+        rows = table[~table["parameter"].str.startswith("z_thickness")]
+        return [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
+                for r in rows[["parameter", "unit", "median", "q05", "q95"]].to_dict("records")]
+
+    # 2. calibrate + multi-fidelity fit of the plain model
+    with log.stage("calibrate mu, J_m (emcee) and fit the discrepancy: plain model"):
+        fit0 = fit((), "plain")
+        post0 = write_posterior(fit0, "plain")
+
+    # 3. diagnose the calibrated plain model (its theta at the posterior median)
+    with log.stage("diagnose: where the model fails, which effect is missing"):
+        med = dict(zip(fit0.posterior.names, np.median(fit0.posterior.samples, axis=0)))
+        base = dataclasses.replace(EmulatorModel(force_model).base_params, mu_pa=float(med["mu_pa"]), jm=float(med["jm"]))
+        sim = EmulatorModel(force_model, base_params=base)
+        diag = diagnose(meas, sim=sim, model_name="calibrated simulator (emulator)", progress=progress)
+        dpaths = write_report(diag, out / "diagnose")
+    found = list(diag.found)
+    summary["diagnosis"] = {"found": found, "rmse_before_n": diag.before.rmse_n,
+                            "rmse_after_n": None if diag.after is None else diag.after.rmse_n,
+                            "noise_floor_n": diag.before.noise_floor_n}
+
+    # 4. add the effect(s) and refit
+    if found:
+        with log.stage(f"add {', '.join(found)}: recalibrate and refit"):
+            fit1 = fit(found, "with_effects")
+            post1 = write_posterior(fit1, "with_effects")
+    else:
+        fit1, post1 = fit0, post0
+
+    # 5. propose the next membranes
+    with log.stage("propose the next 2 membranes (rig or simulator)"):
+        predictor = FunctionPredictor({"rig": design_members(fit1, True), "sim": design_members(fit1, False)})
+        proposal = propose(predictor, 2, fidelities=("rig", "sim"), n_restarts=s.propose_restarts, key=s.seed)
+        (out / "propose").mkdir(exist_ok=True)
+        (out / "propose" / "proposal.json").write_text(json.dumps(proposal.to_json(), indent=1, default=str))
+        _proposal_figure(meas, proposal, out / "propose" / "proposals.png")
+
+    # 6. optimise a membrane for a lift task
+    with log.stage("optimise a membrane for lift task A (height maximisation)"):
+        members = design_members(fit1, True)
+
+        class _MF:
+            def members(self, design, h, p):
+                return members(design, h, p)
+
+        result = optimize(_MF(), TARGET_SETS["A"], n_starts=s.optimise_starts, n_refine=s.optimise_refine,
+                          steps=s.optimise_steps, seed=s.seed, progress=progress)
+        (out / "optimize").mkdir(exist_ok=True)
+        plot_optimum(result, out / "optimize" / "optimum.png", title="lift task A")
+        (out / "optimize" / "optimum.json").write_text(json.dumps(result.to_json(), indent=1, default=str))
+
+    # 7. report
+    with log.stage("report"):
+        fig_dir = out / "figures"
+        fig_dir.mkdir(exist_ok=True)
+        _plane_figure(meas, {"plain": design_members(fit0, True), "with effects": design_members(fit1, True)},
+                      fig_dir / "planes.png")
+        rep = Report("mfdesign demo: calibrate, diagnose, add the missing effect, propose, optimise")
+        rep.summary = [
+            f"{len(meas)} rows of {len(meas.design_keys)} membranes from {Path(data_path).name}.",
+            f"Diagnosis found: {', '.join(found) if found else 'nothing beyond the noise'}"
+            + (f" (hidden truth: {card['hidden_effect']['name']})" if card else "") + ".",
+            f"Residual RMSE {diag.before.rmse_n:.2f} N before, "
+            + (f"{diag.after.rmse_n:.2f} N after adding it" if diag.after is not None else "unchanged")
+            + f"; noise floor {diag.before.noise_floor_n:.2f} N.",
+            "Proposed next: " + "; ".join(f"{m.key()} ({f})" for m, f in zip(proposal.designs, proposal.fidelities)) + ".",
+            f"Optimised for lift task A: {result.design_key}.",
+        ]
+        rep.add("Data and model", ["Measured force against pressure, with the plain and the corrected model's means."],
+                images=[(fig_dir / "planes.png", "data vs model planes")])
+        rep.add("Calibration (plain model)", ["Posterior of the global parameters (emcee)."], table=post0,
+                images=[(out / "plain" / "corner.png", "posterior, plain model")])
+        imgs = [(dpaths[k], k.replace("_", " ")) for k in ("maps_before", "parity", "breakdown", "screen_1") if k in dpaths]
+        screen = [{"effect": r.effect, "explained fraction": float(r.explained_fraction)} for r in diag.steps[0]["screen"]][:6] \
+            if diag.steps else None
+        rep.add("Diagnosis: where it fails, which effect is missing",
+                [w["words"] for w in diag.to_json()["before"]["worst_regions"]][:4]
+                + ([diag.steps[-1]["verdict"].get("words", "")] if diag.steps else []),
+                table=screen, images=imgs)
+        after_imgs = [(dpaths["maps_after"], "residual maps after")] if "maps_after" in dpaths else []
+        rep.add(f"After adding {', '.join(found) if found else 'nothing'}", ["Posterior with the effect(s)."],
+                table=post1, images=after_imgs + ([(out / "with_effects" / "corner.png", "posterior with effects")]
+                                                  if found else []))
+        rep.add("Next membranes", [f"{m.key()}: {f}" for m, f in zip(proposal.designs, proposal.fidelities)],
+                images=[(out / "propose" / "proposals.png", "proposals in the design space")])
+        rep.add("Optimised membrane for lift task A", [], images=[(out / "optimize" / "optimum.png", "predicted lift")])
+        rep.meta = {"timings_s": log.times}
+        paths = rep.write(out)
+    summary.update(report=str(paths["html"]), json=str(paths["json"]), timings_s=log.times,
+                   total_s=round(time.perf_counter() - log.t0, 1),
+                   posterior_plain=post0, posterior_with_effects=post1,
+                   proposals=[{"design": m.key(), "fidelity": f} for m, f in zip(proposal.designs, proposal.fidelities)])
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
+    echo(f"report: {paths['html']} ({summary['total_s']} s)")
+    return summary
