@@ -90,3 +90,10 @@ def test_every_doc_command_runs(tmp_path):
             continue
         r = subprocess.run(command, shell=True, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1800)
         assert r.returncode == 0, f"{path.name}: {command!r} failed:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
+
+
+def test_cli_reference_is_in_sync():
+    from mfdesign.cli_reference import render
+
+    assert (ROOT / "docs" / "cli.md").read_text() == render(), \
+        "docs/cli.md is stale: run `python -m mfdesign.cli_reference > docs/cli.md`"
