@@ -152,6 +152,9 @@ class CalibrationData(eqx.Module):
         return CalibrationData(self.design[idx], self.rows.take(idx), self.force_n[idx], w, self.design_keys)
 
 
+SAMPLE_BATCH = 4  # posterior draws evaluated at once by sample_force (memory bound)
+
+
 def _effect_names(effects) -> tuple[str, ...]:
     return tuple(fx.effect(e).name for e in effects)
 
@@ -323,7 +326,10 @@ class HierarchicalModel(eqx.Module):
         (``data.rows.membrane`` indexes the calibrated membranes first; higher indices are
         new membranes whose thickness comes from the population prior)."""
         t = self.thickness_for(x_samples, data, key)
-        return jax.vmap(lambda x, tr: self.expected_force(x, data, tr))(jnp.atleast_2d(x_samples), t)
+        # lax.map in small batches, not one vmap: S draws x N rows x the emulator's hidden
+        # width at once runs to tens of GB on a trajectory grid.
+        return jax.lax.map(lambda a: self.expected_force(a[0], data, a[1]), (jnp.atleast_2d(x_samples), t),
+                           batch_size=SAMPLE_BATCH)
 
 
 def fit_discrepancy(model: HierarchicalModel, x_ref, table, design_keys: Sequence[str], config, *,
