@@ -35,8 +35,9 @@ CARD = ROOT / "data" / "bundled_card.json"
 class DemoSettings:
     """Sizes of every stage (defaults: the full demo)."""
 
-    mcmc_steps: int = 1500
-    max_rows: int = 1500
+    mcmc_steps: int = 500
+    walkers: int = 28
+    max_rows: int = 400
     delta_members: int = 8
     delta_steps: int = 2000
     propose_restarts: int = 256
@@ -48,7 +49,7 @@ class DemoSettings:
 
     @classmethod
     def quick(cls, force_model: str = "emulator") -> "DemoSettings":
-        return cls(mcmc_steps=300, max_rows=600, delta_members=4, delta_steps=300, propose_restarts=16,
+        return cls(mcmc_steps=200, walkers=28, max_rows=200, delta_members=4, delta_steps=300, propose_restarts=16,
                    optimise_starts=256, optimise_refine=8, optimise_steps=20, force_model=force_model)
 
 
@@ -191,7 +192,8 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
                              chunk=min(1000, s.delta_steps))
 
     def fit(effects, tag):
-        return fit_multi_fidelity(meas, force_model, effects, n_steps=s.mcmc_steps, max_rows=s.max_rows,
+        return fit_multi_fidelity(meas, force_model, effects, n_steps=s.mcmc_steps, n_walkers=s.walkers,
+                                  max_rows=s.max_rows,
                                   chain_path=out / tag / "chain.h5", ensemble_config=ens_cfg, seed=s.seed,
                                   progress=progress)
 

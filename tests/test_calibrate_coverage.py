@@ -20,3 +20,11 @@ def test_virtual_truth_coverage_10_seeds():
     # informative, not trivially wide: the mu interval is far narrower than its prior
     widths = [t["intervals"]["mu_pa"][1] - t["intervals"]["mu_pa"][0] for t in trials]
     assert np.median(widths) < 0.15 * 34e3
+
+
+def test_virtual_truth_coverage_fast():
+    """The CI version: 3 seeds, shorter chains; 95 % intervals still cover >= 9 of 12 cases."""
+    trials = [truth_trial(seed, standin_force, standin_plane, n_steps=300, rows=160) for seed in range(3)]
+    covered = np.array([[t["covered"][k] for k in ("mu_pa", "jm", "pressure_sensor.offset_pa",
+                                                    "pressure_sensor.gain")] for t in trials])
+    assert covered.sum() >= 9, [t["intervals"] for t in trials]
