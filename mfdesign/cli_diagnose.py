@@ -1,10 +1,13 @@
 """``mfdesign diagnose``: compare a model with measurements, find the missing effect, add it.
 
     mfdesign diagnose DATA [--model DIR] [--effects NAME ...] [--theta JSON] [--config FILE]
-                      [--effects-module FILE.py ...] [--simulator full|analytic] --out DIR
+                      [--effects-module FILE.py ...] [--simulator emulator|full|analytic] --out DIR
 
 ``DATA``: a Measurements Parquet file or ``mass-lift``. Without ``--model`` the model is
-the plain simulator (authors' constants); ``--effects`` adds effects to it (calibrated
+the plain simulator (authors' constants), evaluated by ``--simulator``: ``emulator``
+(default: the bundled neural emulator of the simulator, exact autodiff screen and
+nonlinear refit of every candidate), ``full`` (simulator planes per membrane and parameter
+set, minutes each; linearised check) or ``analytic`` (a cheap stand-in, for trials); ``--effects`` adds effects to it (calibrated
 unless ``--theta`` fixes every parameter), giving a before/after report. A config file
 (TOML or JSON) may hold any of ``effects``, ``theta``, ``effects_module``, ``model``,
 ``simulator``, ``candidates``; command-line values win.
@@ -18,7 +21,7 @@ from typing import List, Optional
 
 import typer
 
-SIMULATORS = ("full", "analytic")
+SIMULATORS = ("emulator", "full", "analytic")
 
 
 def load_config(path: Path) -> dict:
@@ -80,11 +83,10 @@ def register(app: typer.Typer) -> None:
         config: Optional[Path] = typer.Option(None, help="TOML/JSON file with effects, theta, effects_module, ..."),
         effects_module: Optional[List[Path]] = typer.Option(None, "--effects-module", help="Python file(s) registering new effects."),
         candidates: Optional[List[str]] = typer.Option(None, "--candidates", help="Effects the search may try (default: all)."),
-        simulator: str = typer.Option("full", help="full (the membrane simulator) | analytic (a cheap stand-in for trials)."),
+        simulator: str = typer.Option("emulator", help="emulator (neural emulator of the simulator) | full (simulator planes, slow) | analytic (a cheap stand-in for trials)."),
         search: bool = typer.Option(True, help="Search for the missing effect."),
         check_top: int = typer.Option(3, min=1, help="Candidates given the full check."),
         max_steps: int = typer.Option(2, min=1, help="Rounds of forward selection."),
-        nfev_mechanical: int = typer.Option(0, min=0, help="Simulator evaluations per mechanical candidate in the full check (0 = linearised on the screen's planes)."),
         shapes: bool = typer.Option(True, help="Plot the simulated shape at the worst points (full simulator only)."),
         cache_dir: Optional[Path] = typer.Option(None, help="Plane cache (default ~/.cache/mfdesign/planes)."),
     ) -> None:
@@ -111,7 +113,7 @@ def register(app: typer.Typer) -> None:
             if not isinstance(th, dict):
                 raise ValueError("theta must be an object {\"effect.parameter\": value}")
             fx.split_theta(names, th) if names else (th and fx.split_theta([], th))
-            sim_name = cfg.get("simulator", simulator) if simulator == "full" else simulator
+            sim_name = cfg.get("simulator", simulator) if simulator == "emulator" else simulator
             if sim_name not in SIMULATORS:
                 raise ValueError(f"--simulator must be one of {SIMULATORS}, got {sim_name!r}")
             model_dir = model if model is not None else (Path(cfg["model"]) if cfg.get("model") else None)
@@ -125,7 +127,6 @@ def register(app: typer.Typer) -> None:
         from mfdesign.diagnose.expected import PlaneSimulator
         from mfdesign.diagnose.pipeline import diagnose as run
         from mfdesign.diagnose.report import write_report
-        from mfdesign.rig.virtual import analytic_plane
 
         predict, model_name = None, "simulator"
         if model_dir is not None:
@@ -142,10 +143,19 @@ def register(app: typer.Typer) -> None:
 
             model_name = f"ensemble {model_dir}"
         cache = cache_dir or Path.home() / ".cache" / "mfdesign" / "planes"
-        sim = PlaneSimulator(simulator=analytic_plane if sim_name == "analytic" else None, cache_dir=cache, progress=True)
+        if sim_name == "full":
+            sim = PlaneSimulator(cache_dir=cache, progress=True)
+        else:
+            from mfdesign.diagnose.emulated import EmulatorModel, analytic_force, likelihood_effects
+
+            try:
+                likelihood_effects(names + _split(candidates or cfg.get("candidates", [])))
+                sim = EmulatorModel(analytic_force if sim_name == "analytic" else None, progress=True)
+            except (ValueError, FileNotFoundError) as err:
+                fail(str(err))
         diag = run(meas, sim, model=predict, model_name=model_name, effects=names, theta=th,
                    candidates=_split(candidates) or _split(cfg.get("candidates", [])) or None, search=search,
-                   check_top=check_top, max_steps=max_steps, max_nfev_mechanical=nfev_mechanical, progress=True)
+                   check_top=check_top, max_steps=max_steps, progress=True)
         paths = write_report(diag, out, shapes=shapes and sim_name == "full")
         b = diag.before
         typer.echo(f"before: RMSE {b.rmse_n:.3f} N, noise floor {b.noise_floor_n:.3f} N")

@@ -17,6 +17,7 @@ KEYS = ("[2.0, 25.4, nan, nan, nan, nan]", "[1.5, 30.0, 45.0, 6.0, nan, nan]")
 
 USER_EFFECT = '''
 from dataclasses import dataclass
+import jax.numpy as jnp
 from mfdesign.physics.effects import Effect, Normal, Parameter, register_effect
 
 
@@ -31,7 +32,12 @@ class ForceGainTest(Effect):
         if context.experiment != "force":
             return sample
         return sample.replace(force_n=theta["gain"] * sample.force_n)
+
+    def observed_force_fn(self, theta, force_fn, rows):
+        return lambda h, p: jnp.where(rows.is_force, theta["gain"], 1.0) * force_fn(h, p)
 '''
+NO_HOOK_EFFECT = USER_EFFECT.split("    def observed_force_fn")[0].replace("force_gain_test", "force_gain_nohook").replace(
+    "class ForceGainTest", "class ForceGainNoHook")
 
 
 @pytest.fixture(scope="module")
@@ -69,6 +75,15 @@ def test_config_file_and_user_effect_module(data, tmp_path):
     js = json.loads((out / "diagnosis.json").read_text())
     assert js["effects_added"] == ["force_gain_test"]
     assert "force_gain_test" in fx.EFFECTS
+
+
+def test_effect_without_likelihood_hook_is_refused_by_the_exact_backend(data, tmp_path):
+    mod = tmp_path / "nohook.py"
+    mod.write_text(NO_HOOK_EFFECT)
+    r = runner.invoke(app, ["diagnose", str(data), "--simulator", "analytic", "--effects-module", str(mod),
+                            "--effects", "force_gain_nohook", "--no-search", "--out", str(tmp_path / "x")])
+    assert r.exit_code == 2
+    assert "no likelihood hook" in r.output and len(r.output.strip().splitlines()) == 1
 
 
 @pytest.mark.parametrize("args, words", [

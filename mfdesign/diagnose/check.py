@@ -5,17 +5,18 @@ For a set of effects the model becomes ``F(theta) = base + [E(theta) - E(theta0)
 (:meth:`~mfdesign.diagnose.expected.PlaneSimulator.expected_force`) and ``base`` the
 model under diagnosis (for the plain simulator ``base = E(theta0)``, so ``F = E``).
 
-1. Calibration: bounded nonlinear least squares on all usable rows (trust-region
-   reflective, :func:`scipy.optimize.least_squares`; Branch, Coleman & Li 1999) in the
-   scaled parameters ``x = (theta - neutral) / step`` within the priors' bounds, started
-   at the screen's linear estimate. (When the project's emcee calibration is wired in,
-   its posterior mean takes this place; the verdict rules below do not change.)
-2. Held-out error: leave-membranes-out folds; each fold refits ``theta`` on the other
-   membranes with the model linearised about the all-data optimum (one extra simulator
-   plane per parameter instead of a nonlinear fit per fold) and predicts the held-out
-   membranes.
-3. ``delta BIC`` (Schwarz 1978) against the model without the effects, with the
-   effective sample size of the serially correlated residuals.
+Two back ends:
+
+* exact (:class:`~mfdesign.diagnose.emulated.EmulatorModel`: the emulator or the analytic
+  stand-in in JAX), :mod:`mfdesign.diagnose.refit`: a real nonlinear refit of every
+  parameter of the set (Levenberg-Marquardt, optimistix), on all membranes and per fold,
+  in one compiled call; delta BIC with the calibration's likelihood
+  (:meth:`~mfdesign.models.hierarchical.HierarchicalModel.log_lik`);
+* linearised (:class:`~mfdesign.diagnose.expected.PlaneSimulator`, the full simulator whose
+  planes cost minutes): the model is linearised by secants at the neutral point (the
+  screen's planes; no new simulation), ``theta`` is the prior-weighted linear least squares
+  fit, folds refit the same linear model without the test membranes, and delta BIC uses
+  the effective sample size of the serially correlated residuals (Schwarz 1978).
 
 Verdict (:func:`verdict`): nothing is claimed when the residual is already at the noise
 floor (RMS <= ``floor_factor`` x noise floor) or when no candidate lowers both BIC (by
@@ -85,8 +86,11 @@ def calibrate_effects(sim: PlaneSimulator, meas: Measurements, res: Residuals, e
     """Least-squares ``theta`` of ``effects`` on the rows of ``res``; returns ``(theta, prediction per row of meas)``.
 
     ``base_offset``: ``base - E(theta0)`` per row of ``meas`` (0 for the plain simulator)."""
-    from scipy.optimize import least_squares
+    if hasattr(sim, "jacobian"):  # exact JAX back end: nonlinear refit
+        from mfdesign.diagnose.refit import calibrate_exact
 
+        return calibrate_exact(sim, meas, res, effects, theta0, base_offset)
+    max_nfev = 0  # plane simulator: linearised (a nonlinear refit needs new planes per step)
     effects = [fx.effect(e) for e in effects]
     pars = _params(effects)
     steps = np.array([parameter_step(p) for _, p in pars])
@@ -107,10 +111,6 @@ def calibrate_effects(sim: PlaneSimulator, meas: Measurements, res: Residuals, e
             cache[k] = sim.expected_force(meas, effects, theta_of(x)) + off
         return cache[k]
 
-    def fun(x):
-        r = obs - pred(x)[rows]
-        return np.where(np.isfinite(r), r, 0.0)
-
     x0 = np.zeros(len(pars))
     if theta0:
         x0 = np.array([(theta0.get(e.qualified(p.name), p.neutral) - p.neutral) / s for (e, p), s in zip(pars, steps)])
@@ -125,8 +125,7 @@ def calibrate_effects(sim: PlaneSimulator, meas: Measurements, res: Residuals, e
         full = f0.copy()
         full[rows] = f0[rows] + J @ x
         return theta_of(x), full
-    sol = least_squares(fun, x0, bounds=(xlo, xhi), diff_step=0.05, max_nfev=max_nfev, method="trf")
-    return theta_of(sol.x), pred(sol.x)
+    raise AssertionError("unreachable: the plane back end is always linearised")
 
 
 def full_check(sim: PlaneSimulator, meas: Measurements, res: Residuals, candidates: Sequence[Sequence[str]],
@@ -138,7 +137,15 @@ def full_check(sim: PlaneSimulator, meas: Measurements, res: Residuals, candidat
     ``base_pred``: that model's prediction per row of ``meas`` (default: the plain simulator).
     ``max_nfev_mechanical``: budget of simulator evaluations for sets with a mechanical
     effect (each costs one plane per membrane); ``0`` = linearised check on the screen's
-    secant planes (no new simulation: for the full simulator on a small CPU)."""
+    secant planes (no new simulation: for the full simulator on a small CPU). With an
+    exact back end (``sim.jacobian`` exists) the sets are refitted nonlinearly
+    (:func:`mfdesign.diagnose.refit.full_check_exact`); ``max_nfev*`` are then unused."""
+    if hasattr(sim, "jacobian"):
+        from mfdesign.diagnose.refit import full_check_exact
+
+        return full_check_exact(sim, meas, res, candidates, theta0=theta0, base_pred=base_pred,
+                                n_folds=n_folds, seed=seed, progress=progress)
+    max_nfev = max_nfev_mechanical = 0  # plane back end: linearised check only
     e0 = sim.expected_force(meas)
     base_offset = None if base_pred is None else np.asarray(base_pred, float) - e0
     rows = res.frame["row"].to_numpy()

@@ -60,7 +60,7 @@ class Diagnosis:
                 "found": self.found}
 
 
-def diagnose(meas: Measurements, sim: PlaneSimulator | None = None,
+def diagnose(meas: Measurements, sim=None,
              model: Callable[[Measurements], np.ndarray] | None = None, model_name: str = "simulator",
              effects: Sequence[str | fx.Effect] = (), theta: Mapping[str, Any] | None = None,
              candidates: Sequence[str] | None = None, search: bool = True, check_top: int = 3,
@@ -68,11 +68,18 @@ def diagnose(meas: Measurements, sim: PlaneSimulator | None = None,
              progress: bool = False) -> Diagnosis:
     """Diagnose ``model`` (default: the plain simulator of ``sim``) on ``meas`` (module doc).
 
+    ``sim``: the forward model, :class:`~mfdesign.diagnose.emulated.EmulatorModel` (default:
+    the bundled emulator; exact autodiff screen, nonlinear refit) or
+    :class:`~mfdesign.diagnose.expected.PlaneSimulator` (simulator planes; linearised check).
+
     ``effects``: effects the user adds; their ``theta`` is calibrated unless every
     parameter is given in ``theta``. ``candidates``: effects the search may try (default:
     all registered). ``search=False`` skips the effect search.
     """
-    sim = sim or PlaneSimulator(progress=progress)
+    if sim is None:
+        from mfdesign.diagnose.emulated import EmulatorModel
+
+        sim = EmulatorModel(progress=progress)
     effects = [fx.effect(e) for e in effects]
     e0 = sim.expected_force(meas)
     base_pred = e0 if model is None else np.asarray(model(meas), float)
@@ -92,7 +99,14 @@ def diagnose(meas: Measurements, sim: PlaneSimulator | None = None,
         out.after, out.effects, out.theta = cur_res, [e.name for e in effects], th
     if not search:
         return out
-    pool = list(candidates) if candidates is not None else sorted(fx.EFFECTS)
+    if candidates is not None:
+        pool = list(candidates)
+    elif hasattr(sim, "jacobian"):  # exact back end: every effect with a likelihood hook
+        from mfdesign.diagnose.emulated import likelihood_effects
+
+        pool = likelihood_effects()
+    else:
+        pool = sorted(fx.EFFECTS)
     for _ in range(max_steps):
         names = [e.name for e in cur_effects]
         cands = [c for c in pool if c not in names]

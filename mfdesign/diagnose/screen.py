@@ -1,7 +1,10 @@
 """Fast effect screen: how much of the residual can each candidate effect explain, to first order?
 
 For a candidate effect with parameters ``theta`` (neutral ``theta0``), the sensitivity of
-the expected observed force at every recorded (h, p) is the secant
+the expected observed force at every recorded (h, p) is, on an exact (JAX) back end
+(:class:`~mfdesign.diagnose.emulated.EmulatorModel`), the derivative
+``J[:, j] = dF/dtheta_j (theta0)`` by forward-mode autodiff (``jax.jacfwd``; one call for
+every candidate's parameters at once); on the plane simulator it is the secant
 ``J[:, j] = (F(theta0 + s_j e_j) - F(theta0)) / s_j`` with ``s_j`` the effect's realistic
 magnitude (``typical - neutral``; where that is 0, the prior's scale), through
 :meth:`~mfdesign.diagnose.expected.PlaneSimulator.expected_force` (finite differences of the
@@ -62,9 +65,11 @@ def effect_jacobian(sim: PlaneSimulator, meas: Measurements, eff: str | fx.Effec
     if e.name in [b.name for b in base_effects]:
         raise ValueError(f"effect {e.name!r} is already in the model")
     base_theta = dict(base_theta or {})
+    steps = np.array([parameter_step(p) for p in e.parameters])
+    if hasattr(sim, "jacobian"):  # exact: autodiff at the neutral point
+        return sim.jacobian(meas, [e.qualified(p.name) for p in e.parameters], base_effects, base_theta), steps
     if f0 is None:
         f0 = sim.expected_force(meas, base_effects, base_theta)
-    steps = np.array([parameter_step(p) for p in e.parameters])
     cols = []
     for p, s in zip(e.parameters, steps):
         th = {**base_theta, **{e.qualified(q.name): q.neutral for q in e.parameters}}
@@ -154,6 +159,16 @@ def screen(res: Residuals, meas: Measurements, sim: PlaneSimulator,
     cands = [fx.effect(c) for c in (candidates if candidates is not None else sorted(fx.EFFECTS))]
     cands = [c for c in cands if c.name not in names]
     rows = res.frame["row"].to_numpy()
+    if hasattr(sim, "jacobian"):  # exact: one jacfwd for every candidate parameter
+        free = [c.qualified(p.name) for c in cands for p in c.parameters]
+        J_all = sim.jacobian(meas, free, base, base_theta, rows=rows)
+        out, j = [], 0
+        for c in cands:
+            k = len(c.parameters)
+            out.append(_fit_one(res, J_all[:, j:j + k], c))
+            j += k
+        out.sort(key=lambda s: -s.explained_fraction)
+        return out
     f0 = sim.expected_force(meas, base, base_theta)
     it = cands
     if progress:

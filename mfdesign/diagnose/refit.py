@@ -1,0 +1,228 @@
+"""Full check on an exact (JAX) back end: nonlinear refit, held-out error, calibration's BIC.
+
+For each candidate set of effects (the effects already in the model plus one candidate):
+
+1. rows: at most ``max_rows`` usable rows, evenly spaced within each trial (neighbouring
+   samples of a 10 Hz ramp carry little new information);
+2. fit: every parameter of the set, ``theta = neutral + step x``, by Levenberg-Marquardt
+   (``optimistix.LevenbergMarquardt``; More 1978) on the residuals
+   ``[(F_obs - F(theta)) / s, x / tau]`` (noise floor ``s``; the effects' priors as Gaussian
+   ridge terms of scale ``tau``, Bishop 2006 sec. 3.3), from the screen's estimate;
+   results outside a prior's bounds are clipped to them;
+3. held-out: leave-membranes-out folds (weight 0 on the test membranes) fitted in the same
+   compiled call as the full fit, then the test membranes predicted;
+4. ``delta BIC = BIC(set) - BIC(model without the candidate)`` with the calibration's
+   likelihood (:meth:`~mfdesign.models.hierarchical.HierarchicalModel.log_lik`, Gaussian,
+   noise at its maximum-likelihood value) and the formula of
+   :func:`mfdesign.calibrate.calibrate` (``k ln n - 2 ln L``), so that diagnosis and
+   calibration rank models alike;
+5. standard errors from the exact Jacobian at the optimum, inflated for the serial
+   correlation of the residuals within trials (AR(1) factor ``(1 + rho) / (1 - rho)``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping, Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from mfdesign.data.measurements import Measurements
+from mfdesign.diagnose.emulated import EmulatorModel, _take
+from mfdesign.diagnose.residuals import Residuals
+from mfdesign.diagnose.screen import lag1_autocorrelation, parameter_scale, parameter_step
+from mfdesign.physics import effects as fx
+
+__all__ = ["calibrate_exact", "full_check_exact", "subsample"]
+
+MAX_ROWS = 2500
+KMAX = 4  # parameters per fit are padded to this (and rows to max_rows): one compiled fit serves all
+
+
+def subsample(frame, max_rows: int = MAX_ROWS, seed: int = 0) -> np.ndarray:
+    """Positions into ``frame`` (residual rows): at most ``max_rows``, evenly within each trial."""
+    n = len(frame)
+    if n <= max_rows:
+        return np.arange(n)
+    rng = np.random.default_rng(seed)
+    frac = max_rows / n
+    keep = []
+    for _, idx in frame.groupby(["design_key", "trial"], sort=False).indices.items():
+        k = max(1, int(round(frac * len(idx))))
+        pos = (rng.uniform() + np.arange(k)) * len(idx) / k
+        keep.append(idx[np.minimum(pos.astype(int), len(idx) - 1)])
+    keep = np.unique(np.concatenate(keep))
+    if len(keep) > max_rows:  # rounding up per trial: trim to exactly max_rows
+        keep = np.sort(rng.choice(keep, max_rows, replace=False))
+    return keep
+
+
+class _Clipped(eqx.Module):
+    """The back end's force model with inputs clipped to its range (a calibration force model)."""
+
+    force_model: object
+    h_max: float = eqx.field(static=True)
+    p_max: float = eqx.field(static=True)
+
+    def __call__(self, design, h_mm, p_pa, params):
+        return self.force_model(design, jnp.clip(h_mm, 0.0, self.h_max), jnp.clip(p_pa, 0.0, self.p_max), params)
+
+
+def _bic(sim: EmulatorModel, meas, rows, target, effects, theta, resid) -> float:
+    """``k ln n - 2 ln L`` at ``theta`` with the calibration's likelihood (mu, J_m fixed; k =
+    effect parameters + noise)."""
+    from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
+
+    n = len(rows)
+    design, rws = _take(*sim.data(meas), rows)
+    data = CalibrationData(design, rws, jnp.asarray(target, float), jnp.ones(n), ("all",))
+    base = sim.base_params
+    mu, jm = float(base.mu_pa), float(base.jm)
+    model = HierarchicalModel(force_model=_Clipped(sim.force_model, float(sim.h_range_mm[1]), float(sim.p_range_pa[1])),
+                              effects=tuple(effects), n_membranes=0, membrane_latents=False,
+                              mu_prior=fx.Uniform(mu * (1 - 1e-9), mu * (1 + 1e-9)),
+                              jm_prior=fx.Uniform(jm * (1 - 1e-9), jm * (1 + 1e-9)), base=base)
+    noise = max(float(np.sqrt(np.mean(np.square(resid)))), 1e-9)
+    v = {"mu_pa": mu, "jm": jm, "noise_n": noise, **{k: float(theta[k]) for k in fx.neutral_theta(effects)}}
+    x = jnp.asarray([v[nm] for nm in model.names])
+    ll = float(model.log_lik(x, data))
+    k = sum(len(fx.effect(e).parameters) for e in effects) + 1
+    return k * math.log(n) - 2.0 * ll
+
+
+def _layout(sim: EmulatorModel, order, sets, theta0):
+    names = sim.names(order)
+    kmax = max(KMAX, *(sum(len(fx.effect(e).parameters) for e in s) for s in sets))
+    t0 = sim.theta_vector(order, {})
+    out = []
+    for s in sets:
+        pars = [(fx.effect(e), p) for e in s for p in fx.effect(e).parameters]
+        P = np.zeros((len(names), kmax))
+        tau = np.ones(kmax)
+        x0 = np.zeros(kmax)
+        for j, (e, p) in enumerate(pars):
+            q = e.qualified(p.name)
+            step = parameter_step(p)
+            P[names.index(q), j] = step
+            tau[j] = parameter_scale(p) / abs(step)
+            lo, hi = p.prior.bounds
+            x0[j] = (float(np.clip((theta0 or {}).get(q, p.neutral), lo, hi)) - p.neutral) / step
+        out.append((pars, P, tau, x0))
+    return t0, out
+
+
+def _theta_of(pars, x) -> dict:
+    th = {}
+    for j, (e, p) in enumerate(pars):
+        lo, hi = p.prior.bounds
+        th[e.qualified(p.name)] = float(np.clip(p.neutral + parameter_step(p) * x[j], lo, hi))
+    return th
+
+
+def _folds(keys: np.ndarray, n_folds: int, seed: int) -> list[list[str]]:
+    uniq = list(dict.fromkeys(keys))
+    k = min(n_folds, len(uniq))
+    perm = np.random.default_rng(seed).permutation(len(uniq))
+    return [[uniq[i] for i in f] for f in np.array_split(perm, k)] if k >= 2 else []
+
+
+def _prefix(sets):
+    first = list(sets[0])
+    n = 0
+    while all(len(s) > n + 1 and s[n] == first[n] for s in sets) and n < len(first) - 1:
+        n += 1
+    return first[:n]
+
+
+def full_check_exact(sim: EmulatorModel, meas: Measurements, res: Residuals, candidates: Sequence[Sequence[str]],
+                     theta0: Mapping[str, float] | None = None, base_pred: np.ndarray | None = None,
+                     n_folds: int = 3, seed: int = 0, max_rows: int = MAX_ROWS, progress: bool = False):
+    """Refit each candidate set (module doc); ``res``: residuals of the current model (the
+    sets' common prefix of effects at ``theta0``); ``base_pred``: prediction of the model
+    under diagnosis without any effect (default: the plain back end). Sorted by held-out RMSE."""
+    from mfdesign.diagnose.check import CheckResult
+
+    sets = [list(s) for s in candidates]
+    if not sets:
+        return []
+    pos = subsample(res.frame, max_rows, seed)
+    frame = res.frame.iloc[pos].reset_index(drop=True)
+    rows = frame["row"].to_numpy()
+    obs = frame["observed_n"].to_numpy(float)
+    keys = frame["design_key"].to_numpy(object)
+    r0 = frame["residual_n"].to_numpy(float)
+    offset = 0.0 if base_pred is None else np.asarray(base_pred, float)[rows] - sim.expected_force(meas, rows=rows)
+    target = obs - offset
+    sigma = res.noise_floor_n if res.noise_floor_n > 0 else float(np.std(r0))
+    prefix = _prefix(sets)
+    order = sim.order(prefix)
+    t0, lay = _layout(sim, order, sets, theta0)
+    folds = _folds(keys, n_folds, seed)
+    weights = [np.ones(len(rows))] + [(~np.isin(keys, f)).astype(float) for f in folds]
+    B = len(weights)
+    P = np.stack([P for _, P, _, _ in lay for _ in range(B)])
+    tau = np.stack([t for _, _, t, _ in lay for _ in range(B)])
+    x0 = np.stack([x for _, _, _, x in lay for _ in range(B)])
+    w = np.stack([wk for _ in lay for wk in weights])
+    if progress:
+        print(f"full check: refitting {len(sets)} candidate set(s) x {B} fits on {len(rows)} rows", flush=True)
+    x, ok = sim.fit(meas, rows, target, order, np.broadcast_to(t0, (len(w), len(t0))), P, w, tau, x0, sigma,
+                    pad_rows=max_rows)
+    prefix_theta = {k: v for k, v in (theta0 or {}).items() if k in fx.neutral_theta(prefix)}
+    bic0 = _bic(sim, meas, rows, target, prefix, prefix_theta, r0)
+    out = []
+    for i, (s, (pars, _, _, _)) in enumerate(zip(sets, lay)):
+        xs = x[i * B:(i + 1) * B]
+        theta = _theta_of(pars, xs[0])
+        pred = sim.expected_force(meas, s, theta, rows=rows) + offset
+        r = obs - pred
+        sq = sq0 = 0.0
+        cnt = 0
+        fold_rows = []
+        for k, test in enumerate(folds):
+            te = np.isin(keys, test)
+            th_k = _theta_of(pars, xs[k + 1])
+            rt = obs[te] - (sim.expected_force(meas, s, th_k, rows=rows[te]) + (offset[te] if np.ndim(offset) else offset))
+            fold_rows.append({"test_membranes": test, "theta": th_k, "rmse_n": float(np.sqrt(np.mean(rt**2))),
+                              "rmse_base_n": float(np.sqrt(np.mean(r0[te] ** 2)))})
+            sq += float(np.sum(rt**2)); sq0 += float(np.sum(r0[te] ** 2)); cnt += int(te.sum())
+        free = [e.qualified(p.name) for e, p in pars]
+        J = sim.jacobian(meas, free, s, theta, rows=rows, pad_cols=KMAX)
+        J = np.where(np.isfinite(J), J, 0.0)
+        rho = lag1_autocorrelation(frame, r)
+        infl = (1 + rho) / (1 - rho)
+        s2 = float(np.sum(r**2)) / max(len(r) - len(free), 1)
+        se = np.sqrt(np.clip(np.diag(s2 * infl * np.linalg.pinv(J.T @ J)), 0, None))
+        n = len(r)
+        out.append(CheckResult(
+            effects=tuple(s), theta=theta, stderr={q: float(se[j]) for j, q in enumerate(free)},
+            rmse_n=float(np.sqrt(np.mean(r**2))),
+            heldout_rmse_n=float(np.sqrt(sq / cnt)) if cnt else float(np.sqrt(np.mean(r**2))),
+            heldout_rmse_base_n=float(np.sqrt(sq0 / cnt)) if cnt else float(np.sqrt(np.mean(r0**2))),
+            delta_bic=float(_bic(sim, meas, rows, target, s, theta, r) - bic0), n_eff=float(n / infl),
+            noise_floor_n=res.noise_floor_n, folds=fold_rows))
+        out[-1].folds.append({"converged": bool(np.all(ok[i * B:(i + 1) * B]))})
+    out.sort(key=lambda c: c.heldout_rmse_n)
+    return out
+
+
+def calibrate_exact(sim: EmulatorModel, meas: Measurements, res: Residuals, effects: Sequence[str | fx.Effect],
+                    theta0: Mapping[str, float] | None = None, base_offset: np.ndarray | None = None,
+                    max_rows: int = MAX_ROWS) -> tuple[dict, np.ndarray]:
+    """Fit every parameter of ``effects`` (module doc, step 2) on the rows of ``res``; returns
+    ``(theta, prediction per row of meas)`` (``base_offset``: base model - plain back end)."""
+    names = [fx.effect(e).name for e in effects]
+    pos = subsample(res.frame, max_rows)
+    rows = res.frame["row"].to_numpy()[pos]
+    off = np.zeros(len(meas)) if base_offset is None else np.asarray(base_offset, float)
+    target = res.frame["observed_n"].to_numpy(float)[pos] - off[rows]
+    order = sim.order(names)
+    t0, [(pars, P, tau, x0)] = _layout(sim, order, [names], theta0)
+    sigma = res.noise_floor_n if res.noise_floor_n > 0 else float(np.std(res.residual))
+    x, _ = sim.fit(meas, rows, target, order, t0[None], P[None], np.ones((1, len(rows))), tau[None], x0[None], sigma,
+                   pad_rows=max_rows)
+    theta = _theta_of(pars, x[0])
+    return theta, sim.expected_force(meas, names, theta) + off
+
