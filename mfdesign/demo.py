@@ -40,7 +40,7 @@ class DemoSettings:
     max_rows: int = 400
     delta_members: int = 8
     delta_steps: int = 2000
-    propose_restarts: int = 256
+    propose_restarts: int = 32  # each restart differentiates through every posterior draw: memory
     optimise_starts: int = 2500
     optimise_refine: int = 32
     optimise_steps: int = 60
@@ -49,7 +49,7 @@ class DemoSettings:
 
     @classmethod
     def quick(cls, force_model: str = "emulator") -> "DemoSettings":
-        return cls(mcmc_steps=200, walkers=28, max_rows=200, delta_members=4, delta_steps=300, propose_restarts=16,
+        return cls(mcmc_steps=200, walkers=28, max_rows=200, delta_members=4, delta_steps=300, propose_restarts=8,
                    optimise_starts=256, optimise_refine=8, optimise_steps=20, force_model=force_model)
 
 
@@ -253,7 +253,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
                 return members(design, h, p)
 
         result = optimize(_MF(), TARGET_SETS["A"], n_starts=s.optimise_starts, n_refine=s.optimise_refine,
-                          steps=s.optimise_steps, seed=s.seed, progress=progress)
+                          steps=s.optimise_steps, seed=s.seed, progress=progress, batch_size=50)
         (out / "optimize").mkdir(exist_ok=True)
         plot_optimum(result, out / "optimize" / "optimum.png", title="lift task A")
         (out / "optimize" / "optimum.json").write_text(json.dumps(result.to_json(), indent=1, default=str))
