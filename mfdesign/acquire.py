@@ -51,7 +51,7 @@ from mfdesign.design import DesignError, DesignSpace, Membrane
 
 __all__ = [
     "FIDELITIES", "DEFAULT_COSTS", "Grid", "Predictor", "EnsemblePredictor", "SplitPredictor",
-    "FunctionPredictor", "Proposal", "decode_unit", "deviations", "batch_utility", "evaluate",
+    "FunctionPredictor", "Proposal", "deviations", "batch_utility", "evaluate",
     "propose",
 ]
 
@@ -181,42 +181,6 @@ def _check_fidelity(predictor, fidelity):
         raise ValueError(f"fidelity {fidelity!r} not offered by this predictor; allowed: {list(predictor.fidelities)}")
 
 
-# --------------------------------------------------------------------------- design decoding
-def decode_unit(space: DesignSpace, u, n_rings: int):
-    """JAX twin of :meth:`DesignSpace.decode_array`: unit cube ``[..., 2 + 2 n]`` -> ``[..., 6]`` mm.
-
-    Same piecewise-linear map (widths first, then slack fractions); differentiable, so the
-    optimiser can follow it. NaN fills the absent ring slots.
-    """
-    u = jnp.clip(u, 0.0, 1.0)
-    if u.shape[-1] != space.dim(n_rings):
-        raise DesignError(f"expected {space.dim(n_rings)} unit-cube coordinates, got {u.shape[-1]}")
-    (t_lo, t_hi), (c_lo, c_hi), (w_lo, w_hi) = space.thickness_mm, space.contact_radius_mm, space.half_width_mm
-    t = t_lo + (t_hi - t_lo) * u[..., 0]
-    c = c_lo + (c_hi - c_lo) * u[..., 1]
-    cols = [t, c]
-    if n_rings:
-        gap, R = space.gap_mm, space.outer_radius_mm
-        span = R - c - (n_rings + 1) * gap
-        room = span - 2 * n_rings * w_lo
-        widths = []
-        for k in range(n_rings):
-            w = w_lo + u[..., 2 + k] * jnp.minimum(w_hi - w_lo, room / 2.0)
-            room = room - 2.0 * (w - w_lo)
-            widths.append(w)
-        left = span - 2.0 * sum(widths)
-        edge = c + gap
-        for k in range(n_rings):
-            take = left * u[..., 2 + n_rings + k]
-            left = left - take
-            inner = edge + take
-            cols += [inner + widths[k], widths[k]]
-            edge = inner + 2 * widths[k] + gap
-    nan = jnp.full_like(t, jnp.nan)
-    cols += [nan] * (6 - len(cols))
-    return jnp.stack(cols, axis=-1)
-
-
 def _to_unit(z):
     """MINUIT sine transform: unconstrained ``z`` -> ``u = (1 + sin z) / 2`` in [0, 1]."""
     return 0.5 * (1.0 + jnp.sin(z))
@@ -271,7 +235,7 @@ def _optimise_arm(predictor, z0, fidelity, grid, space, n_rings, n_steps):
     opt = optax.lbfgs(linesearch=optax.scale_by_backtracking_linesearch(max_backtracking_steps=10, store_grad=True))
 
     def dev_of(z):
-        design = decode_unit(space, _to_unit(z), n_rings)  # [q, 6]
+        design = space.decode_unit(_to_unit(z), n_rings)  # [q, 6]
         return deviations(predictor.grid_members(fidelity, design, grid))  # [M, q]
 
     def loss(z):

@@ -15,6 +15,7 @@ import math
 from typing import Sequence
 
 import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 
 OUTER_RADIUS_MM = 70.0
@@ -173,11 +174,6 @@ class Membrane(eqx.Module):
         return self.key()
 
 
-def _smooth_unit(u):
-    """Clip to [0, 1]: decoding is linear (smooth) inside the cube, constant outside."""
-    return np.clip(np.asarray(u, dtype=np.float64), 0.0, 1.0)
-
-
 class DesignSpace(eqx.Module):
     """Bounds of the designs an optimiser may propose, and a decoding from the unit cube.
 
@@ -213,47 +209,48 @@ class DesignSpace(eqx.Module):
             raise DesignError(f"n_rings must be 0, 1 or 2, got {n_rings}")
         return 2 + 2 * n_rings
 
-    def decode_array(self, u, n_rings: int) -> np.ndarray:
-        """Unit-cube points ``[..., dim]`` -> design arrays ``[..., 6]`` (NaN for no ring).
+    def decode_unit(self, u, n_rings: int):
+        """Unit-cube points ``[..., 2 + 2 n_rings]`` -> design arrays ``[..., 6]`` mm (JAX).
 
-        Written with array operations only, so it works on NumPy and (via ``xp``) batches.
+        ``u`` is clipped to the cube. ``t`` and ``c`` are linear in ``u[0]``, ``u[1]``; then
+        the ring half-widths, each between ``half_width_min`` and what the earlier rings
+        left over; then the radial slack ``span - 2 sum(w)`` (``span`` = room between the
+        disk and the clamp less the ``n_rings + 1`` gaps) is shared among the gaps by the
+        fractions ``u[2 + n_rings + k]``. Piecewise linear, so differentiable almost
+        everywhere: optimisers follow it (jit/vmap/grad). NaN fills the absent ring slots.
         """
-        u = _smooth_unit(u)
+        u = jnp.clip(jnp.asarray(u, dtype=jnp.float64), 0.0, 1.0)
         if u.shape[-1] != self.dim(n_rings):
             raise DesignError(f"expected {self.dim(n_rings)} unit-cube coordinates, got {u.shape[-1]}")
-        (t_lo, t_hi), (c_lo, c_hi), (w_lo, w_hi) = (
-            self.thickness_mm,
-            self.contact_radius_mm,
-            self.half_width_mm,
-        )
+        (t_lo, t_hi), (c_lo, c_hi), (w_lo, w_hi) = self.thickness_mm, self.contact_radius_mm, self.half_width_mm
         t = t_lo + (t_hi - t_lo) * u[..., 0]
         c = c_lo + (c_hi - c_lo) * u[..., 1]
-        out = np.full(u.shape[:-1] + (6,), np.nan)
-        out[..., 0], out[..., 1] = t, c
-        if n_rings == 0:
-            return out
-        gap, R = self.gap_mm, self.outer_radius_mm
-        span = R - c - (n_rings + 1) * gap  # room for rings and slack
-        # Widths one ring at a time: each may take what the earlier ones left over.
-        room = span - 2 * n_rings * w_lo
-        widths = []
-        for k in range(n_rings):
-            w = w_lo + u[..., 2 + k] * np.minimum(w_hi - w_lo, room / 2.0)
-            room = room - 2.0 * (w - w_lo)
-            widths.append(w)
-        slack = span - 2.0 * sum(widths)
-        # Share the slack among the gaps: before ring 1, before ring 2, after the last.
-        fractions = [u[..., 2 + n_rings + k] for k in range(n_rings)]
-        left = slack
-        edge = c + gap
-        for k in range(n_rings):
-            take = left * fractions[k]
-            left = left - take
-            inner = edge + take
-            out[..., 2 + 2 * k] = inner + widths[k]
-            out[..., 3 + 2 * k] = widths[k]
-            edge = inner + 2 * widths[k] + gap
-        return out
+        cols = [t, c]
+        if n_rings:
+            gap, R = self.gap_mm, self.outer_radius_mm
+            span = R - c - (n_rings + 1) * gap  # room for rings and slack
+            # Widths one ring at a time: each may take what the earlier ones left over.
+            room = span - 2 * n_rings * w_lo
+            widths = []
+            for k in range(n_rings):
+                w = w_lo + u[..., 2 + k] * jnp.minimum(w_hi - w_lo, room / 2.0)
+                room = room - 2.0 * (w - w_lo)
+                widths.append(w)
+            # Share the slack among the gaps: before ring 1, before ring 2, after the last.
+            left = span - 2.0 * sum(widths)
+            edge = c + gap
+            for k in range(n_rings):
+                take = left * u[..., 2 + n_rings + k]
+                left = left - take
+                inner = edge + take
+                cols += [inner + widths[k], widths[k]]
+                edge = inner + 2 * widths[k] + gap
+        cols += [jnp.full_like(t, jnp.nan)] * (6 - len(cols))
+        return jnp.stack(cols, axis=-1)
+
+    def decode_array(self, u, n_rings: int) -> np.ndarray:
+        """:meth:`decode_unit` as a NumPy array (batches of unit-cube points)."""
+        return np.asarray(self.decode_unit(u, n_rings))
 
     def decode(self, u, n_rings: int) -> Membrane:
         """One unit-cube point -> a valid :class:`Membrane`."""

@@ -60,7 +60,6 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from mfdesign.acquire import decode_unit
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.trajectory import P_MAX_PA
 
@@ -305,7 +304,7 @@ class HeightLoss(eqx.Module):
 
     def __call__(self, u):
         w = self.weights
-        design = decode_unit(self.space, u, self.n_rings)
+        design = self.space.decode_unit(u, self.n_rings)
         h, f0 = _invert(lambda hh: _mean_force(self.predictor, design, hh, self.p_pa), self.h_grid,
                         self.force_n, decreasing=True)
         f0 = jnp.where(h <= self.h_grid[0], f0, jnp.inf)  # the deficit counts only where not lifted
@@ -340,7 +339,7 @@ class TrajectoryLoss(eqx.Module):
 
     def __call__(self, u):
         w = self.weights
-        design = decode_unit(self.space, u, self.n_rings)
+        design = self.space.decode_unit(u, self.n_rings)
         p_hat, f_lo = _invert(lambda pp: _mean_force(self.predictor, design, self.h_mm, pp), self.p_grid,
                               self.force_n, decreasing=False)
         f_hi = jnp.where(p_hat >= self.p_grid[-1], f_lo, jnp.inf)  # the deficit counts only where unreached
@@ -526,7 +525,7 @@ def optimize(model, problem: HeightTargets | Waypoints, rings: Sequence[int] = (
     for r in tqdm(rings, desc="optimise (ring counts)", disable=not progress):
         loss = make(predictor, problem, space, r, weights)
         res = multistart(loss, space.dim(r), n_starts, steps, lr, n_refine, seed, batch_size)
-        design = Membrane.from_array(np.asarray(decode_unit(space, jnp.asarray(res["u"]), r)))
+        design = Membrane.from_array(np.asarray(space.decode_unit(jnp.asarray(res["u"]), r)))
         per[str(r)] = dict(loss=res["loss"], design_key=design.key(), u=res["u"].tolist(),
                            screen_s=res["screen_s"], refine_s=res["refine_s"],
                            n_finite=int(np.isfinite(res["losses"]).sum()))

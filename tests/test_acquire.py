@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 import mfdesign  # noqa: F401  (float64)
-from mfdesign.acquire import (EnsemblePredictor, FunctionPredictor, Grid, SplitPredictor, decode_unit, evaluate,
+from mfdesign.acquire import (EnsemblePredictor, FunctionPredictor, Grid, SplitPredictor, evaluate,
                               propose)
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.ensemble import EnsembleConfig, Normaliser, fit_ensemble, init_ensemble
@@ -40,12 +40,17 @@ def tiny_ensemble(members=3, seed=0):
     return init_ensemble(cfg, norm, jax.random.PRNGKey(seed))
 
 
-def test_decode_unit_matches_numpy_decoding():
-    rng = np.random.default_rng(0)
-    for n in (0, 1, 2):
-        u = rng.uniform(-0.1, 1.1, size=(40, SPACE.dim(n)))
-        np.testing.assert_allclose(np.asarray(decode_unit(SPACE, jnp.asarray(u), n)), SPACE.decode_array(u, n),
-                                   rtol=1e-12, equal_nan=True)
+def test_decode_unit_corners_by_hand_and_gradient_under_jit():
+    # u = 0: thinnest, smallest disk, minimum widths, all slack after the last ring.
+    one = np.asarray(SPACE.decode_unit(jnp.zeros(4), 1))
+    np.testing.assert_allclose(one[:4], [1.0, 25.4, 25.4 + 3.0 + 5.0, 5.0], rtol=1e-12)
+    assert np.isnan(one[4:]).all()
+    # Slack fraction 1 before the ring: the ring sits 3 mm from the clamp.
+    u = jnp.array([1.0, 1.0, 0.0, 1.0])
+    top = np.asarray(SPACE.decode_unit(u, 1))
+    np.testing.assert_allclose(top[:4], [3.0, 38.1, 70.0 - 3.0 - 5.0, 5.0], rtol=1e-12)
+    g = jax.jit(jax.grad(lambda v: SPACE.decode_unit(v, 2)[..., 2].sum()))(jnp.full(6, 0.3))
+    assert np.all(np.isfinite(np.asarray(g))) and float(g[1]) > 0  # a bigger disk pushes ring 1 out
 
 
 # One predictor and one set of optimiser settings for every toy proposal: the compiled
