@@ -5,11 +5,15 @@ usable row (see :func:`mfdesign.diagnose.expected.usable_rows`); ``r < 0`` means
 over-predicts the force.
 
 Noise floor: the white measurement noise, estimated from the data without any model of
-their smooth part, by the second differences of the residual within each trial in time
-order (Rice 1984, "Bandwidth choice for nonparametric regression"; von Neumann's ratio):
-for white noise of sd ``s`` the second difference ``r[i+1] - 2 r[i] + r[i-1]`` has variance
-``6 s^2``; a smooth model error contributes almost nothing at 10 Hz. The robust version
-(median absolute second difference / (0.6745 sqrt 6)) ignores the few kinks at contact onset.
+their smooth part, by the second differences of the residual within each trial and phase
+in time order (Rice 1984, "Bandwidth choice for nonparametric regression"; von Neumann's
+ratio): for white noise of variance ``s^2`` the second difference
+``r[i+1] - 2 r[i] + r[i-1]`` has variance ``6 s^2`` whatever the noise's distribution; a
+smooth model error contributes almost nothing. The default is this mean-square estimate:
+the rig's noise is not Gaussian (heights are read in whole millimetres, so ``dF/dh`` times
+a quantised height gives rare large jumps), and a robust median-based estimate
+(``robust=True``, exact for Gaussian noise only) fell 23 % short of the true noise RMSE on
+virtual-rig data with nothing hidden (0.228 vs 0.297 N).
 """
 
 from __future__ import annotations
@@ -101,12 +105,20 @@ def compute_residuals(meas: Measurements, predicted: np.ndarray | Callable[[Meas
     return Residuals(frame=frame, noise_floor_n=noise_floor(frame), dropped=dropped)
 
 
-def noise_floor(frame: pd.DataFrame, robust: bool = True) -> float:
-    """White-noise sd [N] of the residuals from second differences within trials (module doc)."""
+def noise_floor(frame: pd.DataFrame, robust: bool = False) -> float:
+    """White-noise sd [N] of the residuals from second differences within trials (module doc).
+
+    Triples straddling a change of trial or phase (the inflate/deflate turn, a kink) are
+    left out. ``robust``: median absolute second difference / (0.6745 sqrt 6) instead of
+    the root mean square / sqrt 6 (Gaussian noise only).
+    """
     if len(frame) < 3:
         return float("nan")
     t = frame["time_s"].to_numpy(float)
-    tid = pd.factorize(frame["design_key"].astype(str) + "|" + frame["trial"].astype(str))[0]
+    label = frame["design_key"].astype(str) + "|" + frame["trial"].astype(str)
+    if "phase" in frame:
+        label = label + "|" + frame["phase"].astype(str)
+    tid = pd.factorize(label)[0]
     order = np.lexsort((t, tid)) if np.all(np.isfinite(t)) \
         else np.argsort(tid, kind="stable")
     r = frame["residual_n"].to_numpy(float)[order]
