@@ -73,8 +73,18 @@ def main():
     folds = data.leave_one_out()[: args.folds]
     names = ("a_sim_paper", "b_sim_calibrated", "c_ensemble", "d_curve_fit", "e_multi_fidelity")
     rows = {n: [] for n in names}
+    # One checkpoint per fold (a rerun with the same settings skips finished folds).
+    ckpt = OUT / "real_mass_lift_checkpoint.json"
+    done = json.loads(ckpt.read_text()) if ckpt.exists() else {}
+    if done.get("settings") != vars(args):
+        done = {"settings": vars(args), "folds": []}
     t_all = time.perf_counter()
     for i, (train, test) in enumerate(folds):
+        if i < len(done["folds"]):
+            for n in names:
+                rows[n].append(done["folds"][i][n])
+            print(f"fold {i}: from the checkpoint", flush=True)
+            continue
         t0 = time.perf_counter()
         tr, te = _lifted(train), _lifted(test)
         a, b = tr.arrays(), te.arrays()
@@ -83,11 +93,13 @@ def main():
         fit = fit_multi_fidelity(train, emu, (), n_steps=args.steps, n_walkers=args.walkers, max_rows=args.max_rows,
                                  ensemble_config=EnsembleConfig(n_members=args.members, steps=args.ens_steps,
                                                                 monotone=False), seed=args.seed + i, progress=False)
+        t_fit = time.perf_counter() - t0
         calibrated = MultiFidelity.from_posterior(fit.model, fit.posterior, None, seed=args.seed)
         paper = _Mean(lambda d, h, p: emu(d, h, p, SimParams()))
         ens = EnsembleConfig(n_members=args.members, steps=args.ens_steps, monotone=True).fit(
             a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=args.seed + i, progress=False)
         curve = CurveFitConfig(degree=1).fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"])
+        t_base = time.perf_counter() - t0 - t_fit
         for name, model in zip(names, (paper, calibrated, ens, curve, fit.mf)):
             if isinstance(model, MultiFidelity):
                 dat = model.data_for(None, None, None, table=te)
@@ -109,6 +121,11 @@ def main():
         print(f"fold {i} {key}: " + "  ".join(f"{n[:1]} {rows[n][-1]['rmse_n']:.2f} N/{rows[n][-1]['traj_rmse_p']:.3f}/"
                                               f"{rows[n][-1]['coverage90']:.2f}" for n in names)
               + f"  ({time.perf_counter() - t0:.0f} s)", flush=True)
+        rows["b_sim_calibrated"][-1]["seconds"] = {"multi_fidelity_fit": t_fit, "baselines_fit": t_base,
+                                                    "total": time.perf_counter() - t0}
+        done["folds"].append({n: rows[n][-1] for n in names})
+        OUT.mkdir(exist_ok=True)
+        ckpt.write_text(json.dumps(done, indent=1, default=float))
 
     summary = {}
     for n in names:
