@@ -31,32 +31,14 @@ import numpy as np
 
 from mfdesign.data.measurements import Measurements
 from mfdesign.diagnose.emulated import EmulatorModel, _take
-from mfdesign.diagnose.residuals import Residuals
+from mfdesign.diagnose.residuals import Residuals, subsample
 from mfdesign.diagnose.screen import lag1_autocorrelation, parameter_scale, parameter_step
 from mfdesign.physics import effects as fx
 
-__all__ = ["calibrate_exact", "full_check_exact", "subsample"]
+__all__ = ["calibrate_exact", "full_check_exact"]
 
 MAX_ROWS = 2500
 KMAX = 4  # parameters per fit are padded to this (and rows to max_rows): one compiled fit serves all
-
-
-def subsample(frame, max_rows: int = MAX_ROWS, seed: int = 0) -> np.ndarray:
-    """Positions into ``frame`` (residual rows): at most ``max_rows``, evenly within each trial."""
-    n = len(frame)
-    if n <= max_rows:
-        return np.arange(n)
-    rng = np.random.default_rng(seed)
-    frac = max_rows / n
-    keep = []
-    for _, idx in frame.groupby(["design_key", "trial"], sort=False).indices.items():
-        k = max(1, int(round(frac * len(idx))))
-        pos = (rng.uniform() + np.arange(k)) * len(idx) / k
-        keep.append(idx[np.minimum(pos.astype(int), len(idx) - 1)])
-    keep = np.unique(np.concatenate(keep))
-    if len(keep) > max_rows:  # rounding up per trial: trim to exactly max_rows
-        keep = np.sort(rng.choice(keep, max_rows, replace=False))
-    return keep
 
 
 class _Clipped(eqx.Module):

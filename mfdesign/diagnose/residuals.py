@@ -29,7 +29,7 @@ from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
 from mfdesign.diagnose.expected import query_heights, trial_order, usable_rows
 
-__all__ = ["Residuals", "breakdowns", "compute_residuals", "noise_floor", "worst_regions"]
+__all__ = ["Residuals", "breakdowns", "compute_residuals", "noise_floor", "subsample", "worst_regions"]
 
 PRESSURE_BAND_PA = 2000.0
 HEIGHT_BAND_MM = 20.0
@@ -62,6 +62,11 @@ class Residuals:
     def bias_n(self) -> float:
         r = self.residual
         return float(np.mean(r)) if r.size else float("nan")
+
+    def take(self, positions) -> "Residuals":
+        """The residuals of some rows (positions into ``frame``); same noise floor."""
+        return Residuals(self.frame.iloc[np.asarray(positions)].reset_index(drop=True), self.noise_floor_n,
+                         self.dropped)
 
     def summary(self) -> dict:
         return {"n": int(len(self.frame)), "rmse_n": self.rmse_n, "bias_n": self.bias_n,
@@ -130,6 +135,24 @@ def noise_floor(frame: pd.DataFrame, robust: bool = False) -> float:
     if robust:
         return float(np.median(np.abs(d)) / (0.6744897501960817 * math.sqrt(6.0)))
     return float(np.sqrt(np.mean(d**2) / 6.0))
+
+
+def subsample(frame, max_rows: int, seed: int = 0) -> np.ndarray:
+    """Positions into ``frame`` (residual rows): at most ``max_rows``, evenly within each trial."""
+    n = len(frame)
+    if n <= max_rows:
+        return np.arange(n)
+    rng = np.random.default_rng(seed)
+    frac = max_rows / n
+    keep = []
+    for _, idx in frame.groupby(["design_key", "trial"], sort=False).indices.items():
+        k = max(1, int(round(frac * len(idx))))
+        pos = (rng.uniform() + np.arange(k)) * len(idx) / k
+        keep.append(idx[np.minimum(pos.astype(int), len(idx) - 1)])
+    keep = np.unique(np.concatenate(keep))
+    if len(keep) > max_rows:  # rounding up per trial: trim to exactly max_rows
+        keep = np.sort(rng.choice(keep, max_rows, replace=False))
+    return keep
 
 
 def _stats(r: np.ndarray) -> dict:
