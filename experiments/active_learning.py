@@ -22,9 +22,13 @@ on all held-out rows (mean prediction). Small ensembles (8 members, 1,500 steps)
 fixed-size resample of the training rows (one compilation for all fits); 32 acquisition
 restarts x 15 L-BFGS iterations. ``--quick`` swaps the simulator for the analytic stand-in
 (``mfdesign.rig.virtual.analytic_plane``), fewer steps: a smoke run, not a result.
+``--simulator emulator`` (default): the truth rig and the sim fidelity run on the
+simulator's emulator (0.5 % of the force range from the simulator, held out; planes in
+milliseconds instead of minutes), as the hidden-effect sweep does; ``--simulator simulator``
+runs the shooting simulator itself (planes cached in ``experiments/out/plane_cache``).
 A checkpoint after every iteration lets a killed run resume (same command).
 
-    python experiments/active_learning.py [--quick] [--seeds 0 1 2] [--iters 6]
+    python experiments/active_learning.py [--quick | --simulator emulator] [--seeds 0 1 2] [--iters 6]
 
 Writes ``experiments/out/active_learning[_quick].json`` and ``.png``.
 """
@@ -55,12 +59,18 @@ TRAIN_ROWS = 6000  # fixed-size resample: every fit has the same shapes (one com
 class Lab:
     """Truth rig, nominal simulator and the held-out set for one experiment."""
 
-    def __init__(self, quick: bool):
+    def __init__(self, simulator: str):
         from mfdesign.design import Membrane
         from mfdesign.rig.virtual import VirtualRig, analytic_plane
 
-        sim = analytic_plane if quick else None
-        cache = None if quick else OUT / "plane_cache"
+        if simulator == "emulator":
+            from mfdesign.diagnose.emulated import emulator_plane
+            from mfdesign.models.emulator import load_default
+
+            sim = emulator_plane(load_default())
+        else:
+            sim = analytic_plane if simulator == "analytic" else None
+        cache = OUT / "plane_cache" if simulator == "simulator" else None
         self.truth = VirtualRig(effects=[HIDDEN[0]], theta=HIDDEN[1], seed=777, simulator=sim, cache_dir=cache)
         self.nominal = VirtualRig(simulator=sim, cache_dir=cache)
         held = self.truth.run([Membrane.from_key(k) for k in HELD_OUT], progress=False).arrays()
@@ -231,7 +241,7 @@ def plot(results, summary, args, path):
         ax.set_yscale("log")
         ax.grid(alpha=0.3)
     axes[0].legend()
-    fig.suptitle(f"Active learning on the virtual rig ({'quick: analytic simulator' if args.quick else 'simulator'}; "
+    fig.suptitle(f"Active learning on the virtual rig ({args.simulator}{', quick' if args.quick else ''}; "
                  f"{len(results)} seeds, q = {args.q})")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -240,6 +250,8 @@ def plot(results, summary, args, path):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="analytic stand-in simulator, short fits")
+    ap.add_argument("--simulator", choices=("simulator", "emulator", "analytic"), default="emulator",
+                    help="what the virtual rig's truth and the 'sim' fidelity run on (--quick: analytic)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--arms", nargs="+", default=list(ARMS), choices=ARMS)
     ap.add_argument("--iters", type=int, default=6, help="acquisition rounds after the 3 initial membranes")
@@ -254,6 +266,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.quick:
         args.steps = min(args.steps, 600)
+        args.simulator = "analytic"
 
     import jax
 
@@ -263,7 +276,7 @@ def main() -> None:
 
     enable_compilation_cache()
     jax.config.update("jax_platforms", "cpu")
-    tag = "_quick" if args.quick else ""
+    tag = "_quick" if args.quick else ("" if args.simulator == "emulator" else f"_{args.simulator}")
     ckpt_path = OUT / f"active_learning{tag}_checkpoint.json"
     results = json.loads(ckpt_path.read_text()) if ckpt_path.exists() else {}
     results = {int(k): v for k, v in results.items()}
@@ -277,7 +290,7 @@ def main() -> None:
     common = dict(n_members=args.members, steps=args.steps, chunk=min(500, args.steps), batch=100)
     cfgs = {"rig": EnsembleConfig(monotone=True, **common), "disc": EnsembleConfig(monotone=False, **common)}
     t0 = time.perf_counter()
-    lab = Lab(args.quick) if not args.report_only else None
+    lab = Lab(args.simulator) if not args.report_only else None
     if lab is not None:
         print(f"held-out: {len(lab.held['force_n'])} rows of {len(HELD_OUT)} membranes ({time.perf_counter() - t0:.0f} s)",
           flush=True)
@@ -297,7 +310,7 @@ def main() -> None:
         print(f"ratio final RMSE random / rig acquisition: {r / a:.2f}", flush=True)
     out = {"command": "python experiments/active_learning.py " + " ".join(
                f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k not in ("save",)),
-           "quick": args.quick, "hidden_effect": {"name": HIDDEN[0], "theta": HIDDEN[1]},
+           "quick": args.quick, "simulator": args.simulator, "hidden_effect": {"name": HIDDEN[0], "theta": HIDDEN[1]},
            "held_out": list(HELD_OUT),
            "complete": all(len(results.get(s, {}).get(a, {}).get("curve", [])) > args.iters
                            for s in args.seeds for a in args.arms),
