@@ -84,7 +84,7 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
         fit.delta.save(out / "delta")
         cov = coverage(fit.mf, table.subset(list(fit.design_keys)), level=0.9, key=seed)
         (out / "mf.json").write_text(json.dumps({"noise_n": fit.noise_n, "effects": list(effects),
-                                                 "simulator": simulator, "train_rmse_n": cov["rmse_n"],
+                                                 "simulator": simulator, "likelihood": likelihood, "train_rmse_n": cov["rmse_n"],
                                                  "train_coverage90": cov["coverage"]}, indent=2))
         typer.echo(f"multi-fidelity: residual noise {fit.noise_n:.3f} N; training RMSE {cov['rmse_n']:.3f} N, "
                    f"90 % coverage {cov['coverage']:.2f}")

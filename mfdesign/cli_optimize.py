@@ -47,12 +47,17 @@ def read_targets(path: Path):
 
 
 def load_model(path: Path):
-    """A saved model folder: today the RPN ensemble (``ensemble.json``)."""
+    """A saved model folder: the RPN ensemble of ``mfdesign fit`` (``ensemble.json``) or the
+    multi-fidelity fit of ``mfdesign fit-mf`` (``mf.json``; 16 posterior draws)."""
     from mfdesign.models.ensemble import Ensemble
 
     path = Path(path)
     if not path.is_dir():
-        raise ValueError(f"model folder {path} does not exist (fit one with `mfdesign fit`)")
+        raise ValueError(f"model folder {path} does not exist (fit one with `mfdesign fit` or `mfdesign fit-mf`)")
+    if (path / "mf.json").is_file():
+        from mfdesign.calibration.workflow import load_multi_fidelity
+
+        return load_multi_fidelity(path).mf.thinned(16)
     try:
         return Ensemble.load(path)
     except (FileNotFoundError, ValueError, KeyError) as err:
@@ -62,7 +67,7 @@ def load_model(path: Path):
 def register(app: typer.Typer) -> None:
     @app.command()
     def optimize(
-        model: Path = typer.Option(..., help="Folder of a fitted model (`mfdesign fit ... --out DIR`)."),
+        model: Path = typer.Option(..., help="Folder of a fitted model (`mfdesign fit` or `mfdesign fit-mf ... --out DIR`)."),
         out: Path = typer.Option(..., help="Output folder: optimize.json and optimize.png."),
         targets: Path = typer.Option(None, help="CSV/JSON: force_n, pressure_pa[, height_mm, weight]."),
         target_set: str = typer.Option(None, help="The paper's height-maximisation set: A or B."),

@@ -18,7 +18,9 @@ def load_predictor(model: Path):
 
     * ``DIR/ensemble.json`` (``mfdesign fit``): the rig-only paper case;
     * ``DIR/sim/ensemble.json`` + ``DIR/discrepancy/ensemble.json``: a
-      :class:`~mfdesign.acquire.SplitPredictor` offering ``rig`` and ``sim``.
+      :class:`~mfdesign.acquire.SplitPredictor` offering ``rig`` and ``sim``;
+    * ``DIR/mf.json`` (``mfdesign fit-mf``): the multi-fidelity model, ``rig`` and ``sim``
+      (:meth:`~mfdesign.models.predictive.MultiFidelity.predictor`, 16 posterior draws).
 
     Raises ``ValueError`` with what was found when the folder is neither.
     """
@@ -28,12 +30,16 @@ def load_predictor(model: Path):
     model = Path(model)
     if not model.is_dir():
         raise ValueError(f"--model {model} is not a folder (give the output folder of 'mfdesign fit')")
+    if (model / "mf.json").is_file():
+        from mfdesign.calibration.workflow import load_multi_fidelity
+
+        return load_multi_fidelity(model).mf.predictor(16)
     if (model / "ensemble.json").is_file():
         return EnsemblePredictor(Ensemble.load(model))
     if (model / "sim" / "ensemble.json").is_file() and (model / "discrepancy" / "ensemble.json").is_file():
         return SplitPredictor(Ensemble.load(model / "sim"), Ensemble.load(model / "discrepancy"))
     found = sorted(p.name for p in model.iterdir())[:8]
-    raise ValueError(f"--model {model} holds no ensemble.json (nor sim/ and discrepancy/ ensembles); found {found}")
+    raise ValueError(f"--model {model} holds no ensemble.json, mf.json, nor sim/ and discrepancy/ ensembles; found {found}")
 
 
 def plot_proposal(proposal, path: Path, space=None) -> Path:
@@ -122,7 +128,7 @@ def register(app: typer.Typer) -> None:
         missing = [f for f in fidelity if f not in predictor.fidelities]
         if missing:
             fail(f"the model in {model} offers fidelities {list(predictor.fidelities)}, not {missing[0]!r} "
-                 "(the sim fidelity needs a sim/ + discrepancy/ model folder)")
+                 "(the sim fidelity needs a fit-mf folder or a sim/ + discrepancy/ model folder)")
         try:
             proposal = run_propose(predictor, q, fidelities=tuple(fidelity), costs={"rig": cost_rig, "sim": cost_sim},
                                    n_restarts=restarts, n_rings=tuple(rings), n_steps=steps, key=seed, progress=True)

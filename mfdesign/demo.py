@@ -29,6 +29,7 @@ __all__ = ["DemoSettings", "run_demo", "BUNDLED"]
 ROOT = Path(__file__).resolve().parents[1]
 BUNDLED = ROOT / "data" / "bundled_virtual.parquet"
 CARD = ROOT / "data" / "bundled_card.json"
+N_DRAWS = 16  # posterior draws the design searches differentiate through (each costs a force-model pass)
 
 
 @dataclass(frozen=True)
@@ -81,36 +82,6 @@ class _Log:
                 return False
 
         return _Stage()
-
-
-def design_members(fit, with_delta: bool = True, key: int = 0, n_draws: int = 16):
-    """Traceable ``(design [N, 6], h_mm [N], p_pa [N]) -> F [S, N]`` of a multi-fidelity fit
-    for NEW membranes: posterior draws of theta through the force model, each draw with a
-    thickness from the population prior, plus (``with_delta``) the discrepancy members.
-    Pressures are the rig's readings (what a lab sets on the same transducer). ``n_draws``
-    posterior draws are used: design searches differentiate through every one of them."""
-    import jax
-    import jax.numpy as jnp
-
-    from mfdesign.models.hierarchical import CalibrationData
-    from mfdesign.physics.effects import Rows
-
-    mf, model = fit.mf, fit.model
-    theta = mf.theta[:n_draws]
-    keys = tuple(fit.design_keys) + ("<new membrane>",)
-    new = len(fit.design_keys)
-
-    def members(design, h, p):
-        n = design.shape[0]
-        rows = Rows(h, p, jnp.ones(n, bool), jnp.zeros(n, bool), jnp.zeros(n, bool), jnp.full(n, new, jnp.int32))
-        data = CalibrationData(design, rows, jnp.zeros(n), jnp.ones(n), keys)
-        f = model.sample_force(theta, data, jax.random.PRNGKey(key))
-        if with_delta and fit.delta is not None:
-            d = fit.delta.predict(design, h, p)
-            f = f + d[jnp.arange(f.shape[0]) % d.shape[0]]
-        return f
-
-    return members
 
 
 def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
@@ -166,7 +137,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
     ``out/summary.json`` (paths of the report, timings, headline numbers)."""
     import dataclasses
 
-    from mfdesign.acquire import FunctionPredictor, propose
+    from mfdesign.acquire import propose
     from mfdesign.calibration.plots import corner_plot
     from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named
     from mfdesign.data.store import read_parquet
@@ -238,7 +209,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
 
     # 5. propose the next membranes
     with log.stage("propose the next 2 membranes (rig or simulator)"):
-        predictor = FunctionPredictor({"rig": design_members(fit1, True), "sim": design_members(fit1, False)})
+        predictor = fit1.mf.predictor(N_DRAWS)
         proposal = propose(predictor, 2, fidelities=("rig", "sim"), n_restarts=s.propose_restarts, key=s.seed)
         (out / "propose").mkdir(exist_ok=True)
         (out / "propose" / "proposal.json").write_text(json.dumps(proposal.to_json(), indent=1, default=str))
@@ -246,13 +217,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
 
     # 6. optimise a membrane for a lift task
     with log.stage("optimise a membrane for lift task A (height maximisation)"):
-        members = design_members(fit1, True)
-
-        class _MF:
-            def members(self, design, h, p):
-                return members(design, h, p)
-
-        result = optimize(_MF(), TARGET_SETS["A"], n_starts=s.optimise_starts, n_refine=s.optimise_refine,
+        result = optimize(fit1.mf.thinned(N_DRAWS), TARGET_SETS["A"], n_starts=s.optimise_starts, n_refine=s.optimise_refine,
                           steps=s.optimise_steps, seed=s.seed, progress=progress, batch_size=50)
         (out / "optimize").mkdir(exist_ok=True)
         plot_optimum(result, out / "optimize" / "optimum.png", title="lift task A")
@@ -262,7 +227,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
     with log.stage("report"):
         fig_dir = out / "figures"
         fig_dir.mkdir(exist_ok=True)
-        _plane_figure(meas, {"plain": design_members(fit0, True), "with effects": design_members(fit1, True)},
+        _plane_figure(meas, {"plain": fit0.mf.thinned(N_DRAWS).members, "with effects": fit1.mf.thinned(N_DRAWS).members},
                       fig_dir / "planes.png")
         rep = Report("mfdesign demo: calibrate, diagnose, add the missing effect, propose, optimise")
         rep.summary = [

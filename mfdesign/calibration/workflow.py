@@ -19,7 +19,7 @@ import numpy as np
 
 from mfdesign.physics.effects import LogNormal
 
-__all__ = ["FORCE_MODELS", "MFFit", "fit_multi_fidelity", "force_model_named", "model_for"]
+__all__ = ["FORCE_MODELS", "MFFit", "fit_multi_fidelity", "force_model_named", "load_multi_fidelity", "model_for"]
 
 FORCE_MODELS = ("emulator", "standin")
 
@@ -95,6 +95,38 @@ def fit_multi_fidelity(table, force_model, effects=(), *, n_steps: int = 2000, n
     noise = float(np.sqrt(np.average((resid - d_mean) ** 2, weights=w)))
     mf = MultiFidelity.from_posterior(model, post, delta, noise_n=noise, seed=seed)
     return MFFit(model, post, delta, noise, mf, tuple(data.design_keys))
+
+
+def load_multi_fidelity(folder) -> MFFit:
+    """The fit saved by ``mfdesign fit-mf --out FOLDER`` (``mf.json``, ``posterior.*``,
+    ``delta/``). Raises ``ValueError`` saying what is missing or inconsistent."""
+    import json
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from mfdesign.calibration.posterior import Posterior
+    from mfdesign.models.ensemble import Ensemble
+    from mfdesign.models.predictive import MultiFidelity
+
+    folder = Path(folder)
+    need = [folder / "mf.json", folder / "posterior.json", folder / "delta" / "ensemble.json"]
+    missing = [str(p.relative_to(folder)) for p in need if not p.is_file()]
+    if missing:
+        raise ValueError(f"{folder} is not a multi-fidelity fit (mfdesign fit-mf --out): missing {missing}")
+    try:
+        meta = json.loads((folder / "mf.json").read_text())
+        effects, simulator, noise = list(meta["effects"]), str(meta["simulator"]), float(meta["noise_n"])
+    except (ValueError, KeyError, TypeError) as err:
+        raise ValueError(f"{folder / 'mf.json'} is not a valid fit summary ({err!r}); rerun mfdesign fit-mf") from None
+    post = Posterior.load(folder / "posterior")
+    model = model_for(force_model_named(simulator), SimpleNamespace(design_keys=post.design_keys), effects,
+                      likelihood=meta.get("likelihood", "gaussian"))
+    if tuple(model.names) != tuple(post.names):
+        raise ValueError(f"{folder}: the posterior's parameters {list(post.names)} do not match the model "
+                         f"({list(model.names)}) of effects {effects} on {simulator!r}")
+    delta = Ensemble.load(folder / "delta")
+    mf = MultiFidelity.from_posterior(model, post, delta, noise_n=noise)
+    return MFFit(model, post, delta, noise, mf, tuple(post.design_keys))
 
 
 def _lifted(table, min_lift_height_mm: float = 2.0):

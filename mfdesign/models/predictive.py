@@ -81,6 +81,35 @@ class MultiFidelity(eqx.Module):
         their thickness from the population)."""
         return self.sample_data(self.data_for(design, h_mm, p_pa))
 
+    def members(self, design, h_mm, p_pa, key=0) -> jax.Array:
+        """Traceable ``F_s`` [S, N] N for NEW membranes: ``design`` [N, 6] mm, ``h_mm`` [N],
+        ``p_pa`` [N] (force rows; every row's thickness drawn from the population prior).
+        Unlike :meth:`predict` nothing leaves JAX, so acquisition and design optimisation
+        can differentiate through it (their ``members`` protocol)."""
+        from mfdesign.physics.effects import Rows
+
+        n = design.shape[0]
+        rows = Rows(h_mm, p_pa, jnp.ones(n, bool), jnp.zeros(n, bool), jnp.zeros(n, bool),
+                    jnp.full(n, len(self.design_keys), jnp.int32))
+        data = CalibrationData(design, rows, jnp.zeros(n), jnp.ones(n), self.design_keys + ("<new membrane>",))
+        return self.sample_data(data, key)
+
+    def thinned(self, n_draws: int) -> "MultiFidelity":
+        """The first ``n_draws`` posterior draws (already a random permutation): searches that
+        differentiate through every draw pay for each one."""
+        return MultiFidelity(self.model, self.theta[:n_draws], self.delta, self.noise_n, self.design_keys)
+
+    def predictor(self, n_draws: int = 16):
+        """An acquisition :class:`~mfdesign.acquire.FunctionPredictor` with two fidelities:
+        ``rig`` (physics draws + discrepancy members) and ``sim`` (physics draws only: what a
+        simulator run informs, never the sim-to-real discrepancy)."""
+        from mfdesign.acquire import FunctionPredictor
+
+        thin = self.thinned(n_draws)
+        sim = MultiFidelity(thin.model, thin.theta, None, thin.noise_n, thin.design_keys)
+        return FunctionPredictor({"rig": lambda d, h, p: thin.members(d, h, p),
+                                  "sim": lambda d, h, p: sim.members(d, h, p)})
+
     def interval(self, data: CalibrationData, level: float = 0.9, n_noise: int = 8, key=0):
         """Mean [N] and central ``level`` interval ``(lo, hi)`` [N] of the observation ``y``."""
         if not 0 < level < 1:

@@ -189,15 +189,61 @@ def force_residual(x, args):
     return jnp.where(ok & jnp.all(jnp.isfinite(res)), res, FAILED_RESIDUAL)
 
 
+def residual_and_jacobian(x, args):
+    """``(r(x), dr/dx)`` from one forward-mode integration: the primal state and the two
+    tangent columns ride in the same ODE loop (``jacfwd`` batches only the tangents)."""
+    jac, res = jax.jacfwd(lambda xx: (force_residual(xx, args),) * 2, has_aux=True)(x)
+    return res, jac
+
+
+@jax.custom_jvp
+def shooting_residual(x, args):
+    """:func:`force_residual` with a JVP rule that materialises the 2 x 2 Jacobian once.
+
+    The solvers linearise the residual and then apply the linear map several times per
+    iteration (materialising it for the least-squares solve, predicting the trust
+    region's reduction). The plain linearisation of an ODE ``while_loop`` re-runs the
+    whole integration at every application, so each application is a full integration.
+    Here the tangent map is ``J @ dx`` with ``J`` computed once, in the same pass as the
+    residual (and transposable, unlike the loop). Tangents of ``args`` (implicit
+    differentiation with respect to the design or the parameters) get their own JVP.
+    """
+    return force_residual(x, args)
+
+
+@shooting_residual.defjvp
+def _shooting_residual_jvp(primals, tangents):
+    x, args = primals
+    dx, dargs = tangents
+    res, jac = residual_and_jacobian(x, args)
+    out = jnp.zeros_like(res) if _is_zero(dx) else jac @ dx
+    if not all(_is_zero(t) for t in jax.tree.leaves(dargs, is_leaf=_is_zero)):
+        dargs = jax.tree.map(
+            lambda t, a: jnp.zeros_like(a) if _is_zero(t) else t, dargs, args, is_leaf=_is_zero
+        )
+        out = out + jax.jvp(lambda a: force_residual(x, a), (args,), (dargs,))[1]
+    return res, out
+
+
+def _is_zero(t):
+    return isinstance(t, jax.custom_derivatives.SymbolicZero)
+
+
 def solve_force(x0, geom: Geometry, params: SimParams, h_mm, p_mpa):
-    """Newton from ``x0``. Returns ``(x, converged, det_jacobian)``."""
+    """Shooting solve from ``x0``. Returns ``(x, converged, det_jacobian)``.
+
+    Converged means the solver's own test passed and ``|r(x)| < 1e-7``. The residual and
+    Jacobian at the returned ``x`` (the last accepted iterate) are the ones the solver
+    already computed there (``sol.state.f_info``): re-evaluating them would cost another
+    integration per continuation step.
+    """
     args = (geom, params, h_mm, p_mpa)
     sol = optx.least_squares(
-        force_residual, SHOOTING_SOLVER, x0, args, max_steps=SHOOTING_MAX_STEPS, throw=False
+        shooting_residual, SHOOTING_SOLVER, x0, args, max_steps=SHOOTING_MAX_STEPS, throw=False
     )
     x = sol.value
-    res = force_residual(x, args)
-    jac = jax.jacfwd(force_residual)(x, args)
+    res = sol.state.f_info.residual
+    jac = sol.state.f_info.jac.as_matrix()
     converged = (
         (sol.result == optx.RESULTS.successful)
         & jnp.all(jnp.isfinite(x))
@@ -270,6 +316,8 @@ __all__ = [
     "disk_force",
     "force_residual",
     "solve_force",
+    "shooting_residual",
+    "residual_and_jacobian",
     "string_guess",
     "start_state",
     "profile",

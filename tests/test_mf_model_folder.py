@@ -1,0 +1,69 @@
+"""A multi-fidelity fit saved by `mfdesign fit-mf` is a model folder for propose and optimize.
+
+Analytic stand-in force model, two bundled membranes, tiny chains: this checks the
+plumbing (save -> load -> traceable members -> acquisition), not the fit's quality.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from mfdesign.acquire import Grid
+from mfdesign.calibration.workflow import load_multi_fidelity
+from mfdesign.cli import app
+from mfdesign.cli_optimize import load_model
+from mfdesign.cli_propose import load_predictor
+from mfdesign.data.store import read_parquet, write_parquet
+from mfdesign.demo import BUNDLED
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("mf")
+    meas = read_parquet(BUNDLED)
+    data = tmp / "two.parquet"
+    write_parquet(meas.subset(meas.design_keys[:2]), data)
+    out = tmp / "fit"
+    r = runner.invoke(app, ["fit-mf", str(data), "--out", str(out), "--simulator", "standin", "--steps", "30",
+                            "--walkers", "16", "--max-rows", "60", "--members", "2", "--delta-steps", "20",
+                            "--effects", "pressure_sensor"])
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def test_loaded_fit_members_equal_its_predictions_and_are_differentiable(folder):
+    fit = load_multi_fidelity(folder)
+    assert fit.model.effects == ("pressure_sensor",) and len(fit.design_keys) == 2
+    design = np.array([[1.7, 31.0, np.nan, np.nan, np.nan, np.nan]] * 3)
+    h, p = np.array([0.0, 20.0, 40.0]), np.array([3000.0, 5000.0, 7000.0])
+    traced = np.asarray(jax.jit(lambda d, hh, pp: fit.mf.members(d, hh, pp))(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p)))
+    np.testing.assert_allclose(traced, np.asarray(fit.mf.predict(design, h, p)), rtol=1e-10)
+    g = jax.grad(lambda d: fit.mf.members(d, jnp.asarray(h), jnp.asarray(p)).mean())(jnp.asarray(design))
+    assert np.all(np.isfinite(np.asarray(g)[:, :2])) and float(jnp.abs(g[:, 1]).sum()) > 0
+
+
+def test_propose_and_optimize_read_the_folder(folder):
+    pred = load_predictor(folder)
+    assert pred.fidelities == ("rig", "sim")
+    design = jnp.asarray([[2.0, 30.0, np.nan, np.nan, np.nan, np.nan]])
+    rig, sim = (np.asarray(pred.grid_members(f, design, Grid())) for f in ("rig", "sim"))
+    assert rig.shape == sim.shape == (16, 1, Grid().size)
+    assert not np.allclose(rig, sim)  # rig members carry the discrepancy, sim members do not
+    model = load_model(folder)
+    assert model.theta.shape[0] == 16 and hasattr(model, "members")
+
+
+def test_a_folder_without_the_discrepancy_is_refused(folder, tmp_path):
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(folder, broken)
+    shutil.rmtree(broken / "delta")
+    with pytest.raises(ValueError, match="missing"):
+        load_multi_fidelity(broken)
+    r = runner.invoke(app, ["propose", "--model", str(broken), "--q", "1", "--restarts", "2", "--out", str(tmp_path / "p")])
+    assert r.exit_code == 2 and "delta" in r.output
