@@ -82,6 +82,10 @@ def run_case(hidden, seed, simulator, sample_hz):
     last = d.steps[-1]["verdict"] if d.steps else {}
     best_checks = [c for s in d.steps for c in s["checks"] if list(c.effects) == d.effects]
     heldout = best_checks[0].heldout_rmse_n if best_checks else d.before.rmse_n
+    # The attainable floor: the true model (hidden effects at their true values) on the same rows.
+    from mfdesign.diagnose.residuals import compute_residuals
+
+    oracle = compute_residuals(meas, sim.expected_force(meas, list(hidden), fx.typical_theta(hidden))).rmse_n
     return {
         "hidden": list(hidden), "seed": seed, "rows": len(meas),
         "screen_ranking": ranks, "screen_rank_of_hidden": [ranks.index(h) + 1 if h in ranks else None for h in hidden],
@@ -92,6 +96,7 @@ def run_case(hidden, seed, simulator, sample_hz):
         "rmse_before_n": d.before.rmse_n, "noise_floor_n": d.before.noise_floor_n,
         "heldout_rmse_after_n": heldout,
         "heldout_over_noise": heldout / d.before.noise_floor_n,
+        "oracle_rmse_n": oracle, "heldout_over_oracle": heldout / oracle,
         "verdicts": [s["verdict"]["words"] for s in d.steps], "seconds": time.time() - t0,
     }
 
@@ -111,6 +116,8 @@ def summarise(cases):
         "screen_top1_accuracy": frac([c["screen_rank_of_hidden"] == [1] for c in single]),
         "heldout_within_1.2x_noise": frac([c["heldout_over_noise"] <= 1.2 for c in single]),
         "max_heldout_over_noise": max((c["heldout_over_noise"] for c in single), default=None),
+        "heldout_within_1.2x_oracle": frac([c["heldout_over_oracle"] <= 1.2 for c in single if "heldout_over_oracle" in c]),
+        "noise_floor_over_oracle": [round(c["noise_floor_n"] / c["oracle_rmse_n"], 3) for c in cases if "oracle_rmse_n" in c],
         "two_effect_cases": len(pairs), "two_effect_both_found": frac([c["all_found"] for c in pairs]),
         "clean_cases": len(clean), "false_positive_rate": frac([c["false_positive"] for c in clean]),
         "per_effect": {e: {"found_first": frac([c["found"][:1] == c["hidden"] for c in cs]),
