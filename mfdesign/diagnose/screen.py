@@ -33,7 +33,7 @@ from mfdesign.diagnose.expected import PlaneSimulator
 from mfdesign.diagnose.residuals import Residuals, subsample
 from mfdesign.physics import effects as fx
 
-SCREEN_ROWS = 20000  # rows the screen differentiates at most
+SCREEN_ROWS = 10000  # rows the screen differentiates at most
 
 __all__ = ["ScreenResult", "effect_jacobian", "parameter_scale", "parameter_step", "screen"]
 

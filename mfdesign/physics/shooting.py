@@ -229,8 +229,25 @@ def _is_zero(t):
     return isinstance(t, jax.custom_derivatives.SymbolicZero)
 
 
-def solve_force(x0, geom: Geometry, params: SimParams, h_mm, p_mpa):
-    """Shooting solve from ``x0``. Returns ``(x, converged, det_jacobian)``.
+class _TrustRegion(optx.ClassicalTrustRegion):
+    """optimistix's classical trust region, starting from step size ``initial`` instead
+    of 1 (Levenberg-Marquardt damping ``1 / step size``)."""
+
+    initial: jax.Array = 1.0
+
+    def init(self, y, f_info_struct):
+        state = super().init(y, f_info_struct)
+        return eqx.tree_at(lambda s: s.step_size, state, jnp.asarray(self.initial, float))
+
+
+def solve_force(x0, geom: Geometry, params: SimParams, h_mm, p_mpa, step0=1.0):
+    """Shooting solve from ``x0``. Returns ``(x, converged, det_jacobian, step_size)``.
+
+    ``step0`` is the trust region's initial step size (Levenberg-Marquardt damping
+    ``1 / step0``); ``step_size`` the final one, which a continuation carries to the next
+    solve: from a good predictor the first steps are then (nearly) Gauss-Newton steps
+    instead of a slow growth of the step from 1 (``J`` is O(1) here, so damping 1
+    shortens every step until the trust region has grown about 3.5-fold per iteration).
 
     Converged means the solver's own test passed and ``|r(x)| < 1e-7``. The residual and
     Jacobian at the returned ``x`` (the last accepted iterate) are the ones the solver
@@ -238,8 +255,9 @@ def solve_force(x0, geom: Geometry, params: SimParams, h_mm, p_mpa):
     integration per continuation step.
     """
     args = (geom, params, h_mm, p_mpa)
+    solver = eqx.tree_at(lambda m: m.search, SHOOTING_SOLVER, _TrustRegion(initial=step0))
     sol = optx.least_squares(
-        shooting_residual, SHOOTING_SOLVER, x0, args, max_steps=SHOOTING_MAX_STEPS, throw=False
+        shooting_residual, solver, x0, args, max_steps=SHOOTING_MAX_STEPS, throw=False
     )
     x = sol.value
     res = sol.state.f_info.residual
@@ -249,7 +267,7 @@ def solve_force(x0, geom: Geometry, params: SimParams, h_mm, p_mpa):
         & jnp.all(jnp.isfinite(x))
         & jnp.all(jnp.abs(res) < 1e-7)
     )
-    return x, converged, jnp.linalg.det(jac)
+    return x, converged, jnp.linalg.det(jac), sol.state.search_state.step_size
 
 
 def string_guess(geom: Geometry, params: SimParams, h_mm, p_mpa):
