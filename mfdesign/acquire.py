@@ -22,11 +22,13 @@ simulator run informs (the simulator surrogate's spread), never the sim-to-real
 discrepancy, so a sim run is worth its low cost only while that part dominates.
 
 Optimisation: for every ring count and fidelity ("arm"), ``n_restarts`` batches of ``q``
-designs are optimised jointly by L-BFGS (Liu & Nocedal 1989; ``optax.lbfgs`` with its zoom
+designs are optimised jointly by L-BFGS (Liu & Nocedal 1989; ``optax.lbfgs`` with a backtracking
 line search) on the unit-cube decoding of :class:`~mfdesign.design.DesignSpace`. The box
 ``[0, 1]`` is kept by the sine transform of MINUIT (James & Roos 1975):
 ``u = (1 + sin z) / 2`` with ``z`` unconstrained, so every iterate is a valid design.
-Restarts run together under ``jax.vmap`` inside one ``jax.jit``. The final batch is the
+Restarts and ring counts run together under ``jax.vmap`` in one ``jax.jit`` per fidelity
+(the ring count is data, :meth:`~mfdesign.design.DesignSpace.decode_any`: three ring counts
+cost one compilation, not three). The final batch is the
 best of (a) each arm's best joint batch and (b) a cost-benefit greedy mix over the pool of
 all optimised designs of all arms (Leskovec et al. 2007, "Cost-effective outbreak
 detection in networks"; ``U`` is a facility-location function, hence submodular), which
@@ -228,22 +230,24 @@ def evaluate(predictor: Predictor, designs, fidelities: Sequence[str], grid: Gri
 
 # --------------------------------------------------------------------------- optimiser
 @eqx.filter_jit
-def _optimise_arm(predictor, z0, fidelity, grid, space, n_rings, n_steps):
-    """``z0 [R, q, dim] -> (u [R, q, dim], dev [R, q, M])``: every restart runs ``n_steps``
-    L-BFGS iterations on ``-U`` (``jax.vmap`` over restarts, one compiled call; the compiled
-    code is reused for any predictor of the same structure, e.g. a refitted ensemble)."""
+def _optimise_fidelity(predictor, z0, n_rings, fidelity, grid, space, n_steps):
+    """``z0 [A, R, q, 6]``, ring counts ``n_rings [A]`` -> ``(u [A, R, q, 6], dev [A, R, q, M])``:
+    every restart of every ring count runs ``n_steps`` L-BFGS iterations on ``-U``
+    (``jax.vmap`` over ring counts and restarts: one compiled call per fidelity, reused for
+    any predictor of the same structure, e.g. a refitted ensemble). The ring count is data
+    (:meth:`~mfdesign.design.DesignSpace.decode_any`), so it costs no extra compilation."""
     opt = optax.lbfgs(linesearch=optax.scale_by_backtracking_linesearch(max_backtracking_steps=10, store_grad=True))
 
-    def dev_of(z):
-        design = space.decode_unit(_to_unit(z), n_rings)  # [q, 6]
-        return deviations(predictor.grid_members(fidelity, design, grid))  # [M, q]
+    def one(z, n):
+        def dev_of(z):
+            design = space.decode_any(_to_unit(z), n)  # [q, 6]
+            return deviations(predictor.grid_members(fidelity, design, grid))  # [M, q]
 
-    def loss(z):
-        return -batch_utility(dev_of(z))
+        def loss(z):
+            return -batch_utility(dev_of(z))
 
-    value_and_grad = optax.value_and_grad_from_state(loss)
+        value_and_grad = optax.value_and_grad_from_state(loss)
 
-    def one(z):
         def step(carry, _):
             z, state = carry
             value, grad = value_and_grad(z, state=state)
@@ -253,7 +257,8 @@ def _optimise_arm(predictor, z0, fidelity, grid, space, n_rings, n_steps):
         (z, _), _ = jax.lax.scan(step, (z, opt.init(z)), None, length=n_steps)
         return _to_unit(z), dev_of(z).T
 
-    return jax.vmap(one)(z0)
+    per_arm = jax.vmap(one, in_axes=(0, None))  # restarts
+    return jax.vmap(per_arm, in_axes=(0, 0))(z0, n_rings)  # ring counts
 
 
 # --------------------------------------------------------------------------- proposal
@@ -359,25 +364,27 @@ def propose(predictor: Predictor, q: int, fidelities: Sequence[str] = ("rig",),
     from tqdm.auto import tqdm
 
     arms, pool_u, pool_dev, pool_cost, pool_arm = [], [], [], [], []
-    combos = [(n, f) for n in n_rings for f in fidelities]
-    for (n, f), k in zip(tqdm(combos, desc="acquisition arms", disable=not progress),
-                         jax.random.split(key, len(combos))):
-        dim = space.dim(n)
-        u0 = jax.random.uniform(k, (n_restarts, q, dim), minval=0.0, maxval=1.0)
-        z0 = jnp.arcsin(2.0 * u0 - 1.0)
+    n_arr = jnp.asarray(n_rings)
+    for f, k in zip(tqdm(fidelities, desc="acquisition (fidelities)", disable=not progress),
+                    jax.random.split(key, len(fidelities))):
+        u0 = jax.random.uniform(k, (len(n_rings), n_restarts, q, 6), minval=0.0, maxval=1.0)
         ta = time.perf_counter()
-        u, dev = _optimise_arm(predictor, z0, f, grid, space, n, int(n_steps))
-        u, dev = np.asarray(u), np.asarray(dev)  # [R, q, dim], [R, q, M]
-        util = dev.max(axis=1).sum(axis=1)  # [R]
-        util = np.where(np.isfinite(util), util, -np.inf)
-        r = int(np.argmax(util))
-        arms.append({"n_rings": n, "fidelity": f, "best_utility_n": float(util[r]),
-                     "best_score": float(util[r] / (q * costs[f])), "wall_s": time.perf_counter() - ta,
-                     "u": u[r], "dev": dev[r], "restart_utility": util})
-        pool_u += [(n, x) for x in u.reshape(-1, dim)]
-        pool_dev.append(dev.reshape(-1, dev.shape[-1]))
-        pool_cost.append(np.full(n_restarts * q, costs[f]))
-        pool_arm += [f] * (n_restarts * q)
+        u_all, dev_all = _optimise_fidelity(predictor, jnp.arcsin(2.0 * u0 - 1.0), n_arr, f, grid, space,
+                                            int(n_steps))
+        u_all, dev_all = np.asarray(u_all), np.asarray(dev_all)  # [A, R, q, 6], [A, R, q, M]
+        wall = time.perf_counter() - ta
+        for i, n in enumerate(n_rings):
+            u, dev = space.cube_of(u_all[i], n), dev_all[i]  # [R, q, dim], [R, q, M]
+            util = dev.max(axis=1).sum(axis=1)  # [R]
+            util = np.where(np.isfinite(util), util, -np.inf)
+            r = int(np.argmax(util))
+            arms.append({"n_rings": n, "fidelity": f, "best_utility_n": float(util[r]),
+                         "best_score": float(util[r] / (q * costs[f])), "wall_s": wall / len(n_rings),
+                         "u": u[r], "dev": dev[r], "restart_utility": util})
+            pool_u += [(n, x) for x in u.reshape(-1, u.shape[-1])]
+            pool_dev.append(dev.reshape(-1, dev.shape[-1]))
+            pool_cost.append(np.full(n_restarts * q, costs[f]))
+            pool_arm += [f] * (n_restarts * q)
 
     # (a) best joint batch of one arm, (b) cost-benefit greedy mix over the pool.
     cands = []

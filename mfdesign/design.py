@@ -248,6 +248,48 @@ class DesignSpace(eqx.Module):
         cols += [jnp.full_like(t, jnp.nan)] * (6 - len(cols))
         return jnp.stack(cols, axis=-1)
 
+    def decode_any(self, u6, n_rings):
+        """:meth:`decode_unit` with the ring count as data (traceable, vmappable over it).
+
+        ``u6`` ``[..., 6]`` = ``(t, c, w1, w2, f1, f2)``; ``n_rings`` 0, 1 or 2 (an array
+        broadcasting with ``u6[..., 0]``). Equals ``decode_unit(cube_of(u6, n), n)``: the
+        coordinates a design with ``n`` rings does not have are ignored. One compiled
+        search then serves every ring count.
+        """
+        u = jnp.clip(jnp.asarray(u6, dtype=jnp.float64), 0.0, 1.0)
+        if u.shape[-1] != 6:
+            raise DesignError(f"decode_any expects 6 unit-cube coordinates, got {u.shape[-1]}")
+        n = jnp.asarray(n_rings)
+        (t_lo, t_hi), (c_lo, c_hi), (w_lo, w_hi) = self.thickness_mm, self.contact_radius_mm, self.half_width_mm
+        t = t_lo + (t_hi - t_lo) * u[..., 0]
+        c = c_lo + (c_hi - c_lo) * u[..., 1]
+        gap, R = self.gap_mm, self.outer_radius_mm
+        span = R - c - (n + 1) * gap
+        room = span - 2 * n * w_lo
+        has = [n >= 1, n >= 2]
+        widths = []
+        for k in range(2):
+            w = jnp.where(has[k], w_lo + u[..., 2 + k] * jnp.minimum(w_hi - w_lo, room / 2.0), 0.0)
+            room = room - 2.0 * jnp.where(has[k], w - w_lo, 0.0)
+            widths.append(w)
+        left = span - 2.0 * (widths[0] + widths[1])
+        edge = c + gap
+        cols = [t, c]
+        for k in range(2):
+            take = jnp.where(has[k], left * u[..., 4 + k], 0.0)
+            left = left - take
+            inner = edge + take
+            nan = jnp.full_like(t, jnp.nan)
+            cols += [jnp.where(has[k], inner + widths[k], nan), jnp.where(has[k], widths[k], nan)]
+            edge = inner + 2 * widths[k] + gap
+        return jnp.stack(cols, axis=-1)
+
+    @staticmethod
+    def cube_of(u6, n_rings: int):
+        """The ``2 + 2 n_rings`` coordinates of a 6-d point that :meth:`decode_unit` reads."""
+        u6 = np.asarray(u6, float)
+        return u6[..., {0: [0, 1], 1: [0, 1, 2, 4], 2: [0, 1, 2, 3, 4, 5]}[int(n_rings)]]
+
     def decode_array(self, u, n_rings: int) -> np.ndarray:
         """:meth:`decode_unit` as a NumPy array (batches of unit-cube points)."""
         return np.asarray(self.decode_unit(u, n_rings))

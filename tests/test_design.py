@@ -97,3 +97,16 @@ def test_gent_approaches_neo_hookean_and_locks():
     fd = (Gent().energy(l1 + eps, l2) - Gent().energy(l1 - eps, l2)) / (2 * eps)
     assert math.isclose(float(w1), float(fd), rel_tol=1e-6)
     assert jax.numpy.isfinite(Gent().d2W(l1, l2)[0])
+
+
+def test_decode_any_reads_the_ring_count_as_data():
+    import jax
+    import jax.numpy as jnp
+
+    space = DesignSpace()
+    u = np.random.default_rng(3).uniform(-0.1, 1.1, size=(30, 6))
+    for n in (0, 1, 2):
+        np.testing.assert_array_equal(np.asarray(space.decode_any(u, n)),
+                                      np.asarray(space.decode_unit(space.cube_of(u, n), n)))
+    rows = jax.vmap(space.decode_any, in_axes=(None, 0))(jnp.asarray(u[0]), jnp.arange(3))
+    assert [Membrane.from_array(np.asarray(r)).n_rings for r in rows] == [0, 1, 2]

@@ -33,7 +33,6 @@ from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status
 
 WRINKLE_TOL = 1e-9  # MPa: a principal stress more negative than this is compression
-TRUST_CAP = 1e4  # largest trust-region step size carried to the next continuation step
 PATH_STEPS = 8  # pressure steps from p / PATH_STEPS to p for a scattered point
 
 
@@ -75,15 +74,12 @@ def _step(carry, p_mpa, geom, params, h):
     branches of a conditional would run. A sign change of the shooting Jacobian's
     determinant marks a passed pressure limit point.
     """
-    x1, p1, x2, p2, n_have, det0, passed, last_ok, radius = carry
+    x1, p1, x2, p2, n_have, det0, passed, last_ok = carry
     slope = jnp.where(n_have >= 2, (x1 - x2) / jnp.where(p1 != p2, p1 - p2, 1.0), 0.0)
     predicted = x1 + slope * (p_mpa - p1)
     cold = sh.string_guess(geom, params, h, p_mpa)
     have = n_have > 0
-    warm = have & last_ok
-    x, conv, det, step = sh.solve_force(
-        jnp.where(warm, predicted, cold), geom, params, h, p_mpa, jnp.where(warm, radius, 1.0)
-    )
+    x, conv, det = sh.solve_force(jnp.where(have & last_ok, predicted, cold), geom, params, h, p_mpa)
     det0 = jnp.where(have, det0, det)
     fold = conv & have & (jnp.sign(det) != jnp.sign(det0))
     passed = passed | fold
@@ -96,7 +92,6 @@ def _step(carry, p_mpa, geom, params, h):
         det0,
         passed,
         conv,
-        jnp.clip(step, 1.0, TRUST_CAP),
     )
     return carry, (x, conv, passed)
 
@@ -105,7 +100,7 @@ def _path(geom, params, h, p_path_mpa):
     """Continuation along an increasing pressure path at fixed height."""
     z = jnp.zeros(2)
     init = (z, jnp.asarray(0.0), z, jnp.asarray(0.0), jnp.asarray(0), jnp.asarray(1.0),
-            jnp.asarray(False), jnp.asarray(False), jnp.asarray(1.0))
+            jnp.asarray(False), jnp.asarray(False))
     _, (xs, conv, passed) = jax.lax.scan(
         lambda c, p: _step(c, p, geom, params, h), init, p_path_mpa
     )
