@@ -29,7 +29,6 @@ __all__ = ["DemoSettings", "run_demo", "BUNDLED"]
 ROOT = Path(__file__).resolve().parents[1]
 BUNDLED = ROOT / "data" / "bundled_virtual.parquet"
 CARD = ROOT / "data" / "bundled_card.json"
-N_DRAWS = 16  # posterior draws the design searches differentiate through (each costs a force-model pass)
 
 
 @dataclass(frozen=True)
@@ -41,17 +40,22 @@ class DemoSettings:
     max_rows: int = 400
     delta_members: int = 8
     delta_steps: int = 2000
-    propose_restarts: int = 32  # each restart differentiates through every posterior draw: memory
+    # Design searches differentiate through every posterior draw, each one emulator pass per
+    # grid point: 16 draws x 8 restarts x 3 ring counts x 20 L-BFGS steps took over 5 CPU-minutes
+    # per fidelity on the 2-core machine, hence 8 draws and 10 steps here.
+    design_draws: int = 8
+    propose_restarts: int = 8
+    propose_steps: int = 10
     optimise_starts: int = 2500
-    optimise_refine: int = 32
-    optimise_steps: int = 60
+    optimise_refine: int = 16
+    optimise_steps: int = 40
     force_model: str = "emulator"  # or "standin" (tests)
     seed: int = 0
 
     @classmethod
     def quick(cls, force_model: str = "emulator") -> "DemoSettings":
-        return cls(mcmc_steps=200, walkers=28, max_rows=200, delta_members=4, delta_steps=300, propose_restarts=8,
-                   optimise_starts=256, optimise_refine=8, optimise_steps=20, force_model=force_model)
+        return cls(mcmc_steps=200, walkers=28, max_rows=200, delta_members=4, delta_steps=300, propose_restarts=4,
+                   propose_steps=5, optimise_starts=256, optimise_refine=4, optimise_steps=10, force_model=force_model)
 
 
 def _plt():
@@ -209,15 +213,16 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
 
     # 5. propose the next membranes
     with log.stage("propose the next 2 membranes (rig or simulator)"):
-        predictor = fit1.mf.predictor(N_DRAWS)
-        proposal = propose(predictor, 2, fidelities=("rig", "sim"), n_restarts=s.propose_restarts, key=s.seed)
+        predictor = fit1.mf.predictor(s.design_draws)
+        proposal = propose(predictor, 2, fidelities=("rig", "sim"), n_restarts=s.propose_restarts,
+                           n_steps=s.propose_steps, key=s.seed, progress=progress)
         (out / "propose").mkdir(exist_ok=True)
         (out / "propose" / "proposal.json").write_text(json.dumps(proposal.to_json(), indent=1, default=str))
         _proposal_figure(meas, proposal, out / "propose" / "proposals.png")
 
     # 6. optimise a membrane for a lift task
     with log.stage("optimise a membrane for lift task A (height maximisation)"):
-        result = optimize(fit1.mf.thinned(N_DRAWS), TARGET_SETS["A"], n_starts=s.optimise_starts, n_refine=s.optimise_refine,
+        result = optimize(fit1.mf.thinned(s.design_draws), TARGET_SETS["A"], n_starts=s.optimise_starts, n_refine=s.optimise_refine,
                           steps=s.optimise_steps, seed=s.seed, progress=progress, batch_size=50)
         (out / "optimize").mkdir(exist_ok=True)
         plot_optimum(result, out / "optimize" / "optimum.png", title="lift task A")
@@ -227,7 +232,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
     with log.stage("report"):
         fig_dir = out / "figures"
         fig_dir.mkdir(exist_ok=True)
-        _plane_figure(meas, {"plain": fit0.mf.thinned(N_DRAWS).members, "with effects": fit1.mf.thinned(N_DRAWS).members},
+        _plane_figure(meas, {"plain": fit0.mf.thinned(16).members, "with effects": fit1.mf.thinned(16).members},
                       fig_dir / "planes.png")
         rep = Report("mfdesign demo: calibrate, diagnose, add the missing effect, propose, optimise")
         rep.summary = [
