@@ -78,8 +78,16 @@ class MultiFidelity(eqx.Module):
 
     def predict(self, design, h_mm, p_pa):
         """``ForceModel`` protocol: draws ``F_s`` [S, N] N at force rows (new designs draw
-        their thickness from the population)."""
-        return self.sample_data(self.data_for(design, h_mm, p_pa))
+        their thickness from the population). Rows are padded to a power of two (>= 256)
+        so that a few compiled shapes serve every call (trajectory grids vary in size)."""
+        design = np.atleast_2d(np.asarray(design, float))
+        h_mm, p_pa = (np.broadcast_to(np.asarray(a, float), (len(design),)) for a in (h_mm, p_pa))
+        n = len(design)
+        if n == 0:
+            return np.zeros((self.theta.shape[0], 0))
+        size = max(256, 1 << (n - 1).bit_length())
+        pad = lambda a: np.concatenate([a, np.repeat(a[-1:], size - n, axis=0)])  # noqa: E731
+        return self.sample_data(self.data_for(pad(design), pad(h_mm), pad(p_pa)))[:, :n]
 
     def members(self, design, h_mm, p_pa, key=0) -> jax.Array:
         """Traceable ``F_s`` [S, N] N for NEW membranes: ``design`` [N, 6] mm, ``h_mm`` [N],
