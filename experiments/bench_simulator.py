@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
 from pathlib import Path
@@ -34,20 +35,26 @@ UNREACHABLE = (Status.LIMIT_POINT, Status.EXTENSION_LIMIT, Status.INVALID_INPUT)
 
 
 def timed_plane(design: Membrane, h, p):
-    t0 = time.perf_counter()
+    # Wall time and process CPU time: other jobs share the cores, so wall time alone
+    # says as much about the load as about the simulator.
+    t0, c0 = time.perf_counter(), time.process_time()
     first = force_plane(design, h, p)
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     again = force_plane(design, h, p)
-    t2 = time.perf_counter()
+    t2, c2 = time.perf_counter(), time.process_time()
     conv = np.isin(again.status, [Status.OK, Status.NO_CONTACT])
     return {
         "design": design.key(),
         "grid": [len(h), len(p)],
+        "load_average_1_5_15min": os.getloadavg(),
         "first_call_s": t1 - t0,
+        "first_call_cpu_s": c1 - c0,
         "run_s": t2 - t1,
+        "run_cpu_s": c2 - c1,
         "compile_s_estimate": (t1 - t0) - (t2 - t1),
         "converged_points": int(conv.sum()),
         "converged_points_per_s": float(conv.sum() / (t2 - t1)),
+        "converged_points_per_cpu_s": float(conv.sum() / (c2 - c1)),
         "status": summarize(again.status),
         "identical_on_rerun": bool(np.array_equal(first.force_n, again.force_n, equal_nan=True)),
     }
@@ -61,6 +68,7 @@ def reachable_convergence(n_designs: int, grid: int, seed: int):
     h = np.linspace(0.0, 70.0, grid)
     p = np.linspace(0.0, 10_000.0, grid)
     rows = []
+    t0, c0 = time.perf_counter(), time.process_time()
     for k in tqdm(range(n_designs), desc="random designs"):
         design = space.sample(rng, 1, n_rings=k % 3)[0]
         res = force_plane(design, h, p)
@@ -84,6 +92,8 @@ def reachable_convergence(n_designs: int, grid: int, seed: int):
         "converged_reachable_points": conv,
         "converged_fraction_of_reachable": conv / max(reach, 1),
         "designs_with_a_plane": sum(r["plane_usable_points"] > 0 for r in rows),
+        "wall_s": time.perf_counter() - t0,
+        "cpu_s": time.process_time() - c0,
         "per_design": rows,
     }
 
@@ -102,8 +112,10 @@ def main():
         "command": f"python experiments/bench_simulator.py --grid {args.grid} --n-designs {args.n_designs} --design-grid {args.design_grid}",
         "machine": f"{platform.machine()} {platform.processor()} cpus={__import__('os').cpu_count()}",
         "targets": {"two_ring_converged_points_per_s": 500, "converged_fraction_of_reachable": 0.99},
+        "load_average_at_start": os.getloadavg(),
         "planes": [],
     }
+    t0, c0 = time.perf_counter(), time.process_time()
     for key in ("[2.0, 25.4, nan, nan, nan, nan]", "[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]"):
         row = timed_plane(Membrane.from_key(key), h, p)
         print(json.dumps(row))
@@ -112,6 +124,9 @@ def main():
         result["random_designs"] = reachable_convergence(args.n_designs, args.design_grid, args.seed)
         rd = result["random_designs"]
         print(f"reachable convergence {rd['converged_fraction_of_reachable']:.4f} over {rd['n_designs']} designs")
+    result["load_average_at_end"] = os.getloadavg()
+    result["wall_s"] = time.perf_counter() - t0
+    result["cpu_s"] = time.process_time() - c0
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print(f"wrote {args.out}")
