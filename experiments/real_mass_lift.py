@@ -55,6 +55,7 @@ def main():
     ap.add_argument("--ens-steps", type=int, default=3000)
     ap.add_argument("--folds", type=int, default=7)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--only", type=int, nargs="+", default=None, help="compute only these folds (checkpoints), no summary")
     ap.add_argument("--draws", type=int, default=32, help="posterior draws in the predictive (evaluation cost scales with it)")
     args = ap.parse_args()
 
@@ -74,17 +75,22 @@ def main():
     folds = data.leave_one_out()[: args.folds]
     names = ("a_sim_paper", "b_sim_calibrated", "c_ensemble", "d_curve_fit", "e_multi_fidelity")
     rows = {n: [] for n in names}
-    # One checkpoint per fold (a rerun with the same settings skips finished folds).
-    ckpt = OUT / "real_mass_lift_checkpoint.json"
-    done = json.loads(ckpt.read_text()) if ckpt.exists() else {}
-    if done.get("settings") != vars(args):
-        done = {"settings": vars(args), "folds": []}
+    # One checkpoint file per fold (a rerun with the same settings skips finished folds;
+    # ``--only`` lets several processes share the folds, one core each).
+    settings = {k: v for k, v in vars(args).items() if k != "only"}
+
+    def ckpt(i):
+        return OUT / f"real_mass_lift_fold{i}.json"
+
     t_all = time.perf_counter()
     for i, (train, test) in enumerate(folds):
-        if i < len(done["folds"]):
+        if ckpt(i).exists() and json.loads(ckpt(i).read_text()).get("settings") == settings:
+            saved = json.loads(ckpt(i).read_text())["rows"]
             for n in names:
-                rows[n].append(done["folds"][i][n])
-            print(f"fold {i}: from the checkpoint", flush=True)
+                rows[n].append(saved[n])
+            print(f"fold {i}: from its checkpoint", flush=True)
+            continue
+        if args.only is not None and i not in args.only:
             continue
         t0 = time.perf_counter()
         tr, te = _lifted(train), _lifted(test)
@@ -124,9 +130,12 @@ def main():
               + f"  ({time.perf_counter() - t0:.0f} s)", flush=True)
         rows["b_sim_calibrated"][-1]["seconds"] = {"multi_fidelity_fit": t_fit, "baselines_fit": t_base,
                                                     "total": time.perf_counter() - t0}
-        done["folds"].append({n: rows[n][-1] for n in names})
         OUT.mkdir(exist_ok=True)
-        ckpt.write_text(json.dumps(done, indent=1, default=float))
+        ckpt(i).write_text(json.dumps({"settings": settings, "rows": {n: rows[n][-1] for n in names}},
+                                      indent=1, default=float))
+    if args.only is not None:
+        print(f"folds {args.only} done (--only: no summary)", flush=True)
+        return
 
     summary = {}
     for n in names:

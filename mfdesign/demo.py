@@ -35,27 +35,31 @@ CARD = ROOT / "data" / "bundled_card.json"
 class DemoSettings:
     """Sizes of every stage (defaults: the full demo)."""
 
-    mcmc_steps: int = 500
+    # Every stage evaluates the simulator's emulator (4 MLPs, float64); on the 2-core CPU an
+    # emcee step of 28 walkers on 400 rows took 0.31 s, so the sizes below keep the whole
+    # loop near 10 minutes (measured stage by stage, see summary.json "timings_s").
+    mcmc_steps: int = 300
     walkers: int = 28
-    max_rows: int = 400
+    max_rows: int = 300
     delta_members: int = 8
     delta_steps: int = 2000
-    # Design searches differentiate through every posterior draw, each one emulator pass per
-    # grid point: 16 draws x 8 restarts x 3 ring counts x 20 L-BFGS steps took over 5 CPU-minutes
-    # per fidelity on the 2-core machine, hence 8 draws and 10 steps here.
+    check_top: int = 2  # effects refitted in full per diagnosis round
+    # Design searches differentiate through every posterior draw at every grid point: with
+    # 8 draws, 8 restarts x 3 ring counts x 10 L-BFGS steps on the 64-point grid one
+    # fidelity took over 5 minutes, hence 4 restarts on a 4 x 4 grid here.
     design_draws: int = 8
-    propose_restarts: int = 8
+    propose_restarts: int = 4
     propose_steps: int = 10
-    optimise_starts: int = 2500
-    optimise_refine: int = 16
-    optimise_steps: int = 40
+    optimise_starts: int = 500
+    optimise_refine: int = 8
+    optimise_steps: int = 30
     force_model: str = "emulator"  # or "standin" (tests)
     seed: int = 0
 
     @classmethod
     def quick(cls, force_model: str = "emulator") -> "DemoSettings":
-        return cls(mcmc_steps=200, walkers=28, max_rows=200, delta_members=4, delta_steps=300, propose_restarts=4,
-                   propose_steps=5, optimise_starts=256, optimise_refine=4, optimise_steps=10, force_model=force_model)
+        return cls(mcmc_steps=200, walkers=28, max_rows=200, delta_members=4, delta_steps=300, propose_restarts=2,
+                   propose_steps=5, optimise_starts=128, optimise_refine=4, optimise_steps=10, force_model=force_model)
 
 
 def _plt():
@@ -141,7 +145,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
     ``out/summary.json`` (paths of the report, timings, headline numbers)."""
     import dataclasses
 
-    from mfdesign.acquire import propose
+    from mfdesign.acquire import Grid, propose
     from mfdesign.calibration.plots import corner_plot
     from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named
     from mfdesign.data.store import read_parquet
@@ -196,7 +200,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
     with log.stage("diagnose: where the model fails, which effect is missing"):
         sim = EmulatorModel(force_model)
         diag = diagnose(meas, sim=sim, model_name="plain simulator (emulator, authors' constants)",
-                        progress=progress)
+                        check_top=s.check_top, progress=progress)
         dpaths = write_report(diag, out / "diagnose")
     found = list(diag.found)
     summary["diagnosis"] = {"found": found, "rmse_before_n": diag.before.rmse_n,
@@ -212,10 +216,11 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
         fit1, post1 = fit0, post0
 
     # 5. propose the next membranes
+    DEMO_GRID = Grid(h_mm=(0.0, 20.0, 40.0, 60.0), p_pa=(2000.0, 4000.0, 6000.0, 8000.0))
     with log.stage("propose the next 2 membranes (rig or simulator)"):
         predictor = fit1.mf.predictor(s.design_draws)
         proposal = propose(predictor, 2, fidelities=("rig", "sim"), n_restarts=s.propose_restarts,
-                           n_steps=s.propose_steps, key=s.seed, progress=progress)
+                           n_steps=s.propose_steps, grid=DEMO_GRID, key=s.seed, progress=progress)
         (out / "propose").mkdir(exist_ok=True)
         (out / "propose" / "proposal.json").write_text(json.dumps(proposal.to_json(), indent=1, default=str))
         _proposal_figure(meas, proposal, out / "propose" / "proposals.png")
