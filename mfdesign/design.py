@@ -174,6 +174,11 @@ class Membrane(eqx.Module):
         return self.key()
 
 
+# Where the ``2 + 2 n`` unit-cube coordinates of an n-ring design sit in the 6-d cube of
+# :meth:`DesignSpace.decode_any`: (t, c, w1, w2, f1, f2).
+_CUBE_SLOTS = {0: [0, 1], 1: [0, 1, 2, 4], 2: [0, 1, 2, 3, 4, 5]}
+
+
 class DesignSpace(eqx.Module):
     """Bounds of the designs an optimiser may propose, and a decoding from the unit cube.
 
@@ -219,34 +224,12 @@ class DesignSpace(eqx.Module):
         fractions ``u[2 + n_rings + k]``. Piecewise linear, so differentiable almost
         everywhere: optimisers follow it (jit/vmap/grad). NaN fills the absent ring slots.
         """
-        u = jnp.clip(jnp.asarray(u, dtype=jnp.float64), 0.0, 1.0)
+        u = jnp.asarray(u, dtype=jnp.float64)
         if u.shape[-1] != self.dim(n_rings):
             raise DesignError(f"expected {self.dim(n_rings)} unit-cube coordinates, got {u.shape[-1]}")
-        (t_lo, t_hi), (c_lo, c_hi), (w_lo, w_hi) = self.thickness_mm, self.contact_radius_mm, self.half_width_mm
-        t = t_lo + (t_hi - t_lo) * u[..., 0]
-        c = c_lo + (c_hi - c_lo) * u[..., 1]
-        cols = [t, c]
-        if n_rings:
-            gap, R = self.gap_mm, self.outer_radius_mm
-            span = R - c - (n_rings + 1) * gap  # room for rings and slack
-            # Widths one ring at a time: each may take what the earlier ones left over.
-            room = span - 2 * n_rings * w_lo
-            widths = []
-            for k in range(n_rings):
-                w = w_lo + u[..., 2 + k] * jnp.minimum(w_hi - w_lo, room / 2.0)
-                room = room - 2.0 * (w - w_lo)
-                widths.append(w)
-            # Share the slack among the gaps: before ring 1, before ring 2, after the last.
-            left = span - 2.0 * sum(widths)
-            edge = c + gap
-            for k in range(n_rings):
-                take = left * u[..., 2 + n_rings + k]
-                left = left - take
-                inner = edge + take
-                cols += [inner + widths[k], widths[k]]
-                edge = inner + 2 * widths[k] + gap
-        cols += [jnp.full_like(t, jnp.nan)] * (6 - len(cols))
-        return jnp.stack(cols, axis=-1)
+        # One implementation: place the coordinates where decode_any reads them.
+        u6 = jnp.zeros(u.shape[:-1] + (6,)).at[..., _CUBE_SLOTS[n_rings]].set(u)
+        return self.decode_any(u6, n_rings)
 
     def decode_any(self, u6, n_rings):
         """:meth:`decode_unit` with the ring count as data (traceable, vmappable over it).
@@ -287,8 +270,7 @@ class DesignSpace(eqx.Module):
     @staticmethod
     def cube_of(u6, n_rings: int):
         """The ``2 + 2 n_rings`` coordinates of a 6-d point that :meth:`decode_unit` reads."""
-        u6 = np.asarray(u6, float)
-        return u6[..., {0: [0, 1], 1: [0, 1, 2, 4], 2: [0, 1, 2, 3, 4, 5]}[int(n_rings)]]
+        return np.asarray(u6, float)[..., _CUBE_SLOTS[int(n_rings)]]
 
     def decode_array(self, u, n_rings: int) -> np.ndarray:
         """:meth:`decode_unit` as a NumPy array (batches of unit-cube points)."""
