@@ -38,7 +38,7 @@ class DemoSettings:
     # Every stage evaluates the simulator's emulator (4 MLPs, float64); on the 2-core CPU an
     # emcee step of 28 walkers on 400 rows took 0.31 s, so the sizes below keep the whole
     # loop near 10 minutes (measured stage by stage, see summary.json "timings_s").
-    mcmc_steps: int = 300
+    mcmc_steps: int = 200  # 300 took 80 s of a 694 s demo (fresh cache, idle 2-core machine)
     walkers: int = 28
     max_rows: int = 300
     delta_members: int = 8
@@ -52,7 +52,7 @@ class DemoSettings:
     propose_steps: int = 10
     optimise_starts: int = 500
     optimise_refine: int = 8
-    optimise_steps: int = 30
+    optimise_steps: int = 20
     force_model: str = "emulator"  # or "standin" (tests)
     seed: int = 0
 

@@ -28,6 +28,9 @@ def _reference(F, p, Fh):
                 height[i], status[i] = 0.0, Status.NOT_LIFTED
             continue
         below = np.nonzero(~above[i, start:] & row_ok[start:])[0]
+        if below.size == 0 and row_ok[start:].all():
+            status[i] = Status.BEYOND_GRID  # above the load up to the top of the grid
+            continue
         if below.size == 0 or not row_ok[start: start + below[0] + 1].all():
             continue
         lo[i], refine[i], status[i] = start + below[0] - 1, True, Status.OK
@@ -50,7 +53,8 @@ def test_first_crossing_matches_reference_on_random_tables():
     np.testing.assert_array_equal(got[2][want[3]], want[2][want[3]])
     np.testing.assert_array_equal(np.isnan(got[0]), np.isnan(want[0]))
     # Every outcome occurs, so the comparison covers every branch.
-    assert set(np.unique(want[1])) == {Status.OK, Status.NOT_LIFTED, Status.NOT_CONVERGED, Status.INVALID_INPUT}
+    assert set(np.unique(want[1])) == {Status.OK, Status.NOT_LIFTED, Status.NOT_CONVERGED, Status.INVALID_INPUT,
+                                       Status.BEYOND_GRID}
 
 
 def test_lift_curve_flags_a_jump_over_a_dip(monkeypatch):
@@ -92,7 +96,7 @@ def test_lift_curve_agrees_with_height_at_on_the_simulator():
 
     # A ringed paper membrane: it lifts 25 N from ~3 to ~67 mm over 3.7-7 kPa. (The ringless
     # 2 mm one pushes more than 25 N at every height of the 0-100 mm grid above 4 kPa: no
-    # crossing to compare, both functions say NOT_CONVERGED there.)
+    # crossing to compare, both functions say BEYOND_GRID there.)
     d = Membrane.from_key("[2.0, 25.4, 49.0, 5.0, 62.0, 5.0]")
     p = np.linspace(3000.0, 7000.0, 7)
     h, st = lift_curve(d, 25.0, p)

@@ -18,6 +18,8 @@ change of the shooting Jacobian's determinant along the path; points beyond it a
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import Sequence
 
 import equinox as eqx
@@ -34,6 +36,12 @@ from mfdesign.physics.status import Status
 
 WRINKLE_TOL = 1e-9  # MPa: a principal stress more negative than this is compression
 PATH_STEPS = 8  # pressure steps from p / PATH_STEPS to p for a scattered point
+# Below this plate height [mm] a point is reached by inflating at LOW_HEIGHT_MM and then
+# lowering the plate at fixed pressure (DESCENT_STEPS steps): beside a stiff ring the
+# string model's first guess at h ~ 0 lies outside the physical region, so inflation at
+# fixed low height never starts (and, under vmap, holds up every height of the batch).
+LOW_HEIGHT_MM = 4.0
+DESCENT_STEPS = 4
 
 
 class SimResult(eqx.Module):
@@ -107,6 +115,27 @@ def _path(geom, params, h, p_path_mpa):
     return xs, conv, passed
 
 
+def _descend(x, geom, params, h_from, h_to, p_mpa, n_steps: int = DESCENT_STEPS, active=True):
+    """Height continuation at fixed pressure: the plate moves from ``h_from`` to ``h_to``
+    in ``n_steps`` equal steps, each shooting solve warm-started by secant extrapolation in
+    ``h`` from the last two converged states; after a failed step the point is dropped
+    (``active`` off). Returns ``(x, converged_at_h_to)``."""
+    hs = h_from + (h_to - h_from) * jnp.arange(1, n_steps + 1) / n_steps
+
+    def step(carry, hh):
+        x1, h1, x2, h2, ok = carry
+        dh = jnp.where(h1 != h2, h1 - h2, 1.0)
+        predicted = x1 + jnp.where(h1 != h2, (x1 - x2) / dh, 0.0) * (hh - h1)
+        x, conv, _ = sh.solve_force(predicted, geom, params, hh, p_mpa, active=ok)
+        return (jnp.where(conv, x, x1), jnp.where(conv, hh, h1), jnp.where(conv, x1, x2),
+                jnp.where(conv, h1, h2), conv), None
+
+    h_from = jnp.asarray(h_from, float)
+    init = (x, h_from, x, h_from, jnp.asarray(active))
+    (x, _, _, _, conv), _ = jax.lax.scan(step, init, hs)
+    return x, conv
+
+
 def _last_good(xs, conv, path):
     """The last converged solution on a path and its pressure (the end when it converged):
     checks of a failed point (e.g. how close to the Gent limit) use the last good state."""
@@ -127,17 +156,25 @@ def _point_outputs(x, geom, params, h, p_at, p_mpa):
 
 
 @eqx.filter_jit
-def _points_kernel(geom, params, h, p_mpa, n_steps: int):
-    """Scattered points: each gets its own path ``p * k / n_steps``, k = 1..n_steps."""
+def _points_kernel(geom, params, h, p_mpa, n_steps: int, descend: bool = False):
+    """Scattered points: each gets its own path ``p * k / n_steps``, k = 1..n_steps; with
+    ``descend`` the path runs at ``LOW_HEIGHT_MM`` and the plate is then lowered to ``h``."""
 
     def one(hh, pp):
         path = pp * jnp.arange(1, n_steps + 1) / n_steps
-        xs, conv, passed = _path(geom, params, hh, path)
+        h_path = jnp.maximum(hh, LOW_HEIGHT_MM) if descend else hh
+        xs, conv, passed = _path(geom, params, h_path, path)
         x, p_at = _last_good(xs, conv, path)
-        force, wrinkled, locking, rise, ok_prof = _point_outputs(x, geom, params, hh, p_at, pp)
+        conv_end, h_at = conv[-1], h_path
+        if descend:
+            x_low, conv_low = _descend(x, geom, params, h_path, hh, pp, active=conv_end)
+            x = jnp.where(conv_end & conv_low, x_low, x)
+            h_at = jnp.where(conv_end & conv_low, hh, h_path)
+            conv_end = conv_end & conv_low
+        force, wrinkled, locking, rise, ok_prof = _point_outputs(x, geom, params, h_at, p_at, pp)
         # No converged state on the whole path: nothing is known about locking.
         locking = jnp.where(jnp.any(conv), locking, jnp.nan)
-        return conv[-1], passed[-1], force, wrinkled, locking, rise, ok_prof
+        return conv_end, passed[-1], force, wrinkled, locking, rise, ok_prof
 
     return jax.vmap(one)(h, p_mpa)
 
@@ -159,9 +196,42 @@ def _plane_kernel(geom, params, h_grid, p_path_mpa, report_idx):
             lambda x, pa, pp: _point_outputs(x, geom, params, hh, pa, pp)
         )(x_chk, p_chk, p_rep)
         locking = jnp.where(seen, locking, jnp.nan)  # nothing converged yet: unknown
-        return conv, passed, force, wrinkled, locking, rise, ok_prof
+        return conv, passed, force, wrinkled, locking, rise, ok_prof, x_chk
 
     return jax.vmap(one_h)(h_grid)
+
+
+@eqx.filter_jit
+def _descent_kernel(geom, params, h_low, anchor, p_rep_mpa):
+    """Low rows of a plane: from the anchor row's states (solved at ``LOW_HEIGHT_MM``) the
+    plate is lowered through the heights ``h_low`` (decreasing) at every grid pressure;
+    vmapped over pressures, one continuation through all low heights per pressure."""
+    conv_a, passed_a, _, _, locking_a, _, _, x_a = anchor
+    h_prev = jnp.concatenate([jnp.array([LOW_HEIGHT_MM]), h_low[:-1]])
+    # Where the anchor did not converge (low tension at the lowest pressures makes the
+    # shooting touchy), start from its nearest converged state at a higher pressure.
+    n_p = conv_a.shape[0]
+    idx = jnp.where(conv_a, jnp.arange(n_p), n_p)
+    nxt = jnp.flip(jax.lax.cummin(jnp.flip(idx)))
+    start_ok = nxt < n_p
+    x_a = x_a[jnp.minimum(nxt, n_p - 1)]
+
+    def one_p(x0, ok0, pp, lock0):
+        def leg(carry, hs):
+            x, ok = carry
+            h_from, h_to = hs
+            x, conv = _descend(x, geom, params, h_from, h_to, pp, 1, active=ok)
+            force, wrinkled, locking, rise, ok_prof = _point_outputs(x, geom, params, h_to, pp, pp)
+            # Unsolved: the anchor's state says whether the Gent limit was near.
+            locking = jnp.where(conv, locking, lock0)
+            return (x, conv), (conv, force, wrinkled, locking, rise, ok_prof)
+
+        _, outs = jax.lax.scan(leg, (x0, ok0), (h_prev, h_low))
+        return outs
+
+    conv, force, wrinkled, locking, rise, ok_prof = jax.vmap(one_p, out_axes=1)(x_a, start_ok, p_rep_mpa, locking_a)
+    passed = jnp.broadcast_to(passed_a, conv.shape)
+    return conv, passed, force, wrinkled, locking, rise, ok_prof
 
 
 def _classify(h, p, conv, passed, force, wrinkled, locking, rise, ok_prof) -> SimResult:
@@ -224,10 +294,21 @@ def force_at(
         empty = np.zeros(shape_)
         return SimResult(empty, empty.astype(np.int8), empty, empty, empty.astype(bool))
     geom = sh.geometry_of(design)
-    n = hs.size
-    hs, ps = _pad(hs, n), _pad(ps, n)
-    out = _points_kernel(geom, params, jnp.asarray(hs), jnp.asarray(ps) * PA_TO_MPA, path_steps)
-    res = _classify(h.ravel(), p.ravel(), *[np.asarray(o)[:n] for o in out])
+    low = hs < LOW_HEIGHT_MM
+    out = [None] * 7
+    for group in (~low, low):  # two batches: the low points descend (module constants)
+        idx = np.nonzero(group)[0]
+        if not idx.size:
+            continue
+        m = idx.size
+        got = _points_kernel(geom, params, jnp.asarray(_pad(hs[idx], m)),
+                             jnp.asarray(_pad(ps[idx], m)) * PA_TO_MPA, path_steps, bool(group is low))
+        for k, o in enumerate(got):
+            o = np.asarray(o)[:m]
+            if out[k] is None:
+                out[k] = np.empty(hs.shape, o.dtype)
+            out[k][idx] = o
+    res = _classify(h.ravel(), p.ravel(), *out)
     return jax.tree.map(lambda a: a.reshape(shape_), res)
 
 
@@ -236,6 +317,25 @@ def _pad(values: np.ndarray, n: int) -> np.ndarray:
     batch size is a separate compilation, so a few sizes serve every call."""
     size = max(8, 1 << (n - 1).bit_length())
     return np.concatenate([values, np.full(size - n, values[-1])])
+
+
+PARALLEL_MIN_ROWS = 16  # below this a plane is one batch (two would not pay for the split)
+
+
+def _rows_in_parallel(kernel, rows: np.ndarray) -> list[np.ndarray]:
+    """``kernel(rows)`` as two half batches on two threads (JAX releases the GIL while a
+    compiled kernel runs; XLA's CPU back end runs one small vmapped ``while_loop`` on
+    about one core, so a 2-core machine finishes two halves ~1.3-1.5x sooner). Rows are
+    independent lanes: the result equals one batch. The halves are padded to the same
+    length (one compilation)."""
+    n = rows.size
+    if n < PARALLEL_MIN_ROWS or (os.cpu_count() or 1) < 2:
+        return [np.asarray(o) for o in kernel(rows)]
+    half = (n + 1) // 2
+    padded = np.concatenate([rows, rows[-1:].repeat(2 * half - n)])
+    with ThreadPoolExecutor(2) as pool:
+        parts = list(pool.map(lambda r: [np.asarray(o) for o in kernel(r)], (padded[:half], padded[half:])))
+    return [np.concatenate([a, b])[:n] for a, b in zip(*parts)]
 
 
 def force_plane(
@@ -266,11 +366,27 @@ def force_plane(
         report.append(len(path) - 1)
     hs, _ = _sanitize(h_grid, np.ones_like(h_grid))
     geom = sh.geometry_of(design)
-    out = _plane_kernel(
-        geom, params, jnp.asarray(hs), jnp.asarray(path) * PA_TO_MPA, jnp.asarray(report)
-    )
+    path_mpa, report = jnp.asarray(path) * PA_TO_MPA, jnp.asarray(report)
+    low = hs < LOW_HEIGHT_MM
+    # Rows below LOW_HEIGHT_MM: inflation at LOW_HEIGHT_MM (an extra anchor row), then the
+    # plate is lowered at each pressure; they leave the main batch, whose heights then all
+    # start from a usable first guess (module constants explain why).
+    rows = np.concatenate([hs[~low], [LOW_HEIGHT_MM]]) if low.any() else hs
+    out = _rows_in_parallel(lambda r: _plane_kernel(geom, params, jnp.asarray(r), path_mpa, report), rows)
+    if low.any():
+        anchor = [jnp.asarray(o[-1]) for o in out]
+        p_rep = path_mpa[report]
+        low_idx = np.nonzero(low)[0]
+        order = low_idx[np.argsort(-hs[low_idx], kind="stable")]  # the plate goes down
+        down = [np.asarray(o) for o in _descent_kernel(geom, params, jnp.asarray(hs[order]), anchor, p_rep)]
+        full = []
+        for o_main, o_low in zip(out[:7], down):
+            arr = np.empty((hs.size,) + o_main.shape[1:], o_main.dtype)
+            arr[~low], arr[order] = o_main[:-1], o_low
+            full.append(arr)
+        out = full
     H, P = np.meshgrid(h_grid, p_grid, indexing="ij")
-    return _classify(H, P, *[np.asarray(o) for o in out])
+    return _classify(H, P, *out[:7])
 
 
 # --------------------------------------------------------------------------------------
@@ -318,8 +434,9 @@ def _first_crossing(F, p, Fh):
     Returns ``(height, status, lo_idx, refine)``: ``refine[i]`` when the crossing lies in
     ``[hg[lo_idx], hg[lo_idx + 1]]`` with every height from the first solved one up to it
     solved; ``NOT_LIFTED`` (height 0) when the force at ``h = 0`` is below the load;
-    ``INVALID_INPUT`` for a non-finite or negative load or pressure; ``NOT_CONVERGED``
-    otherwise. When the lowest heights did not converge (narrow rubber gaps beside stiff
+    ``INVALID_INPUT`` for a non-finite or negative load or pressure; ``BEYOND_GRID`` (NaN)
+    when the force exceeds the load at every height from the first solved one to the top
+    of the grid (the plate rises past ``h_max``); ``NOT_CONVERGED`` otherwise. When the lowest heights did not converge (narrow rubber gaps beside stiff
     rings near the Gent limit at h ~ 0), a force above the load at the first solved height
     still shows that the plate is lifted past it.
     """
@@ -340,9 +457,12 @@ def _first_crossing(F, p, Fh):
     gap = (gaps[rows, j] - gaps[rows, start]) > 0
     not_lifted = valid & has_ok & ~above_start & (start == 0)
     refine = valid & has_ok & above_start & has_below & ~gap
+    # Solved and above the load at every height from the first solved one to the top.
+    beyond = valid & has_ok & above_start & ~has_below & (gaps[:, -1] == gaps[rows, start])
     height = np.where(not_lifted, 0.0, np.nan)
     status = np.full(n_q, int(Status.NOT_CONVERGED), dtype=np.int8)
     status[not_lifted] = Status.NOT_LIFTED
+    status[beyond] = Status.BEYOND_GRID
     status[refine] = Status.OK
     status[~valid] = Status.INVALID_INPUT
     return height, status, np.where(refine, j - 1, 0), refine
@@ -362,7 +482,8 @@ def height_at(
     plate rises until the membrane's force at fixed height falls to the load, i.e. the
     first height where ``F(h, p)`` crosses the load from above (found on a height grid
     from :func:`force_at`, then refined by shooting at fixed force). ``NOT_LIFTED`` (h = 0)
-    when the force at ``h = 0`` is below the load. Folds along a pressure sweep are
+    when the force at ``h = 0`` is below the load, ``BEYOND_GRID`` (NaN) when the plate
+    rises past ``h_max_mm``. Folds along a pressure sweep are
     reported by :func:`lift_curve`. Returns ``(height_mm, status)``.
     """
     F, p = np.broadcast_arrays(np.asarray(force_n, float), np.asarray(p_pa, float))
@@ -447,10 +568,14 @@ def lift_curve(
 
 def _final_state(geom, params, h, p_mpa):
     """Shooting unknowns at ``(h, p)`` after quasi-static inflation in ``PATH_STEPS``
-    steps (the warm start for the fixed-force solve and the state :func:`shape` draws)."""
+    steps (the warm start for the fixed-force solve and the state :func:`shape` draws);
+    below ``LOW_HEIGHT_MM`` inflation at that height, then the plate is lowered (for
+    ``h >= LOW_HEIGHT_MM`` the descent has zero length and returns the state unchanged)."""
     path = p_mpa * jnp.arange(1, PATH_STEPS + 1) / PATH_STEPS
-    xs, _, _ = _path(geom, params, h, path)
-    return xs[-1]
+    h_path = jnp.maximum(h, LOW_HEIGHT_MM)
+    xs, _, _ = _path(geom, params, h_path, path)
+    x, conv = _descend(xs[-1], geom, params, h_path, h, p_mpa)
+    return jnp.where(conv, x, xs[-1])
 
 
 _final_state_jit = eqx.filter_jit(_final_state)

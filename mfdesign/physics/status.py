@@ -21,6 +21,7 @@ class Status(enum.IntEnum):
     INVALID_INPUT = 7  # negative or non-finite height or pressure
     NOT_LIFTED = 8  # mass-lift: the membrane's force at h = 0 is below the load, h = 0
     SNAP_THROUGH = 9  # mass-lift: the quasi-static branch jumped over a fold to reach h
+    BEYOND_GRID = 10  # mass-lift: force above the load at every height up to h_max: h > h_max
 
     @property
     def reason(self) -> str:
@@ -37,6 +38,7 @@ _REASONS = {
     Status.INVALID_INPUT: "height and pressure must be finite and >= 0",
     Status.NOT_LIFTED: "the membrane cannot lift the load at this pressure: h = 0",
     Status.SNAP_THROUGH: "reached by snap-through over a fold of the p-h curve",
+    Status.BEYOND_GRID: "the membrane carries the load past the highest height solved (h > h_max_mm)",
 }
 
 VALID = (Status.OK, Status.NO_CONTACT, Status.NOT_LIFTED, Status.SNAP_THROUGH)
