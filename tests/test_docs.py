@@ -16,6 +16,7 @@ import re
 import shlex
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -88,7 +89,10 @@ def test_every_doc_command_runs(tmp_path):
     for path, command in ALL:
         if "run by tests/" in command:  # needs a second terminal (rig + emulator): its own test runs it
             continue
+        t0 = time.perf_counter()
         r = subprocess.run(command, shell=True, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1800)
+        # Wall time per command (pytest -s shows it): how long a reader waits for each.
+        print(f"[{time.perf_counter() - t0:7.1f} s] {path.name}: {command}", flush=True)
         assert r.returncode == 0, f"{path.name}: {command!r} failed:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
 
 

@@ -319,6 +319,10 @@ def _pad(values: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([values, np.full(size - n, values[-1])])
 
 
+# Widest pressure step of a plane's continuation path [Pa]: on a 12 x 12 grid (909 Pa
+# steps) thin small-disk membranes lost whole rows above ~4 kPa (the force rises by
+# ~30 N per step there); 250 Pa leaves the 50 x 50 grid (204 Pa) as it was.
+MAX_PATH_STEP_PA = 250.0
 PARALLEL_MIN_ROWS = 16  # below this a plane is one batch (two would not pay for the split)
 
 
@@ -348,7 +352,8 @@ def force_plane(
     """Force on a ``len(h_grid) x len(p_grid)`` grid (heights mm, pressures Pa).
 
     Pressures must be increasing; each height is one continuation path through all of
-    them (``substeps`` extra steps between grid pressures), vmapped over heights.
+    them (``substeps`` steps per grid interval, more where an interval is wider than
+    ``MAX_PATH_STEP_PA``), vmapped over heights.
     """
     h_grid = np.asarray(h_grid_mm, float).ravel()
     p_grid = np.asarray(p_grid_pa, float).ravel()
@@ -356,9 +361,13 @@ def force_plane(
         raise ValueError("force_plane needs strictly increasing pressures")
     p_pos = np.where(p_grid > 0, p_grid, np.nan)
     first = np.nanmin(p_pos) if np.any(p_grid > 0) else 1000.0
-    # Path: from first/4 up through every grid pressure with substeps in between.
+    # Path: from first/4 up through every grid pressure with substeps in between; at least
+    # enough that no step exceeds MAX_PATH_STEP_PA (the continuation is a property of the
+    # physics, not of how coarse a grid the caller asked for).
     knots = np.concatenate([[first / 4.0], np.where(p_grid > 0, p_grid, first / 4.0)])
     knots = np.maximum.accumulate(knots)
+    widest = float(np.max(np.diff(knots))) if knots.size > 1 else 0.0
+    substeps = max(int(substeps), int(np.ceil(widest / MAX_PATH_STEP_PA)))
     path, report = [knots[0]], []
     for k in range(1, len(knots)):
         for s in range(1, substeps + 1):
