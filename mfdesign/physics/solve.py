@@ -37,7 +37,8 @@ from mfdesign.physics.status import Status
 WRINKLE_TOL = 1e-9  # MPa: a principal stress more negative than this is compression
 PATH_STEPS = 8  # pressure steps from p / PATH_STEPS to p for a scattered point
 # Below this plate height [mm] a point is reached by inflating at LOW_HEIGHT_MM and then
-# lowering the plate at fixed pressure (DESCENT_STEPS steps): beside a stiff ring the
+# lowering the plate at fixed pressure (force_at: DESCENT_STEPS steps; force_plane: one
+# step per low grid row, row after row): beside a stiff ring the
 # string model's first guess at h ~ 0 lies outside the physical region, so inflation at
 # fixed low height never starts (and, under vmap, holds up every height of the batch).
 LOW_HEIGHT_MM = 4.0
