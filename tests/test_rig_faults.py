@@ -180,7 +180,7 @@ def test_pressure_over_hard_limit(tmp_path):
     assert "FAULT over_pressure" in log_text(tmp_path)
 
 
-def test_ctrl_c_mid_trial(tmp_path):
+def test_ctrl_c_mid_trial(tmp_path, ctrl_c):
     cfg = fast_config()
     fired = {}
 

@@ -1,0 +1,24 @@
+"""Shared pytest fixtures."""
+
+import signal
+
+import pytest
+
+
+@pytest.fixture
+def ctrl_c():
+    """Make SIGINT raise KeyboardInterrupt in this process while the test runs.
+
+    A shell without job control starts background jobs (``pytest &``, ``.ci/run &``) with
+    SIGINT ignored, and Python then never installs its Ctrl-C handler; the tests that press
+    Ctrl-C would fail for a reason that has nothing to do with the rig code."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def sigint_default() -> None:
+    """``preexec_fn`` for a child that must stop on SIGINT even if we ignore it (see ``ctrl_c``)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
