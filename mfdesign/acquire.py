@@ -32,7 +32,9 @@ cost one compilation, not three). The final batch is the
 best of (a) each arm's best joint batch and (b) a cost-benefit greedy mix over the pool of
 all optimised designs of all arms (Leskovec et al. 2007, "Cost-effective outbreak
 detection in networks"; ``U`` is a facility-location function, hence submodular), which
-lets one batch mix ring counts and fidelities.
+lets one batch mix ring counts and fidelities. A batch never holds one membrane twice
+(``MIN_SEPARATION``): when one design has the largest deviation for every member, no second
+design adds to ``U``, and the next slot goes to the most uncertain distinct design per cost.
 """
 
 from __future__ import annotations
@@ -309,26 +311,45 @@ def _check_costs(fidelities, costs):
     return costs
 
 
-def _greedy(dev, cost, q):
+# Two designs of the same ring count closer than this in every unit-cube coordinate are
+# one membrane to the lab (0.1 mm of thickness, 0.6 mm of contact radius): a batch never
+# holds both. Without it, when one design has the largest deviation for every member, the
+# paper's score gains ~1e-5 relative from a near-copy and the greedy took it as the cheap
+# second slot (seen in the demo: two sim runs 0.001 mm apart).
+MIN_SEPARATION = 0.05
+
+
+def _near(a, b) -> bool:
+    """``a``, ``b``: ``(n_rings, unit-cube coordinates)``; see ``MIN_SEPARATION``."""
+    return a[0] == b[0] and bool(np.max(np.abs(np.asarray(a[1]) - np.asarray(b[1]))) < MIN_SEPARATION)
+
+
+def _greedy(dev, cost, q, units):
     """Cost-benefit greedy (Leskovec et al. 2007): add the candidate that maximises the
     batch's ``U / cost`` among those that add to ``U``; ``dev`` [K, M] deviations, ``cost``
-    [K]. Returns indices [q]."""
+    [K], ``units`` [K] ``(n_rings, cube coordinates)``. Candidates near a chosen one
+    (``MIN_SEPARATION``) are out. When no candidate left adds to ``U``, the slot goes to the
+    most uncertain one per cost (``sum_m d_m / c``). Returns indices [q]."""
     chosen, best = [], np.zeros(dev.shape[1])
     spent = 0.0
+    own = dev.sum(1) / cost
+    allowed = np.ones(len(dev), bool)
     for _ in range(q):
         total = np.maximum(dev, best[None, :]).sum(1)
         ratio = total / (spent + cost)
         # A slot must add uncertainty reduction: with q fixed, a cheap candidate that adds
         # nothing would otherwise win as a filler (it lowers U / cost the least).
-        useless = total - best.sum() <= 1e-9 * max(best.sum(), 1e-300)
-        if not useless.all():
-            ratio[useless] = -np.inf
-        if chosen:
-            ratio[chosen] = -np.inf
-        j = int(np.argmax(ratio))
+        useful = allowed & (total - best.sum() > 1e-9 * max(best.sum(), 1e-300))
+        if useful.any():
+            score = np.where(useful, ratio, -np.inf)
+        else:
+            score = np.where(allowed, own, -np.inf) if allowed.any() else ratio
+        j = int(np.argmax(score))
         chosen.append(j)
         best = np.maximum(best, dev[j])
         spent += cost[j]
+        allowed &= np.array([not _near(u, units[j]) for u in units])
+        allowed[chosen] = False
     return chosen
 
 
@@ -387,12 +408,15 @@ def propose(predictor: Predictor, q: int, fidelities: Sequence[str] = ("rig",),
             pool_arm += [f] * (n_restarts * q)
 
     # (a) best joint batch of one arm, (b) cost-benefit greedy mix over the pool.
+    # An arm's joint batch whose designs coincide (MIN_SEPARATION) is one membrane twice: out.
     cands = []
     for a in arms:
-        cands.append(([(a["n_rings"], x) for x in a["u"]], [a["fidelity"]] * q, a["dev"]))
+        units = [(a["n_rings"], x) for x in a["u"]]
+        if not any(_near(units[i], units[j]) for i in range(q) for j in range(i)):
+            cands.append((units, [a["fidelity"]] * q, a["dev"]))
     dev_all = np.concatenate(pool_dev)
     dev_all = np.where(np.isfinite(dev_all), dev_all, 0.0)
-    idx = _greedy(dev_all, np.concatenate(pool_cost), q)
+    idx = _greedy(dev_all, np.concatenate(pool_cost), q, pool_u)
     cands.append(([pool_u[i] for i in idx], [pool_arm[i] for i in idx], dev_all[idx]))
     best = max(cands, key=lambda c: c[2].max(axis=0).sum() / sum(costs[f] for f in c[1]))
     units, fids, dev = best

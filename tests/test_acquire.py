@@ -155,6 +155,29 @@ def test_batch_is_diverse_when_diversity_pays():
     assert prop.utility > 1.5 * one
 
 
+def test_batch_never_holds_one_membrane_twice():
+    """Every member deviates most at the thickest membrane with c ~ 30-31 mm (peaks 0.2 mm
+    apart): far designs add nothing to the paper's score, near-copies add ~1e-5 of it, and
+    the old greedy took a copy (0.01 mm away) as the second slot, as in the demo. The second
+    slot must be a different membrane."""
+    signs = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
+    c_peak = jnp.asarray([30.0, 30.2, 30.4, 30.6, 30.8, 31.0])
+
+    def members(d, h, p):
+        t, c = d[None, :, 0], d[None, :, 1]
+        bump = jnp.exp(-(((t - 3.0) / 1.0) ** 2) - (((c - c_peak[:, None]) / 4.0) ** 2))
+        return jnp.asarray(signs)[:, None] * bump * (1.0 + 0.0 * h[None] + p[None] / 1e4)
+
+    pred = FunctionPredictor({"rig": members, "sim": members})
+    for fids in (("rig",), ("rig", "sim")):
+        prop = propose(pred, 2, fidelities=fids, n_restarts=8, n_rings=(0,), grid=GRID, n_steps=10, key=0)
+        a, b = prop.designs
+        assert max(a.thickness_mm, b.thickness_mm) > 2.9, prop.designs  # the best single design
+        # apart by MIN_SEPARATION (0.05 of the unit cube) in thickness (2 mm) or contact radius (12.7 mm)
+        apart = abs(a.thickness_mm - b.thickness_mm) >= 0.1 or abs(a.contact_radius_mm - b.contact_radius_mm) >= 0.635
+        assert apart, [d.key() for d in prop.designs]
+
+
 def test_cheap_fidelity_wins_when_it_explains_the_spread():
     """``sim`` members carry the whole spread at 1/100 of the cost: the batch goes to sim;
     ``flat`` (as cheap) carries none of it: the batch goes to the rig."""

@@ -202,20 +202,24 @@ def _plane_kernel(geom, params, h_grid, p_path_mpa, report_idx):
     return jax.vmap(one_h)(h_grid)
 
 
-@eqx.filter_jit
-def _descent_kernel(geom, params, h_low, anchor, p_rep_mpa):
-    """Low rows of a plane: from the anchor row's states (solved at ``LOW_HEIGHT_MM``) the
-    plate is lowered through the heights ``h_low`` (decreasing) at every grid pressure;
-    vmapped over pressures, one continuation through all low heights per pressure."""
-    conv_a, passed_a, _, _, locking_a, _, _, x_a = anchor
-    h_prev = jnp.concatenate([jnp.array([LOW_HEIGHT_MM]), h_low[:-1]])
-    # Where the anchor did not converge (low tension at the lowest pressures makes the
-    # shooting touchy), start from its nearest converged state at a higher pressure.
+def _descent_starts(anchor):
+    """Start states of the descent, one per grid pressure, from the anchor row (solved at
+    ``LOW_HEIGHT_MM``). Where the anchor did not converge (low tension at the lowest
+    pressures makes the shooting touchy), its nearest converged state at a higher pressure."""
+    conv_a, _, _, _, locking_a, _, _, x_a = (np.asarray(o) for o in anchor)
     n_p = conv_a.shape[0]
-    idx = jnp.where(conv_a, jnp.arange(n_p), n_p)
-    nxt = jnp.flip(jax.lax.cummin(jnp.flip(idx)))
-    start_ok = nxt < n_p
-    x_a = x_a[jnp.minimum(nxt, n_p - 1)]
+    idx = np.where(conv_a, np.arange(n_p), n_p)
+    nxt = np.flip(np.minimum.accumulate(np.flip(idx)))
+    return x_a[np.minimum(nxt, n_p - 1)], nxt < n_p, locking_a
+
+
+@eqx.filter_jit
+def _descent_kernel(geom, params, h_low, x_start, start_ok, p_rep_mpa, locking_start):
+    """Low rows of a plane: from the start states (``_descent_starts``) the plate is
+    lowered through the heights ``h_low`` (decreasing) at every grid pressure; vmapped over
+    pressures (leading axis of every output), one continuation through all low heights per
+    pressure."""
+    h_prev = jnp.concatenate([jnp.array([LOW_HEIGHT_MM]), h_low[:-1]])
 
     def one_p(x0, ok0, pp, lock0):
         def leg(carry, hs):
@@ -230,9 +234,7 @@ def _descent_kernel(geom, params, h_low, anchor, p_rep_mpa):
         _, outs = jax.lax.scan(leg, (x0, ok0), (h_prev, h_low))
         return outs
 
-    conv, force, wrinkled, locking, rise, ok_prof = jax.vmap(one_p, out_axes=1)(x_a, start_ok, p_rep_mpa, locking_a)
-    passed = jnp.broadcast_to(passed_a, conv.shape)
-    return conv, passed, force, wrinkled, locking, rise, ok_prof
+    return jax.vmap(one_p)(x_start, start_ok, p_rep_mpa, locking_start)
 
 
 def _classify(h, p, conv, passed, force, wrinkled, locking, rise, ok_prof) -> SimResult:
@@ -327,19 +329,24 @@ MAX_PATH_STEP_PA = 250.0
 PARALLEL_MIN_ROWS = 16  # below this a plane is one batch (two would not pay for the split)
 
 
-def _rows_in_parallel(kernel, rows: np.ndarray) -> list[np.ndarray]:
-    """``kernel(rows)`` as two half batches on two threads (JAX releases the GIL while a
+def _in_two_halves(kernel, *batch: np.ndarray) -> list[np.ndarray]:
+    """``kernel(*batch)`` as two half batches on two threads (JAX releases the GIL while a
     compiled kernel runs; XLA's CPU back end runs one small vmapped ``while_loop`` on
-    about one core, so a 2-core machine finishes two halves ~1.3-1.5x sooner). Rows are
-    independent lanes: the result equals one batch. The halves are padded to the same
-    length (one compilation)."""
-    n = rows.size
+    about one core, so a 2-core machine finishes two halves ~1.3-1.5x sooner). ``batch``:
+    arrays whose leading axis holds independent lanes (rows of a plane, pressures of a
+    descent); every output has that leading axis, and the result equals one batch. The
+    halves are padded to the same length (one compilation)."""
+    n = batch[0].shape[0]
     if n < PARALLEL_MIN_ROWS or (os.cpu_count() or 1) < 2:
-        return [np.asarray(o) for o in kernel(rows)]
+        return [np.asarray(o) for o in kernel(*batch)]
     half = (n + 1) // 2
-    padded = np.concatenate([rows, rows[-1:].repeat(2 * half - n)])
+    padded = [np.concatenate([a, np.repeat(a[-1:], 2 * half - n, axis=0)]) for a in batch]
+
+    def run(sl):
+        return [np.asarray(o) for o in kernel(*(a[sl] for a in padded))]
+
     with ThreadPoolExecutor(2) as pool:
-        parts = list(pool.map(lambda r: [np.asarray(o) for o in kernel(r)], (padded[:half], padded[half:])))
+        parts = list(pool.map(run, (slice(0, half), slice(half, None))))
     return [np.concatenate([a, b])[:n] for a, b in zip(*parts)]
 
 
@@ -382,13 +389,18 @@ def force_plane(
     # plate is lowered at each pressure; they leave the main batch, whose heights then all
     # start from a usable first guess (module constants explain why).
     rows = np.concatenate([hs[~low], [LOW_HEIGHT_MM]]) if low.any() else hs
-    out = _rows_in_parallel(lambda r: _plane_kernel(geom, params, jnp.asarray(r), path_mpa, report), rows)
+    out = _in_two_halves(lambda r: _plane_kernel(geom, params, jnp.asarray(r), path_mpa, report), rows)
     if low.any():
-        anchor = [jnp.asarray(o[-1]) for o in out]
-        p_rep = path_mpa[report]
+        x_start, start_ok, locking_start = _descent_starts([o[-1] for o in out])
+        p_rep = np.asarray(path_mpa[report])
         low_idx = np.nonzero(low)[0]
         order = low_idx[np.argsort(-hs[low_idx], kind="stable")]  # the plate goes down
-        down = [np.asarray(o) for o in _descent_kernel(geom, params, jnp.asarray(hs[order]), anchor, p_rep)]
+        h_low = jnp.asarray(hs[order])
+        # Pressures are independent lanes of the descent: two threads, like the rows.
+        down = _in_two_halves(lambda *b: _descent_kernel(geom, params, h_low, *b),
+                              x_start, start_ok, p_rep, locking_start)
+        down = [np.swapaxes(o, 0, 1) for o in down]  # (pressure, height) -> (height, pressure)
+        down.insert(1, np.broadcast_to(out[1][-1], down[0].shape))  # passed: the anchor's
         full = []
         for o_main, o_low in zip(out[:7], down):
             arr = np.empty((hs.size,) + o_main.shape[1:], o_main.dtype)
