@@ -231,6 +231,13 @@ def evaluate(predictor: Predictor, designs, fidelities: Sequence[str], grid: Gri
 
 
 # --------------------------------------------------------------------------- optimiser
+# Backtracking steps of L-BFGS's line search. Under vmap every restart waits for the one
+# that backtracks most, so this caps the cost of each iteration: on the 2-core CPU, 100
+# restarts x 20 iterations (q = 2, 32 members, 8 x 8 grid) took 20.3 s with 4 and 39.2 s
+# with 10, with the same designs and utility (experiments/bench_acquire.py --restarts 100).
+LINESEARCH_STEPS = 4
+
+
 @eqx.filter_jit
 def _optimise_fidelity(predictor, z0, n_rings, fidelity, grid, space, n_steps):
     """``z0 [A, R, q, 6]``, ring counts ``n_rings [A]`` -> ``(u [A, R, q, 6], dev [A, R, q, M])``:
@@ -238,7 +245,8 @@ def _optimise_fidelity(predictor, z0, n_rings, fidelity, grid, space, n_steps):
     (``jax.vmap`` over ring counts and restarts: one compiled call per fidelity, reused for
     any predictor of the same structure, e.g. a refitted ensemble). The ring count is data
     (:meth:`~mfdesign.design.DesignSpace.decode_any`), so it costs no extra compilation."""
-    opt = optax.lbfgs(linesearch=optax.scale_by_backtracking_linesearch(max_backtracking_steps=10, store_grad=True))
+    opt = optax.lbfgs(linesearch=optax.scale_by_backtracking_linesearch(
+        max_backtracking_steps=LINESEARCH_STEPS, store_grad=True))
 
     def one(z, n):
         def dev_of(z):
