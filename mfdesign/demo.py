@@ -62,6 +62,12 @@ class DemoSettings:
                    propose_steps=5, optimise_starts=128, optimise_refine=4, optimise_steps=10, force_model=force_model)
 
 
+def _short(key: str) -> str:
+    """A design key for people: mm to 0.01 (the JSON keeps the full key)."""
+    vals = json.loads(key.replace("nan", "NaN"))
+    return "[" + ", ".join("nan" if v != v else f"{v:.2f}" for v in vals) + "]"
+
+
 def _plt():
     import matplotlib
 
@@ -129,7 +135,7 @@ def _proposal_figure(meas, proposal, path: Path) -> None:
         ax.plot(d[1], d[0], "ko", ms=5)
     for m, fid in zip(proposal.designs, proposal.fidelities):
         ax.plot(m.contact_radius_mm, m.thickness_mm, "*", ms=14, color="tab:red" if fid == "rig" else "tab:blue",
-                label=f"{fid}: {m.key()}")
+                label=f"{fid}: {_short(m.key())}")
     ax.set_xlabel("contact radius c [mm]")
     ax.set_ylabel("thickness t [mm]")
     ax.set_title("black: membranes measured; stars: proposed next", fontsize=9)
@@ -247,8 +253,8 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
             f"Residual RMSE {diag.before.rmse_n:.2f} N before, "
             + (f"{diag.after.rmse_n:.2f} N after adding it" if diag.after is not None else "unchanged")
             + f"; noise floor {diag.before.noise_floor_n:.2f} N.",
-            "Proposed next: " + "; ".join(f"{m.key()} ({f})" for m, f in zip(proposal.designs, proposal.fidelities)) + ".",
-            f"Optimised for lift task A: {result.design_key}.",
+            "Proposed next: " + "; ".join(f"{_short(m.key())} ({f})" for m, f in zip(proposal.designs, proposal.fidelities)) + ".",
+            f"Optimised for lift task A: {_short(result.design_key)}.",
         ]
         rep.add("Data and model", ["Measured force against pressure, with the plain and the corrected model's means."],
                 images=[(fig_dir / "planes.png", "data vs model planes")])
@@ -265,7 +271,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
         rep.add(f"After adding {', '.join(found) if found else 'nothing'}", ["Posterior with the effect(s)."],
                 table=post1, images=after_imgs + ([(out / "with_effects" / "corner.png", "posterior with effects")]
                                                   if found else []))
-        rep.add("Next membranes", [f"{m.key()}: {f}" for m, f in zip(proposal.designs, proposal.fidelities)],
+        rep.add("Next membranes", [f"{_short(m.key())}: {f}" for m, f in zip(proposal.designs, proposal.fidelities)],
                 images=[(out / "propose" / "proposals.png", "proposals in the design space")])
         rep.add("Optimised membrane for lift task A", [], images=[(out / "optimize" / "optimum.png", "predicted lift")])
         rep.meta = {"timings_s": log.times}
