@@ -18,7 +18,3 @@ def ctrl_c():
     finally:
         signal.signal(signal.SIGINT, old)
 
-
-def sigint_default() -> None:
-    """``preexec_fn`` for a child that must stop on SIGINT even if we ignore it (see ``ctrl_c``)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -12,7 +12,6 @@ from typer.testing import CliRunner
 
 from mfdesign.rig.commands import rig_app
 
-from conftest import sigint_default
 from test_rig_support import RINGLESS, emulator, fast_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -68,8 +67,7 @@ def test_bad_input_gets_a_clear_message(tmp_path):
 
 def test_emulate_prints_port_and_serves_until_ctrl_c(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "mfdesign.rig.commands", "emulate", "--time-scale", "25"],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=sigint_default)
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         port = proc.stdout.readline().strip()
         assert port.startswith("/dev/pts/"), port

@@ -48,12 +48,16 @@ def _heights(text: str) -> tuple[float, ...]:
     return hs
 
 
-def _sigterm_as_interrupt() -> None:
+def _signals_as_interrupt() -> None:
+    """SIGTERM and SIGINT stop a rig command as Ctrl-C does (rig put safe, job resumable).
+    SIGINT too, explicitly: a shell without job control starts background jobs with SIGINT
+    ignored, and ``kill -INT`` (or a test) must still stop the emulator or a job."""
     def handler(signum, frame):
         raise KeyboardInterrupt(f"signal {signum}")
 
     try:
         signal.signal(signal.SIGTERM, handler)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     except ValueError:  # not the main thread (e.g. under a test runner): leave it
         pass
 
@@ -62,7 +66,7 @@ def _finish(job_dir: Path, run) -> None:
     from mfdesign.rig.procedures import JobError, to_measurements
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    _sigterm_as_interrupt()
+    _signals_as_interrupt()
     try:
         result = run()
     except JobError as exc:
@@ -103,7 +107,7 @@ def emulate(
     typer.echo(port)
     sys.stdout.flush()
     typer.echo("emulated rig running; Ctrl-C to stop", err=True)
-    _sigterm_as_interrupt()
+    _signals_as_interrupt()
     try:
         em.serve_forever()
     except KeyboardInterrupt:
