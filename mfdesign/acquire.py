@@ -327,9 +327,20 @@ def _check_costs(fidelities, costs):
 MIN_SEPARATION = 0.05
 
 
-def _near(a, b) -> bool:
-    """``a``, ``b``: ``(n_rings, unit-cube coordinates)``; see ``MIN_SEPARATION``."""
-    return a[0] == b[0] and bool(np.max(np.abs(np.asarray(a[1]) - np.asarray(b[1]))) < MIN_SEPARATION)
+def _near(units, j: int) -> np.ndarray:
+    """Mask over ``units`` ``[(n_rings, unit-cube coordinates)]``: which are one membrane
+    with ``units[j]`` (same ring count, within ``MIN_SEPARATION`` in every coordinate)."""
+    n, x = units
+    return (n == n[j]) & (np.max(np.abs(x - x[j]), axis=1) < MIN_SEPARATION)
+
+
+def _unit_array(units) -> tuple[np.ndarray, np.ndarray]:
+    """``[(n_rings, coordinates)]`` -> ring counts ``[K]`` and coordinates zero-padded to
+    ``[K, 6]`` (only equal ring counts are compared, so the padding never matters)."""
+    x = np.zeros((len(units), 6))
+    for i, (_, u) in enumerate(units):
+        x[i, :len(u)] = u
+    return np.array([n for n, _ in units]), x
 
 
 def _greedy(dev, cost, q, units):
@@ -342,6 +353,7 @@ def _greedy(dev, cost, q, units):
     spent = 0.0
     own = dev.sum(1) / cost
     allowed = np.ones(len(dev), bool)
+    units = _unit_array(units)
     for _ in range(q):
         total = np.maximum(dev, best[None, :]).sum(1)
         ratio = total / (spent + cost)
@@ -356,7 +368,7 @@ def _greedy(dev, cost, q, units):
         chosen.append(j)
         best = np.maximum(best, dev[j])
         spent += cost[j]
-        allowed &= np.array([not _near(u, units[j]) for u in units])
+        allowed &= ~_near(units, j)
         allowed[chosen] = False
     return chosen
 
@@ -420,7 +432,8 @@ def propose(predictor: Predictor, q: int, fidelities: Sequence[str] = ("rig",),
     cands = []
     for a in arms:
         units = [(a["n_rings"], x) for x in a["u"]]
-        if not any(_near(units[i], units[j]) for i in range(q) for j in range(i)):
+        arr = _unit_array(units)
+        if not any(_near(arr, j)[:j].any() for j in range(q)):
             cands.append((units, [a["fidelity"]] * q, a["dev"]))
     dev_all = np.concatenate(pool_dev)
     dev_all = np.where(np.isfinite(dev_all), dev_all, 0.0)

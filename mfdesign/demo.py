@@ -64,8 +64,9 @@ class DemoSettings:
 
 def _short(key: str) -> str:
     """A design key for people: mm to 0.01 (the JSON keeps the full key)."""
-    vals = json.loads(key.replace("nan", "NaN"))
-    return "[" + ", ".join("nan" if v != v else f"{v:.2f}" for v in vals) + "]"
+    from mfdesign.design import Membrane
+
+    return "[" + ", ".join("nan" if v != v else f"{v:.2f}" for v in Membrane.from_key(key).to_array()) + "]"
 
 
 def _plt():
