@@ -95,8 +95,9 @@ def register(app: typer.Typer) -> None:
         cost_rig: float = typer.Option(1.0, help="Cost of one rig membrane (e.g. days)."),
         cost_sim: float = typer.Option(0.01, help="Cost of one simulator plane, same unit."),
         rings: list[int] = typer.Option([0, 1, 2], help="Ring counts to search (repeat): 0, 1, 2."),
-        restarts: int = typer.Option(1000, help="L-BFGS restarts per ring count and fidelity."),
-        steps: int = typer.Option(20, help="L-BFGS iterations per restart."),
+        restarts: int = typer.Option(1000, help="Random batches scored per ring count and fidelity."),
+        refine: int = typer.Option(32, help="Best scored batches refined by L-BFGS."),
+        steps: int = typer.Option(20, help="L-BFGS iterations per refined batch."),
         seed: int = typer.Option(0, help="Random seed of the restarts."),
         out: Path = typer.Option(Path("out/propose"), help="Output folder (proposal.json, proposal.png)."),
     ) -> None:
@@ -107,6 +108,8 @@ def register(app: typer.Typer) -> None:
             fail(f"--q must be an integer >= 1, got {q}")
         if restarts < 1:
             fail(f"--restarts must be >= 1, got {restarts}")
+        if refine < 1:
+            fail(f"--refine must be >= 1, got {refine}")
         if steps < 0:
             fail(f"--steps must be >= 0, got {steps}")
         bad = [f for f in fidelity if f not in ("rig", "sim")]
@@ -131,7 +134,8 @@ def register(app: typer.Typer) -> None:
                  "(the sim fidelity needs a fit-mf folder or a sim/ + discrepancy/ model folder)")
         try:
             proposal = run_propose(predictor, q, fidelities=tuple(fidelity), costs={"rig": cost_rig, "sim": cost_sim},
-                                   n_restarts=restarts, n_rings=tuple(rings), n_steps=steps, key=seed, progress=True)
+                                   n_restarts=restarts, n_refine=refine, n_rings=tuple(rings), n_steps=steps, key=seed,
+                                   progress=True)
         except ValueError as err:
             fail(str(err))
         out.mkdir(parents=True, exist_ok=True)

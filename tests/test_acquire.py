@@ -250,3 +250,28 @@ def test_cli_writes_json_and_png(tmp_path):
     assert len(out["designs"]) == 2 and out["fidelities"] == ["rig", "rig"]
     assert all(Membrane.from_key(k).n_rings == 1 for k in out["designs"])
     assert (tmp_path / "o" / "proposal.png").stat().st_size > 1000
+
+
+def test_screening_scores_random_batches_exactly_and_refines_the_best():
+    """With ``n_refine < n_restarts`` the random batches are scored by a forward pass (the
+    same deviations ``evaluate`` gives) and only the best are refined: with 0 L-BFGS steps
+    the proposal is the best screened batch, and with steps it is at least as good."""
+    from mfdesign.acquire import _screen_fidelity
+
+    u0 = jax.random.uniform(jax.random.PRNGKey(5), (2, 40, 2, 6))
+    n_arr = jnp.asarray([0, 2])
+    dev = np.asarray(_screen_fidelity(PRED, u0, n_arr, "rig", GRID, SPACE))  # [A, R, q, M]
+    assert dev.shape == (2, 40, 2, M)
+    for a, n in enumerate((0, 2)):
+        for r in (0, 17, 39):
+            rows = np.asarray(SPACE.decode_any(u0[a, r], n))
+            np.testing.assert_allclose(dev[a, r], evaluate(PRED, rows, ["rig", "rig"], GRID)["deviation"],
+                                       rtol=1e-10)
+    kw = dict(n_rings=(2,), grid=GRID, costs=COSTS, key=3, n_restarts=200)
+    util = [propose(PRED, 2, n_refine=r, n_steps=0, **kw).arms[0]["best_utility_n"] for r in (200, 4, 1)]
+    assert util[0] == pytest.approx(util[1]) == pytest.approx(util[2])  # the screen keeps the best start
+    refined = propose(PRED, 2, n_refine=4, n_steps=10, **kw)
+    assert refined.arms[0]["refined"] == 4 and refined.arms[0]["screened"] == 200
+    assert refined.arms[0]["best_utility_n"] >= util[0] - 1e-9
+    with pytest.raises(ValueError, match="n_refine"):
+        propose(PRED, 2, n_refine=0, **kw)
