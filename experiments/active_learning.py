@@ -27,8 +27,9 @@ membranes (one per ring count, Latin hypercube in the unit cube, per seed), then
 
 Cost axis: rig membranes count 1, simulator planes ``--cost-sim``. Metric: force RMSE [N]
 on the held-out rows that measure F(h, p) (mean prediction): force characterisation and
-lifted mass-lift rows; training sees the same kinds of rows (``_force_rows``). Small ensembles (8 members, 1,500 steps) on a
-fixed-size resample of the training rows (one compilation for all fits); acquisition
+lifted mass-lift rows; training sees the same kinds of rows (``_force_rows``). The plot
+also shows the nominal simulator alone (no data). Small ensembles (8 members, 1,500
+steps) on a fixed-size resample of the training rows (one compilation for all fits); acquisition
 screens 1,000 random batches per ring count and refines the best 32 by 15 L-BFGS
 iterations. ``--quick`` swaps the simulator for the analytic stand-in
 (``mfdesign.rig.virtual.analytic_plane``), fewer steps: a smoke run, not a result.
@@ -86,11 +87,27 @@ class Lab:
         else:
             sim = analytic_plane if simulator == "analytic" else None
         cache = OUT / "plane_cache" if simulator == "simulator" else None
+        self.simulator = simulator
         self.truth = VirtualRig(effects=[HIDDEN[0]], theta=HIDDEN[1], seed=777, simulator=sim, cache_dir=cache)
         self.nominal = VirtualRig(simulator=sim, cache_dir=cache)
         held = _force_rows(self.truth.run([Membrane.from_key(k) for k in HELD_OUT], progress=False)).arrays()
         self._rows: dict = {}
         self.held = {k: v[::5] for k, v in held.items() if k in ("design", "height_mm", "pressure_pa", "force_n")}
+
+    def simulator_rmse(self) -> float | None:
+        """Held-out RMSE [N] of the nominal simulator alone (the emulator at the truth's
+        constants, no data, no discrepancy): the zero-membrane reference of a physics model.
+        None unless the truth runs on the emulator."""
+        if self.simulator != "emulator":
+            return None
+        import jax.numpy as jnp
+
+        from mfdesign.models.emulator import load_default
+
+        h = self.held
+        f = load_default()(jnp.asarray(h["design"]), jnp.asarray(h["height_mm"]), jnp.asarray(h["pressure_pa"]),
+                           self.nominal.base_params)
+        return float(np.sqrt(np.mean((np.asarray(f) - h["force_n"]) ** 2)))
 
     def fabricate(self, design, seed: int) -> dict:
         """Rig rows of one membrane (force characterisation + mass lifts), subsampled."""
@@ -305,6 +322,9 @@ def plot(results, summary, args, path):
                         label=arm if s == min(results) else None, ms=3)
     for ax, lab in zip(axes, ("membranes fabricated", "cost (rig runs; sim = %g)" % args.cost_sim)):
         ax.axhline(args.target_n, color="k", ls="--", lw=1, label=f"target {args.target_n} N")
+        if args.simulator_rmse is not None:
+            ax.axhline(args.simulator_rmse, color="tab:green", ls=":", lw=1.5,
+                       label=f"nominal simulator, no data: {args.simulator_rmse:.2f} N")
         ax.set_xlabel(lab)
         ax.set_ylabel("held-out force RMSE [N]")
         ax.set_yscale("log")
@@ -371,9 +391,10 @@ def main() -> None:
     common = dict(n_members=args.members, steps=args.steps, chunk=min(500, args.steps), batch=100)
     cfgs = {"rig": EnsembleConfig(monotone=True, **common), "disc": EnsembleConfig(monotone=False, **common)}
     t0 = time.perf_counter()
-    lab = Lab(args.simulator) if not args.report_only else None
-    if lab is not None:
-        print(f"held-out: {len(lab.held['force_n'])} rows of {len(HELD_OUT)} membranes ({time.perf_counter() - t0:.0f} s)",
+    lab = Lab(args.simulator)
+    args.simulator_rmse = lab.simulator_rmse()
+    print(f"nominal simulator alone: held-out RMSE {args.simulator_rmse} N", flush=True)
+    print(f"held-out: {len(lab.held['force_n'])} rows of {len(HELD_OUT)} membranes ({time.perf_counter() - t0:.0f} s)",
           flush=True)
     for seed in [] if args.report_only else args.seeds:
         for arm in args.arms:
@@ -395,12 +416,13 @@ def main() -> None:
         r, a = summary["random"]["final_rmse_n_mean"], summary["rig"]["final_rmse_n_mean"]
         print(f"ratio final RMSE random / rig acquisition: {r / a:.2f}", flush=True)
     out = {"command": "python experiments/active_learning.py " + " ".join(
-               f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "save"),
+               f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k not in ("save", "simulator_rmse")),
            "quick": args.quick, "simulator": args.simulator, "hidden_effect": {"name": HIDDEN[0], "theta": HIDDEN[1]},
            "held_out": list(HELD_OUT),
            "complete": all(len(results.get(s, {}).get(a, {}).get("curve", [])) > args.iters
                            for s in args.seeds for a in args.arms),
-           "target_n": args.target_n, "cost_sim": args.cost_sim, "summary": summary,
+           "target_n": args.target_n, "cost_sim": args.cost_sim, "simulator_alone_rmse_n": args.simulator_rmse,
+           "summary": summary,
            "runs": {str(k): v for k, v in results.items()}, "wall_s": time.perf_counter() - t0,
            "note": ("fidelity arm: SplitPredictor (sim ensemble + discrepancy ensemble, warm-started with "
                     "--warm-sims simulator planes); mf-* arms: the issue-5 multi-fidelity model (emcee calibration "
