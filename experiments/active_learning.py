@@ -18,10 +18,12 @@ membranes (one per ring count, Latin hypercube in the unit cube, per seed), then
   inform this model directly: the split F = F_sim + delta, with no calibration of theta.
 * ``mf-rig``: the paper's acquisition (rig only) on the calibrated multi-fidelity model of
   issue 5 (``mfdesign.calibration.workflow.fit_multi_fidelity``: emcee calibration of mu,
-  J_m and the thickness hierarchy through the simulator's emulator, then an RPN discrepancy
-  on the residuals; no effect assumed, so the discrepancy must learn the hidden pressure
-  offset). Its simulator fidelity is the pre-trained emulator, so sim runs would add
-  nothing: rig only.
+  J_m, the thickness hierarchy and the ``--mf-effects`` through the simulator's emulator,
+  then an RPN discrepancy on the residuals). Default effect: ``pressure_sensor``, the one
+  ``mfdesign diagnose`` names on this rig's data (the demo finds it); ``--mf-effects``
+  with no name runs the bare model. Its simulator fidelity is the pre-trained emulator, so
+  sim runs would add nothing: rig only. Its acquisition runs on a 4 x 4 grid and refines
+  ``--mf-refine`` batches (each evaluation runs the emulator for every posterior draw).
 * ``mf-random``: the same model on the random arm's kind of designs: the control that
   separates what the physics prior buys from what the acquisition buys.
 
@@ -66,7 +68,10 @@ HELD_OUT = (
 ARMS = ("random", "rig", "fidelity", "mf-random", "mf-rig")
 # Options a run's checkpoint must share with the command that resumes it.
 SETTINGS = ("simulator", "q", "restarts", "refine", "lbfgs_steps", "members", "steps", "cost_sim", "warm_sims",
-            "mcmc_steps", "walkers", "mf_rows", "mf_draws")
+            "mcmc_steps", "walkers", "mf_rows", "mf_draws", "mf_effects", "mf_refine")
+# The mf arms' acquisition grid: heights 0-60 mm x 2-8 kPa, 4 x 4 (the default 8 x 8 grid
+# through 8 posterior draws of the emulator took over 13 minutes per proposal).
+MF_GRID_H, MF_GRID_P = (0.0, 20.0, 40.0, 60.0), (2000.0, 4000.0, 6000.0, 8000.0)
 MIN_LIFT_MM = 2.0  # CalibrationData.from_measurements' min_lift_height_mm
 ROWS_PER_MEMBRANE = 400  # rig rows kept per membrane (the ramps are ~20k samples)
 TRAIN_ROWS = 6000  # fixed-size resample: every fit has the same shapes (one compilation)
@@ -138,6 +143,12 @@ class Lab:
                 "pressure_pa": P[ok], "force_n": plane.force_n[ok]}
 
 
+def _mf_grid():
+    from mfdesign.acquire import Grid
+
+    return Grid(h_mm=MF_GRID_H, p_pa=MF_GRID_P)
+
+
 def _force_rows(m):
     """Rows that measure the membrane's force F(h, p): the force characterisation and the
     mass lifts with the plate lifted (>= MIN_LIFT_MM, the calibration's rule). A lift row
@@ -181,8 +192,7 @@ class Model:
             from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named
             from mfdesign.data.measurements import Measurements
 
-            # No effect is assumed: the discrepancy has to learn the hidden pressure offset.
-            fit = fit_multi_fidelity(Measurements.concat(tables), force_model_named("emulator"), (),
+            fit = fit_multi_fidelity(Measurements.concat(tables), force_model_named("emulator"), tuple(args.mf_effects),
                                      n_steps=args.mcmc_steps, n_walkers=args.walkers, max_rows=args.mf_rows,
                                      ensemble_config=cfgs["disc"], seed=seed, progress=False)
             self.mf = fit.mf
@@ -228,7 +238,7 @@ def initial_designs(seed):
 
 def run_arm(lab, arm, seed, args, cfgs, state) -> dict:
     """Run (or resume) one arm for one seed; ``state`` is the checkpoint dict of this run."""
-    from mfdesign.acquire import propose
+    from mfdesign.acquire import Grid, propose
     from mfdesign.design import DesignSpace, Membrane
 
     space = DesignSpace()
@@ -265,8 +275,10 @@ def run_arm(lab, arm, seed, args, cfgs, state) -> dict:
                    for n in rng.integers(0, 3, size=args.q)]
         else:
             fids = ("rig", "sim") if arm == "fidelity" else ("rig",)
+            cheap = arm.startswith("mf")  # every evaluation runs the emulator for each posterior draw
             prop = propose(model.predictor, args.q, fidelities=fids, costs=costs, n_restarts=args.restarts,
-                           n_refine=args.refine, n_steps=args.lbfgs_steps, key=seed * 1000 + it)
+                           n_refine=args.mf_refine if cheap else args.refine, n_steps=args.lbfgs_steps,
+                           grid=_mf_grid() if cheap else Grid(), key=seed * 1000 + it)
             new = list(zip(prop.designs, prop.fidelities))
         curve[-1]["propose_s"] = time.perf_counter() - t
         curve[-1]["proposed"] = [[d.key(), f] for d, f in new]
@@ -348,9 +360,13 @@ def main() -> None:
     ap.add_argument("--restarts", type=int, default=1000, help="random batches screened per ring count")
     ap.add_argument("--refine", type=int, default=32, help="screened batches refined by L-BFGS")
     ap.add_argument("--warm-sims", type=int, default=12, help="fidelity arm: Latin-hypercube sims before round 1")
-    ap.add_argument("--mcmc-steps", type=int, default=300, help="mf arms: emcee steps per fit")
+    ap.add_argument("--mcmc-steps", type=int, default=200, help="mf arms: emcee steps per fit")
     ap.add_argument("--walkers", type=int, default=28, help="mf arms: emcee walkers")
     ap.add_argument("--mf-rows", type=int, default=800, help="mf arms: rows the calibration sees")
+    ap.add_argument("--mf-effects", nargs="*", default=["pressure_sensor"],
+                    help="mf arms: effects calibrated (default: the one `mfdesign diagnose` names on this rig's "
+                         "data; pass none for the bare model)")
+    ap.add_argument("--mf-refine", type=int, default=8, help="mf arms: screened batches refined by L-BFGS")
     ap.add_argument("--mf-draws", type=int, default=8, help="mf arms: posterior draws the acquisition compares")
     ap.add_argument("--lbfgs-steps", type=int, default=15)
     ap.add_argument("--members", type=int, default=8)

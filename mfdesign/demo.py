@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mfdesign.design import Membrane
+
 __all__ = ["DemoSettings", "run_demo", "BUNDLED"]
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,8 +66,6 @@ class DemoSettings:
 
 def _short(key: str) -> str:
     """A design key for people: mm to 0.01 (the JSON keeps the full key)."""
-    from mfdesign.design import Membrane
-
     return "[" + ", ".join("nan" if v != v else f"{v:.2f}" for v in Membrane.from_key(key).to_array()) + "]"
 
 
@@ -114,7 +114,7 @@ def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
             c = plt.cm.viridis(i / max(1, len(heights) - 1))
             ax.plot(s["pressure_pa"] / 1e3, s["force_n"], ".", ms=1.5, color=c, alpha=0.4)
             p = np.linspace(max(50.0, s["pressure_pa"].min()), s["pressure_pa"].max(), 40)
-            design = np.tile(np.asarray(json.loads(key.replace("nan", "NaN")), float), (p.size, 1))
+            design = np.tile(Membrane.from_key(key).to_array(), (p.size, 1))
             for (name, fn), ls in zip(fits.items(), ("--", "-")):
                 f = np.asarray(fn(design, np.full(p.size, hs), p)).mean(0)
                 ax.plot(p / 1e3, f, ls, color=c, lw=1.2, label=f"{name}" if i == 0 else None)
@@ -132,8 +132,8 @@ def _proposal_figure(meas, proposal, path: Path) -> None:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.5, 4))
     for key in meas.design_keys:
-        d = json.loads(key.replace("nan", "NaN"))
-        ax.plot(d[1], d[0], "ko", ms=5)
+        d = Membrane.from_key(key)
+        ax.plot(d.contact_radius_mm, d.thickness_mm, "ko", ms=5)
     for m, fid in zip(proposal.designs, proposal.fidelities):
         ax.plot(m.contact_radius_mm, m.thickness_mm, "*", ms=14, color="tab:red" if fid == "rig" else "tab:blue",
                 label=f"{fid}: {_short(m.key())}")
