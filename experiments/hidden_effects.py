@@ -121,7 +121,6 @@ def summarise(cases):
         "claimed_first_among_detectable": frac([c["found"][:1] == c["hidden"] for c in detectable]),
         "undetectable_cases_claimed": sum(bool(c["found"]) for c in single if c not in detectable),
         "claimed_first_all_cases": frac([c["found"][:1] == c["hidden"] for c in single]),
-        "screen_top1_accuracy": frac([c["screen_rank_of_hidden"] == [1] for c in single]),
         "heldout_within_1.2x_noise": frac([c["heldout_over_noise"] <= 1.2 for c in single]),
         "heldout_within_1.2x_noise_or_oracle": frac([min(c["heldout_over_noise"], c.get("heldout_over_oracle", 9e9)) <= 1.2
                                                     for c in single]),
