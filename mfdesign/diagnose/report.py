@@ -35,6 +35,13 @@ def _plt():
     return plt
 
 
+def _save(fig, path: Path) -> None:
+    """Lay out, write (90 dpi: the report shows many small figures) and free a figure."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    _plt().close(fig)
+
+
 def residual_maps(res: Residuals, path: Path, title: str, vmax: float | None = None) -> float:
     """Per-membrane mean-residual maps on 5 mm x 500 Pa cells; returns the colour limit used."""
     plt = _plt()
@@ -87,9 +94,7 @@ def parity(res: Residuals, path: Path, after: Residuals | None = None) -> None:
     ax.set_xlabel("model force [N]")
     ax.set_ylabel("observed force [N]")
     ax.legend(markerscale=4, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def trial_plot(res: Residuals, path: Path, after: Residuals | None = None) -> None:
@@ -106,9 +111,7 @@ def trial_plot(res: Residuals, path: Path, after: Residuals | None = None) -> No
     ax.set_ylabel("mean residual [N]")
     ax.legend(fontsize=6, loc="upper right")
     ax.set_title("residual vs trial order (solid: before, dotted: after)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def breakdown_plot(res: Residuals, path: Path, after: Residuals | None = None) -> None:
@@ -128,9 +131,7 @@ def breakdown_plot(res: Residuals, path: Path, after: Residuals | None = None) -
         ax.set_xticks(x, [b["bin"] for b in bins], rotation=60, fontsize=6)
         ax.set_title(f"RMS residual by {name.replace('_', ' ')}")
     axes[0, 0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def screen_plot(step: dict, path: Path) -> None:
@@ -143,9 +144,7 @@ def screen_plot(step: dict, path: Path) -> None:
     ax.set_xlim(0, 1)
     ax.set_xlabel("fraction of residual mean square explained (first order)")
     ax.set_title("effect screen" + (f" (model already has {', '.join(step['base_effects'])})" if step["base_effects"] else ""))
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def shapes_plot(res: Residuals, path: Path, params=None, n: int = 3) -> list[dict]:
@@ -176,9 +175,7 @@ def shapes_plot(res: Residuals, path: Path, params=None, n: int = 3) -> list[dic
     ax.set_ylabel("Z above the clamp [mm]")
     ax.legend(fontsize=6, loc="upper right")
     ax.set_title("simulated membrane at the worst points")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    _save(fig, path)
     return out
 
 
