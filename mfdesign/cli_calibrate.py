@@ -92,19 +92,28 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
     typer.echo(json.dumps(written))
 
 
+# Options both commands take, declared once (typer reads them as parameter defaults).
+DATA = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data.")
+EFFECTS = typer.Option(None, "--effects", help="Active effect (repeat for several).")
+SIMULATOR = typer.Option("emulator", help="Force model: emulator | standin.")
+LIKELIHOOD = typer.Option("gaussian", help="gaussian | student_t")
+SEED = typer.Option(0, help="Random seed.")
+RESUME = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists.")
+
+
 def register(app: typer.Typer) -> None:
     @app.command()
     def calibrate(
-        data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
+        data: Path = DATA,
         out: Path = typer.Option(..., help="Output folder (chain.h5, posterior.json/.npz, corner.png)."),
-        effects: Optional[List[str]] = typer.Option(None, "--effects", help="Active effect (repeat for several)."),
+        effects: Optional[List[str]] = EFFECTS,
         steps: int = typer.Option(3000, min=1, help="Chain length (total; a rerun resumes)."),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: max(32, 2 dim + 2))."),
         max_rows: int = typer.Option(3000, min=10, help="Rows used by the likelihood (evenly within trials)."),
-        simulator: str = typer.Option("emulator", help="Force model: emulator | standin."),
-        likelihood: str = typer.Option("gaussian", help="gaussian | student_t"),
-        seed: int = typer.Option(0, help="Random seed."),
-        resume: bool = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists."),
+        simulator: str = SIMULATOR,
+        likelihood: str = LIKELIHOOD,
+        seed: int = SEED,
+        resume: bool = RESUME,
     ) -> None:
         """Calibrate mu [Pa], J_m and the effects' parameters with emcee (posterior table, corner plot, chain)."""
         _run(data, list(effects or []), out, steps, walkers, max_rows, simulator, likelihood, seed, resume,
@@ -112,18 +121,18 @@ def register(app: typer.Typer) -> None:
 
     @app.command("fit-mf")
     def fit_mf(
-        data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
+        data: Path = DATA,
         out: Path = typer.Option(..., help="Output folder."),
-        effects: Optional[List[str]] = typer.Option(None, "--effects", help="Active effect (repeat for several)."),
+        effects: Optional[List[str]] = EFFECTS,
         steps: int = typer.Option(2000, min=1, help="Chain length."),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: automatic)."),
         max_rows: int = typer.Option(1500, min=10, help="Rows used by the likelihood."),
-        simulator: str = typer.Option("emulator", help="Force model: emulator | standin."),
-        likelihood: str = typer.Option("gaussian", help="gaussian | student_t"),
+        simulator: str = SIMULATOR,
+        likelihood: str = LIKELIHOOD,
         members: int = typer.Option(8, min=1, help="Discrepancy ensemble members."),
         delta_steps: int = typer.Option(3000, min=1, help="Discrepancy training steps."),
-        seed: int = typer.Option(0, help="Random seed."),
-        resume: bool = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists."),
+        seed: int = SEED,
+        resume: bool = RESUME,
     ) -> None:
         """Multi-fidelity fit: calibrated simulator + RPN discrepancy ensemble + noise."""
         _run(data, list(effects or []), out, steps, walkers, max_rows, simulator, likelihood, seed, resume,
