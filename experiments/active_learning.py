@@ -323,7 +323,7 @@ def plot(results, summary, args, path):
 
     colours = {"random": "tab:gray", "rig": "tab:blue", "fidelity": "tab:orange", "mf-random": "tab:olive",
                "mf-rig": "tab:red"}
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.8))
     for arm in ARMS:
         for s in results:
             c = results[s].get(arm, {}).get("curve", [])
@@ -341,10 +341,11 @@ def plot(results, summary, args, path):
         ax.set_ylabel("held-out force RMSE [N]")
         ax.set_yscale("log")
         ax.grid(alpha=0.3)
-    axes[0].legend()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8)
     fig.suptitle(f"Active learning on the virtual rig ({args.simulator}{', quick' if args.quick else ''}; "
                  f"{len(results)} seeds, q = {args.q})")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.12, 1, 1))
     fig.savefig(path, dpi=120)
 
 
@@ -435,7 +436,9 @@ def main() -> None:
                f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k not in ("save", "simulator_rmse")),
            "quick": args.quick, "simulator": args.simulator, "hidden_effect": {"name": HIDDEN[0], "theta": HIDDEN[1]},
            "held_out": list(HELD_OUT),
-           "complete": all(len(results.get(s, {}).get(a, {}).get("curve", [])) > args.iters
+           # --report-only: complete when every (seed, arm) has a curve (arms may have run for
+           # different --iters: the mf arms for 2, the others for 6).
+           "complete": all(len(results.get(s, {}).get(a, {}).get("curve", [])) > (0 if args.report_only else args.iters)
                            for s in args.seeds for a in args.arms),
            "target_n": args.target_n, "cost_sim": args.cost_sim, "simulator_alone_rmse_n": args.simulator_rmse,
            "summary": summary,
