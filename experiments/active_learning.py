@@ -44,6 +44,12 @@ lets a killed run resume (same command), and lets arms run in parallel processes
 
     python experiments/active_learning.py [--quick | --simulator emulator] [--seeds 0 1 2] [--iters 6]
 
+The published curves: ``--arms random rig fidelity --iters 6`` (~15 min on the 2-core CPU)
+and ``--arms mf-random mf-rig --iters 2`` (~40 min; each fit calibrates by MCMC), one per
+core in parallel; then ``--report-only`` writes the JSON/PNG of every run on disk. The mf
+arms calibrate through the emulator, so ``--quick`` (analytic truth) is meant for the
+other three.
+
 Writes ``experiments/out/active_learning[_quick].json`` and ``.png``.
 """
 
