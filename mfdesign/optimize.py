@@ -40,7 +40,10 @@ grid (an unreachable way-point gets ``p_hi`` and the force penalty).
 the best ``n_refine`` (default: all) are refined by projected Adam (Kingma & Ba 2015;
 ``optax.adam`` followed by ``optax.projections.projection_box`` onto ``[0, 1]^d``), every
 start under ``jax.vmap`` inside one ``lax.scan``, chunked by ``jax.lax.map(batch_size=)``
-to bound memory. Each start keeps the best point it visited.
+to bound memory. Each start keeps the best point it visited. :func:`optimize` searches
+every ring count in the padded 6-d cube of :meth:`~mfdesign.design.DesignSpace.decode_any`
+with the ring count as data, so the three ring counts share one compilation of the
+screen and one of the refinement (they were three each: ~45 s of a cold demo).
 
 The model is any :class:`Predictor`: ``members(design [N, 6], h_mm [N], p_pa [N]) -> [M,
 N]`` forces (N), traceable in all inputs. The optimiser uses the member mean; the member
@@ -289,6 +292,18 @@ def _invert(force_of, x, level, decreasing: bool):
 
 
 # --------------------------------------------------------------------------- losses
+def _decode(space: DesignSpace, u, n_rings):
+    """A loss's point -> design ``[6]`` mm: ``u`` has ``2 + 2 n`` cube coordinates
+    (:meth:`~DesignSpace.decode_unit`, ``n`` read from its length), or 6 in the padded
+    layout of :meth:`~DesignSpace.decode_any` with the loss's ``n_rings`` (data, so one
+    compiled search serves every ring count)."""
+    if u.shape[-1] == 6:
+        return space.decode_any(u, n_rings)
+    if u.shape[-1] not in (2, 4):
+        raise ValueError(f"a design point has 2, 4 or 6 unit-cube coordinates, got {u.shape[-1]}")
+    return space.decode_unit(u, (u.shape[-1] - 2) // 2)
+
+
 class HeightLoss(eqx.Module):
     """``u [dim] -> (loss, aux)`` of height maximisation (module docstring); aux: heights
     [K] mm, smooth minimum (the score, mm) and the force-deficit penalty. A pytree (the
@@ -298,13 +313,13 @@ class HeightLoss(eqx.Module):
     force_n: jax.Array
     p_pa: jax.Array
     h_grid: jax.Array
+    n_rings: jax.Array  # data, not static: one compilation for every ring count
     space: DesignSpace = eqx.field(static=True)
-    n_rings: int = eqx.field(static=True)
     weights: Weights = eqx.field(static=True)
 
     def __call__(self, u):
         w = self.weights
-        design = self.space.decode_unit(u, self.n_rings)
+        design = _decode(self.space, u, self.n_rings)
         h, f0 = _invert(lambda hh: _mean_force(self.predictor, design, hh, self.p_pa), self.h_grid,
                         self.force_n, decreasing=True)
         f0 = jnp.where(h <= self.h_grid[0], f0, jnp.inf)  # the deficit counts only where not lifted
@@ -320,7 +335,7 @@ def height_loss(predictor, targets: HeightTargets, space: DesignSpace, n_rings: 
     h_grid = jnp.linspace(0.0, 80.0, 17) if h_grid is None else jnp.asarray(h_grid, float)
     space.dim(n_rings)
     return HeightLoss(as_predictor(predictor), jnp.asarray(targets.force_n), jnp.asarray(targets.p_pa),
-                      h_grid, space, int(n_rings), weights)
+                      h_grid, jnp.asarray(int(n_rings)), space, weights)
 
 
 class TrajectoryLoss(eqx.Module):
@@ -333,13 +348,13 @@ class TrajectoryLoss(eqx.Module):
     h_mm: jax.Array
     weight: jax.Array
     p_grid: jax.Array
+    n_rings: jax.Array  # data, not static: one compilation for every ring count
     space: DesignSpace = eqx.field(static=True)
-    n_rings: int = eqx.field(static=True)
     weights: Weights = eqx.field(static=True)
 
     def __call__(self, u):
         w = self.weights
-        design = self.space.decode_unit(u, self.n_rings)
+        design = _decode(self.space, u, self.n_rings)
         p_hat, f_lo = _invert(lambda pp: _mean_force(self.predictor, design, self.h_mm, pp), self.p_grid,
                               self.force_n, decreasing=False)
         f_hi = jnp.where(p_hat >= self.p_grid[-1], f_lo, jnp.inf)  # the deficit counts only where unreached
@@ -355,7 +370,7 @@ def trajectory_loss(predictor, waypoints: Waypoints, space: DesignSpace, n_rings
     space.dim(n_rings)
     wt = np.asarray(waypoints.weight) / sum(waypoints.weight)
     return TrajectoryLoss(as_predictor(predictor), *(jnp.asarray(getattr(waypoints, k)) for k in ("force_n", "p_pa", "h_mm")),
-                          jnp.asarray(wt), p_grid, space, int(n_rings), weights)
+                          jnp.asarray(wt), p_grid, jnp.asarray(int(n_rings)), space, weights)
 
 
 # --------------------------------------------------------------------------- multi-start
@@ -524,9 +539,9 @@ def optimize(model, problem: HeightTargets | Waypoints, rings: Sequence[int] = (
     per, best = {}, None
     for r in tqdm(rings, desc="optimise (ring counts)", disable=not progress):
         loss = make(predictor, problem, space, r, weights)
-        res = multistart(loss, space.dim(r), n_starts, steps, lr, n_refine, seed, batch_size)
-        design = Membrane.from_array(np.asarray(space.decode_unit(jnp.asarray(res["u"]), r)))
-        per[str(r)] = dict(loss=res["loss"], design_key=design.key(), u=res["u"].tolist(),
+        res = multistart(loss, 6, n_starts, steps, lr, n_refine, seed, batch_size)  # padded cube
+        design = Membrane.from_array(np.asarray(space.decode_any(jnp.asarray(res["u"]), r)))
+        per[str(r)] = dict(loss=res["loss"], design_key=design.key(), u=space.cube_of(res["u"], r).tolist(),
                            screen_s=res["screen_s"], refine_s=res["refine_s"],
                            n_finite=int(np.isfinite(res["losses"]).sum()))
         if best is None or res["loss"] < best[0]:

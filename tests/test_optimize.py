@@ -186,3 +186,23 @@ def test_cli_reads_targets_files(tmp_path):
     (tmp_path / "w.csv").write_text("force_n,pressure_pa,height_mm\n14.7,3000,5\n14.7,4000,40\n")
     wp = read_targets(tmp_path / "w.csv")
     assert isinstance(wp, opt.Waypoints) and wp.h_mm == (5.0, 40.0)
+
+
+def test_losses_take_the_padded_cube_and_share_one_structure_across_ring_counts():
+    """optimize() searches the 6-d padded cube with the ring count as data: a padded point
+    scores as its cube coordinates do, and losses of different ring counts are one pytree
+    structure (so the compiled screen and refinement are shared)."""
+    toy = Toy()
+    wp = opt.Waypoints([14.7, 24.5], [3000.0, 5000.0], [5.0, 40.0])
+    u6 = np.random.default_rng(4).uniform(size=6)
+    for make, problem in ((opt.height_loss, opt.TARGET_SETS["A"]), (opt.trajectory_loss, wp)):
+        losses = {n: make(toy, problem, SPACE, n) for n in (0, 1, 2)}
+        for n, loss in losses.items():
+            padded = float(eqx.filter_jit(loss)(jnp.asarray(u6))[0])
+            cube = float(eqx.filter_jit(loss)(jnp.asarray(SPACE.cube_of(u6, n)))[0])
+            assert padded == pytest.approx(cube, rel=1e-12, abs=1e-12)
+        structures = {jax.tree_util.tree_structure(eqx.filter(l, eqx.is_array)) for l in losses.values()}
+        statics = {jax.tree_util.tree_structure(eqx.partition(l, eqx.is_array)[1]) for l in losses.values()}
+        assert len(structures) == 1 and len(statics) == 1
+    with pytest.raises(ValueError, match="2, 4 or 6"):
+        opt.height_loss(toy, opt.TARGET_SETS["A"], SPACE, 1)(jnp.zeros(3))
