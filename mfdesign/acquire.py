@@ -28,10 +28,11 @@ backtracking line search) on the unit-cube decoding of
 :class:`~mfdesign.design.DesignSpace`. Screening raw samples before a multi-start local
 search is BoTorch's initialisation heuristic (Balandat et al. 2020, "BoTorch: A Framework
 for Efficient Monte-Carlo Bayesian Optimization"): one forward pass is a small fraction
-of a restart's 20 L-BFGS iterations (each a forward, a backward and line-search passes),
-so L-BFGS is spent only where it starts well. On ``experiments/bench_acquire.py`` 1,000
-screened + 32 refined batches took 5.6-7.8 s per ring count, plain L-BFGS from 100 starts
-18.7-20.1 s, for the same utility. The box ``[0, 1]`` is kept by the sine transform of MINUIT (James & Roos 1975):
+of a restart's 20 L-BFGS iterations (each a forward pass, a backward pass and the line
+search's passes), so L-BFGS is spent only where it starts well. On
+``experiments/bench_acquire.py`` 1,000 screened + 32 refined batches took 5.6-7.8 s per
+ring count, plain L-BFGS from 100 starts 18.7-20.1 s, for the same utility. The box
+``[0, 1]`` is kept by the sine transform of MINUIT (James & Roos 1975):
 ``u = (1 + sin z) / 2`` with ``z`` unconstrained, so every iterate is a valid design.
 Restarts and ring counts run together under ``jax.vmap`` in one ``jax.jit`` per fidelity
 (the ring count is data, :meth:`~mfdesign.design.DesignSpace.decode_any`: three ring counts
@@ -255,6 +256,7 @@ def _screen_fidelity(predictor, u0, n_rings, fidelity, grid, space):
         return jax.lax.map(lambda ui: one(ui, n), u, batch_size=SCREEN_BLOCK)
 
     return jax.vmap(arm)(u0, n_rings)
+
 
 # Backtracking steps of L-BFGS's line search. Under vmap every restart waits for the one
 # that backtracks most, so this caps the cost of each iteration: on the 2-core CPU, 100
