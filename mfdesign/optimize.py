@@ -303,7 +303,10 @@ def _decode(space: DesignSpace, u, n_rings):
         return space.decode_any(u, n_rings)
     if u.shape[-1] not in (2, 4):
         raise ValueError(f"a design point has 2, 4 or 6 unit-cube coordinates, got {u.shape[-1]}")
-    return space.decode_unit(u, (u.shape[-1] - 2) // 2)
+    n = (u.shape[-1] - 2) // 2
+    # n_rings is traced (not static), so the mismatch can only be caught at run time.
+    return eqx.error_if(space.decode_unit(u, n), jnp.asarray(n_rings) != n,
+                        f"this loss is for another ring count than {n} ({u.shape[-1]} cube coordinates)")
 
 
 class HeightLoss(eqx.Module):

@@ -206,3 +206,5 @@ def test_losses_take_the_padded_cube_and_share_one_structure_across_ring_counts(
         assert len(structures) == 1 and len(statics) == 1
     with pytest.raises(ValueError, match="2, 4 or 6"):
         opt.height_loss(toy, opt.TARGET_SETS["A"], SPACE, 1)(jnp.zeros(3))
+    with pytest.raises(Exception, match="another ring count"):  # 2 coordinates: 0 rings, not 1
+        jax.block_until_ready(eqx.filter_jit(opt.height_loss(toy, opt.TARGET_SETS["A"], SPACE, 1))(jnp.zeros(2)))
