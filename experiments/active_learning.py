@@ -29,7 +29,10 @@ membranes (one per ring count, Latin hypercube in the unit cube, per seed), then
 
 Cost axis: rig membranes count 1, simulator planes ``--cost-sim``. Metric: force RMSE [N]
 on the held-out rows that measure F(h, p) (mean prediction): force characterisation and
-lifted mass-lift rows; training sees the same kinds of rows (``_force_rows``). The plot
+lifted mass-lift rows; training sees the same kinds of rows
+(``mfdesign.calibration.workflow.lifted_rows``, the calibration's rule: a lift row below
+2 mm records the mass's weight, not F; kept, such rows put a floor of 4.95 N under the
+held-out RMSE of the nominal simulator itself, 1.94 N without them). The plot
 also shows the nominal simulator alone (no data). Small ensembles (8 members, 1,500
 steps) on a fixed-size resample of the training rows (one compilation for all fits); acquisition
 screens 1,000 random batches per ring count and refines the best 32 by 15 L-BFGS
@@ -78,7 +81,6 @@ SETTINGS = ("simulator", "q", "restarts", "refine", "lbfgs_steps", "members", "s
 # The mf arms' acquisition grid: heights 0-60 mm x 2-8 kPa, 4 x 4 (the default 8 x 8 grid
 # through 8 posterior draws of the emulator took over 13 minutes per proposal).
 MF_GRID_H, MF_GRID_P = (0.0, 20.0, 40.0, 60.0), (2000.0, 4000.0, 6000.0, 8000.0)
-MIN_LIFT_MM = 2.0  # CalibrationData.from_measurements' min_lift_height_mm
 ROWS_PER_MEMBRANE = 400  # rig rows kept per membrane (the ramps are ~20k samples)
 TRAIN_ROWS = 6000  # fixed-size resample: every fit has the same shapes (one compilation)
 
@@ -101,7 +103,9 @@ class Lab:
         self.simulator = simulator
         self.truth = VirtualRig(effects=[HIDDEN[0]], theta=HIDDEN[1], seed=777, simulator=sim, cache_dir=cache)
         self.nominal = VirtualRig(simulator=sim, cache_dir=cache)
-        held = _force_rows(self.truth.run([Membrane.from_key(k) for k in HELD_OUT], progress=False)).arrays()
+        from mfdesign.calibration.workflow import lifted_rows
+
+        held = lifted_rows(self.truth.run([Membrane.from_key(k) for k in HELD_OUT], progress=False)).arrays()
         self._rows: dict = {}
         self.held = {k: v[::5] for k, v in held.items() if k in ("design", "height_mm", "pressure_pa", "force_n")}
 
@@ -132,7 +136,9 @@ class Lab:
         memo = (design.key(), seed)
         if memo not in self._rows:
             self.truth.seed = 1000 + seed
-            m = _force_rows(self.truth.run([design], progress=False))
+            from mfdesign.calibration.workflow import lifted_rows
+
+            m = lifted_rows(self.truth.run([design], progress=False))
             rng = np.random.default_rng([seed, zlib.crc32(design.key().encode())])
             keep = np.sort(rng.choice(len(m), size=min(ROWS_PER_MEMBRANE, len(m)), replace=False))
             self._rows[memo] = Measurements(m.df.iloc[keep].reset_index(drop=True))
@@ -153,19 +159,6 @@ def _mf_grid():
     from mfdesign.acquire import Grid
 
     return Grid(h_mm=MF_GRID_H, p_pa=MF_GRID_P)
-
-
-def _force_rows(m):
-    """Rows that measure the membrane's force F(h, p): the force characterisation and the
-    mass lifts with the plate lifted (>= MIN_LIFT_MM, the calibration's rule). A lift row
-    below it records the mass's weight while the plate still rests on its stop, not F: kept,
-    such rows put a floor of 4.95 N under the held-out RMSE of the nominal simulator itself
-    (1.90 N on force rows, 2.35 N on lifted lift rows; measured on this held-out set)."""
-    from mfdesign.data.measurements import Measurements
-
-    df = m.df
-    keep = ~((df["experiment"] == "lift") & (df["height_mm"] < MIN_LIFT_MM))
-    return Measurements(df[keep].reset_index(drop=True))
 
 
 def _cat(parts: list[dict]) -> dict:
@@ -258,10 +251,11 @@ def run_arm(lab, arm, seed, args, cfgs, state) -> dict:
     costs = {"rig": 1.0, "sim": args.cost_sim}
     while True:
         it = len(curve)
-        rig_data = _cat([lab.fabricate(Membrane.from_key(k), seed) for k in rig_keys])
+        mf = arm.startswith("mf")  # the mf arms read Measurements tables, not arrays
+        rig_data = None if mf else _cat([lab.fabricate(Membrane.from_key(k), seed) for k in rig_keys])
         sim_data = _cat([lab.simulate(Membrane.from_key(k)) for k in sim_keys]) if sim_keys else None
         t = time.perf_counter()
-        tables = [lab.table(Membrane.from_key(k), seed) for k in rig_keys] if arm.startswith("mf") else None
+        tables = [lab.table(Membrane.from_key(k), seed) for k in rig_keys] if mf else None
         model = Model(arm, rig_data, sim_data, cfgs, seed * 100 + it, tables, args)
         fit_s = time.perf_counter() - t
         h = lab.held

@@ -59,7 +59,7 @@ def main():
     ap.add_argument("--draws", type=int, default=32, help="posterior draws in the predictive (evaluation cost scales with it)")
     args = ap.parse_args()
 
-    from mfdesign.calibration.workflow import _lifted, fit_multi_fidelity, force_model_named
+    from mfdesign.calibration.workflow import fit_multi_fidelity, lifted_rows, force_model_named
     from mfdesign.data.spa_design import load_mass_lift
     from mfdesign.models.baselines import CurveFitConfig
     from mfdesign.models.cv import predict_mean_std
@@ -93,7 +93,7 @@ def main():
         if args.only is not None and i not in args.only:
             continue
         t0 = time.perf_counter()
-        tr, te = _lifted(train), _lifted(test)
+        tr, te = lifted_rows(train), lifted_rows(test)
         a, b = tr.arrays(), te.arrays()
         key = test.design_keys[0]
         wp = waypoints[waypoints["design_key"] == key]

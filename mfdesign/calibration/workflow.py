@@ -19,7 +19,8 @@ import numpy as np
 
 from mfdesign.physics.effects import LogNormal
 
-__all__ = ["FORCE_MODELS", "MFFit", "fit_multi_fidelity", "force_model_named", "load_multi_fidelity", "model_for"]
+__all__ = ["FORCE_MODELS", "MFFit", "fit_multi_fidelity", "force_model_named", "lifted_rows", "load_multi_fidelity",
+           "model_for"]
 
 FORCE_MODELS = ("emulator", "standin")
 
@@ -88,7 +89,7 @@ def fit_multi_fidelity(table, force_model, effects=(), *, n_steps: int = 2000, n
     x_ref = post.median()
     used = table.subset(list(data.design_keys))
     full = CalibrationData.from_measurements(used, max_rows=None, design_keys=data.design_keys)
-    delta = fit_discrepancy(model, x_ref, _lifted(used), data.design_keys, cfg, key=seed, progress=progress)
+    delta = fit_discrepancy(model, x_ref, lifted_rows(used), data.design_keys, cfg, key=seed, progress=progress)
     resid = np.asarray(full.force_n - model.expected_force(x_ref, full))
     d_mean = np.asarray(delta.predict(full.design, full.rows.h_mm, full.rows.p_pa)).mean(0)
     w = np.asarray(full.weight)
@@ -129,8 +130,10 @@ def load_multi_fidelity(folder) -> MFFit:
     return MFFit(model, post, delta, noise, mf, tuple(post.design_keys))
 
 
-def _lifted(table, min_lift_height_mm: float = 2.0):
-    """The rows calibration uses (unlifted lift rows dropped), as Measurements."""
+def lifted_rows(table, min_lift_height_mm: float = 2.0):
+    """The rows calibration uses, as Measurements: force rows, and mass-lift rows with the
+    plate lifted (a lift row below ``min_lift_height_mm`` records the mass's weight while
+    the plate rests on its stop, not the membrane's force F(h, p))."""
     from mfdesign.data.measurements import Measurements
 
     df = table.df
