@@ -237,7 +237,7 @@ def _descent_kernel(geom, params, h_low, x_start, start_ok, p_rep_mpa, locking_s
     return jax.vmap(one_p)(x_start, start_ok, p_rep_mpa, locking_start)
 
 
-def _classify(h, p, conv, passed, force, wrinkled, locking, rise, ok_prof) -> SimResult:
+def _classify(h, p, conv, passed, force, wrinkled, locking, rise, ok_prof, signed: bool = False) -> SimResult:
     h, p = np.broadcast_arrays(np.asarray(h, float), np.asarray(p, float))
     conv, passed, wrinkled, ok_prof = (np.asarray(a, bool) for a in (conv, passed, wrinkled, ok_prof))
     force = np.asarray(force, float).copy()
@@ -252,11 +252,14 @@ def _classify(h, p, conv, passed, force, wrinkled, locking, rise, ok_prof) -> Si
     usable = status == Status.OK
     no_contact = usable & (force < 0)
     status[no_contact] = Status.NO_CONTACT
-    force[no_contact] = 0.0
+    # ``signed``: keep the (negative) force that would hold the plate down at h before the
+    # membrane reaches it; unlike the clipped force it is smooth across the contact
+    # boundary, so planes of it interpolate to simulator accuracy (clip after interpolating).
+    force[no_contact] = force[no_contact] if signed else 0.0
     force[~usable] = np.nan
     zero_p = np.isfinite(p) & (p == 0) & np.isfinite(h) & (h >= 0)
     status[zero_p] = Status.NO_CONTACT  # no pressure: the membrane lies still
-    force[zero_p] = 0.0
+    force[zero_p] = np.nan if signed else 0.0  # signed: unknown (the path starts above 0)
     bad = ~np.isfinite(h) | ~np.isfinite(p) | (h < 0) | (p < 0)
     status[bad] = Status.INVALID_INPUT
     force[bad] = np.nan
@@ -297,6 +300,7 @@ def force_at(
         empty = np.zeros(shape_)
         return SimResult(empty, empty.astype(np.int8), empty, empty, empty.astype(bool))
     geom = sh.geometry_of(design)
+    params = _traced(params)
     low = hs < LOW_HEIGHT_MM
     out = [None] * 7
     for group in (~low, low):  # two batches: the low points descend (module constants)
@@ -315,6 +319,12 @@ def force_at(
     return jax.tree.map(lambda a: a.reshape(shape_), res)
 
 
+def _traced(params: SimParams) -> SimParams:
+    """``params`` with every field a float64 array: under ``eqx.filter_jit`` a Python float is
+    static, so each new value of a constant would compile the kernels again (~10 s each)."""
+    return jax.tree.map(lambda a: jnp.asarray(a, float), params)
+
+
 def _pad(values: np.ndarray, n: int) -> np.ndarray:
     """Pad a batch to the next power of two (>= 8) by repeating its last entry: each
     batch size is a separate compilation, so a few sizes serve every call."""
@@ -326,28 +336,59 @@ def _pad(values: np.ndarray, n: int) -> np.ndarray:
 # steps) thin small-disk membranes lost whole rows above ~4 kPa (the force rises by
 # ~30 N per step there); 250 Pa leaves the 50 x 50 grid (204 Pa) as it was.
 MAX_PATH_STEP_PA = 250.0
-PARALLEL_MIN_ROWS = 16  # below this a plane is one batch (two would not pay for the split)
+PARALLEL_MIN_ROWS = 16  # below this a plane is one batch (splitting would not pay)
 
 
-def _in_two_halves(kernel, *batch: np.ndarray) -> list[np.ndarray]:
-    """``kernel(*batch)`` as two half batches on two threads (JAX releases the GIL while a
-    compiled kernel runs; XLA's CPU back end runs one small vmapped ``while_loop`` on
-    about one core, so a 2-core machine finishes two halves ~1.3-1.5x sooner). ``batch``:
-    arrays whose leading axis holds independent lanes (rows of a plane, pressures of a
-    descent); every output has that leading axis, and the result equals one batch. The
-    halves are padded to the same length (one compilation)."""
+def n_workers() -> int:
+    """Parallel lanes for plane work: every local JAX device, or every CPU core on a
+    single-device CPU (XLA runs one vmapped while-loop on one core, so independent
+    batches on several threads use several cores; the GIL is released inside XLA)."""
+    devices = jax.local_devices()
+    if len(devices) > 1:
+        return len(devices)
+    return max(1, os.cpu_count() or 1)
+
+
+def _shard_rows(a: np.ndarray):
+    """``a`` on the local devices, split along its leading axis (``jax.sharding``): a jitted
+    kernel vmapped over that axis then runs partitioned, one slice per device. On one
+    device, the array as it is."""
+    devices = jax.local_devices()
+    if len(devices) < 2 or a.shape[0] % len(devices):
+        return jnp.asarray(a)
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    mesh = Mesh(np.asarray(devices), ("rows",))
+    return jax.device_put(a, NamedSharding(mesh, PartitionSpec("rows")))
+
+
+def _in_parts(kernel, *batch: np.ndarray, parts: int | None = None) -> list[np.ndarray]:
+    """``kernel(*batch)`` with the batch (leading axis) split over the local devices.
+
+    Several devices: one call, the batch sharded across them (:func:`_shard_rows`). One
+    CPU device: ``parts`` slices (default :func:`n_workers`) on as many threads. Every output
+    has the batch's leading axis, and the result equals one call on the whole batch. The
+    slices are padded to one length (one compilation)."""
     n = batch[0].shape[0]
-    if n < PARALLEL_MIN_ROWS or (os.cpu_count() or 1) < 2:
+    devices = jax.local_devices()
+    parts = n_workers() if parts is None else max(1, int(parts))
+    if len(devices) > 1:
+        size = -(-n // len(devices)) * len(devices)
+        padded = [np.concatenate([a, np.repeat(a[-1:], size - n, axis=0)]) for a in batch]
+        return [np.asarray(o)[:n] for o in kernel(*(_shard_rows(a) for a in padded))]
+    parts = min(parts, max(1, n // (PARALLEL_MIN_ROWS // 2)))
+    if n < PARALLEL_MIN_ROWS or parts < 2:
         return [np.asarray(o) for o in kernel(*batch)]
-    half = (n + 1) // 2
-    padded = [np.concatenate([a, np.repeat(a[-1:], 2 * half - n, axis=0)]) for a in batch]
+    size = -(-n // parts)
+    padded = [np.concatenate([a, np.repeat(a[-1:], size * parts - n, axis=0)]) for a in batch]
 
-    def run(sl):
+    def run(k):
+        sl = slice(k * size, (k + 1) * size)
         return [np.asarray(o) for o in kernel(*(a[sl] for a in padded))]
 
-    with ThreadPoolExecutor(2) as pool:
-        parts = list(pool.map(run, (slice(0, half), slice(half, None))))
-    return [np.concatenate([a, b])[:n] for a, b in zip(*parts)]
+    with ThreadPoolExecutor(parts) as pool:
+        chunks = list(pool.map(run, range(parts)))
+    return [np.concatenate(outs)[:n] for outs in zip(*chunks)]
 
 
 def force_plane(
@@ -356,12 +397,17 @@ def force_plane(
     p_grid_pa: Sequence[float],
     params: SimParams = SimParams(),
     substeps: int = 1,
+    signed: bool = False,
+    parts: int | None = None,
 ) -> SimResult:
     """Force on a ``len(h_grid) x len(p_grid)`` grid (heights mm, pressures Pa).
 
     Pressures must be increasing; each height is one continuation path through all of
     them (``substeps`` steps per grid interval, more where an interval is wider than
-    ``MAX_PATH_STEP_PA``), vmapped over heights.
+    ``MAX_PATH_STEP_PA``), vmapped over heights. ``signed``: ``NO_CONTACT`` points keep the
+    negative force that would hold the plate at ``h`` (smooth across the contact
+    boundary, for interpolation; p = 0 is then NaN). ``parts``: how many slices the
+    heights are split into (default: every core or device, :func:`n_workers`).
     """
     h_grid = np.asarray(h_grid_mm, float).ravel()
     p_grid = np.asarray(p_grid_pa, float).ravel()
@@ -383,22 +429,23 @@ def force_plane(
         report.append(len(path) - 1)
     hs, _ = _sanitize(h_grid, np.ones_like(h_grid))
     geom = sh.geometry_of(design)
+    params = _traced(params)
     path_mpa, report = jnp.asarray(path) * PA_TO_MPA, jnp.asarray(report)
     low = hs < LOW_HEIGHT_MM
     # Rows below LOW_HEIGHT_MM: inflation at LOW_HEIGHT_MM (an extra anchor row), then the
     # plate is lowered at each pressure; they leave the main batch, whose heights then all
     # start from a usable first guess (module constants explain why).
     rows = np.concatenate([hs[~low], [LOW_HEIGHT_MM]]) if low.any() else hs
-    out = _in_two_halves(lambda r: _plane_kernel(geom, params, jnp.asarray(r), path_mpa, report), rows)
+    out = _in_parts(lambda r: _plane_kernel(geom, params, r, path_mpa, report), rows, parts=parts)
     if low.any():
         x_start, start_ok, locking_start = _descent_starts([o[-1] for o in out])
         p_rep = np.asarray(path_mpa[report])
         low_idx = np.nonzero(low)[0]
         order = low_idx[np.argsort(-hs[low_idx], kind="stable")]  # the plate goes down
         h_low = jnp.asarray(hs[order])
-        # Pressures are independent lanes of the descent: two threads, like the rows.
-        down = _in_two_halves(lambda *b: _descent_kernel(geom, params, h_low, *b),
-                              x_start, start_ok, p_rep, locking_start)
+        # Pressures are independent lanes of the descent: split like the rows.
+        down = _in_parts(lambda *b: _descent_kernel(geom, params, h_low, *b),
+                         x_start, start_ok, p_rep, locking_start, parts=parts)
         down = [np.swapaxes(o, 0, 1) for o in down]  # (pressure, height) -> (height, pressure)
         down.insert(1, np.broadcast_to(out[1][-1], down[0].shape))  # passed: the anchor's
         full = []
@@ -408,7 +455,59 @@ def force_plane(
             full.append(arr)
         out = full
     H, P = np.meshgrid(h_grid, p_grid, indexing="ij")
-    return _classify(H, P, *out[:7])
+    return _classify(H, P, *out[:7], signed=signed)
+
+
+def force_planes(
+    jobs: Sequence[tuple[Membrane, SimParams]],
+    h_grid_mm: Sequence[float],
+    p_grid_pa: Sequence[float],
+    signed: bool = False,
+    progress: bool = False,
+) -> list[SimResult]:
+    """:func:`force_plane` of many ``(design, params)`` jobs on one grid, using every local
+    core or device (:func:`n_workers`).
+
+    Arguments:
+        jobs: the planes to solve, each a membrane and its simulator constants.
+        h_grid_mm: plate heights [mm] (any order).
+        p_grid_pa: gauge pressures [Pa], strictly increasing.
+        signed: keep the negative force of ``NO_CONTACT`` points (see :func:`force_plane`).
+        progress: a tqdm bar over the jobs.
+
+    Returns one :class:`SimResult` per job, in order. On a single-device CPU the jobs run
+    on one thread per core (each plane in one piece); with several devices each plane's
+    heights are sharded across them (``jax.sharding``). A cluster runs the same function
+    over slices of the job list (e.g. one Dask or Ray task per slice); nothing here
+    schedules work across machines.
+    """
+    jobs = list(jobs)
+    workers = n_workers()
+    if len(jax.local_devices()) > 1 or workers < 2 or len(jobs) < 2:
+        it = jobs
+        if progress:
+            from tqdm.auto import tqdm
+
+            it = tqdm(jobs, desc="simulator planes", unit="plane")
+        return [force_plane(d, h_grid_mm, p_grid_pa, prm, signed=signed) for d, prm in it]
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(jobs), desc="simulator planes", unit="plane")
+
+    def run(job):
+        d, prm = job
+        res = force_plane(d, h_grid_mm, p_grid_pa, prm, signed=signed, parts=1)
+        if bar is not None:
+            bar.update(1)
+        return res
+
+    with ThreadPoolExecutor(workers) as pool:
+        out = list(pool.map(run, jobs))
+    if bar is not None:
+        bar.close()
+    return out
 
 
 # --------------------------------------------------------------------------------------
@@ -532,6 +631,7 @@ def _refine_crossings(design, params, F, p, Fh, hg, lo_idx, refine, height, stat
     h_guess = hg[j] + w * (hg[j + 1] - hg[j])
     a0 = _a_guess(design, params, h_guess, p[idx])
     geom = sh.geometry_of(design)
+    params = _traced(params)
     m = idx.size
     h_ref, conv = _height_kernel(
         geom,
@@ -610,6 +710,7 @@ def _a_kernel(geom, params, h, p_mpa):
 
 def _a_guess(design, params, h, p):
     geom = sh.geometry_of(design)
+    params = _traced(params)
     n = np.size(h)
     h, p = _pad(np.asarray(h, float), n), _pad(np.asarray(p, float), n)
     a = np.asarray(_a_kernel(geom, params, jnp.asarray(h), jnp.asarray(p) * PA_TO_MPA))[:n]
@@ -641,6 +742,7 @@ def shape(design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimPar
     """The deformed membrane at plate height ``h_mm`` [mm] and pressure ``p_pa`` [Pa]."""
     res = force_at(design, np.array([h_mm]), np.array([p_pa]), params)
     geom = sh.geometry_of(design)
+    params = _traced(params)
     p_mpa = float(p_pa) * PA_TO_MPA
     x = np.asarray(_final_state_jit(geom, params, jnp.asarray(float(h_mm)), jnp.asarray(p_mpa)))
     r, y, w1, w2, _, _ = sh.profile(jnp.asarray(x), geom, params, h_mm, p_mpa, n_save=n_per_segment)

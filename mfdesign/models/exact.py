@@ -1,0 +1,357 @@
+"""The exact force model: the simulator itself, on the measured designs, at simulator accuracy.
+
+``F = ExactForceModel(...)(design [N, 6] mm, h_mm [N], p_pa [N], SimParams) -> [N] N`` reads
+simulator planes (:mod:`mfdesign.physics.planes`) of the designs it was built for:
+
+    F = s max(0, G(h, p / s; c)),   s = (mu / mu0) tf
+
+with ``G`` the signed reference plane interpolated by cubic convolution (Keys 1981: four
+nodes per axis, C1, exact for quadratics) in height, reduced pressure and every lattice
+coordinate ``c`` (``log J_m``, ``log rho`` for ringed membranes, and the mechanical
+effects' coordinates). Two kinds of lattice axes:
+
+* ``tensor`` axes form a full product lattice (calibration: ``jm`` and ``ring``, which
+  interact strongly);
+* ``additive`` axes each cross only the reference node: ``G = G_T + sum_d [G_d(c_d) -
+  G_d(0)]``, exact for one such effect at a time and first order in their cross terms
+  (diagnosis tests the effects one by one; a second-round pair is the one place this
+  approximates, and ``experiments/bench_exact.py`` measures it).
+
+Where an interpolation stencil meets an unconverged node the axis falls back to linear
+interpolation between its two nearest nodes, and to NaN where those are missing too;
+queries outside the lattice, above the grid's top, for a design the model was not built
+for, or with a simulator constant the model does not vary are NaN (``outside="nan"``) or
+held at the lattice edge (``outside="clamp"``, for optimisers that must not see NaN:
+check the optimum with :meth:`ExactForceModel.covers`). It never extrapolates silently.
+
+:func:`build_exact` makes one; :meth:`ExactForceModel.covering` returns one whose lattice
+covers a box of coordinates (the planes it adds are solved and cached; the rest are reused).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Mapping, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mfdesign.design import Membrane
+from mfdesign.models.force import ForceModel
+from mfdesign.physics import planes as pl
+from mfdesign.physics.params import SimParams
+
+__all__ = ["ExactForceModel", "LatticeAxis", "build_exact"]
+
+_TOL = 1e-9
+
+
+class LatticeAxis(eqx.Module):
+    """One axis of the model's lattice: nodes ``k0 .. k0 + n - 1`` of :data:`~mfdesign.physics.planes.AXES`[name]."""
+
+    name: str = eqx.field(static=True)
+    k0: int = eqx.field(static=True)
+    n: int = eqx.field(static=True)
+
+    @property
+    def axis(self) -> pl.Axis:
+        return pl.AXES[self.name]
+
+    @property
+    def lo(self) -> float:
+        return self.k0 * self.axis.step
+
+    @property
+    def hi(self) -> float:
+        return (self.k0 + self.n - 1) * self.axis.step
+
+
+def _keys_weights(t):
+    """Cubic convolution weights (Keys 1981, a = -1/2) of nodes -1, 0, 1, 2 at ``t`` in [0, 1]."""
+    t2, t3 = t * t, t * t * t
+    return jnp.stack([0.5 * (-t3 + 2 * t2 - t), 0.5 * (3 * t3 - 5 * t2 + 2),
+                      0.5 * (-3 * t3 + 4 * t2 + t), 0.5 * (t3 - t2)], axis=-1)
+
+
+def _contract(v, t, axis: int):
+    """Interpolate the 4 nodes of ``v`` along ``axis`` at fraction ``t`` (broadcast against
+    ``v`` without that axis): cubic where all four are finite, linear where the middle
+    two are, NaN otherwise."""
+    v = jnp.moveaxis(v, axis, -1)
+    fin = jnp.isfinite(v)
+    z = jnp.where(fin, v, 0.0)
+    t = jnp.asarray(t)[..., None]
+    w = _keys_weights(t[..., 0])
+    cubic = jnp.sum(w * z, axis=-1)
+    linear = (1.0 - t[..., 0]) * z[..., 1] + t[..., 0] * z[..., 2]
+    return jnp.where(jnp.all(fin, -1), cubic, jnp.where(fin[..., 1] & fin[..., 2], linear, jnp.nan))
+
+
+def _position(c, lo_node: float, step: float, n: int, clamp: bool):
+    """Cell index ``i`` (stencil start in the ghost-padded axis), fraction ``t`` and
+    validity of coordinate ``c`` on nodes ``lo_node + k step``, k = 0 .. n - 1."""
+    u = (c - lo_node) / step
+    valid = (u >= -_TOL) & (u <= n - 1 + _TOL)
+    u = jnp.clip(u, 0.0, n - 1.0)
+    i = jnp.clip(jnp.floor(u), 0, n - 2).astype(jnp.int32)
+    return i, u - i, valid | clamp
+
+
+def _pad_ghosts(a: np.ndarray, axes: Sequence[int]) -> np.ndarray:
+    """One ghost node at both ends of each of ``axes``, by linear extrapolation (the
+    stencil of an edge cell; the interpolant is then quadratic-exact up to the edge)."""
+    for ax in axes:
+        a = np.moveaxis(a, ax, 0)
+        a = np.concatenate([2 * a[:1] - a[1:2], a, 2 * a[-1:] - a[-2:-1]], axis=0)
+        a = np.moveaxis(a, 0, ax)
+    return a
+
+
+def _nan_match(a, b):
+    """|a - b| summed over the design's 6 numbers, NaN-aware (both NaN: equal)."""
+    both = jnp.isnan(a) & jnp.isnan(b)
+    one = jnp.isnan(a) ^ jnp.isnan(b)
+    d = jnp.where(both, 0.0, jnp.where(one, jnp.inf, jnp.abs(jnp.nan_to_num(a) - jnp.nan_to_num(b))))
+    return jnp.sum(d, axis=-1)
+
+
+class ExactForceModel(ForceModel):
+    """Simulator planes of a set of designs behind the force-model interface (module doc)."""
+
+    designs: jax.Array  # [M, 6] mm
+    ringed: jax.Array  # [M] bool
+    tensor: jax.Array  # [M, n_1 + 2, ..., n_T + 2, n_h + 2, n_p + 2]: ghost-padded planes
+    additive: tuple  # per additive axis: [M, n_d + 2, n_h + 2, n_p + 2]
+    base: SimParams  # reference constants of the planes (mu0, J_m0, ring, ...)
+    tensor_axes: tuple = eqx.field(static=True)
+    additive_axes: tuple = eqx.field(static=True)
+    grid: pl.PlaneGrid = eqx.field(static=True)
+    design_keys: tuple = eqx.field(static=True)
+    outside: str = eqx.field(static=True, default="nan")
+    cache: object = eqx.field(static=True, default=None)
+    name = "exact"
+
+    # -- interface ------------------------------------------------------------------------------
+    def __call__(self, design, h_mm, p_pa, params: SimParams = SimParams()):
+        design = jnp.atleast_2d(jnp.asarray(design, float))
+        h = jnp.asarray(h_mm, float)
+        p = jnp.asarray(p_pa, float)
+        n = h.shape[0]
+        clamp = self.outside == "clamp"
+        dist = _nan_match(design[:, None, :], self.designs[None, :, :])  # [N, M]
+        m = jnp.argmin(dist, axis=1).astype(jnp.int32)
+        ok = jnp.min(dist, axis=1) < 1e-6
+        ringed = self.ringed[m]
+        prm = jax.tree.map(lambda a: jnp.asarray(a, float), params)
+        s = (prm.mu_pa / self.base.mu_pa) * prm.thickness_factor * jnp.ones(n)
+        ok = ok & (s > 0) & (prm.ring_jm == self.base.ring_jm)
+        P = jnp.maximum(p, 0.0) / s
+        # Constants the lattice does not vary must sit at the reference (never extrapolate).
+        used = {a.name for a in self.tensor_axes + self.additive_axes}
+        for name, axis in pl.AXES.items():
+            if name in used:
+                continue
+            c = axis.coord(prm, self.base) * jnp.ones(n)
+            off = jnp.abs(c) > 1e-9
+            ok = ok & ~(off & ringed if axis.ringed_only else off)
+
+        # Lattice axes: a per-axis coordinate (scalar: contract whole planes once; [N]: per row).
+        def coords(axes):
+            out = []
+            for a in axes:
+                c = a.axis.coord(prm, self.base)
+                if a.axis.ringed_only:
+                    c = jnp.where(ringed, c, a.lo) if jnp.ndim(c) else c
+                out.append(c)
+            return out
+
+        grid_part = jnp.zeros(self.tensor.shape[:1] + self.tensor.shape[-2:])
+        row_parts = jnp.zeros(n)
+        c_t = coords(self.tensor_axes)
+        if all(jnp.ndim(c) == 0 for c in c_t):
+            g, _ = self._contract_planes(self.tensor, self.tensor_axes, c_t)
+            grid_part = grid_part + g
+            ok = ok & self._valid_scalar(self.tensor_axes, c_t, ringed)
+        else:
+            row_parts = row_parts + self._rows_lattice(self.tensor, self.tensor_axes, c_t, m, h, P)
+            ok = ok & self._valid_rows(self.tensor_axes, c_t, ringed)
+        for a, arr in zip(self.additive_axes, self.additive):
+            c = coords((a,))[0]
+            zero = jnp.zeros_like(c)
+            if jnp.ndim(c) == 0:
+                g1, _ = self._contract_planes(arr, (a,), [c])
+                g0, _ = self._contract_planes(arr, (a,), [zero])
+                grid_part = grid_part + (g1 - g0)
+            else:
+                row_parts = row_parts + (self._rows_lattice(arr, (a,), [c], m, h, P)
+                                         - self._rows_lattice(arr, (a,), [zero], m, h, P))
+            ok = ok & self._valid_rows((a,), [c * jnp.ones(n)], ringed)
+        g_rows = self._rows_plane(grid_part, m, h, P)
+        in_grid = (P <= self.grid.p_top_pa + _TOL) & (h <= self.grid.h_top_mm + _TOL)
+        ok = ok & (in_grid | clamp)
+        f = s * jnp.maximum(g_rows + row_parts, 0.0)
+        return jnp.where(ok, f, jnp.nan)
+
+    def support(self) -> dict[str, tuple[float, float]]:
+        """Ranges of the simulator constants the lattice covers (for priors)."""
+        out: dict[str, tuple[float, float]] = {}
+        for a in self.tensor_axes + self.additive_axes:
+            if a.name == "jm":
+                out["jm"] = (float(self.base.jm * math.exp(a.lo)), float(self.base.jm * math.exp(a.hi)))
+        return out
+
+    def covers(self, box: Mapping[str, tuple[float, float]]) -> bool:
+        """Whether every lattice axis named in ``box`` (axis -> coordinate range) holds it."""
+        for a in self.tensor_axes + self.additive_axes:
+            if a.name in box:
+                lo, hi = box[a.name]
+                if lo < a.lo - _TOL or hi > a.hi + _TOL:
+                    return False
+        return True
+
+    def covering(self, box: Mapping[str, tuple[float, float]], progress: bool = False) -> "ExactForceModel":
+        """The same model with each named axis' lattice grown (never shrunk) to hold ``box``
+        (coordinate ranges, clipped to the axes' hard limits); planes already solved are
+        reused from memory or disk."""
+        if self.covers(box):
+            return self
+        t_nodes = _grown(self.tensor_axes, box)
+        a_nodes = _grown(self.additive_axes, box)
+        return _assemble(self.design_keys, self.base, t_nodes, a_nodes, self.grid, self.outside, self.cache,
+                         progress)
+
+    def with_outside(self, outside: str) -> "ExactForceModel":
+        return dataclasses.replace(self, outside=outside)
+
+    # -- internals ------------------------------------------------------------------------------
+    def _valid_scalar(self, axes, cs, ringed):
+        ok = jnp.asarray(True)
+        for a, c in zip(axes, cs):
+            _, _, v = _position(c, a.lo, a.axis.step, a.n, self.outside == "clamp")
+            ok = ok & (v | (~ringed if a.axis.ringed_only else False))
+        return ok
+
+    def _valid_rows(self, axes, cs, ringed):
+        ok = jnp.ones(ringed.shape, bool)
+        for a, c in zip(axes, cs):
+            _, _, v = _position(c, a.lo, a.axis.step, a.n, self.outside == "clamp")
+            ok = ok & (v | (~ringed if a.axis.ringed_only else False))
+        return ok
+
+    def _contract_planes(self, arr, axes, cs):
+        """Contract the lattice axes (1 .. D) of ``arr`` at scalar coordinates: [M, nh+2, np+2]."""
+        valid = jnp.asarray(True)
+        for a, c in zip(axes, cs):
+            i, t, v = _position(c, a.lo, a.axis.step, a.n, self.outside == "clamp")
+            block = jax.lax.dynamic_slice_in_dim(arr, i, 4, axis=1)
+            arr = _contract(block, t, axis=1)
+            valid = valid & v
+        return arr, valid
+
+    def _rows_plane(self, g, m, h, P):
+        """2-D cubic convolution of planes ``g`` [M, nh+2, np+2] at each row's (h, P)."""
+        ih, th, _ = _position(jnp.maximum(h, 0.0), 0.0, pl.H_STEP_MM, g.shape[1] - 2, True)
+        ip, tp, _ = _position(P, 0.0, pl.P_STEP_PA, g.shape[2] - 2, True)
+
+        def one(mm, i, j, a, b):
+            block = jax.lax.dynamic_slice(g, (mm, i, j), (1, 4, 4))[0]
+            return _contract(_contract(block, b, axis=1), a, axis=0)
+
+        return jax.vmap(one)(m, ih, ip, th, tp)
+
+    def _rows_lattice(self, arr, axes, cs, m, h, P):
+        """Per-row interpolation over lattice axes and (h, P) (coordinates [N])."""
+        n = h.shape[0]
+        pos = [_position(c * jnp.ones(n), a.lo, a.axis.step, a.n, True) for a, c in zip(axes, cs)]
+        ih, th, _ = _position(jnp.maximum(h, 0.0), 0.0, pl.H_STEP_MM, arr.shape[-2] - 2, True)
+        ip, tp, _ = _position(P, 0.0, pl.P_STEP_PA, arr.shape[-1] - 2, True)
+        D = len(axes)
+
+        def one(mm, ii, tt, i, j, a, b):
+            block = jax.lax.dynamic_slice(arr, (mm, *ii, i, j), (1,) + (4,) * (D + 2))[0]
+            block = _contract(_contract(block, b, axis=D + 1), a, axis=D)
+            for k in reversed(range(D)):
+                block = _contract(block, tt[k], axis=k)
+            return block
+
+        ii = [p_[0] for p_ in pos]
+        tt = [p_[1] for p_ in pos]
+        return jax.vmap(one)(m, ii, tt, ih, ip, th, tp)
+
+
+def _grown(axes, box):
+    out = {}
+    for a in axes:
+        lo, hi = a.lo, a.hi
+        if a.name in box:
+            lo, hi = min(lo, box[a.name][0]), max(hi, box[a.name][1])
+        out[a.name] = pl.node_range(a.axis, lo, hi)
+    return out
+
+
+def _ensure_two(axis: pl.Axis, k0: int, k1: int) -> tuple[int, int]:
+    """At least two nodes (an interpolation cell), growing towards the allowed side."""
+    if k1 > k0:
+        return k0, k1
+    if (k1 + 1) * axis.step <= axis.hi + _TOL:
+        return k0, k1 + 1
+    return k0 - 1, k1
+
+
+def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progress) -> ExactForceModel:
+    designs = [Membrane.from_key(k) for k in design_keys]
+    t_nodes = {k: _ensure_two(pl.AXES[k], *v) for k, v in t_nodes.items()}
+    a_nodes = {k: _ensure_two(pl.AXES[k], *v) for k, v in a_nodes.items()}
+    tensor = pl.lattice_planes(designs, base, t_nodes, grid, cache=cache, progress=progress)
+    lat = len(t_nodes)
+    tensor = _pad_ghosts(tensor, range(1, lat + 3))
+    additive = []
+    for name, rng in a_nodes.items():
+        arr = pl.lattice_planes(designs, base, {name: rng}, grid, cache=cache, progress=progress)
+        additive.append(jnp.asarray(_pad_ghosts(arr, range(1, 4))))
+    return ExactForceModel(
+        designs=jnp.asarray(np.stack([d.to_array() for d in designs])),
+        ringed=jnp.asarray([d.n_rings > 0 for d in designs]),
+        tensor=jnp.asarray(tensor),
+        additive=tuple(additive),
+        base=jax.tree.map(float, base),
+        tensor_axes=tuple(LatticeAxis(k, v[0], v[1] - v[0] + 1) for k, v in t_nodes.items()),
+        additive_axes=tuple(LatticeAxis(k, v[0], v[1] - v[0] + 1) for k, v in a_nodes.items()),
+        grid=grid, design_keys=tuple(design_keys), outside=outside, cache=cache,
+    )
+
+
+def build_exact(design_keys: Sequence[str], *, h_max_mm: float = 80.0, p_max_pa: float = 10_000.0,
+                tensor: Mapping[str, tuple[float, float]] | None = None,
+                additive: Mapping[str, tuple[float, float]] | None = None, base: SimParams = SimParams(),
+                outside: str = "nan", cache=None, progress: bool = False) -> ExactForceModel:
+    """An :class:`ExactForceModel` of the membranes ``design_keys``.
+
+    Arguments:
+        design_keys: the measured designs (``"[t, c, r1, w1, r2, w2]"`` keys).
+        h_max_mm: the highest plate height [mm] the rows need.
+        p_max_pa: the highest gauge pressure [Pa] the rows need (the planes reach 1.35 x it
+            in reduced pressure, room for softer or thinner membranes).
+        tensor: lattice axes of the full product (axis name -> coordinate range), e.g.
+            ``{"jm": (-0.1, 0.1), "ring": (-0.2, 0.2)}`` for calibration.
+        additive: lattice axes that each cross only the reference node (diagnosis' effects).
+        base: the reference constants (mu0, J_m0, ring constants); ``tf`` is ignored.
+        outside: ``"nan"`` (default) or ``"clamp"`` for queries outside the lattice.
+        cache: plane cache folder (default :func:`mfdesign.physics.planes.cache_dir`), or False.
+        progress: a progress bar over the planes to solve.
+
+    Axes: see :data:`mfdesign.physics.planes.AXES` (``jm``, ``ring``, ``gradient``,
+    ``prestretch``, ``offset``). Coordinate 0 is the reference.
+    """
+    if outside not in ("nan", "clamp"):
+        raise ValueError(f"outside must be 'nan' or 'clamp', got {outside!r}")
+    bad = [k for k in list(tensor or {}) + list(additive or {}) if k not in pl.AXES]
+    if bad:
+        raise ValueError(f"unknown lattice axes {bad}; known: {list(pl.AXES)}")
+    grid = pl.PlaneGrid.covering(h_max_mm, p_max_pa)
+    t_nodes = {k: pl.node_range(pl.AXES[k], *v) for k, v in (tensor or {}).items()}
+    a_nodes = {k: pl.node_range(pl.AXES[k], *v) for k, v in (additive or {}).items()}
+    return _assemble(tuple(design_keys), base, t_nodes, a_nodes, grid, outside, cache, progress)

@@ -1,0 +1,229 @@
+"""Simulator planes in reduced units, on a lattice of the constants that change their shape.
+
+The exact force model (:class:`mfdesign.models.exact.ExactForceModel`) reads these planes.
+Two facts keep their number small:
+
+* **Scaling.** The rubber's energy is ``mu w(lambda; J_m)`` per reference volume and the
+  rings' ``mu_ring w(lambda; J_ring)``, both times the local thickness. Dividing the total
+  energy ``int 2 pi r t W dr - p V + F h`` by ``s mu0`` with ``s = (mu / mu0) tf`` shows
+  that, at fixed ring ratio ``rho = mu_ring / mu``,
+
+      F(h, p; mu, tf) = s G(h, p / s)
+
+  exactly, where ``G`` is the plane at the reference constants (``mu0``, ``tf = 1``). So mu,
+  the thickness factor and every per-membrane thickness latent cost no plane at all.
+  The rings break the scaling only through ``rho``: when mu moves at fixed ring
+  modulus, ``rho`` moves with it (a 19 % stiffer ring changes the force of a two-ring
+  membrane by 0.77 N RMS, 2.6 N at most over its plane), so ``rho`` is a lattice
+  axis for ringed membranes (ring softening lives on the same axis).
+* **Lattice.** Every other constant that changes the solution's shape is an axis with
+  nodes ``c0 + k step`` of a coordinate (:data:`AXES`): ``log J_m``, ``log(rho / rho0)``,
+  the thickness gradient, the clamp pre-stretch and the contact offset. A plane is solved
+  at each node that a fit needs (:func:`lattice_planes`), cached on disk.
+
+Planes hold the *signed* force (:func:`~mfdesign.physics.solve.force_plane` with
+``signed=True``) on heights ``0, 2.5, ... mm`` and reduced pressures ``0, 250, ... Pa``:
+cubic interpolation (Keys 1981) of it is within ~0.003 N RMS of the simulator between
+nodes (``experiments/bench_exact.py`` measures it), and the contact boundary, where the
+clipped force has a kink, is a smooth zero crossing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+from pathlib import Path
+from typing import Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from mfdesign.design import Membrane
+from mfdesign.physics.params import SimParams
+
+__all__ = ["AXES", "Axis", "H_STEP_MM", "P_STEP_PA", "PlaneGrid", "cache_dir", "lattice_planes"]
+
+H_STEP_MM = 2.5
+P_STEP_PA = 250.0
+SCHEMA = 1  # bump when the plane content changes (solver, grid semantics): old cache files are ignored
+
+
+@dataclasses.dataclass(frozen=True)
+class Axis:
+    """A lattice axis: ``coord(params) -> c`` (JAX or NumPy), ``at(base, c) -> SimParams`` at
+    a node, node spacing ``step`` and the coordinate's hard range ``[lo, hi]``;
+    ``ringed_only``: the coordinate does not act on a ringless membrane."""
+
+    name: str
+    coord: Callable
+    at: Callable
+    step: float
+    lo: float
+    hi: float
+    ringed_only: bool = False
+    doc: str = ""
+
+
+def _ring_coord(params: SimParams, base: SimParams):
+    import jax.numpy as jnp
+
+    return jnp.log((params.ring_mu_pa / params.mu_pa) / (base.ring_mu_pa / base.mu_pa))
+
+
+def _jm_coord(params: SimParams, base: SimParams):
+    import jax.numpy as jnp
+
+    return jnp.log(params.jm / base.jm)
+
+
+AXES: dict[str, Axis] = {
+    a.name: a
+    for a in (
+        Axis("jm", _jm_coord, lambda b, c: dataclasses.replace(b, jm=b.jm * math.exp(c)),
+             step=math.log(2.0) / 8, lo=math.log(10.0 / 39.6), hi=math.log(400.0 / 39.6),
+             doc="log(J_m / J_m0): Gent locking of the rubber"),
+        Axis("ring", _ring_coord, lambda b, c: dataclasses.replace(b, ring_mu_pa=b.ring_mu_pa * math.exp(c)),
+             step=math.log(2.0) / 4, lo=math.log(0.005), hi=math.log(20.0), ringed_only=True,
+             doc="log(rho / rho0), rho = ring modulus / rubber modulus"),
+        Axis("gradient", lambda p, b: p.thickness_gradient - b.thickness_gradient,
+             lambda b, c: dataclasses.replace(b, thickness_gradient=b.thickness_gradient + c),
+             step=0.05, lo=-0.6, hi=0.6, doc="relative thickness change disk edge -> clamp"),
+        Axis("prestretch", lambda p, b: p.clamp_prestretch - b.clamp_prestretch,
+             lambda b, c: dataclasses.replace(b, clamp_prestretch=b.clamp_prestretch + c),
+             step=0.005, lo=0.0, hi=0.1, doc="hoop stretch at the clamp - 1"),
+        Axis("offset", lambda p, b: p.contact_offset_mm - b.contact_offset_mm,
+             lambda b, c: dataclasses.replace(b, contact_offset_mm=b.contact_offset_mm + c),
+             step=0.5, lo=0.0, hi=8.0, doc="effective - nominal contact radius [mm]"),
+    )
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class PlaneGrid:
+    """Heights ``0 .. h_top_mm`` every ``H_STEP_MM`` and reduced pressures ``0 .. p_top_pa``
+    every ``P_STEP_PA`` (reduced: ``p / s``, see the module doc)."""
+
+    h_top_mm: float = 80.0
+    p_top_pa: float = 12_500.0
+
+    @classmethod
+    def covering(cls, h_max_mm: float, p_max_pa: float, p_margin: float = 1.35) -> "PlaneGrid":
+        """The smallest grid holding heights up to ``h_max_mm`` and pressures up to
+        ``p_margin x p_max_pa`` (room for a softer or thinner membrane: ``p / s`` grows as
+        ``s`` falls; rows beyond the top are NaN, never extrapolated)."""
+        h_top = H_STEP_MM * math.ceil(max(h_max_mm, H_STEP_MM) / H_STEP_MM + 1e-9)
+        p_top = P_STEP_PA * math.ceil(max(p_margin * p_max_pa, 4 * P_STEP_PA) / P_STEP_PA + 1e-9)
+        return cls(float(h_top), float(p_top))
+
+    @property
+    def h(self) -> np.ndarray:
+        return np.arange(0.0, self.h_top_mm + 0.5 * H_STEP_MM, H_STEP_MM)
+
+    @property
+    def p(self) -> np.ndarray:
+        return np.arange(0.0, self.p_top_pa + 0.5 * P_STEP_PA, P_STEP_PA)
+
+
+def cache_dir() -> Path:
+    """``$MFDESIGN_CACHE_DIR/planes`` or ``~/.cache/mfdesign/planes``."""
+    root = os.environ.get("MFDESIGN_CACHE_DIR")
+    return (Path(root) if root else Path.home() / ".cache" / "mfdesign") / "planes"
+
+
+def _params_tuple(params: SimParams) -> tuple[float, ...]:
+    return tuple(round(float(getattr(params, f.name)), 12) for f in dataclasses.fields(params))
+
+
+def _job_key(design: Membrane, params: SimParams, grid: PlaneGrid) -> str:
+    blob = json.dumps({"schema": SCHEMA, "design": design.key(), "params": _params_tuple(params),
+                       "grid": [grid.h_top_mm, grid.p_top_pa, H_STEP_MM, P_STEP_PA]})
+    return hashlib.sha256(blob.encode()).hexdigest()[:24]
+
+
+def _fill_zero_pressure(f: np.ndarray) -> np.ndarray:
+    """Column p = 0 of a signed plane: linear extrapolation from the next two (the signed
+    force is smooth in p; the continuation path starts above 0)."""
+    f = f.copy()
+    f[:, 0] = 2.0 * f[:, 1] - f[:, 2]
+    return f
+
+
+_MEMO: dict[str, np.ndarray] = {}
+
+
+def solve_planes(jobs: Sequence[tuple[Membrane, SimParams]], grid: PlaneGrid, cache: Path | None | bool = None,
+                 progress: bool = False) -> list[np.ndarray]:
+    """Signed force planes ``[len(grid.h), len(grid.p)]`` [N] of ``(design, params)`` jobs,
+    from memory, the disk cache (``cache``: a folder, ``None`` for :func:`cache_dir`, ``False``
+    for none) or the simulator (all missing ones in one :func:`force_planes` call)."""
+    from mfdesign.physics.solve import force_planes
+
+    folder = None if cache is False else Path(cache) if cache else cache_dir()
+    keys = [_job_key(d, prm, grid) for d, prm in jobs]
+    todo: dict[str, tuple[Membrane, SimParams]] = {}
+    for k, job in zip(keys, jobs):
+        if k in _MEMO or k in todo:
+            continue
+        path = folder / f"{k}.npy" if folder is not None else None
+        if path is not None and path.is_file():
+            try:
+                arr = np.load(path, allow_pickle=False)
+                if arr.shape == (grid.h.size, grid.p.size):
+                    _MEMO[k] = arr
+                    continue
+            except (OSError, ValueError):
+                pass  # a torn or foreign file: solve again and overwrite it
+        todo[k] = job
+    if todo:
+        results = force_planes(list(todo.values()), grid.h, grid.p[1:], signed=True, progress=progress)
+        for k, res in zip(todo, results):
+            f = np.concatenate([np.full((grid.h.size, 1), np.nan), np.asarray(res.force_n, float)], axis=1)
+            _MEMO[k] = _fill_zero_pressure(f)
+            if folder is not None:
+                folder.mkdir(parents=True, exist_ok=True)
+                tmp = folder / f".{k}.{os.getpid()}.npy"
+                np.save(tmp, _MEMO[k], allow_pickle=False)
+                os.replace(tmp, folder / f"{k}.npy")  # atomic: a reader never sees half a plane
+    return [_MEMO[k] for k in keys]
+
+
+def node_range(axis: Axis, lo: float, hi: float) -> tuple[int, int]:
+    """Node indices ``k0 <= k1`` whose coordinates ``k step`` cover ``[lo, hi]`` (clipped to
+    the axis' hard range)."""
+    lo, hi = max(lo, axis.lo), min(hi, axis.hi)
+    k0 = math.floor(lo / axis.step + 1e-9)
+    k1 = math.ceil(hi / axis.step - 1e-9)
+    k0 = max(k0, math.ceil(axis.lo / axis.step - 1e-9))
+    k1 = min(k1, math.floor(axis.hi / axis.step + 1e-9))
+    return k0, max(k0, k1)
+
+
+def lattice_planes(designs: Sequence[Membrane], base: SimParams, nodes: Mapping[str, tuple[int, int]],
+                   grid: PlaneGrid, cache=None, progress: bool = False) -> np.ndarray:
+    """Planes ``[M, n_1, ..., n_D, len(grid.h), len(grid.p)]`` on the tensor lattice of
+    ``nodes`` (axis name -> inclusive node index range), reference constants ``base`` with
+    ``mu`` as given and ``tf = 1``. A ringless membrane's ring axis repeats one plane."""
+    names = list(nodes)
+    axes = [AXES[n] for n in names]
+    ranges = [range(nodes[n][0], nodes[n][1] + 1) for n in names]
+    shape = [len(r) for r in ranges]
+    jobs, where = [], []
+    for m, d in enumerate(designs):
+        for idx in np.ndindex(*shape) if shape else [()]:
+            params = dataclasses.replace(base, thickness_factor=1.0)
+            for a, r, i in zip(axes, ranges, idx):
+                k = r[i] if not (a.ringed_only and d.n_rings == 0) else 0
+                params = a.at(params, k * a.step)
+            jobs.append((d, params))
+            where.append((m, *idx))
+    planes = solve_planes(jobs, grid, cache=cache, progress=progress)
+    out = np.empty((len(designs), *shape, grid.h.size, grid.p.size))
+    for w, f in zip(where, planes):
+        out[w] = f
+    return out
+
+
+def designs_of(keys: Iterable[str]) -> list[Membrane]:
+    return [Membrane.from_key(k) for k in keys]
