@@ -112,7 +112,9 @@ def emulate(
     em = RigEmulator(plant, cfg, time_scale=time_scale, rate_hz=rate_hz, payload_kg=mass_kg, seed=seed,
                      watchdog_s=watchdog_s)
     budget_s = em.time_to_pressure_s(WORKING_PRESSURE_PA, cfg.hard_pressure_limit_pa)
-    if watchdog_s * time_scale > budget_s:  # the watchdog is wall clock; the pump runs on rig time
+    if watchdog_s == 0:
+        typer.echo("note: watchdog off (firmware without it): a killed host leaves the pump running", err=True)
+    elif watchdog_s * time_scale > budget_s:  # the watchdog is wall clock; the pump runs on rig time
         typer.echo(f"note: at time scale {time_scale:g} the {watchdog_s:g} s watchdog lets the pump run "
                    f"{watchdog_s * time_scale:g} rig s after the host's last command; from "
                    f"{WORKING_PRESSURE_PA:g} Pa it reaches the {cfg.hard_pressure_limit_pa:g} Pa hard limit "

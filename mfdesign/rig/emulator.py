@@ -358,7 +358,8 @@ class RigEmulator:
             return
         silent_s = wall - self._fed_wall
         self._fed_wall = None  # disarmed (nothing left to time) until the next command
-        self.watchdog_trips.append((wall, self.t, silent_s, self.pressure))  # the pump stops here: the peak
+        # the pressure as the pump stops: the most a silent host's last command can have reached
+        self.watchdog_trips.append((wall, self.t, silent_s, self.pressure))
         self.pump, self.valve_open = False, True  # what the host's s, q, h would do
         self.motion = {"left": 0, "right": 0}
         self._event(f"watchdog: no command for {silent_s:.3f} s at {self.pressure:.0f} Pa: "
