@@ -18,7 +18,7 @@ import typer
 
 from mfdesign.design import DesignError, Membrane
 from mfdesign.rig.config import ConfigError, RigConfig
-from mfdesign.rig.protocol import RigFault
+from mfdesign.rig.protocol import DEFAULT_WATCHDOG_S, RigFault
 
 rig_app = typer.Typer(help="Drive the membrane test rig (or its emulator) over a serial port.",
                       no_args_is_help=True)
@@ -97,12 +97,28 @@ def emulate(
     burst_pa: Optional[float] = typer.Option(None, min=1.0, help="membrane bursts at this pressure"),
     config: Optional[Path] = typer.Option(None, help="rig config (.toml/.json) for the ToF maps"),
     seed: int = typer.Option(0, help="sensor-noise seed"),
+    watchdog_s: float = typer.Option(
+        DEFAULT_WATCHDOG_S, help="wall-clock seconds without a command (heartbeat included) after which the "
+        "controller goes safe by itself; 0: off, like firmware without the watchdog"),
 ) -> None:
     """Serve a virtual rig controller on a pseudo-terminal; prints its device path."""
-    from mfdesign.rig.emulator import AnalyticPlant, RigEmulator
+    from mfdesign.rig.emulator import WORKING_PRESSURE_PA, AnalyticPlant, RigEmulator
 
+    if not (math.isfinite(watchdog_s) and watchdog_s >= 0):
+        typer.echo(f"error: --watchdog-s must be a number of seconds >= 0 (0: off), got {watchdog_s:g}", err=True)
+        raise typer.Exit(2)
+    cfg = _config(config)
     plant = AnalyticPlant.from_design(_design(design), burst_pressure_pa=burst_pa)
-    em = RigEmulator(plant, _config(config), time_scale=time_scale, rate_hz=rate_hz, payload_kg=mass_kg, seed=seed)
+    em = RigEmulator(plant, cfg, time_scale=time_scale, rate_hz=rate_hz, payload_kg=mass_kg, seed=seed,
+                     watchdog_s=watchdog_s)
+    budget_s = em.time_to_pressure_s(WORKING_PRESSURE_PA, cfg.hard_pressure_limit_pa)
+    if watchdog_s == 0:
+        typer.echo("note: watchdog off (firmware without it): a killed host leaves the pump running", err=True)
+    elif watchdog_s * time_scale > budget_s:  # the watchdog is wall clock; the pump runs on rig time
+        typer.echo(f"note: at time scale {time_scale:g} the {watchdog_s:g} s watchdog lets the pump run "
+                   f"{watchdog_s * time_scale:g} rig s after the host's last command; from "
+                   f"{WORKING_PRESSURE_PA:g} Pa it reaches the {cfg.hard_pressure_limit_pa:g} Pa hard limit "
+                   f"in {budget_s:.2f} rig s", err=True)
     port = em.start()
     typer.echo(port)
     sys.stdout.flush()

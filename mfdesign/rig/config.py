@@ -60,6 +60,7 @@ class RigConfig:
     tof_right: Affine = field(default_factory=Affine)
     port_baudrate: int = 115200
     telemetry_timeout_s: float = 1.0  # silence longer than this (wall clock) is a fault
+    heartbeat_interval_s: float = 0.2  # wall clock; a fifth of the controller's 1 s watchdog
     safe_state_deadline_s: float = 0.1  # budget to reach the safe state after a fault
     hard_pressure_limit_pa: float = 12000.0  # above this: safe state at once
     height_min_mm: float = 0.0
@@ -84,7 +85,7 @@ class RigConfig:
                 raise ConfigError(f"{name} must be a positive number, got {v!r}")
 
         for name in (
-            "telemetry_timeout_s", "safe_state_deadline_s", "hard_pressure_limit_pa",
+            "telemetry_timeout_s", "heartbeat_interval_s", "safe_state_deadline_s", "hard_pressure_limit_pa",
             "height_tolerance_mm", "set_height_timeout_s", "max_tilt_mm", "trial_timeout_s", "pressurise_timeout_s",
             "zero_pressure_pa", "burst_min_peak_pa", "sensor_dropout_timeout_s", "time_unit_s",
         ):

@@ -15,6 +15,16 @@ carrying the mass and settles where the plant's force equals its weight.
 :class:`Fault` injects failures: garbled or partial lines, sensor dropout, a stalled
 controller, a disconnect (pty closed), a burst, a pressure surge. Every command received
 and every line sent is recorded (``received``, ``sent``, ``events``) for tests.
+
+The emulated controller has the watchdog that docs/rig.md asks of the firmware: armed by
+the first command, restarted by every command (the host's heartbeat ``p`` included), it
+puts the rig safe by itself (pump off, valve open, actuators stopped) when no command
+arrives for ``watchdog_s``, and reports it with ``#watchdog,tripped,<silent_s>``. Each
+heartbeat is answered with ``#watchdog,armed,<watchdog_s>``. ``watchdog_s=0`` emulates
+firmware without the feature (heartbeats ignored, never answered). The watchdog runs on the
+wall clock, not rig time, because it watches the host, whose clock is the wall clock at any
+``time_scale`` (as the host's ``telemetry_timeout_s`` does): at ``time_scale`` s the pump
+runs ``s * watchdog_s`` rig seconds before it trips.
 """
 
 from __future__ import annotations
@@ -32,10 +42,32 @@ from typing import Literal, Protocol, runtime_checkable
 import numpy as np
 
 from mfdesign.rig.config import RigConfig
-from mfdesign.rig.protocol import LBF_TO_N, PSI_TO_PA
+from mfdesign.rig.protocol import DEFAULT_WATCHDOG_S, LBF_TO_N, PSI_TO_PA
 
 G = 9.80665
 log = logging.getLogger("mfdesign.rig.emulator")
+
+# the chamber model's defaults (RigEmulator arguments)
+PUMP_RATE_PA_S = 1500.0
+PUMP_MAX_PA = 30000.0
+LEAK_TAU_S = 600.0
+WORKING_PRESSURE_PA = 10000.0  # the most a procedure pumps to (procedures.RINGLESS_LIMIT_PA, lift)
+
+
+def pump_time_s(from_pa: float, to_pa: float, *, pump_rate_pa_s: float = PUMP_RATE_PA_S,
+                pump_max_pa: float = PUMP_MAX_PA, leak_tau_s: float = LEAK_TAU_S) -> float:
+    """Rig seconds the pump needs, valve closed, to take the chamber from ``from_pa`` to
+    ``to_pa`` (``inf`` if it never gets there): the closed form of the model that
+    :meth:`RigEmulator._advance` integrates, ``dp/dt = rate (1 - p / max) - p / leak_tau``.
+
+    With the defaults, 10 kPa -> 12 kPa takes 2.15 s: the budget of the controller watchdog."""
+    decay_per_s = pump_rate_pa_s / pump_max_pa + 1.0 / leak_tau_s
+    p_end = pump_rate_pa_s / decay_per_s  # where pumping and leaking balance
+    if to_pa <= from_pa:
+        return 0.0
+    if to_pa >= p_end:
+        return math.inf
+    return math.log((p_end - from_pa) / (p_end - to_pa)) / decay_per_s
 
 
 @runtime_checkable
@@ -131,6 +163,8 @@ class Fault:
 class RigEmulator:
     """Virtual controller on a pty; ``start()``, then connect a host to ``port``."""
 
+    _KNOWN = frozenset("wsqauiojklyhnm90p")  # command characters; others are ignored, feed nothing
+
     def __init__(
         self,
         plant: Plant | None = None,
@@ -143,15 +177,18 @@ class RigEmulator:
         start_height_mm: float = 40.0,
         actuator_speed_mm_s: float = 5.0,
         travel_mm: float = 80.0,
-        pump_rate_pa_s: float = 1500.0,
-        pump_max_pa: float = 30000.0,
+        pump_rate_pa_s: float = PUMP_RATE_PA_S,
+        pump_max_pa: float = PUMP_MAX_PA,
         valve_tau_s: float = 0.5,
-        leak_tau_s: float = 600.0,
+        leak_tau_s: float = LEAK_TAU_S,
         noise: bool = True,
         seed: int = 0,
+        watchdog_s: float = DEFAULT_WATCHDOG_S,
     ):
         if not (time_scale > 0 and rate_hz > 0 and payload_kg >= 0):
             raise ValueError("time_scale and rate_hz must be positive, payload_kg >= 0")
+        if not (math.isfinite(watchdog_s) and watchdog_s >= 0):
+            raise ValueError(f"watchdog_s must be a finite number of seconds >= 0 (0: off), got {watchdog_s}")
         self.plant = plant or AnalyticPlant()
         if not isinstance(self.plant, Plant):
             raise TypeError("plant must implement force_n, touches_rig and burst_pressure_pa")
@@ -163,6 +200,7 @@ class RigEmulator:
         self.pump_rate, self.pump_max = pump_rate_pa_s, pump_max_pa
         self.valve_tau, self.leak_tau = valve_tau_s, leak_tau_s
         self.noise = noise
+        self.watchdog_s = float(watchdog_s)
         self.rng = np.random.default_rng(seed)
         # state
         self.t = 0.0
@@ -178,7 +216,11 @@ class RigEmulator:
         self.received: list[tuple[float, float, str]] = []
         self.sent: list[tuple[float, float, str, str]] = []  # (wall, rig t, kind, line)
         self.events: list[tuple[float, float, str]] = []
+        self.status_sent: list[tuple[float, float, str, bool]] = []  # (wall, rig t, line, written)
+        self.watchdog_trips: list[tuple[float, float, float, float]] = []  # (wall, rig t, silent s, Pa)
         self.lines_dropped = 0
+        self._fed_wall: float | None = None  # last command (wall); None: watchdog not armed
+        self._status_out: list[str] = []  # status lines waiting for a line boundary
         self._master = self._slave = -1
         self.port = ""
         self._stop = threading.Event()
@@ -233,6 +275,11 @@ class RigEmulator:
     def fault_started(self, kind: str) -> Fault | None:
         return next((f for f in self.faults if f.kind == kind and f.started_s is not None), None)
 
+    def time_to_pressure_s(self, from_pa: float, to_pa: float) -> float:
+        """Rig seconds this emulator's pump needs from ``from_pa`` to ``to_pa`` (valve closed)."""
+        return pump_time_s(from_pa, to_pa, pump_rate_pa_s=self.pump_rate, pump_max_pa=self.pump_max,
+                           leak_tau_s=self.leak_tau)
+
     # -- serving ---------------------------------------------------------------------------
     def _serve(self) -> None:
         period = 1.0 / self.rate_hz
@@ -258,6 +305,7 @@ class RigEmulator:
                     *cmds, inbox = inbox.split(b"\n")
                     for c in cmds:
                         self._command(c.strip(b"\r "), now)
+                self._check_watchdog(now)  # after reading: commands that waited in the pty count
                 if self.closed:
                     break
                 if self.t >= next_emit:
@@ -270,6 +318,13 @@ class RigEmulator:
     def _command(self, c: bytes, wall: float) -> None:
         ch = c.decode("ascii", "replace")
         self.received.append((wall, self.t, ch))
+        if ch == "p" and not self.watchdog_s:
+            return  # firmware without the feature: the heartbeat is an unknown command, ignored
+        if ch in self._KNOWN and self.watchdog_s:
+            self._fed_wall = wall  # arms the watchdog, or restarts it
+        if ch == "p":
+            self._status(f"#watchdog,armed,{self.watchdog_s:.3f}")
+            return
         push = -1 if self.config.push_lowers_plate else 1  # height direction of "push"
         moves = {"u": ("left", push), "i": ("left", -push), "o": ("left", 0),
                  "j": ("right", push), "k": ("right", -push), "l": ("right", 0)}
@@ -297,6 +352,34 @@ class RigEmulator:
             self.sensors_on = False
         else:
             self._event(f"unknown command {ch!r} ignored")
+
+    def _check_watchdog(self, wall: float) -> None:
+        if self._fed_wall is None or wall - self._fed_wall <= self.watchdog_s:
+            return
+        silent_s = wall - self._fed_wall
+        self._fed_wall = None  # disarmed (nothing left to time) until the next command
+        # the pressure as the pump stops: the most a silent host's last command can have reached
+        self.watchdog_trips.append((wall, self.t, silent_s, self.pressure))
+        self.pump, self.valve_open = False, True  # what the host's s, q, h would do
+        self.motion = {"left": 0, "right": 0}
+        self._event(f"watchdog: no command for {silent_s:.3f} s at {self.pressure:.0f} Pa: "
+                    f"pump off, valve open, actuators stopped")
+        self._status(f"#watchdog,tripped,{silent_s:.3f}")
+
+    def _status(self, line: str) -> None:
+        self._status_out.append(line)
+
+    def _flush_status(self, wall: float) -> None:
+        """Write the waiting status lines. Only at a line boundary (never right after a
+        partial line): a status line must not merge with telemetry."""
+        while self._status_out:
+            line = self._status_out.pop(0)
+            try:
+                os.write(self._master, line.encode("ascii") + b"\n")
+                ok = True
+            except (BlockingIOError, OSError):
+                ok = False  # nobody reading: dropped, like telemetry
+            self.status_sent.append((wall, self.t, line, ok))
 
     def _arm_faults(self, wall: float) -> None:
         for f in self.faults:
@@ -375,6 +458,8 @@ class RigEmulator:
                 return
             if f.kind == "stall" and f.active(self.t):
                 return
+        if not self._after_partial:
+            self._flush_status(wall)
         line = self.telemetry_line()
         kind = "merged" if self._after_partial else "ok"  # merged: runs on from a partial line
         self._after_partial = False
@@ -401,6 +486,8 @@ class RigEmulator:
         except (BlockingIOError, OSError):
             self.lines_dropped += 1  # nobody reading: a real UART drops bytes too
             self.sent[-1] = (wall, self.t, "unsent", line)
+        if not self._after_partial:
+            self._flush_status(wall)
 
     def serve_forever(self) -> None:
         """Serve until Ctrl-C (used by ``mfdesign rig emulate``)."""

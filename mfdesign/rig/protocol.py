@@ -12,6 +12,15 @@ pressure over the hard limit and a lost port, and on any of them puts the rig sa
 (:data:`SAFE_SEQUENCE`: pump off, valve open, actuators stopped) at once, without waiting
 for the caller. Used as a context manager, any exception in the caller (Ctrl-C included)
 also ends in the safe state and a closed port.
+
+Host heartbeat (issue 22): a host killed outright (SIGKILL, PC power loss) sends nothing,
+and a controller that keeps its last state keeps pumping. So the connection sends
+:attr:`Command.HEARTBEAT` every ``heartbeat_interval_s`` from its own thread, and a
+controller with a watchdog goes safe by itself when no command arrives for its timeout
+(:data:`DEFAULT_WATCHDOG_S`). The controller answers each heartbeat with a status line
+``#watchdog,armed,<timeout_s>`` and reports a trip with ``#watchdog,tripped,<silent_s>``;
+these lines are not telemetry. A controller that never answers has no watchdog: the
+connection logs a warning (``controller_watchdog_s`` stays ``None``).
 """
 
 from __future__ import annotations
@@ -56,12 +65,24 @@ class Command(str, enum.Enum):
     RESET = "m"
     SENSORS_ON = "9"
     SENSORS_OFF = "0"
+    HEARTBEAT = "p"  # "the host is alive": feeds the controller's watchdog, changes nothing else
+
+
+# The controller's watchdog timeout (wall-clock s) asked of the firmware (docs/rig.md) and the
+# emulator's default. From the highest working pressure (10 kPa: ringless cap, lift default)
+# the emulated pump needs 2.15 s, valve closed, to reach the 12 kPa hard limit
+# (emulator.pump_time_s; tests/test_rig_watchdog.py keeps this number honest): after 1 s of
+# silence it has added about 0.95 kPa, leaving > 1 kPa and > 1.1 s of margin. Shorter would
+# trip on a host descheduled for a few hundred ms (seen: 0.45 s on a loaded 2-core machine).
+DEFAULT_WATCHDOG_S = 1.0
+WATCHDOG_STATUS_PREFIX = b"#watchdog,"
 
 
 SAFE_SEQUENCE = (Command.PUMP_OFF, Command.VALVE_OPEN, Command.BOTH_STOP)
 # commands that cannot add energy: allowed after a fault, and do not leave the safe state
 _SAFE_CHARS = {c.value for c in SAFE_SEQUENCE} | {
-    Command.LEFT_STOP.value, Command.RIGHT_STOP.value, Command.SENSORS_ON.value, Command.SENSORS_OFF.value}
+    Command.LEFT_STOP.value, Command.RIGHT_STOP.value, Command.SENSORS_ON.value, Command.SENSORS_OFF.value,
+    Command.HEARTBEAT.value}
 
 
 class TelemetryError(ValueError):
@@ -84,6 +105,13 @@ class OverPressure(RigFault):
 
 class RigDisconnected(RigFault):
     kind = "disconnected"
+
+
+class WatchdogTripped(RigFault):
+    """The controller went safe by itself (no command for its watchdog time) while this
+    host believed the rig energised: the host stalled, or its heartbeats were lost."""
+
+    kind = "watchdog"
 
 
 @dataclass(frozen=True)
@@ -147,6 +175,26 @@ def parse_telemetry(line: bytes | str, config: RigConfig, host_time: float | Non
     )
 
 
+@dataclass(frozen=True)
+class WatchdogStatus:
+    """A controller status line ``#watchdog,<state>,<seconds>`` (not telemetry).
+
+    ``armed``: the answer to a heartbeat; ``seconds`` is the controller's timeout.
+    ``tripped``: the controller went safe; ``seconds`` is how long it heard no command."""
+
+    state: str
+    seconds: float
+
+
+def parse_watchdog_status(line: bytes) -> WatchdogStatus:
+    """Parse a line starting with ``#watchdog,`` strictly; raise :class:`TelemetryError`."""
+    parts = line.rstrip(b"\r").split(b",")
+    if len(parts) != 3 or parts[1] not in (b"armed", b"tripped"):
+        raise TelemetryError("watchdog status is not '#watchdog,armed|tripped,<seconds>'")
+    seconds = _field("watchdog seconds", parts[2].decode("ascii", "replace"), 0.0, 1e6)
+    return WatchdogStatus(parts[1].decode("ascii"), seconds)
+
+
 class RigConnection:
     """The session's one serial connection to the rig controller (see module doc).
 
@@ -179,10 +227,15 @@ class RigConnection:
         self._dropout = {"left": False, "right": False}
         self._over_warned = 0.0
         self._handled: BaseException | None = None
+        self._heard = False  # a good telemetry line arrived: the reader (safety monitor) works
+        self.heartbeats_sent = 0
+        self.controller_watchdog_s: float | None = None  # from its answer; None: none (yet)
         self._reader = threading.Thread(target=self._read_loop, name="rig-reader", daemon=True)
+        self._heart = threading.Thread(target=self._heartbeat_loop, name="rig-heartbeat", daemon=True)
         self.log.info("connected to rig on %s at %d baud", port, self.config.port_baudrate)
         self.safe_state("connect")  # the rig's state is unknown (a killed host may have left it pumping)
         self._reader.start()
+        self._heart.start()
 
     # -- commands ------------------------------------------------------------------------
     def send(self, cmd: Command) -> None:
@@ -209,6 +262,74 @@ class RigConnection:
             self.sent.append((time.monotonic(), cmd.value, ok))
             self.log.debug("sent %s (%r)", cmd.name, cmd.value)
             return ok
+
+    # -- heartbeat -----------------------------------------------------------------------
+    def _heartbeat_loop(self) -> None:
+        """Send HEARTBEAT every ``heartbeat_interval_s`` while the reader hears the controller.
+
+        A beat says more than "the process lives": it goes out only while the reader thread
+        (which enforces the hard limit) is alive and receiving telemetry, so a host whose
+        monitor died or went deaf lets the controller's watchdog put the rig safe."""
+        interval = self.config.heartbeat_interval_s
+        answer_wait_s = max(1.0, 5 * interval)  # several beats: one lost line is no verdict
+        first_beat: float | None = None
+        warned = False
+        while not self._stop.wait(interval):
+            now = time.monotonic()
+            if not (self._reader.is_alive() and self._heard
+                    and now - self._last_good <= self.config.telemetry_timeout_s):
+                continue
+            if not self._beat():
+                return
+            if first_beat is None:
+                first_beat = now
+            if (not warned and self.controller_watchdog_s is None and now - first_beat > answer_wait_s):
+                warned = True
+                self.log.warning(
+                    "the controller did not answer %d heartbeats in %.1f s: its firmware has no "
+                    "watchdog, so a host killed mid-trial leaves the pump running (docs/rig.md, "
+                    "'Controller watchdog')", self.heartbeats_sent, now - first_beat)
+
+    def _beat(self) -> bool:
+        """Write one heartbeat (not logged or listed in ``sent``: five a second would bury the
+        commands); False once the port is lost or closing."""
+        with self._write_lock:
+            try:
+                self.ser.write(f"{Command.HEARTBEAT.value}\n".encode("ascii"))
+                self.heartbeats_sent += 1
+                return True
+            except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
+                error = exc
+        if not self._stop.is_set():  # outside the lock: fail() writes the safe sequence
+            self.fail(RigDisconnected(f"serial port lost: heartbeat not sent ({error})"))
+        return False
+
+    def _handle_status(self, raw: bytes) -> None:
+        try:
+            st = parse_watchdog_status(raw)
+        except TelemetryError as exc:
+            self._bad(raw, str(exc))
+            return
+        if st.state == "armed":
+            if self.controller_watchdog_s != st.seconds:
+                self.controller_watchdog_s = st.seconds
+                self.log.info("controller watchdog: safe after %.3f s without a command "
+                              "(heartbeat every %.3f s)", st.seconds, self.config.heartbeat_interval_s)
+                if st.seconds < 2 * self.config.heartbeat_interval_s:
+                    self.log.warning("the controller's %.3f s watchdog is under two heartbeat intervals "
+                                     "(%.3f s): one late beat will put the rig safe",
+                                     st.seconds, self.config.heartbeat_interval_s)
+            return
+        if self._safe or self.fault is not None:
+            # nothing of ours was undone (e.g. the trip of a previous session reaching a fresh one)
+            self.log.warning("controller watchdog went safe after %.3f s without a command "
+                             "(the rig was already safe)", st.seconds)
+            return
+        # Faulting here also keeps the vent that follows from being read as a burst: this line
+        # precedes, in the stream, every sample that shows the pressure falling.
+        self.fail(WatchdogTripped(
+            f"the controller went safe by itself after {st.seconds:.3f} s without a command "
+            f"(host stalled, or heartbeats lost?)"))
 
     def safe_state(self, reason: str) -> bool:
         """Pump off, valve open, actuators stopped; log each action. True if all were sent."""
@@ -303,6 +424,9 @@ class RigConnection:
     def _handle_line(self, raw: bytes, now: float) -> None:
         if not raw.strip():
             return
+        if raw.startswith(WATCHDOG_STATUS_PREFIX):
+            self._handle_status(raw)
+            return
         try:
             s = parse_telemetry(raw, self.config, host_time=now)
         except TelemetryError as exc:
@@ -313,6 +437,7 @@ class RigConnection:
             return
         self._last_time = s.rig_time_s
         self._last_good = now
+        self._heard = True
         self.good_lines += 1
         for side, tof in (("left", s.left_tof), ("right", s.right_tof)):
             dropped = tof >= TOF_DROPOUT
@@ -344,9 +469,10 @@ class RigConnection:
         if not self._safe:
             self.safe_state(reason)
         self._closed = True
-        self._stop.set()
-        if self._reader is not threading.current_thread():
-            self._reader.join(timeout=1.0)
+        self._stop.set()  # heartbeats stop: a controller with a watchdog trips harmlessly, already safe
+        for t in (self._reader, self._heart):
+            if t is not threading.current_thread() and t.is_alive():
+                t.join(timeout=1.0)
         try:
             self.ser.close()
         except (serial.SerialException, OSError) as exc:
