@@ -1,7 +1,9 @@
 """``mfdesign`` command line (typer). Units: mm, Pa, N.
 
 Bad input (a design that cannot be built, a file that is not what it should be) prints
-one line saying what was wrong and exits with status 2.
+one line saying what was wrong and what is allowed, and exits with status 2; an unexpected
+error prints one line naming a log file with the traceback and exits with status 1
+(:mod:`mfdesign.cli_contract`).
 """
 
 from __future__ import annotations
@@ -12,10 +14,14 @@ from pathlib import Path
 
 import typer
 
+from mfdesign.cli_contract import ContractGroup
+
+# ContractGroup turns whatever escapes a command into the one-line contract (module doc).
 app = typer.Typer(
     help="Multi-fidelity Bayesian design of soft pneumatic actuators.",
     no_args_is_help=True,
     add_completion=False,
+    cls=ContractGroup,
 )
 
 
@@ -159,12 +165,15 @@ def _register_subcommands() -> None:
     import importlib
     import importlib.util
 
+    from mfdesign import cli_contract
+
     from mfdesign.rig.commands import rig_app
 
     app.add_typer(rig_app, name="rig", help="Drive the test rig (or its emulator) over a serial port.")
     for name in _COMMAND_MODULES:
         if importlib.util.find_spec(name) is not None:
             importlib.import_module(name).register(app)
+    cli_contract.apply(app)  # every command: --out checked and locked before computing
 
 
 _register_subcommands()
