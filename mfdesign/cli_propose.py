@@ -81,7 +81,9 @@ def plot_proposal(proposal, path: Path, space=None) -> Path:
                  f"score {proposal.score:.3g} N/cost")
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    from mfdesign import outputs
+
+    outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
     return path
 
