@@ -38,7 +38,7 @@ def load_predictor(model: Path):
         return EnsemblePredictor(Ensemble.load(model))
     if (model / "sim" / "ensemble.json").is_file() and (model / "discrepancy" / "ensemble.json").is_file():
         return SplitPredictor(Ensemble.load(model / "sim"), Ensemble.load(model / "discrepancy"))
-    found = sorted(p.name for p in model.iterdir())[:8]
+    found = sorted(p.name for p in model.iterdir() if p.name != ".mfdesign.lock")[:8]
     raise ValueError(f"--model {model} holds no ensemble.json, mf.json, nor sim/ and discrepancy/ ensembles; found {found}")
 
 
