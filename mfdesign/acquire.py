@@ -48,7 +48,6 @@ design adds to ``U``, and the next slot goes to the most uncertain distinct desi
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
@@ -59,7 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from mfdesign.design import DesignError, DesignSpace, Membrane
+from mfdesign.design import DesignError, DesignSpace, Membrane  # noqa: F401
 
 __all__ = [
     "FIDELITIES", "DEFAULT_COSTS", "Grid", "Predictor", "EnsemblePredictor", "SplitPredictor",
@@ -332,7 +331,9 @@ class Proposal:
     def save(self, path) -> None:
         from pathlib import Path
 
-        Path(path).write_text(json.dumps(self.to_json(), indent=2))
+        from mfdesign import outputs
+
+        outputs.write_json(Path(path), self.to_json())
 
 
 def _check_costs(fidelities, costs):

@@ -1,7 +1,9 @@
 """``mfdesign`` command line (typer). Units: mm, Pa, N.
 
 Bad input (a design that cannot be built, a file that is not what it should be) prints
-one line saying what was wrong and exits with status 2.
+one line saying what was wrong and what is allowed, and exits with status 2; an unexpected
+error prints one line naming a log file with the traceback and exits with status 1
+(:mod:`mfdesign.cli_contract`).
 """
 
 from __future__ import annotations
@@ -12,10 +14,14 @@ from pathlib import Path
 
 import typer
 
+from mfdesign.cli_contract import ContractGroup
+
+# ContractGroup turns whatever escapes a command into the one-line contract (module doc).
 app = typer.Typer(
     help="Multi-fidelity Bayesian design of soft pneumatic actuators.",
     no_args_is_help=True,
     add_completion=False,
+    cls=ContractGroup,
 )
 
 
@@ -29,6 +35,12 @@ def enable_compilation_cache() -> Path:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return cache
+
+
+# Declared once; the data commands and simulate take it.
+ALLOW_OUTSIDE = typer.Option(False, "--allow-outside-design-space",
+                             help="Research: accept designs outside the product's space (thickness 1-3 mm, ...) "
+                                  "up to a wider physical range; the output says so.")
 
 
 def fail(message: str) -> None:
@@ -55,14 +67,16 @@ def simulate(
     n_pressures: int = typer.Option(50, min=2, max=2000, help="Pressures in the grid."),
     mu_pa: float = typer.Option(31.7e3, help="Gent shear modulus of the rubber [Pa]."),
     jm: float = typer.Option(39.6, help="Gent locking parameter J_m of the rubber."),
+    allow_outside_design_space: bool = ALLOW_OUTSIDE,
 ) -> None:
     """Simulate one membrane on a height x pressure grid: Parquet plane + PNG + JSON."""
-    from mfdesign.design import DesignError, Membrane
+    from mfdesign.design import DesignError, Membrane, check_design_space
     from mfdesign.physics.params import SimParams
     from mfdesign.simulate_plane import simulate_plane, write_plane
 
     try:
         membrane = Membrane.from_key(design)
+        widened = check_design_space(membrane, allow_outside_design_space)
     except DesignError as err:
         fail(f"bad design {design!r}: {err}")
     for name, value, lo in (("h-max-mm", h_max_mm, 0.0), ("p-max-pa", p_max_pa, 0.0), ("mu-pa", mu_pa, 0.0), ("jm", jm, 0.0)):
@@ -70,7 +84,10 @@ def simulate(
             fail(f"--{name} must be a positive finite number, got {value}")
     params = SimParams(mu_pa=mu_pa, jm=jm)
     table = simulate_plane(membrane, h_max_mm, p_max_pa, n_heights, n_pressures, params, progress=True)
-    paths = write_plane(table, membrane, out)
+    note = {"design_space": "widened (--allow-outside-design-space): outside the product's membranes"} if widened else {}
+    paths = write_plane(table, membrane, out, extra=note)
+    if widened:
+        typer.echo(f"warning: {membrane.key()} is outside the product's design space (widened on request)", err=True)
     typer.echo(json.dumps({k: str(v) for k, v in paths.items()}))
 
 
@@ -112,12 +129,13 @@ def fit(
     degree: int = typer.Option(2, min=1, max=3, help="Degree of the head polynomial in pressure."),
     monotone: bool = typer.Option(True, help="Force non-decreasing in pressure."),
     seed: int = typer.Option(0, help="Random seed."),
+    allow_outside_design_space: bool = ALLOW_OUTSIDE,
 ) -> None:
     """Fit the paper's RPN ensemble to measurements and save it."""
     from mfdesign.models import commands
 
     try:
-        commands.fit(data, out, members, steps, batch, degree, monotone, seed)
+        commands.fit(data, out, members, steps, batch, degree, monotone, seed, allow_outside_design_space)
     except ValueError as err:
         fail(str(err))
 
@@ -134,12 +152,13 @@ def cv(
     monotone: bool = typer.Option(True),
     seed: int = typer.Option(0),
     out: Path = typer.Option(None, help="Write the metrics as JSON here."),
+    allow_outside_design_space: bool = ALLOW_OUTSIDE,
 ) -> None:
     """Leave-membranes-out cross-validation: RMSE [N], median error, interval coverage."""
     from mfdesign.models import commands
 
     try:
-        commands.cv(data, model, folds, members, steps, batch, degree, monotone, seed, out)
+        commands.cv(data, model, folds, members, steps, batch, degree, monotone, seed, out, allow_outside_design_space)
     except ValueError as err:
         fail(str(err))
 
@@ -159,12 +178,15 @@ def _register_subcommands() -> None:
     import importlib
     import importlib.util
 
+    from mfdesign import cli_contract
+
     from mfdesign.rig.commands import rig_app
 
     app.add_typer(rig_app, name="rig", help="Drive the test rig (or its emulator) over a serial port.")
     for name in _COMMAND_MODULES:
         if importlib.util.find_spec(name) is not None:
             importlib.import_module(name).register(app)
+    cli_contract.apply(app)  # every command: --out checked and locked before computing
 
 
 _register_subcommands()

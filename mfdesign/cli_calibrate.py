@@ -17,8 +17,25 @@ from typing import List, Optional
 import typer
 
 
+def _check_chain(chain: Path) -> None:
+    """A chain.h5 to resume must be a readable HDF5 file (a truncated or foreign one would
+    fail deep inside emcee, after the data were loaded and the model built)."""
+    import h5py
+
+    from mfdesign.errors import InputError
+
+    try:
+        with h5py.File(chain, "r") as f:
+            f.visit(lambda name: None)
+    except Exception as err:  # noqa: BLE001 -- h5py raises OSError, KeyError, RuntimeError on junk
+        raise InputError(f"{chain} is not a readable chain ({type(err).__name__}: {str(err)[:120]}); allowed: a "
+                         "chain.h5 written by mfdesign calibrate / fit-mf, or --no-resume to start a new one") from None
+
+
 def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, max_rows: int, simulator: str,
-         likelihood: str, seed: int, resume: bool, multi_fidelity: bool, members: int, delta_steps: int) -> None:
+         likelihood: str, seed: int, resume: bool, multi_fidelity: bool, members: int, delta_steps: int,
+         allow_outside_design_space: bool = False) -> None:
+    from mfdesign import outputs
     from mfdesign.cli import fail
 
     if likelihood not in ("gaussian", "student_t"):
@@ -41,7 +58,7 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
     if unknown:
         fail(f"unknown effect(s) {unknown}; registered: {sorted(EFFECTS)}")
     try:
-        table = load_data(data)
+        table = load_data(data, "fit-mf" if multi_fidelity else "calibrate", allow_outside_design_space)
         force_model = force_model_named(simulator)
     except (ValueError, MeasurementError, FileNotFoundError) as err:
         fail(str(err))
@@ -49,6 +66,8 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
     chain = out / "chain.h5"
     if not resume and chain.exists():
         chain.unlink()
+    if chain.exists():
+        _check_chain(chain)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ConvergenceWarning)
         try:
@@ -83,7 +102,7 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
 
         fit.delta.save(out / "delta")
         cov = coverage(fit.mf, table.subset(list(fit.design_keys)), level=0.9, key=seed)
-        (out / "mf.json").write_text(json.dumps({"noise_n": fit.noise_n, "effects": list(effects),
+        outputs.write_text(out / "mf.json", json.dumps({"noise_n": fit.noise_n, "effects": list(effects),
                                                  "simulator": simulator, "likelihood": likelihood, "train_rmse_n": cov["rmse_n"],
                                                  "train_coverage90": cov["coverage"]}, indent=2))
         typer.echo(f"multi-fidelity: residual noise {fit.noise_n:.3f} N; training RMSE {cov['rmse_n']:.3f} N, "
@@ -99,6 +118,8 @@ SIMULATOR = typer.Option("emulator", help="Force model: emulator | standin.")
 LIKELIHOOD = typer.Option("gaussian", help="gaussian | student_t")
 SEED = typer.Option(0, help="Random seed.")
 RESUME = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists.")
+ALLOW_OUTSIDE = typer.Option(False, "--allow-outside-design-space",
+                             help="Research: accept membranes outside the product's design space (wider physical range).")
 
 
 def register(app: typer.Typer) -> None:
@@ -114,10 +135,11 @@ def register(app: typer.Typer) -> None:
         likelihood: str = LIKELIHOOD,
         seed: int = SEED,
         resume: bool = RESUME,
+        allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
         """Calibrate mu [Pa], J_m and the effects' parameters with emcee (posterior table, corner plot, chain)."""
         _run(data, list(effects or []), out, steps, walkers, max_rows, simulator, likelihood, seed, resume,
-             False, 0, 0)
+             False, 0, 0, allow_outside_design_space)
 
     @app.command("fit-mf")
     def fit_mf(
@@ -133,7 +155,8 @@ def register(app: typer.Typer) -> None:
         delta_steps: int = typer.Option(3000, min=1, help="Discrepancy training steps."),
         seed: int = SEED,
         resume: bool = RESUME,
+        allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
         """Multi-fidelity fit: calibrated simulator + RPN discrepancy ensemble + noise."""
         _run(data, list(effects or []), out, steps, walkers, max_rows, simulator, likelihood, seed, resume,
-             True, members, delta_steps)
+             True, members, delta_steps, allow_outside_design_space)

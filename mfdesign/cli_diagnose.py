@@ -89,6 +89,9 @@ def register(app: typer.Typer) -> None:
         max_steps: int = typer.Option(2, min=1, help="Rounds of forward selection."),
         shapes: bool = typer.Option(True, help="Plot the simulated shape at the worst points (full simulator only)."),
         cache_dir: Optional[Path] = typer.Option(None, help="Plane cache (default ~/.cache/mfdesign/planes)."),
+        allow_outside_design_space: bool = typer.Option(
+            False, "--allow-outside-design-space",
+            help="Research: accept membranes outside the product's design space (wider physical range)."),
     ) -> None:
         """Residuals by height, pressure, design, trial and phase; worst regions in words; which
         effect is missing (screen + full check); before/after with --effects. Writes HTML + JSON."""
@@ -119,7 +122,7 @@ def register(app: typer.Typer) -> None:
             model_dir = model if model is not None else (Path(cfg["model"]) if cfg.get("model") else None)
             from mfdesign.models.commands import load_data
 
-            meas = load_data(data)
+            meas = load_data(data, "diagnose", allow_outside_design_space)
         except (ValueError, KeyError) as err:
             fail(str(err).strip('"'))
         import numpy as np

@@ -109,7 +109,9 @@ def register(app: typer.Typer) -> None:
         result = opt.optimize(predictor, problem, rings=ring_list, n_starts=starts, steps=steps,
                               n_refine=refine or None, seed=seed, check=check)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "optimize.json").write_text(json.dumps(result.to_json(), indent=2))
+        from mfdesign import outputs
+
+        outputs.write_json(out / "optimize.json", result.to_json())
         opt.plot(result, out / "optimize.png")
         p = result.prediction
         what = (f"smooth-min height {p['score_mm']:.1f} mm (min {p['min_h_mm']:.1f} mm)" if result.problem == "height"

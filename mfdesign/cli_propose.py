@@ -38,7 +38,7 @@ def load_predictor(model: Path):
         return EnsemblePredictor(Ensemble.load(model))
     if (model / "sim" / "ensemble.json").is_file() and (model / "discrepancy" / "ensemble.json").is_file():
         return SplitPredictor(Ensemble.load(model / "sim"), Ensemble.load(model / "discrepancy"))
-    found = sorted(p.name for p in model.iterdir())[:8]
+    found = sorted(p.name for p in model.iterdir() if p.name != ".mfdesign.lock")[:8]
     raise ValueError(f"--model {model} holds no ensemble.json, mf.json, nor sim/ and discrepancy/ ensembles; found {found}")
 
 
@@ -81,7 +81,9 @@ def plot_proposal(proposal, path: Path, space=None) -> Path:
                  f"score {proposal.score:.3g} N/cost")
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    from mfdesign import outputs
+
+    outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
     return path
 

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mfdesign import outputs  # atomic writes: a reader never sees a torn file
 from mfdesign.design import Membrane
 
 __all__ = ["DemoSettings", "run_demo", "BUNDLED"]
@@ -124,7 +125,7 @@ def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
     axes[0][0].legend(fontsize=7)
     fig.suptitle("data (dots) vs model means, one colour per plate height", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -142,7 +143,7 @@ def _proposal_figure(meas, proposal, path: Path) -> None:
     ax.set_title("black: membranes measured; stars: proposed next", fontsize=9)
     ax.legend(fontsize=6, loc="best")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -188,7 +189,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
         d.mkdir(parents=True, exist_ok=True)
         post = fit_.posterior
         table = post.summary()
-        (d / "posterior.json").write_text(json.dumps(post.to_json(), indent=1, default=str))
+        outputs.write_text(d / "posterior.json", json.dumps(post.to_json(), indent=1, default=str))
         keep = [i for i, n in enumerate(post.names) if not n.startswith("z_thickness")]
         corner_plot(post.samples[:, keep], [post.names[i] for i in keep], d / "corner.png")
         rows = table[~table["parameter"].str.startswith("z_thickness")]
@@ -229,7 +230,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
         proposal = propose(predictor, 2, fidelities=("rig", "sim"), n_restarts=s.propose_restarts,
                            n_steps=s.propose_steps, grid=DEMO_GRID, key=s.seed, progress=progress)
         (out / "propose").mkdir(exist_ok=True)
-        (out / "propose" / "proposal.json").write_text(json.dumps(proposal.to_json(), indent=1, default=str))
+        outputs.write_text(out / "propose" / "proposal.json", json.dumps(proposal.to_json(), indent=1, default=str))
         _proposal_figure(meas, proposal, out / "propose" / "proposals.png")
 
     # 6. optimise a membrane for a lift task
@@ -238,7 +239,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
                           steps=s.optimise_steps, seed=s.seed, progress=progress, batch_size=50)
         (out / "optimize").mkdir(exist_ok=True)
         plot_optimum(result, out / "optimize" / "optimum.png", title="lift task A")
-        (out / "optimize" / "optimum.json").write_text(json.dumps(result.to_json(), indent=1, default=str))
+        outputs.write_text(out / "optimize" / "optimum.json", json.dumps(result.to_json(), indent=1, default=str))
 
     # 7. report
     with log.stage("report"):
@@ -281,6 +282,6 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
                    total_s=round(time.perf_counter() - log.t0, 1),
                    posterior_plain=post0, posterior_with_effects=post1,
                    proposals=[{"design": m.key(), "fidelity": f} for m, f in zip(proposal.designs, proposal.fidelities)])
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
+    outputs.write_text(out / "summary.json", json.dumps(summary, indent=1, default=str))
     echo(f"report: {paths['html']} ({summary['total_s']} s)")
     return summary

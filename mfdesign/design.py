@@ -291,6 +291,50 @@ class DesignSpace(eqx.Module):
             ok &= self.half_width_mm[0] - _TOL <= ring.half_width_mm <= self.half_width_mm[1] + _TOL
         return bool(ok)
 
+    def describe(self) -> str:
+        """The bounds in words (for error messages)."""
+        (t0, t1), (c0, c1), (w0, w1) = self.thickness_mm, self.contact_radius_mm, self.half_width_mm
+        return (f"thickness {t0:g}-{t1:g} mm, contact radius {c0:g}-{c1:g} mm, ring half-width {w0:g}-{w1:g} mm, "
+                f"0-{MAX_RINGS} rings with gaps >= {self.gap_mm:g} mm inside {self.outer_radius_mm:g} mm")
+
+    def check(self, design: Membrane, what: str = "design") -> Membrane:
+        """``design`` if it lies in this space, else :class:`DesignError` naming the
+        offending numbers and the allowed ranges."""
+        if self.contains(design):
+            return design
+        bad = []
+        if not self.thickness_mm[0] - _TOL <= design.thickness_mm <= self.thickness_mm[1] + _TOL:
+            bad.append(f"thickness {design.thickness_mm:g} mm")
+        if not self.contact_radius_mm[0] - _TOL <= design.contact_radius_mm <= self.contact_radius_mm[1] + _TOL:
+            bad.append(f"contact radius {design.contact_radius_mm:g} mm")
+        for k, ring in enumerate(design.rings, start=1):
+            if not self.half_width_mm[0] - _TOL <= ring.half_width_mm <= self.half_width_mm[1] + _TOL:
+                bad.append(f"ring {k} half-width {ring.half_width_mm:g} mm")
+        raise DesignError(f"{what} {design.key()}: {', '.join(bad)} outside the design space; allowed: "
+                          f"{self.describe()}")
+
     def sample(self, rng: np.random.Generator, n: int, n_rings: int) -> list[Membrane]:
         """``n`` designs drawn uniformly in the unit cube (seeded by ``rng``)."""
         return [self.decode(u, n_rings) for u in rng.uniform(size=(n, self.dim(n_rings)))]
+
+
+# The product's membranes (the paper's bounds), and the wider range that
+# ``--allow-outside-design-space`` opens for research: still physical (a membrane thinner
+# than 0.2 mm tears, one thicker than 10 mm is a plate, not a membrane).
+PRODUCT_SPACE = DesignSpace()
+RESEARCH_SPACE = DesignSpace(thickness_mm=(0.2, 10.0), contact_radius_mm=(5.0, 55.0), half_width_mm=(1.0, 30.0))
+WIDEN_OPTION = "--allow-outside-design-space"
+
+
+def check_design_space(design: Membrane, allow_outside: bool = False, what: str = "design") -> bool:
+    """Refuse a design outside the product's space (or, with ``allow_outside``, outside
+    :data:`RESEARCH_SPACE`); return whether it lies outside the product's space."""
+    if PRODUCT_SPACE.contains(design):
+        return False
+    if not allow_outside:
+        try:
+            PRODUCT_SPACE.check(design, what)
+        except DesignError as err:
+            raise DesignError(f"{err} ({WIDEN_OPTION} widens this to {RESEARCH_SPACE.describe()})") from None
+    RESEARCH_SPACE.check(design, what)
+    return True

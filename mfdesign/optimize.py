@@ -616,5 +616,7 @@ def plot(result: Result, path, title: str = "") -> None:
     ax.set_title(title or f"{result.problem}: {result.design_key}", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    from mfdesign import outputs
+
+    outputs.savefig(fig, path, dpi=120)
     plt.close(fig)

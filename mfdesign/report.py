@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+from mfdesign import outputs  # atomic writes: a reader never sees a torn file
+
 __all__ = ["Report", "Section"]
 
 _STYLE = """
@@ -104,13 +106,13 @@ class Report:
         page = (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(self.title)}</title>"
                 f"<style>{_STYLE}</style>{_CHECK_IMAGES}</head><body>" + "\n".join(body) + "</body></html>")
         html_path = out / "index.html"
-        html_path.write_text(page)
+        outputs.write_text(html_path, page)
         data = {"title": self.title, "written": stamp, "summary": self.summary, "meta": self.meta,
                 "sections": [{"title": s.title, "paragraphs": s.paragraphs, "table": s.table,
                               "images": [os.path.relpath(p, out) for p, _ in s.images], "data": s.data}
                              for s in self.sections]}
         json_path = out / "report.json"
-        json_path.write_text(json.dumps(data, indent=2, default=_json_default))
+        outputs.write_text(json_path, json.dumps(data, indent=2, default=_json_default))
         return {"html": html_path, "json": json_path}
 
 

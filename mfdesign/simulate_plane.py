@@ -6,7 +6,6 @@ point; the picture is the paper's: force against pressure, one curve per height.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -81,24 +80,29 @@ def plot_plane(table: pd.DataFrame, title: str, path: Path) -> None:
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path)
+    from mfdesign import outputs
+
+    outputs.savefig(fig, path)
     plt.close(fig)
 
 
-def write_plane(table: pd.DataFrame, design: Membrane, out: Path) -> dict[str, Path]:
-    """``plane.parquet``, ``plane.png`` and ``summary.json`` in ``out``."""
+def write_plane(table: pd.DataFrame, design: Membrane, out: Path, extra: dict | None = None) -> dict[str, Path]:
+    """``plane.parquet``, ``plane.png`` and ``summary.json`` in ``out`` (each written
+    atomically); ``extra`` joins the summary."""
+    from mfdesign import outputs
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"parquet": out / "plane.parquet", "png": out / "plane.png", "json": out / "summary.json"}
-    tmp = paths["parquet"].with_suffix(".parquet.tmp")
-    table.to_parquet(tmp, index=False)
-    tmp.replace(paths["parquet"])
+    with outputs.atomic_path(paths["parquet"]) as tmp:
+        table.to_parquet(tmp, index=False)
     plot_plane(table, f"simulated force plane, design {design.key()}", paths["png"])
     summary = {
         "design": design.key(),
         "points": int(len(table)),
         "status": summarize(table.status.to_numpy()),
         "max_force_n": float(np.nanmax(table.force_n)) if np.isfinite(table.force_n).any() else None,
+        **(extra or {}),
     }
-    paths["json"].write_text(json.dumps(summary, indent=2))
+    outputs.write_json(paths["json"], summary)
     return paths

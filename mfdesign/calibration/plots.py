@@ -60,6 +60,8 @@ def corner_plot(samples, names: Sequence[str], path, truths: Sequence[float] | N
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    from mfdesign import outputs
+
+    outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
     return path

@@ -106,19 +106,75 @@ class Posterior:
                 "effects": list(self.effects), "n_samples": int(len(self.samples))}
 
     def save(self, path) -> Path:
-        """``path.json`` (summary, diagnostics) and ``path.npz`` (samples)."""
+        """``path.json`` (summary, diagnostics) and ``path.npz`` (samples), each written atomically."""
+        from mfdesign import outputs
+
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.with_suffix(".json").write_text(json.dumps(self.to_json(), indent=2, default=float))
-        np.savez(path.with_suffix(".npz"), samples=self.samples, log_prob=self.log_prob, x_map=self.x_map)
+        with outputs.atomic_path(path.with_suffix(".npz")) as tmp:
+            np.savez(tmp, samples=self.samples, log_prob=self.log_prob, x_map=self.x_map)
+        outputs.write_json(path.with_suffix(".json"), self.to_json(), default=float)
         return path.with_suffix(".json")
 
     @classmethod
     def load(cls, path) -> "Posterior":
+        """Inverse of :meth:`save`. A missing, corrupt or inconsistent pair of files, or
+        non-finite samples or MAP, raise ``InputError`` saying which."""
+        from mfdesign.errors import InputError, one_line
+
         path = Path(path)
-        meta = json.loads(path.with_suffix(".json").read_text())
-        with np.load(path.with_suffix(".npz")) as z:
-            samples, log_prob, x_map = z["samples"], z["log_prob"], z["x_map"]
-        return cls(tuple(meta["names"]), tuple(meta["units"]), samples, log_prob, x_map, meta["log_lik_map"],
-                   meta["n_rows"], meta["bic"], meta["log_evidence_laplace"], meta["convergence"],
-                   tuple(meta["design_keys"]), tuple(meta["effects"]))
+        js, npz = path.with_suffix(".json"), path.with_suffix(".npz")
+        for f in (js, npz):
+            if not f.is_file():
+                raise InputError(f"posterior file {f} is missing; allowed: posterior.json + posterior.npz "
+                                 "as `mfdesign calibrate` writes them")
+        try:
+            meta = json.loads(js.read_text())
+            if not isinstance(meta, dict):
+                raise InputError(f"{js}: expected a JSON object, got {type(meta).__name__}")
+            arrays = _read_npz_bounded(npz, ("samples", "log_prob", "x_map"))
+            samples, log_prob, x_map = (np.asarray(arrays[k], dtype=np.float64) for k in ("samples", "log_prob", "x_map"))
+            post = cls(tuple(map(str, meta["names"])), tuple(map(str, meta["units"])), samples, log_prob, x_map,
+                       float(meta["log_lik_map"]), float(meta["n_rows"]), float(meta["bic"]),
+                       float(meta["log_evidence_laplace"]), dict(meta["convergence"]),
+                       tuple(map(str, meta["design_keys"])), tuple(map(str, meta["effects"])))
+        except InputError:
+            raise
+        except Exception as err:  # noqa: BLE001 -- corrupt JSON / zip / npy fail in many ways
+            raise InputError(f"{path}.json/.npz: not a readable posterior ({type(err).__name__}: "
+                             f"{one_line(err, 200)}); allowed: the files `mfdesign calibrate` writes") from None
+        dim = len(post.names)
+        if (samples.ndim != 2 or samples.shape[1] != dim or len(samples) < 1 or log_prob.shape != (len(samples),)
+                or x_map.shape != (dim,) or len(post.units) != dim):
+            raise InputError(f"{path}: samples {samples.shape}, log_prob {log_prob.shape}, x_map {x_map.shape} and "
+                             f"{dim} names / {len(post.units)} units do not fit; allowed: samples [S, dim], "
+                             "log_prob [S], x_map [dim]")
+        for name, a in (("samples", samples), ("x_map", x_map)):
+            if not np.isfinite(a).all():
+                raise InputError(f"{npz}: {int((~np.isfinite(a)).sum())} {name} values are NaN or infinite; "
+                                 "allowed: finite parameters (rerun the calibration)")
+        return post
+
+
+def _read_npz_bounded(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Arrays of an ``np.savez`` file, each header checked first: a corrupt header may
+    declare a shape of terabytes, which ``np.load`` would allocate before reading."""
+    import zipfile
+
+    from mfdesign.errors import InputError
+
+    limit = path.stat().st_size  # np.savez stores uncompressed: no array is larger than the file
+    out = {}
+    with zipfile.ZipFile(path) as z:
+        for name in names:
+            with z.open(f"{name}.npy") as fh:
+                version = np.lib.format.read_magic(fh)
+                read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                shape, _, dtype = read_header(fh)
+                if dtype.hasobject or int(np.prod(shape, dtype=object)) * dtype.itemsize > limit:
+                    raise InputError(f"{path}: array {name!r} declares shape {shape} {dtype}, more than the "
+                                     f"file holds ({limit} bytes); allowed: the file as np.savez wrote it")
+        with np.load(path, allow_pickle=False) as z:
+            for name in names:
+                out[name] = z[name]
+    return out

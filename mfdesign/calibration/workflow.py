@@ -100,32 +100,43 @@ def fit_multi_fidelity(table, force_model, effects=(), *, n_steps: int = 2000, n
 
 def load_multi_fidelity(folder) -> MFFit:
     """The fit saved by ``mfdesign fit-mf --out FOLDER`` (``mf.json``, ``posterior.*``,
-    ``delta/``). Raises ``ValueError`` saying what is missing or inconsistent."""
+    ``delta/``). Raises ``InputError`` (a ``ValueError``) saying what is missing, corrupt,
+    non-finite or inconsistent."""
     import json
     from pathlib import Path
     from types import SimpleNamespace
 
     from mfdesign.calibration.posterior import Posterior
     from mfdesign.models.ensemble import Ensemble
+    from mfdesign.errors import InputError, one_line
     from mfdesign.models.predictive import MultiFidelity
 
     folder = Path(folder)
     need = [folder / "mf.json", folder / "posterior.json", folder / "delta" / "ensemble.json"]
     missing = [str(p.relative_to(folder)) for p in need if not p.is_file()]
     if missing:
-        raise ValueError(f"{folder} is not a multi-fidelity fit (mfdesign fit-mf --out): missing {missing}")
+        raise InputError(f"{folder} is not a multi-fidelity fit (mfdesign fit-mf --out): missing {missing}")
     try:
         meta = json.loads((folder / "mf.json").read_text())
         effects, simulator, noise = list(meta["effects"]), str(meta["simulator"]), float(meta["noise_n"])
     except (ValueError, KeyError, TypeError) as err:
-        raise ValueError(f"{folder / 'mf.json'} is not a valid fit summary ({err!r}); rerun mfdesign fit-mf") from None
-    post = Posterior.load(folder / "posterior")
-    model = model_for(force_model_named(simulator), SimpleNamespace(design_keys=post.design_keys), effects,
-                      likelihood=meta.get("likelihood", "gaussian"))
+        raise InputError(f"{folder / 'mf.json'} is not a valid fit summary ({err!r}); rerun mfdesign fit-mf") from None
+    if not (np.isfinite(noise) and noise > 0):
+        raise InputError(f"{folder / 'mf.json'}: noise_n = {noise}; allowed: a positive finite number of newtons")
+    post = Posterior.load(folder / "posterior")  # InputError when corrupt or non-finite
+    try:
+        model = model_for(force_model_named(simulator), SimpleNamespace(design_keys=post.design_keys), effects,
+                          likelihood=meta.get("likelihood", "gaussian"))
+    except Exception as err:  # noqa: BLE001 -- unknown simulator / effect / likelihood named in the file
+        raise InputError(f"{folder / 'mf.json'}: cannot rebuild the model ({type(err).__name__}: "
+                         f"{one_line(err, 200)}); rerun mfdesign fit-mf") from None
     if tuple(model.names) != tuple(post.names):
-        raise ValueError(f"{folder}: the posterior's parameters {list(post.names)} do not match the model "
+        raise InputError(f"{folder}: the posterior's parameters {list(post.names)} do not match the model "
                          f"({list(model.names)}) of effects {effects} on {simulator!r}")
-    delta = Ensemble.load(folder / "delta")
+    try:
+        delta = Ensemble.load(folder / "delta")
+    except FileNotFoundError as err:
+        raise InputError(f"{folder}: {err}") from None
     mf = MultiFidelity.from_posterior(model, post, delta, noise_n=noise)
     return MFFit(model, post, delta, noise, mf, tuple(post.design_keys))
 

@@ -20,8 +20,10 @@ from __future__ import annotations
 
 import importlib
 import io
+import math
 import os
 import pickle
+import pickletools
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,6 +32,7 @@ import pandas as pd
 
 from mfdesign.design import DesignError, Membrane
 from mfdesign.data.measurements import Measurements
+from mfdesign.errors import InputError
 
 __all__ = [
     "ENV_VAR",
@@ -86,7 +89,31 @@ def _data_file(path: str | os.PathLike | None, name: str) -> Path:
 
 # -- restricted unpickling ----------------------------------------------------------------
 class UnsafePickleError(pickle.UnpicklingError):
-    """A pickle named something other than a NumPy array reconstruction."""
+    """A pickle that names, builds or sizes something this loader does not allow."""
+
+
+# Bounds of what one pickle may build. The real files: ~2 MB of arrays, < 2,000 opcodes,
+# < 1,000 containers, nesting depth 6. Why bounds at all: pickle memoises, so a file of a
+# few hundred bytes can describe a DAG of shared lists that a tree walk visits 10^16 times,
+# or name an array shape of terabytes; both must be refused in milliseconds.
+MAX_PICKLE_BYTES = 512 * 2**20
+MAX_ARRAY_BYTES = 256 * 2**20  # all arrays of one file together, checked before allocation
+MAX_OPCODES = 5_000_000
+MAX_NODES = 1_000_000  # distinct containers and arrays (shared ones counted once)
+MAX_TREE_NODES = 10_000_000  # the structure unfolded into a tree (what np.asarray would walk)
+MAX_DEPTH = 32
+# Opcodes that build things outside "numeric arrays in dict / list / tuple of str / bytes /
+# numbers": refused before anything is loaded, with what they would have built.
+_REFUSED_OPCODES = {
+    "EMPTY_SET": "a set", "ADDITEMS": "a set", "FROZENSET": "a frozenset", "BYTEARRAY8": "a bytearray",
+    "INST": "a class instance", "OBJ": "a class instance", "NEWOBJ": "a class instance",
+    "NEWOBJ_EX": "a class instance", "EXT1": "an extension-registry object", "EXT2": "an extension-registry object",
+    "EXT4": "an extension-registry object", "PERSID": "a persistent reference", "BINPERSID": "a persistent reference",
+    "NEXT_BUFFER": "an out-of-band buffer", "READONLY_BUFFER": "an out-of-band buffer",
+}
+_ALLOWED_WORDS = ("allowed: dict, list, tuple, str, bytes, numbers, None and numeric NumPy arrays "
+                  "(numpy _reconstruct / ndarray / dtype, and JAX arrays mapped onto NumPy)")
+_LEAVES = (str, bytes, int, float, complex, bool, type(None), np.number, np.bool_)
 
 
 def _numpy_reconstructors() -> dict[tuple[str, str], object]:
@@ -100,35 +127,91 @@ def _numpy_reconstructors() -> dict[tuple[str, str], object]:
     return out
 
 
-def _reconstruct_jax_array(fun, args, arr_state, aval_state):
-    """Stand-in for ``jax._src.array._reconstruct_array``: same signature, plain NumPy out."""
-    if fun not in _numpy_reconstructors().values():
-        raise UnsafePickleError(f"JAX array reconstruction through {fun!r}: only NumPy's is allowed")
-    arr = fun(*args)
-    arr.__setstate__(arr_state)
-    return np.asarray(arr)
+class _NdarrayType:
+    """What ``numpy.ndarray`` resolves to: a token the reconstructors accept as the array
+    type. Not the class itself, so a pickle cannot call ``ndarray(shape)`` and allocate an
+    unchecked shape."""
+
+    def __repr__(self) -> str:
+        return "numpy.ndarray"
+
+
+_NDARRAY = _NdarrayType()
 
 
 def _safe_dtype(*args):
-    dtype = np.dtype(*args)
+    try:
+        dtype = np.dtype(*args)
+    except (TypeError, ValueError) as err:
+        raise UnsafePickleError(f"bad dtype {args!r} in the pickle: {err}") from None
     if dtype.hasobject:
         raise UnsafePickleError("object arrays are not allowed: only numeric NumPy arrays")
     return dtype
 
 
-def _allowed() -> dict[tuple[str, str], object]:
-    """The only globals a pickle may name, and what each resolves to."""
-    return {
-        ("numpy", "ndarray"): np.ndarray,
-        ("numpy", "dtype"): _safe_dtype,
-        ("jax._src.array", "_reconstruct_array"): _reconstruct_jax_array,
-        **_numpy_reconstructors(),
-    }
+class _ArrayBudget:
+    """Bytes of arrays built so far by one load; refuses a shape before it is allocated."""
+
+    def __init__(self, limit_bytes: int):
+        self.limit_bytes, self.used_bytes = int(limit_bytes), 0
+
+    def charge(self, shape, dtype) -> None:
+        if not (isinstance(shape, tuple) and len(shape) <= MAX_DEPTH
+                and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)):
+            raise UnsafePickleError(f"array shape {shape!r} in the pickle is not a tuple of sizes >= 0")
+        dtype = dtype if isinstance(dtype, np.dtype) else _safe_dtype(dtype)
+        if dtype.hasobject:
+            raise UnsafePickleError("object arrays are not allowed: only numeric NumPy arrays")
+        nbytes = math.prod(shape) * dtype.itemsize  # Python ints: no overflow
+        self.used_bytes += nbytes
+        if self.used_bytes > self.limit_bytes:
+            raise UnsafePickleError(
+                f"array of shape {shape} ({dtype}, {nbytes / 2**20:.4g} MiB) takes the pickle's arrays "
+                f"past {self.limit_bytes / 2**20:g} MiB; allowed: at most {self.limit_bytes / 2**20:g} MiB "
+                "of arrays per file (refused before allocating)")
+
+    def reconstruct(self, subtype, shape, dtype):
+        """``numpy._core.multiarray._reconstruct`` for plain ndarrays, shape checked first."""
+        if subtype is not _NDARRAY and subtype is not np.ndarray:
+            raise UnsafePickleError(f"array reconstruction of {subtype!r}: only numpy.ndarray is allowed")
+        self.charge(shape, dtype)
+        fun = next(iter(_numpy_reconstructors().values()))
+        return fun(np.ndarray, shape, _safe_dtype(dtype))
+
+    def setstate(self, arr, state) -> np.ndarray:
+        """``arr.__setstate__(state)`` with ``state = (version, shape, dtype, fortran, data)``
+        checked first (numpy would allocate the shape)."""
+        if not (isinstance(arr, np.ndarray) and isinstance(state, tuple) and len(state) == 5):
+            raise UnsafePickleError("malformed array state in the pickle")
+        self.charge(state[1], state[2])
+        try:
+            arr.__setstate__(state)
+        except (TypeError, ValueError) as err:
+            raise UnsafePickleError(f"malformed array state in the pickle: {err}") from None
+        return arr
+
+    def reconstruct_jax(self, fun, args, arr_state, aval_state):
+        """Stand-in for ``jax._src.array._reconstruct_array``: same signature, plain NumPy out."""
+        if fun != self.reconstruct:
+            raise UnsafePickleError(f"JAX array reconstruction through {fun!r}: only NumPy's is allowed")
+        if not isinstance(args, tuple):
+            raise UnsafePickleError("malformed JAX array arguments in the pickle")
+        return np.asarray(self.setstate(fun(*args), arr_state))
 
 
 class _RestrictedUnpickler(pickle.Unpickler):
+    def __init__(self, file, max_array_bytes: int = MAX_ARRAY_BYTES):
+        super().__init__(file)
+        self.budget = _ArrayBudget(max_array_bytes)
+
     def find_class(self, module: str, name: str):
-        target = _allowed().get((module, name))
+        allowed = {
+            ("numpy", "ndarray"): _NDARRAY,
+            ("numpy", "dtype"): _safe_dtype,
+            ("jax._src.array", "_reconstruct_array"): self.budget.reconstruct_jax,
+            **{key: self.budget.reconstruct for key in _numpy_reconstructors()},
+        }
+        target = allowed.get((module, name))
         if target is None:
             raise UnsafePickleError(
                 f"refused to load {module}.{name}: this loader allows only NumPy arrays "
@@ -137,48 +220,125 @@ class _RestrictedUnpickler(pickle.Unpickler):
         return target
 
 
-def _check_no_objects(obj, depth: int = 0) -> None:
-    if depth > 20:
-        raise UnsafePickleError("pickle nests containers deeper than 20 levels")
-    if isinstance(obj, np.ndarray):
-        if obj.dtype.hasobject:
-            raise UnsafePickleError("object arrays are not allowed: only numeric NumPy arrays")
-    elif isinstance(obj, dict):
-        for k, v in obj.items():
-            _check_no_objects(k, depth + 1)
-            _check_no_objects(v, depth + 1)
-    elif isinstance(obj, (list, tuple)):
-        for v in obj:
-            _check_no_objects(v, depth + 1)
+def _prescan(data: bytes) -> None:
+    """Refuse set / instance / extension opcodes and overlong streams before loading."""
+    try:
+        for n, (op, _, _) in enumerate(pickletools.genops(data)):
+            if op.name in _REFUSED_OPCODES:
+                raise UnsafePickleError(f"the pickle builds {_REFUSED_OPCODES[op.name]} (opcode {op.name}); "
+                                        + _ALLOWED_WORDS)
+            if n >= MAX_OPCODES:
+                raise UnsafePickleError(f"the pickle has more than {MAX_OPCODES:,} opcodes; allowed: fewer")
+    except UnsafePickleError:
+        raise
+    except Exception as err:  # noqa: BLE001 -- pickletools raises ValueError and worse on junk
+        raise pickle.UnpicklingError(f"not a valid pickle (truncated or corrupt): {err}") from None
 
 
-def restricted_loads(data: bytes):
-    """Unpickle bytes allowing only NumPy arrays inside plain containers."""
-    obj = _RestrictedUnpickler(io.BytesIO(data)).load()
+def _children(o) -> list:
+    if isinstance(o, dict):
+        return [x for kv in o.items() for x in kv]
+    if isinstance(o, (list, tuple)):
+        return list(o)
+    return []
+
+
+def _check_no_objects(obj, max_nodes: int = MAX_NODES, max_tree_nodes: int = MAX_TREE_NODES,
+                      max_depth: int = MAX_DEPTH) -> None:
+    """Check every object's type and bound the structure's size, visiting each distinct
+    object once. The size that matters downstream (``np.asarray`` on nested lists, a tree
+    walk) is that of the structure unfolded into a tree; it is computed bottom-up with one
+    memoised count per shared object, so a DAG of shared lists that unfolds to 10^16 nodes
+    costs a few operations per distinct list. Cycles are refused."""
+    tree_size: dict[int, int] = {}  # id -> unfolded node count, for finished objects
+    open_ids: set[int] = set()  # expanded, not finished: the current depth-first path
+    stack = [(obj, 0, False)]
+    while stack:
+        o, depth, finished = stack.pop()
+        if isinstance(o, _LEAVES):
+            continue
+        k = id(o)  # stable: ``obj`` keeps every object alive during the walk
+        if finished:
+            tree_size[k] = 1 + sum(tree_size.get(id(c), 1) for c in _children(o))
+            open_ids.discard(k)
+            if tree_size[k] > max_tree_nodes:
+                raise UnsafePickleError(
+                    f"the pickle's shared references unfold to more than {max_tree_nodes:,} nodes "
+                    f"({tree_size[k]:.3g}); allowed: at most {max_tree_nodes:,}")
+            continue
+        if k in tree_size:
+            continue
+        if k in open_ids:
+            raise UnsafePickleError("the pickle holds a container that contains itself; " + _ALLOWED_WORDS)
+        if depth > max_depth:
+            raise UnsafePickleError(f"pickle nests containers deeper than {max_depth} levels")
+        if isinstance(o, np.ndarray):
+            if o.dtype.hasobject:
+                raise UnsafePickleError("object arrays are not allowed: only numeric NumPy arrays")
+            tree_size[k] = 1
+        elif isinstance(o, (dict, list, tuple)):
+            if len(tree_size) + len(open_ids) >= max_nodes:
+                raise UnsafePickleError(f"the pickle holds more than {max_nodes:,} containers; allowed: fewer")
+            open_ids.add(k)
+            stack.append((o, depth, True))
+            stack.extend((c, depth + 1, False) for c in _children(o))
+        else:
+            raise UnsafePickleError(f"the pickle holds a {type(o).__name__}; " + _ALLOWED_WORDS)
+
+
+def restricted_loads(data: bytes, max_array_bytes: int = MAX_ARRAY_BYTES):
+    """Unpickle bytes allowing only NumPy arrays inside plain containers, within the bounds
+    above; anything else raises :class:`UnsafePickleError` (refused content) or
+    ``pickle.UnpicklingError`` (a truncated or corrupt file)."""
+    if len(data) > MAX_PICKLE_BYTES:
+        raise UnsafePickleError(f"pickle of {len(data):,} bytes; allowed: at most {MAX_PICKLE_BYTES:,}")
+    _prescan(data)
+    try:
+        obj = _RestrictedUnpickler(io.BytesIO(data), max_array_bytes).load()
+    except pickle.UnpicklingError:
+        raise
+    except Exception as err:  # noqa: BLE001 -- a corrupt stream fails in many ways; all mean "bad file"
+        raise pickle.UnpicklingError(f"not a valid pickle (truncated or corrupt): "
+                                     f"{type(err).__name__}: {err}") from None
     _check_no_objects(obj)
     return obj
 
 
-def restricted_load(path: str | os.PathLike):
+def restricted_load(path: str | os.PathLike, max_array_bytes: int = MAX_ARRAY_BYTES):
     """Unpickle a file allowing only NumPy arrays; anything else -> :class:`UnsafePickleError`."""
-    with open(path, "rb") as fh:
-        return restricted_loads(fh.read())
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_PICKLE_BYTES:
+            raise UnsafePickleError(f"{path}: pickle of {size:,} bytes; allowed: at most {MAX_PICKLE_BYTES:,}")
+        data = path.read_bytes()
+    except OSError as err:
+        raise SharedDataMissing(f"cannot read {path}: {err.strerror or err}") from None
+    try:
+        return restricted_loads(data, max_array_bytes)
+    except pickle.UnpicklingError as err:
+        raise type(err)(f"{path}: {err}") from None
 
 
 # -- mass-lift trials ---------------------------------------------------------------------
 def _design_of(key: str, where: str) -> Membrane:
+    if not isinstance(key, str):
+        raise InputError(f"{where}: a design key must be a string, got {type(key).__name__}")
     try:
         return Membrane.from_key(key)
     except DesignError as err:
-        raise ValueError(f"{where}: {key!r} is not a valid design: {err}") from None
+        raise InputError(f"{where}: {key!r} is not a valid design: {err}") from None
 
 
 def _column(a, n: int, what: str) -> np.ndarray:
-    a = np.asarray(a, dtype=np.float64)
+    try:
+        a = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"mass-lift file: {what} is not a numeric array ({err})") from None
     if a.ndim == 2 and a.shape[1] == 1:
         a = a[:, 0]
     if a.shape != (n,):
-        raise ValueError(f"mass-lift file: {what} has shape {a.shape}, expected ({n},) or ({n}, 1)")
+        raise InputError(f"mass-lift file: {what} has shape {a.shape}, expected ({n},) or ({n}, 1)")
     return a
 
 
@@ -197,21 +357,25 @@ def load_mass_lift(path: str | os.PathLike | None = None) -> Measurements:
     """
     p = _data_file(path, MASS_LIFT_FILE)
     data = restricted_load(p)
-    if not isinstance(data, dict):
-        raise ValueError(f"{p}: expected a dict of membranes, got {type(data).__name__}")
+    if not isinstance(data, dict) or not data:
+        raise InputError(f"{p}: expected a non-empty dict of membranes, got {type(data).__name__} "
+                         f"of {len(data) if hasattr(data, '__len__') else '?'} entries")
     frames = []
     for key, value in data.items():
         design = _design_of(key, str(p))
         try:
             (us, ys), fs, ws = value
         except (TypeError, ValueError):
-            raise ValueError(f"{p}: entry {key} is not ((us, ys), Fs, ws)") from None
-        us = np.asarray(us, dtype=np.float64)
+            raise InputError(f"{p}: entry {key} is not ((us, ys), Fs, ws)") from None
+        try:
+            us = np.asarray(us, dtype=np.float64)
+        except (TypeError, ValueError) as err:
+            raise InputError(f"{p}: entry {key}: us is not a numeric array ({err})") from None
         if us.ndim != 2 or us.shape[1] != 7:
-            raise ValueError(f"{p}: entry {key}: us has shape {us.shape}, expected (n, 7)")
+            raise InputError(f"{p}: entry {key}: us has shape {us.shape}, expected (n, 7)")
         n = len(us)
         if not np.allclose(us[:, 1:7], design.to_array(), rtol=1e-6, atol=1e-5, equal_nan=True):
-            raise ValueError(f"{p}: entry {key}: the design columns us[:, 1:7] disagree with the key")
+            raise InputError(f"{p}: entry {key}: the design columns us[:, 1:7] disagree with the key")
         height = us[:, 0]
         force = _column(fs, n, "Fs")
         frames.append(pd.DataFrame({
@@ -261,7 +425,7 @@ def _fixed_designs(names: list[str], where: str) -> list[Membrane]:
     if keys[:6] == correct:  # already fixed upstream
         return [Membrane.from_key(k) for k in keys]
     if keys[:6] != shifted:
-        raise ValueError(
+        raise InputError(
             f"{where}: the names of entries 1-6 are {keys[:6]}; expected the known upstream "
             f"shift {shifted} (or the corrected {correct}). The file changed: check it by hand."
         )
@@ -272,17 +436,21 @@ def load_sim_planes(path: str | os.PathLike | None = None) -> list[SimPlane]:
     """The authors' 18 simulated planes, heights converted from m to mm, labels fixed."""
     p = _data_file(path, SIM_PLANES_FILE)
     data = restricted_load(p)
-    if not isinstance(data, list):
-        raise ValueError(f"{p}: expected a list of (name, (F, p, h)), got {type(data).__name__}")
+    if not isinstance(data, list) or len(data) < 7:
+        raise InputError(f"{p}: expected a list of at least 7 (name, (F, p, h)), got {type(data).__name__} "
+                         f"of {len(data) if hasattr(data, '__len__') else '?'} entries")
     names, arrays = [], []
     for i, entry in enumerate(data):
         try:
             name, (f, pr, h) = entry
         except (TypeError, ValueError):
-            raise ValueError(f"{p}: entry {i + 1} is not (name, (F, p, h))") from None
-        f, pr, h = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (f, pr, h))
+            raise InputError(f"{p}: entry {i + 1} is not (name, (F, p, h))") from None
+        try:
+            f, pr, h = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (f, pr, h))
+        except (TypeError, ValueError) as err:
+            raise InputError(f"{p}: entry {i + 1}: F, p, h are not numeric arrays ({err})") from None
         if not (f.shape == pr.shape == h.shape):
-            raise ValueError(f"{p}: entry {i + 1}: F, p, h lengths {len(f)}, {len(pr)}, {len(h)} differ")
+            raise InputError(f"{p}: entry {i + 1}: F, p, h lengths {len(f)}, {len(pr)}, {len(h)} differ")
         names.append(str(name))
         arrays.append((f, pr, h * 1e3))  # file: metres -> mm
     designs = _fixed_designs(names, str(p))

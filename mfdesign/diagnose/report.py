@@ -35,10 +35,16 @@ def _plt():
     return plt
 
 
+def _outputs():
+    from mfdesign import outputs  # atomic writes: a reader never sees a torn file
+
+    return outputs
+
+
 def _save(fig, path: Path) -> None:
     """Lay out, write (90 dpi: the report shows many small figures) and free a figure."""
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    _outputs().savefig(fig, path, dpi=90)
     _plt().close(fig)
 
 
@@ -74,7 +80,7 @@ def residual_maps(res: Residuals, path: Path, title: str, vmax: float | None = N
     if im is not None:
         fig.colorbar(im, ax=axes.ravel().tolist(), label="mean residual (obs - model) [N]")
     fig.suptitle(f"{title}: RMSE {res.rmse_n:.3f} N, noise floor {res.noise_floor_n:.3f} N")
-    fig.savefig(path, dpi=90)
+    _outputs().savefig(fig, path, dpi=90)
     plt.close(fig)
     return vmax
 
@@ -216,10 +222,10 @@ def write_report(diag, out_dir, shapes: bool = False, params=None) -> dict[str, 
     if shapes:
         data["worst_point_shapes"] = shapes_plot(diag.before, out / "shapes.png", params)
         paths["shapes"] = out / "shapes.png"
-    (out / "diagnosis.json").write_text(json.dumps(data, indent=1, default=str))
+    _outputs().write_text(out / "diagnosis.json", json.dumps(data, indent=1, default=str))
     paths["json"] = out / "diagnosis.json"
     paths["html"] = out / "report.html"
-    (out / "report.html").write_text(_html(diag, data, paths))
+    _outputs().write_text(out / "report.html", _html(diag, data, paths))
     return paths
 
 

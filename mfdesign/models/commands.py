@@ -7,7 +7,6 @@ with a message fit for the terminal.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from mfdesign.models.baselines import CurveFitConfig
@@ -17,18 +16,75 @@ from mfdesign.models.ensemble import EnsembleConfig
 MODELS = ("ensemble", "curve-fit")
 
 
-def load_data(data: Path):
-    """A Measurements table from a Parquet path or the name ``mass-lift``."""
+# Fewest rows each command accepts (rows it actually uses: calibration and diagnosis drop
+# mass-lift rows with the plate on its stop). Why these: fit/cv train on 100-row minibatches
+# and need a handful of rows per membrane to mean anything; calibration and diagnosis
+# estimate a noise floor and 2-10 parameters, and below ~20 rows the noise floor is NaN or
+# the posterior is the prior.
+MIN_ROWS = {"fit": 10, "cv": 10, "calibrate": 20, "fit-mf": 20, "diagnose": 20}
+# A table whose rows are mostly exact copies of earlier ones is a concatenation mistake: it
+# counts its evidence twice (doubling Delta BIC). The real mass-lift data has 8 % (whole-mm
+# heights repeat), so the bar is well above that.
+MAX_DUPLICATE_FRACTION = 0.5
+
+
+def load_data(data: Path, command: str | None = None, allow_outside_design_space: bool = False):
+    """A Measurements table from a Parquet path or the name ``mass-lift``.
+
+    With ``command`` (a key of :data:`MIN_ROWS`) the table is also checked for what that
+    command needs (:func:`check_table`); errors are ``InputError`` / ``MeasurementError``
+    with one line saying what is allowed."""
+    from mfdesign.errors import InputError
+
     if str(data) == "mass-lift":
         from mfdesign.data.spa_design import load_mass_lift
 
-        return load_mass_lift()
-    from mfdesign.data.measurements import Measurements
+        table = load_mass_lift()
+    else:
+        from mfdesign.data.measurements import Measurements
 
-    path = Path(data)
-    if not path.exists():
-        raise ValueError(f"data file {path} does not exist (give a Measurements .parquet or 'mass-lift')")
-    return Measurements.from_parquet(path)
+        path = Path(data)
+        if not path.exists():
+            raise InputError(f"data file {path} does not exist (give a Measurements .parquet or 'mass-lift')")
+        if not path.is_file():
+            raise InputError(f"data {path} is a folder; allowed: a Measurements .parquet file or 'mass-lift'")
+        table = Measurements.from_parquet(path)
+    if command is not None:
+        check_table(table, command, str(data), allow_outside_design_space)
+    return table
+
+
+def check_table(table, command: str, where: str, allow_outside_design_space: bool = False) -> None:
+    """Refuse a table ``command`` would turn into a silently wrong result: too few rows,
+    all weights 0, mostly duplicated rows, designs outside the product's design space."""
+    import sys
+
+
+    from mfdesign.design import check_design_space
+    from mfdesign.errors import InputError
+
+    used = table
+    if command in ("calibrate", "fit-mf", "diagnose"):
+        from mfdesign.calibration.workflow import lifted_rows
+
+        used = lifted_rows(table)
+    need = MIN_ROWS[command]
+    if len(used) < need:
+        dropped = f" ({len(table) - len(used)} mass-lift rows below 2 mm dropped)" if len(used) < len(table) else ""
+        raise InputError(f"{where}: {len(used)} usable rows{dropped}; allowed: at least {need} rows for "
+                         f"`mfdesign {command}`")
+    weight = used.df["weight"].to_numpy(float)
+    if not weight.sum() > 0:
+        raise InputError(f"{where}: all {len(weight)} sample weights are 0; allowed: weights >= 0 with a positive sum")
+    dup = int(used.df.duplicated().sum())
+    if dup >= MAX_DUPLICATE_FRACTION * len(used):
+        raise InputError(f"{where}: {dup} of {len(used)} rows ({dup / len(used):.0%}) repeat an earlier row exactly; "
+                         f"allowed: under {MAX_DUPLICATE_FRACTION:.0%} (a copied table counts its evidence twice)")
+    outside = [d.key() for d in table.designs()
+               if check_design_space(d, allow_outside_design_space, what=f"{where}: membrane")]
+    if outside:
+        print(f"warning: design space widened ({len(outside)} membrane(s) outside the product's: "
+              f"{', '.join(outside[:3])}{' ...' if len(outside) > 3 else ''})", file=sys.stderr)
 
 
 def make_spec(model: str, members: int, steps: int, batch: int, degree: int, monotone: bool):
@@ -40,9 +96,9 @@ def make_spec(model: str, members: int, steps: int, batch: int, degree: int, mon
 
 
 def fit(data: Path, out: Path, members: int = 32, steps: int = 10_000, batch: int = 100,
-        degree: int = 2, monotone: bool = True, seed: int = 0) -> Path:
+        degree: int = 2, monotone: bool = True, seed: int = 0, allow_outside_design_space: bool = False) -> Path:
     """Fit an RPN ensemble to all of ``data`` and save it to ``out`` (``Ensemble.load``-able)."""
-    table = load_data(data)
+    table = load_data(data, "fit", allow_outside_design_space)
     a = table.arrays()
     cfg = make_spec("ensemble", members, steps, batch, degree, monotone)
     model = cfg.fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"],
@@ -57,9 +113,9 @@ def fit(data: Path, out: Path, members: int = 32, steps: int = 10_000, batch: in
 
 def cv(data: Path, model: str = "ensemble", folds: int = 0, members: int = 32, steps: int = 10_000,
        batch: int = 100, degree: int = 2, monotone: bool = True, seed: int = 0,
-       out: Path | None = None) -> dict:
+       out: Path | None = None, allow_outside_design_space: bool = False) -> dict:
     """Leave-membranes-out CV (``folds`` = 0: leave-one-membrane-out); prints and returns metrics."""
-    table = load_data(data)
+    table = load_data(data, "cv", allow_outside_design_space)
     splits = table.leave_one_out() if folds == 0 else table.kfold(folds, seed=seed)
     spec = make_spec(model, members, steps, batch, degree, monotone)
     result = cross_validate(spec, splits, seed=seed, progress=True)
@@ -71,6 +127,8 @@ def cv(data: Path, model: str = "ensemble", folds: int = 0, members: int = 32, s
           f"{o['median_abs_n']:.3f} N  coverage 68/95 %: {o['coverage68_total']:.2f}/{o['coverage95_total']:.2f}"
           f" (epistemic only {o['coverage68_epistemic']:.2f}/{o['coverage95_epistemic']:.2f})")
     if out is not None:
+        from mfdesign import outputs
+
         Path(out).parent.mkdir(parents=True, exist_ok=True)
-        Path(out).write_text(json.dumps({"model": model, **result.to_json()}, indent=2))
+        outputs.write_json(out, {"model": model, **result.to_json()})
     return result.to_json()

@@ -252,32 +252,75 @@ class Ensemble(eqx.Module):
 
     def save(self, path) -> Path:
         """Write ``path/ensemble.eqx`` (leaves) and ``path/ensemble.json`` (format, config, norm)."""
+        from mfdesign import outputs
+
         path = Path(path)
         path.mkdir(parents=True, exist_ok=True)
-        eqx.tree_serialise_leaves(path / "ensemble.eqx", self)
+        with outputs.atomic_path(path / "ensemble.eqx") as tmp:
+            eqx.tree_serialise_leaves(tmp, self)
         meta = {"format_version": FORMAT_VERSION, "kind": "rpn_ensemble", "beta": self.beta,
                 "config": self.config.to_dict(),
                 "normalisation": {k: np.asarray(getattr(self.norm, k)).tolist()
                                   for k in ("mu_tch", "sd_tch", "mu_ring", "sd_ring", "p_scale", "f_scale")}}
-        (path / "ensemble.json").write_text(json.dumps(meta, indent=2))
+        outputs.write_json(path / "ensemble.json", meta)
         return path
 
     @classmethod
     def load(cls, path) -> "Ensemble":
-        """Inverse of :meth:`save`; checks the format version."""
+        """Inverse of :meth:`save`; checks the format version, the sizes in the config (before
+        allocating anything) and that every weight is finite. A folder that is not a saved
+        ensemble raises ``FileNotFoundError``; a corrupt or mismatched one ``InputError``
+        saying what was wrong."""
+        from mfdesign.errors import InputError, one_line
+
         path = Path(path)
         meta_file = path / "ensemble.json"
-        if not meta_file.exists():
+        if not meta_file.is_file():
             raise FileNotFoundError(f"no ensemble.json in {path}: not a saved Ensemble")
+        try:
+            model = cls._load_checked(path, meta_file)
+        except InputError:
+            raise
+        except Exception as err:  # noqa: BLE001 -- a corrupt file fails in many ways (equinox TreePathError, ...)
+            raise InputError(f"{path}: not a loadable ensemble ({type(err).__name__}: {one_line(err, 200)}); "
+                             "allowed: a folder written by `mfdesign fit` (refit it)") from None
+        leaves = [np.asarray(a) for a in jax.tree.leaves(eqx.filter(model, eqx.is_inexact_array))]
+        bad = sum(int((~np.isfinite(a)).sum()) for a in leaves)
+        if bad:
+            raise InputError(f"{path / 'ensemble.eqx'}: {bad} of {sum(a.size for a in leaves)} weights are NaN or "
+                             "infinite; allowed: finite weights (refit the model)")
+        return model
+
+    @classmethod
+    def _load_checked(cls, path: Path, meta_file: Path) -> "Ensemble":
+        from mfdesign.errors import InputError
+
         meta = json.loads(meta_file.read_text())
+        if not isinstance(meta, dict):
+            raise InputError(f"{meta_file}: expected a JSON object, got {type(meta).__name__}")
         if meta.get("format_version") != FORMAT_VERSION:
-            raise ValueError(f"{path}: format_version {meta.get('format_version')} != {FORMAT_VERSION}")
+            raise InputError(f"{path}: format_version {meta.get('format_version')} != {FORMAT_VERSION}")
         cfg = EnsembleConfig.from_dict(meta["config"])
+        too_big = {k: getattr(cfg, k) for k, top in LOAD_LIMITS.items() if getattr(cfg, k) > top}
+        if too_big:
+            raise InputError(f"{meta_file}: config sizes {too_big} exceed what a saved ensemble may declare "
+                             f"({ {k: LOAD_LIMITS[k] for k in too_big} })")
+        beta = float(meta["beta"])
         n = meta["normalisation"]
         norm = Normaliser(*(jnp.asarray(n[k], dtype=jnp.float64) for k in
                             ("mu_tch", "sd_tch", "mu_ring", "sd_ring", "p_scale", "f_scale")))
-        skeleton = init_ensemble(cfg, norm, jax.random.PRNGKey(0), beta=meta["beta"])
+        if not (math.isfinite(beta) and all(np.isfinite(np.asarray(a)).all() for a in jax.tree.leaves(norm))):
+            raise InputError(f"{meta_file}: beta or the normalisation holds NaN or infinity; allowed: finite numbers")
+        if not (path / "ensemble.eqx").is_file():
+            raise InputError(f"{path}: ensemble.json without ensemble.eqx; allowed: both, as `mfdesign fit` writes them")
+        skeleton = init_ensemble(cfg, norm, jax.random.PRNGKey(0), beta=beta)
         return eqx.tree_deserialise_leaves(path / "ensemble.eqx", skeleton)
+
+
+# Largest sizes a saved ensemble may declare: checked before the skeleton is allocated, so
+# a corrupt ensemble.json cannot ask for gigabytes (the paper's model: 32 members, width 32).
+LOAD_LIMITS = {"n_members": 1024, "ring_embed_dim": 512, "ring_depth": 16, "ring_width": 4096,
+               "latent_depth": 16, "latent_width": 4096}
 
 
 @eqx.filter_jit

@@ -134,7 +134,9 @@ class CalibrationData(eqx.Module):
         table_keys = {k: Membrane.from_key(k).to_array() for k in keys}
         design = np.stack([table_keys[k] for k in df["design_key"]])
         w = df["weight"].to_numpy(float)
-        w = w / w.mean() if w.sum() > 0 else np.ones_like(w)
+        if not w.sum() > 0:  # was silently replaced by ones: refuse, the data say "ignore every row"
+            raise ValueError(f"all {len(w)} sample weights are 0; allowed: weights >= 0 with a positive sum")
+        w = w / w.mean()
         return cls(jnp.asarray(design), Rows.from_measurements(df, keys),
                    jnp.asarray(df["force_n"].to_numpy(float)), jnp.asarray(w), keys)
 

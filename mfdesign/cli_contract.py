@@ -1,0 +1,101 @@
+"""The CLI contract, in one place, for every ``mfdesign`` command.
+
+* Bad input (:func:`mfdesign.errors.anticipated`): one line ``error: ...`` on stderr,
+  exit status 2.
+* Anything else (a bug): one line naming a log file that holds the traceback, exit
+  status 1. The log goes into the command's output folder if it has one, else into
+  ``$MFDESIGN_LOG_DIR`` (default: ``<temp dir>/mfdesign-logs``).
+* Outputs are checked BEFORE any computation: ``--out`` must be (or become) a writable
+  folder (a file for ``cv``), and it is locked (:class:`mfdesign.outputs.OutputLock`) so
+  that a second run on the same folder fails at once instead of mixing files.
+
+:class:`ContractGroup` is the ``typer.Typer(cls=...)`` of the app; :func:`apply` makes
+every registered command a :class:`ContractCommand`.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import tempfile
+import traceback
+from pathlib import Path
+
+import typer
+from typer.core import TyperCommand, TyperGroup
+
+from mfdesign.errors import anticipated, one_line
+
+__all__ = ["ContractCommand", "ContractGroup", "apply", "log_dir"]
+
+# Commands whose --out is one file, not a folder.
+FILE_OUTPUTS = {"cv"}
+_LOG_DIR_KEY = "mfdesign.log_dir"
+
+
+def log_dir() -> Path:
+    return Path(os.environ.get("MFDESIGN_LOG_DIR") or Path(tempfile.gettempdir()) / "mfdesign-logs")
+
+
+def _write_log(err: BaseException, folder: Path | None, argv: str) -> Path:
+    stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+    text = f"mfdesign {argv}\n\n" + "".join(traceback.format_exception(err))
+    for place in ([folder] if folder is not None else []) + [log_dir()]:
+        try:
+            place.mkdir(parents=True, exist_ok=True)
+            fd, name = tempfile.mkstemp(dir=place, prefix=f"mfdesign-error-{stamp}-", suffix=".log")
+            with os.fdopen(fd, "w") as fh:
+                fh.write(text)
+            return Path(name)
+        except OSError:
+            continue
+    return Path("<no writable log folder>")
+
+
+class ContractCommand(TyperCommand):
+    """A command whose ``--out`` is validated and locked before its body runs."""
+
+    def invoke(self, ctx):
+        from mfdesign.outputs import OutputLock, prepare_out_dir, prepare_out_file
+
+        out = ctx.params.get("out")
+        if out is None:
+            return super().invoke(ctx)
+        if self.name in FILE_OUTPUTS:
+            prepare_out_file(out)
+            ctx.meta[_LOG_DIR_KEY] = Path(out).parent
+            return super().invoke(ctx)
+        prepare_out_dir(out)
+        with OutputLock(out):
+            ctx.meta[_LOG_DIR_KEY] = Path(out)
+            return super().invoke(ctx)
+
+
+class ContractGroup(TyperGroup):
+    """The top-level group: maps what escapes a command onto the contract (module doc)."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except (typer.Exit, typer.Abort, KeyboardInterrupt):
+            raise
+        except Exception as err:  # noqa: BLE001 -- the contract: no traceback ever reaches the user
+            from typer._click.exceptions import ClickException
+
+            if isinstance(err, ClickException):  # usage errors: click prints them and exits 2
+                raise
+            if isinstance(err, anticipated()):
+                typer.echo(f"error: {one_line(err)}", err=True)
+                raise typer.Exit(code=2) from None
+            folder = ctx.meta.get(_LOG_DIR_KEY)
+            log = _write_log(err, folder, ctx.invoked_subcommand or ctx.info_name)
+            typer.echo(f"error: unexpected {type(err).__name__} (a bug, not your input): "
+                       f"{one_line(err, 200)}; traceback in {log}", err=True)
+            raise typer.Exit(code=1) from None
+
+
+def apply(app: typer.Typer) -> None:
+    """Make every command registered on ``app`` so far a :class:`ContractCommand`."""
+    for info in app.registered_commands:
+        if info.cls in (None, TyperCommand):  # typer's default; keep a command's own class
+            info.cls = ContractCommand
