@@ -58,7 +58,7 @@ def main():
                                          "jm_prior": LogNormal(39.6, 0.6, 10.0, 100.0),
                                          "thickness_sd_prior": LogNormal(0.05, 0.8, 1e-3, 0.1)}
     else:
-        from mfdesign.calibration.standin import standin_plane
+        from mfdesign.models.standin import standin_plane
 
         plane, kw = standin_plane, {}
     t0 = time.perf_counter()

@@ -119,16 +119,106 @@ def _map_kernel(model: HierarchicalModel, inits, data: CalibrationData, max_step
 
 
 def find_map(model: HierarchicalModel, data: CalibrationData, starts: int = 4, seed: int = 0,
-             max_steps: int = 1000) -> MapResult:
-    """MAP by ``optimistix.BFGS`` from ``starts`` points at once (``jax.vmap``): the
-    prior-median start and Gaussian perturbations of it (sd 0.3 in u); the best is kept."""
-    u0 = model.to_unconstrained(model.initial_physical())
+             max_steps: int = 1000, u0=None) -> MapResult:
+    """MAP by ``optimistix.BFGS`` from ``starts`` points at once (``jax.vmap``): ``u0``
+    (default: the prior-median start) and Gaussian perturbations of it (sd 0.3 in u); the
+    best is kept."""
+    u0 = model.to_unconstrained(model.initial_physical()) if u0 is None else np.asarray(u0, float)
     rng = np.random.default_rng(seed)
     inits = u0 + np.vstack([np.zeros(model.dim), 0.3 * rng.standard_normal((max(starts, 1) - 1, model.dim))])
     us, ok, vals, hess = _map_kernel(model, jnp.asarray(inits), data, max_steps)
     vals = jnp.where(jnp.isfinite(vals), vals, -jnp.inf)
     best = int(jnp.argmax(vals))
     return MapResult(us[best], model.to_physical(us[best]), vals[best], hess[best], ok[best])
+
+
+LATTICE_SD = 5.0  # the force model must hold the MAP +- this many Laplace sd in every parameter
+LATTICE_ROUNDS = 8
+EDGE_STEP = 3  # lattice nodes added past a MAP that sits on the lattice's edge
+
+
+def _laplace_sd(result: MapResult) -> np.ndarray:
+    """Posterior sd in ``u`` from the Hessian at the MAP (0.5 where it is not positive definite)."""
+    h = np.asarray(result.hessian)
+    try:
+        d = np.diag(np.linalg.inv(0.5 * (h + h.T)))
+        if np.all(np.isfinite(d)) and np.all(d > 0):
+            return np.minimum(np.sqrt(d), 0.5)
+    except np.linalg.LinAlgError:
+        pass
+    return np.full(h.shape[0], 0.5)
+
+
+def _params_at(model: HierarchicalModel, data: CalibrationData, u: np.ndarray):
+    """SimParams (fields ``[K, N]``) of the rows at unconstrained points ``u`` [K, dim]."""
+    x = model.to_physical(jnp.asarray(np.atleast_2d(u), float))
+    return jax.vmap(lambda xx: model.sim_params(xx, data))(x)
+
+
+def fit_force_model(model: HierarchicalModel, data: CalibrationData, res: MapResult, *, starts: int = 4,
+                    seed: int = 0, progress: bool = False) -> tuple[HierarchicalModel, MapResult]:
+    """Grow the force model until it holds the MAP +- ``LATTICE_SD`` Laplace sd.
+
+    The exact force model holds simulator planes only where fits need them. The MAP is
+    searched with the model held at its lattice's edge (no NaN for the optimiser); while
+    the MAP sits within a node of an edge, the lattice grows ``EDGE_STEP`` nodes past it
+    and the MAP is searched again from there; once it is inside, the lattice grows to
+    the MAP +- ``LATTICE_SD`` Laplace sd (a Hessian taken at an edge would measure the
+    lattice, not the data). At most ``LATTICE_ROUNDS`` rounds; models valid everywhere
+    return at once. Returns the model for sampling (strict: NaN outside the lattice) and
+    the MAP."""
+    from mfdesign.models.force import ForceModel
+
+    fm = model.force_model
+    if not isinstance(fm, ForceModel):
+        return model, res
+    for _ in range(LATTICE_ROUNDS):
+        at_map = _params_at(model, data, np.asarray(res.u)[None])
+        if not fm.covers(at_map, margin=1):
+            grown = fm.covering(at_map, progress=progress, margin=EDGE_STEP)
+        else:
+            u = np.asarray(res.u)
+            steps = np.diag(LATTICE_SD * _laplace_sd(res))
+            grown = fm.covering(_params_at(model, data, np.vstack([u, u + steps, u - steps])), progress=progress)
+        if grown is fm:
+            break
+        fm = grown
+        model = eqx.tree_at(lambda m: m.force_model, model, fm)
+        res = find_map(model, data, starts=starts, seed=seed, u0=res.u)
+    return eqx.tree_at(lambda m: m.force_model, model, fm.strict(True)), res
+
+
+def _cover_starts(model: HierarchicalModel, data: CalibrationData, progress: bool) -> HierarchicalModel:
+    """The force model grown to hold the MAP search's start (prior median) +- 2 nodes."""
+    from mfdesign.models.force import ForceModel
+
+    if not isinstance(model.force_model, ForceModel):
+        return model
+    u0 = model.to_unconstrained(model.initial_physical())
+    # Small steps of every parameter: each constant the parameters move gets its axis.
+    pts = np.vstack([u0, u0 + 0.01 * np.eye(model.dim), u0 - 0.01 * np.eye(model.dim)])
+    fm = model.force_model.covering(_params_at(model, data, pts), progress=progress, margin=2)
+    return eqx.tree_at(lambda m: m.force_model, model, fm)
+
+
+def _strict(fm, strict: bool):
+    from mfdesign.models.force import ForceModel
+
+    return fm.strict(strict) if isinstance(fm, ForceModel) else fm
+
+
+def _reaches_edge(model: HierarchicalModel, data: CalibrationData, u_s: np.ndarray) -> str:
+    """A problem line when posterior samples leave the force model's lattice (else '')."""
+    from mfdesign.models.force import ForceModel
+
+    fm = model.force_model
+    if not isinstance(fm, ForceModel) or len(u_s) == 0:
+        return ""
+    pick = np.linspace(0, len(u_s) - 1, min(len(u_s), 256)).astype(int)
+    if fm.covers(_params_at(model, data, u_s[pick])):
+        return ""
+    return ("posterior samples reach the edge of the exact force model's lattice of simulator planes: the "
+            "posterior is truncated there; rerun (the lattice grows around the new MAP) or widen the priors' support")
 
 
 def _ball(result: MapResult, n_walkers: int, scale: float, rng: np.random.Generator) -> np.ndarray:
@@ -251,10 +341,14 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
             chain_path.unlink()
         stored = _stored_map(chain_path, fp) if resume else None
         backend = emcee.backends.HDFBackend(str(chain_path), name="mcmc")
+    model = eqx.tree_at(lambda m: m.force_model, model, _strict(model.force_model, False))
     if stored is not None:
         res = MapResult(*(jnp.asarray(stored[k]) for k in ("u", "x", "log_post", "hessian", "converged")))
+        model, _ = fit_force_model(model, data, res, starts=map_starts, seed=seed, progress=progress)
     else:
+        model = _cover_starts(model, data, progress)
         res = find_map(model, data, starts=map_starts, seed=seed)
+        model, res = fit_force_model(model, data, res, starts=map_starts, seed=seed, progress=progress)
         if backend is not None:
             backend.reset(n_walkers, dim)
             _store_map(chain_path, fp, res, model.names)
@@ -286,6 +380,14 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
     u_s = sampler.get_chain(discard=burn, thin=thin, flat=True)
     lp_s = sampler.get_log_prob(discard=burn, thin=thin, flat=True)
     x_s = np.asarray(model.to_physical(u_s))
+    # The sampler saw NaN (rejected) outside the force model's lattice: a chain that
+    # presses on its edge is truncated there, not converged.
+    edge = _reaches_edge(model, data, u_s)
+    if edge:
+        report["problems"].append(edge)
+        report["converged"] = False
+        if warn:
+            warnings.warn(edge, ConvergenceWarning, stacklevel=2)
 
     x_map = np.asarray(res.x)
     ll_map = float(model.log_lik(res.x, data))
@@ -295,4 +397,4 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
     bic = dim * math.log(n_rows) - 2.0 * ll_map
     units = tuple(s.unit for s in model.specs)
     return Posterior(model.names, units, x_s, lp_s, x_map, ll_map, n_rows, bic, laplace, report,
-                     tuple(data.design_keys), tuple(model.effects))
+                     tuple(data.design_keys), tuple(model.effects), force_model=model.force_model)

@@ -32,7 +32,7 @@ def _check_chain(chain: Path) -> None:
                          "chain.h5 written by mfdesign calibrate / fit-mf, or --no-resume to start a new one") from None
 
 
-def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, max_rows: int, simulator: str,
+def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, max_rows: int, physics: str,
          likelihood: str, seed: int, resume: bool, multi_fidelity: bool, members: int, delta_steps: int,
          allow_outside_design_space: bool = False) -> None:
     from mfdesign import outputs
@@ -59,7 +59,7 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
         fail(f"unknown effect(s) {unknown}; registered: {sorted(EFFECTS)}")
     try:
         table = load_data(data, "fit-mf" if multi_fidelity else "calibrate", allow_outside_design_space)
-        force_model = force_model_named(simulator)
+        force_model = force_model_named(physics, table, progress=True)
     except (ValueError, MeasurementError, FileNotFoundError) as err:
         fail(str(err))
     out.mkdir(parents=True, exist_ok=True)
@@ -103,7 +103,9 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
         fit.delta.save(out / "delta")
         cov = coverage(fit.mf, table.subset(list(fit.design_keys)), level=0.9, key=seed)
         outputs.write_text(out / "mf.json", json.dumps({"noise_n": fit.noise_n, "effects": list(effects),
-                                                 "simulator": simulator, "likelihood": likelihood, "train_rmse_n": cov["rmse_n"],
+                                                 "physics": physics,
+                                                 "search_physics": "emulator" if physics == "exact" else physics,
+                                                 "likelihood": likelihood, "train_rmse_n": cov["rmse_n"],
                                                  "train_coverage90": cov["coverage"]}, indent=2))
         typer.echo(f"multi-fidelity: residual noise {fit.noise_n:.3f} N; training RMSE {cov['rmse_n']:.3f} N, "
                    f"90 % coverage {cov['coverage']:.2f}")
@@ -114,7 +116,9 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
 # Options both commands take, declared once (typer reads them as parameter defaults).
 DATA = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data.")
 EFFECTS = typer.Option(None, "--effects", help="Active effect (repeat for several).")
-SIMULATOR = typer.Option("emulator", help="Force model: emulator | standin.")
+PHYSICS = typer.Option("exact", help="Force model where the model meets the data: exact (simulator planes of "
+                       "the measured membranes, at simulator accuracy) | emulator (neural emulator, ~1 N error) | "
+                       "standin (no physics; tests).")
 LIKELIHOOD = typer.Option("gaussian", help="gaussian | student_t")
 SEED = typer.Option(0, help="Random seed.")
 RESUME = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists.")
@@ -131,14 +135,14 @@ def register(app: typer.Typer) -> None:
         steps: int = typer.Option(3000, min=1, help="Chain length (total; a rerun resumes)."),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: max(32, 2 dim + 2))."),
         max_rows: int = typer.Option(3000, min=10, help="Rows used by the likelihood (evenly within trials)."),
-        simulator: str = SIMULATOR,
+        physics: str = PHYSICS,
         likelihood: str = LIKELIHOOD,
         seed: int = SEED,
         resume: bool = RESUME,
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
         """Calibrate mu [Pa], J_m and the effects' parameters with emcee (posterior table, corner plot, chain)."""
-        _run(data, list(effects or []), out, steps, walkers, max_rows, simulator, likelihood, seed, resume,
+        _run(data, list(effects or []), out, steps, walkers, max_rows, physics, likelihood, seed, resume,
              False, 0, 0, allow_outside_design_space)
 
     @app.command("fit-mf")
@@ -149,7 +153,7 @@ def register(app: typer.Typer) -> None:
         steps: int = typer.Option(2000, min=1, help="Chain length."),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: automatic)."),
         max_rows: int = typer.Option(1500, min=10, help="Rows used by the likelihood."),
-        simulator: str = SIMULATOR,
+        physics: str = PHYSICS,
         likelihood: str = LIKELIHOOD,
         members: int = typer.Option(8, min=1, help="Discrepancy ensemble members."),
         delta_steps: int = typer.Option(3000, min=1, help="Discrepancy training steps."),
@@ -158,5 +162,5 @@ def register(app: typer.Typer) -> None:
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
         """Multi-fidelity fit: calibrated simulator + RPN discrepancy ensemble + noise."""
-        _run(data, list(effects or []), out, steps, walkers, max_rows, simulator, likelihood, seed, resume,
+        _run(data, list(effects or []), out, steps, walkers, max_rows, physics, likelihood, seed, resume,
              True, members, delta_steps, allow_outside_design_space)

@@ -21,7 +21,7 @@ import mfdesign  # noqa: F401  (float64)
 from mfdesign.calibrate import ConvergenceWarning, LogPosterior, build_model, calibrate, find_map
 from mfdesign.calibration.plots import corner_plot
 from mfdesign.calibration.posterior import Posterior
-from mfdesign.calibration.standin import standin_force
+from mfdesign.models.standin import standin_force
 from mfdesign.models.hierarchical import CalibrationData
 
 TRUTH = {"mu_pa": 34e3, "jm": 45.0, "pressure_sensor.offset_pa": 150.0}
@@ -30,7 +30,7 @@ TRUTH = {"mu_pa": 34e3, "jm": 45.0, "pressure_sensor.offset_pa": 150.0}
 def virtual_data(seed: int = 1, rows: int = 240):
     """Virtual-rig data of 3 membranes on the stand-in simulator, hidden pressure offset 150 Pa."""
     import mfdesign  # noqa: F401
-    from mfdesign.calibration.standin import standin_plane
+    from mfdesign.models.standin import standin_plane
     from mfdesign.design import Membrane
     from mfdesign.models.hierarchical import CalibrationData
     from mfdesign.physics.params import SimParams
@@ -126,7 +126,7 @@ import os, signal, sys
 sys.path.insert(0, {tests!r})
 {source}
 from mfdesign.calibrate import build_model, calibrate
-from mfdesign.calibration.standin import standin_force
+from mfdesign.models.standin import standin_force
 table, data = virtual_data()
 model = build_model(standin_force, data, ["pressure_sensor"])
 

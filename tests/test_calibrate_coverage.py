@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import mfdesign  # noqa: F401
-from mfdesign.calibration.standin import standin_force, standin_plane
+from mfdesign.models.standin import standin_force, standin_plane
 from mfdesign.calibration.validation import truth_trial
 
 

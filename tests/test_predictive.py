@@ -9,7 +9,7 @@ import pytest
 
 from mfdesign.calibrate import build_model
 from mfdesign.calibration.posterior import Posterior
-from mfdesign.calibration.standin import standin_force
+from mfdesign.models.standin import standin_force
 from mfdesign.data.store import read_parquet
 from mfdesign.demo import BUNDLED
 from mfdesign.models.hierarchical import CalibrationData

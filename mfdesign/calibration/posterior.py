@@ -46,6 +46,9 @@ class Posterior:
     convergence: dict[str, Any]
     design_keys: tuple[str, ...] = ()
     effects: tuple[str, ...] = ()
+    # The force model the chain was sampled with (the exact model's lattice grows during
+    # calibration); not saved: a reloaded posterior rebuilds its model from the data.
+    force_model: Any = dataclasses.field(default=None, compare=False, repr=False)
 
     @property
     def dim(self) -> int:

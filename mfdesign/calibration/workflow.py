@@ -15,38 +15,40 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
+
 import numpy as np
 
 from mfdesign.physics.effects import LogNormal
 
-__all__ = ["FORCE_MODELS", "MFFit", "fit_multi_fidelity", "force_model_named", "lifted_rows", "load_multi_fidelity",
+__all__ = ["MFFit", "fit_multi_fidelity", "force_model_named", "lifted_rows", "load_multi_fidelity",
            "model_for"]
 
-FORCE_MODELS = ("emulator", "standin")
+def force_model_named(name: str, table=None, progress: bool = False):
+    """The force model ``name`` (:data:`~mfdesign.models.force.FORCE_MODELS`) for the rows of
+    ``table`` (Measurements; the exact model needs its designs, heights and pressures)."""
+    from mfdesign.models.force import force_model_for
 
-
-def force_model_named(name: str):
-    """The force model ``(design, h, p, SimParams) -> F`` called ``name`` (see ``FORCE_MODELS``)."""
-    if name == "emulator":
-        from mfdesign.models.emulator import load_default
-
-        try:
-            return load_default()
-        except FileNotFoundError as err:
-            raise ValueError(f"no trained emulator artifact ({err}); train it or use --simulator standin") from None
-    if name == "standin":
-        from mfdesign.calibration.standin import standin_force
-
-        return standin_force
-    raise ValueError(f"simulator must be one of {FORCE_MODELS}, got {name!r}")
+    if name == "exact":
+        if table is None:
+            raise ValueError("the exact force model needs the data's designs")
+        df = table.df
+        return force_model_for("exact", tuple(dict.fromkeys(df["design_key"])),
+                               h_max_mm=float(max(df["height_mm"].max(), df["height_set_mm"].max(skipna=True)
+                                                  if df["height_set_mm"].notna().any() else 0.0)),
+                               p_max_pa=float(df["pressure_pa"].max()), progress=progress)
+    return force_model_for(name)
 
 
 def model_for(force_model, data, effects=(), **kwargs):
-    """A hierarchical model with one thickness latent per membrane of ``data``; with an
-    emulator, the priors of mu [Pa], J_m and the thickness spread stay inside its ranges."""
+    """A hierarchical model with one thickness latent per membrane of ``data``; the priors
+    of mu [Pa], J_m and the thickness spread stay inside the force model's support (an
+    emulator extrapolates outside its training ranges; the exact model's planes reach a
+    stated range of reduced pressure and J_m)."""
     from mfdesign.calibrate import build_model
+    from mfdesign.models.force import ForceModel
 
-    ranges = getattr(force_model, "range_dict", None)
+    ranges = force_model.support() if isinstance(force_model, ForceModel) else {}
     if ranges:
         mu_lo, mu_hi = ranges.get("mu_pa", (15e3, 50e3))
         jm_lo, jm_hi = ranges.get("jm", (10.0, 100.0))
@@ -79,12 +81,16 @@ def fit_multi_fidelity(table, force_model, effects=(), *, n_steps: int = 2000, n
     from mfdesign.models.hierarchical import CalibrationData, fit_discrepancy
     from mfdesign.models.predictive import MultiFidelity
 
+    if isinstance(force_model, str):
+        force_model = force_model_named(force_model, table, progress=progress)
     data = CalibrationData.from_measurements(table, max_rows=max_rows, seed=seed)
     n_trials = table.df.groupby(["design_key", "trial"]).ngroups
     data = data.padded(max(len(data), max_rows + n_trials))  # equal shapes across folds: one compile
     model = model_for(force_model, data, effects, likelihood=likelihood)
     post = calibrate(data, model, n_steps=n_steps, n_walkers=n_walkers, chain_path=chain_path, seed=seed,
                      progress=progress, pool=pool)
+    if post.force_model is not None:  # the exact model's lattice grew to hold the posterior
+        model = eqx.tree_at(lambda m: m.force_model, model, post.force_model)
     cfg = ensemble_config or EnsembleConfig(n_members=8, steps=3000, monotone=False)
     x_ref = post.median()
     used = table.subset(list(data.design_keys))
@@ -118,7 +124,10 @@ def load_multi_fidelity(folder) -> MFFit:
         raise InputError(f"{folder} is not a multi-fidelity fit (mfdesign fit-mf --out): missing {missing}")
     try:
         meta = json.loads((folder / "mf.json").read_text())
-        effects, simulator, noise = list(meta["effects"]), str(meta["simulator"]), float(meta["noise_n"])
+        effects, noise = list(meta["effects"]), float(meta["noise_n"])
+        # Searches over new designs run on the emulator: the exact model holds planes of
+        # the calibrated membranes only (its error is stated in the commands that search).
+        simulator = str(meta.get("search_physics", meta.get("simulator")))
     except (ValueError, KeyError, TypeError) as err:
         raise InputError(f"{folder / 'mf.json'} is not a valid fit summary ({err!r}); rerun mfdesign fit-mf") from None
     if not (np.isfinite(noise) and noise > 0):

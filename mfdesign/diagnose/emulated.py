@@ -44,6 +44,7 @@ from mfdesign.physics.status import Status
 
 __all__ = ["EmulatorModel", "analytic_force", "emulator_plane", "likelihood_effects"]
 
+LATTICE_ROUNDS = 4  # refits while the exact model's lattice grows around the optima
 CHUNK = 4096  # rows per compiled call (bounds the memory of the emulator's activations)
 
 
@@ -194,15 +195,36 @@ class EmulatorModel:
             from mfdesign.models.emulator import load_default
 
             self.force_model = load_default()
-        rng = getattr(self.force_model, "range_dict", None)
-        rng = rng if isinstance(rng, dict) else {}
+        from mfdesign.models.force import ForceModel
+
+        rng = self.force_model.input_ranges() if isinstance(self.force_model, ForceModel) else {}
         self.h_range_mm = self.h_range_mm or tuple(rng.get("height_mm", (0.0, 80.0)))
         self.p_range_pa = self.p_range_pa or tuple(rng.get("pressure_pa", (0.0, 1.0e4)))
         self.base_params = jax.tree.map(lambda a: jnp.asarray(a, float), self.base_params)
 
     @property
     def name(self) -> str:
-        return "analytic stand-in" if self.force_model is analytic_force else type(self.force_model).__name__.lower()
+        if self.force_model is analytic_force:
+            return "analytic stand-in"
+        return getattr(self.force_model, "name", "") or type(self.force_model).__name__.lower()
+
+    def _cover(self, meas: Measurements, order, thetas: np.ndarray, rows=None) -> None:
+        """Grow the force model to hold the constants of every row at each of ``thetas``
+        [B, n_params] (the exact model solves the simulator planes it lacks; others hold
+        everything already). Called before every evaluation and after every fit."""
+        from mfdesign.models.force import ForceModel
+
+        if not isinstance(self.force_model, ForceModel):
+            return
+        _, rws = self.data(meas)
+        if rows is not None:
+            rws = rws.take(jnp.asarray(rows))
+        names = self.names(order)
+        base = self.base_params
+        thetas = np.atleast_2d(np.asarray(thetas, float))
+        params = jax.vmap(lambda th: fx.apply_row_sim_params(order, {n: th[i] for i, n in enumerate(names)},
+                                                              base, rws))(jnp.asarray(thetas))
+        self.force_model = self.force_model.covering(params, progress=self.progress)
 
     # -- layout ---------------------------------------------------------------------------------
     def order(self, effects: Sequence[str | fx.Effect] = ()) -> tuple[str, ...]:
@@ -255,6 +277,7 @@ class EmulatorModel:
         order = self.order(effects)
         fx.split_theta([fx.effect(e) for e in effects], theta)  # a name outside ``effects`` is an error
         t = self.theta_vector(order, theta)
+        self._cover(meas, order, t[None], rows)
         design, rws = self.data(meas)
         if rows is not None:
             design, rws = _take(design, rws, rows)
@@ -281,6 +304,7 @@ class EmulatorModel:
         P = np.zeros((len(names), k))
         for j, f in enumerate(free):
             P[names.index(f), j] = 1.0
+        self._cover(meas, order, t[None], rows)
         design, rws = self.data(meas)
         if rows is not None:
             design, rws = _take(design, rws, rows)
@@ -297,8 +321,19 @@ class EmulatorModel:
         target = np.concatenate([np.asarray(target, float), np.zeros(pad - n)])
         w = np.concatenate([np.asarray(w, float), np.zeros((len(w), pad - n))], axis=1)
         design, rws = _take(*self.data(meas), rows)
-        x, ok = _fit_batch(self.force_model, order, self.names(order), self.base_params,
-                           float(self.h_range_mm[1]), float(self.p_range_pa[1]), design, rws,
-                           jnp.asarray(target, float), float(sigma), *(jnp.asarray(a, float) for a in (t0, P, w, tau, x0)),
-                           int(max_steps))
-        return np.asarray(x), np.asarray(ok)
+        t0, P = np.asarray(t0, float), np.asarray(P, float)
+        # The exact model's lattice grows where the fits go: fit with the model held at the
+        # lattice's edge, grow it around the optima (and the start), refit from there.
+        x = np.asarray(x0, float)
+        self._cover(meas, order, t0 + np.einsum("bij,bj->bi", P, x), rows)
+        for _ in range(LATTICE_ROUNDS):
+            x, ok = _fit_batch(self.force_model, order, self.names(order), self.base_params,
+                               float(self.h_range_mm[1]), float(self.p_range_pa[1]), design, rws,
+                               jnp.asarray(target, float), float(sigma),
+                               *(jnp.asarray(a, float) for a in (t0, P, w, tau, x)), int(max_steps))
+            x, ok = np.asarray(x), np.asarray(ok)
+            before = self.force_model
+            self._cover(meas, order, t0 + np.einsum("bij,bj->bi", P, x), rows)
+            if self.force_model is before:
+                break
+        return x, ok

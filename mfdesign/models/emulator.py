@@ -46,6 +46,7 @@ import numpy as np
 import optax
 
 from mfdesign.design import OUTER_RADIUS_MM, DesignSpace
+from mfdesign.models.force import ForceModel
 from mfdesign.physics.params import SimParams
 
 FORMAT_VERSION = 1
@@ -149,8 +150,10 @@ def _mlp(key, width: int, depth: int) -> eqx.nn.MLP:
     return eqx.nn.MLP(N_FEATURES, "scalar", width, depth, activation=jax.nn.silu, key=key)
 
 
-class Emulator(eqx.Module):
+class Emulator(ForceModel):
     """Ensemble of MLPs for ``y = F / (p pi r0^2)``; call it for the mean force [N]."""
+
+    name = "emulator"
 
     members: eqx.nn.MLP  # stacked: every array leaf has a leading axis n_members
     feat_mean: jax.Array
@@ -183,6 +186,15 @@ class Emulator(eqx.Module):
     @property
     def range_dict(self) -> dict[str, tuple[float, float]]:
         return {n: (lo, hi) for n, lo, hi in self.ranges}
+
+    def support(self) -> dict[str, tuple[float, float]]:
+        """The training ranges: outside them the emulator extrapolates."""
+        return self.range_dict
+
+    def input_ranges(self) -> dict[str, tuple[float, float]]:
+        rg = self.range_dict
+        return {"height_mm": tuple(rg.get("height_mm", (0.0, 80.0))),
+                "pressure_pa": tuple(rg.get("pressure_pa", (0.0, 1.0e4)))}
 
     def in_range(self, design, h_mm, p_pa, params: SimParams = SimParams()) -> jax.Array:
         """True where the query lies inside the training ranges (bool [N]).

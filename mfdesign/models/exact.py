@@ -132,6 +132,7 @@ class ExactForceModel(ForceModel):
     design_keys: tuple = eqx.field(static=True)
     outside: str = eqx.field(static=True, default="nan")
     cache: object = eqx.field(static=True, default=None)
+    grow: str = eqx.field(static=True, default="tensor")  # where :meth:`covering` puts a new axis
     name = "exact"
 
     # -- interface ------------------------------------------------------------------------------
@@ -190,41 +191,78 @@ class ExactForceModel(ForceModel):
                                          - self._rows_lattice(arr, (a,), [zero], m, h, P))
             ok = ok & self._valid_rows((a,), [c * jnp.ones(n)], ringed)
         g_rows = self._rows_plane(grid_part, m, h, P)
-        in_grid = (P <= self.grid.p_top_pa + _TOL) & (h <= self.grid.h_top_mm + _TOL)
-        ok = ok & (in_grid | clamp)
+        # Beyond the grid's top there is no plane: NaN whatever ``outside`` says.
+        ok = ok & (P <= self.grid.p_top_pa + _TOL) & (h <= self.grid.h_top_mm + _TOL)
         f = s * jnp.maximum(g_rows + row_parts, 0.0)
         return jnp.where(ok, f, jnp.nan)
 
     def support(self) -> dict[str, tuple[float, float]]:
-        """Ranges of the simulator constants the lattice covers (for priors)."""
-        out: dict[str, tuple[float, float]] = {}
-        for a in self.tensor_axes + self.additive_axes:
-            if a.name == "jm":
-                out["jm"] = (float(self.base.jm * math.exp(a.lo)), float(self.base.jm * math.exp(a.hi)))
-        return out
+        """Hard ranges of the constants the planes can reach (for priors): J_m [1] from the
+        lattice's limits, ``mu_pa`` [Pa] x thickness factor from the grid's top in reduced
+        pressure (a softer or thinner membrane needs planes to higher ``p / s``)."""
+        a = pl.AXES["jm"]
+        s_min = 1.0 / pl.PlaneGrid.P_MARGIN
+        return {"jm": (float(self.base.jm * math.exp(a.lo)), float(self.base.jm * math.exp(a.hi))),
+                "mu_pa": (float(self.base.mu_pa * s_min / 0.85), float(self.base.mu_pa * 2.0)),
+                "thickness_factor": (0.85, 1.15)}
 
-    def covers(self, box: Mapping[str, tuple[float, float]]) -> bool:
-        """Whether every lattice axis named in ``box`` (axis -> coordinate range) holds it."""
-        for a in self.tensor_axes + self.additive_axes:
-            if a.name in box:
-                lo, hi = box[a.name]
-                if lo < a.lo - _TOL or hi > a.hi + _TOL:
-                    return False
+    def _box(self, params: SimParams) -> dict[str, tuple[float, float]]:
+        """Coordinate range per axis of ``params`` (fields of any shape); axes whose
+        coordinate never leaves 0 are omitted, and ``ring`` when no design has rings."""
+        prm = jax.tree.map(lambda a: np.asarray(a, float), params)
+        box = {}
+        for name, axis in pl.AXES.items():
+            if axis.ringed_only and not bool(np.any(np.asarray(self.ringed))):
+                continue
+            c = np.asarray(axis.coord(prm, self.base), float)
+            c = c[np.isfinite(c)]
+            if c.size and (np.max(np.abs(c)) > 1e-9 or name in self._axis_names()):
+                box[name] = (float(np.min(c)), float(np.max(c)))
+        return box
+
+    def _axis_names(self) -> set[str]:
+        return {a.name for a in self.tensor_axes + self.additive_axes}
+
+    def covers(self, params: SimParams, margin: int = 0) -> bool:
+        """Whether the lattice holds every constant in ``params`` (fields of any shape) with
+        ``margin`` nodes to spare on each side (short of an axis' hard limit)."""
+        box = self._box(params)
+        axes = {a.name: a for a in self.tensor_axes + self.additive_axes}
+        for name, (lo, hi) in box.items():
+            a = axes.get(name)
+            if a is None:
+                return False
+            step = a.axis.step
+            need_lo = max(lo - margin * step, a.axis.lo)
+            need_hi = min(hi + margin * step, a.axis.hi)
+            if need_lo < a.lo - _TOL or need_hi > a.hi + _TOL:
+                return False
         return True
 
-    def covering(self, box: Mapping[str, tuple[float, float]], progress: bool = False) -> "ExactForceModel":
-        """The same model with each named axis' lattice grown (never shrunk) to hold ``box``
-        (coordinate ranges, clipped to the axes' hard limits); planes already solved are
-        reused from memory or disk."""
-        if self.covers(box):
+    def covering(self, params: SimParams, progress: bool = False, margin: int = 0) -> "ExactForceModel":
+        """The model grown to hold every constant in ``params`` (fields of any shape) with
+        ``margin`` nodes to spare: each axis' node range is widened (never shrunk), and a
+        constant the model did not vary yet becomes a new axis (:attr:`grow`). Planes
+        already solved come from memory or disk. Returns ``self`` when nothing is missing."""
+        if self.covers(params, margin):
             return self
+        box = {k: (lo - margin * pl.AXES[k].step, hi + margin * pl.AXES[k].step)
+               for k, (lo, hi) in self._box(params).items()}
         t_nodes = _grown(self.tensor_axes, box)
         a_nodes = _grown(self.additive_axes, box)
+        for name, (lo, hi) in box.items():
+            if name not in t_nodes and name not in a_nodes:
+                (t_nodes if self.grow == "tensor" else a_nodes)[name] = pl.node_range(pl.AXES[name], lo, hi)
         return _assemble(self.design_keys, self.base, t_nodes, a_nodes, self.grid, self.outside, self.cache,
-                         progress)
+                         progress, self.grow)
 
-    def with_outside(self, outside: str) -> "ExactForceModel":
-        return dataclasses.replace(self, outside=outside)
+    def input_ranges(self) -> dict[str, tuple[float, float]]:
+        return {"height_mm": (0.0, self.grid.h_top_mm), "pressure_pa": (0.0, float("inf"))}
+
+    def strict(self, strict: bool = True) -> "ExactForceModel":
+        """``outside="nan"`` (strict: samplers reject what the lattice does not hold) or
+        ``"clamp"`` (optimisers see no NaN; check the optimum with :meth:`covers`)."""
+        return dataclasses.replace(self, outside="nan" if strict else "clamp")
 
     # -- internals ------------------------------------------------------------------------------
     def _valid_scalar(self, axes, cs, ringed):
@@ -301,10 +339,11 @@ def _ensure_two(axis: pl.Axis, k0: int, k1: int) -> tuple[int, int]:
     return k0 - 1, k1
 
 
-def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progress) -> ExactForceModel:
+def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progress, grow="tensor") -> ExactForceModel:
     designs = [Membrane.from_key(k) for k in design_keys]
     t_nodes = {k: _ensure_two(pl.AXES[k], *v) for k, v in t_nodes.items()}
-    a_nodes = {k: _ensure_two(pl.AXES[k], *v) for k, v in a_nodes.items()}
+    # An additive axis is a difference from its reference node, which it must hold.
+    a_nodes = {k: _ensure_two(pl.AXES[k], min(v[0], 0), max(v[1], 0)) for k, v in a_nodes.items()}
     tensor = pl.lattice_planes(designs, base, t_nodes, grid, cache=cache, progress=progress)
     lat = len(t_nodes)
     tensor = _pad_ghosts(tensor, range(1, lat + 3))
@@ -320,14 +359,14 @@ def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progres
         base=jax.tree.map(float, base),
         tensor_axes=tuple(LatticeAxis(k, v[0], v[1] - v[0] + 1) for k, v in t_nodes.items()),
         additive_axes=tuple(LatticeAxis(k, v[0], v[1] - v[0] + 1) for k, v in a_nodes.items()),
-        grid=grid, design_keys=tuple(design_keys), outside=outside, cache=cache,
+        grid=grid, design_keys=tuple(design_keys), outside=outside, cache=cache, grow=grow,
     )
 
 
 def build_exact(design_keys: Sequence[str], *, h_max_mm: float = 80.0, p_max_pa: float = 10_000.0,
                 tensor: Mapping[str, tuple[float, float]] | None = None,
                 additive: Mapping[str, tuple[float, float]] | None = None, base: SimParams = SimParams(),
-                outside: str = "nan", cache=None, progress: bool = False) -> ExactForceModel:
+                outside: str = "nan", cache=None, progress: bool = False, grow: str = "tensor") -> ExactForceModel:
     """An :class:`ExactForceModel` of the membranes ``design_keys``.
 
     Arguments:
@@ -342,6 +381,9 @@ def build_exact(design_keys: Sequence[str], *, h_max_mm: float = 80.0, p_max_pa:
         outside: ``"nan"`` (default) or ``"clamp"`` for queries outside the lattice.
         cache: plane cache folder (default :func:`mfdesign.physics.planes.cache_dir`), or False.
         progress: a progress bar over the planes to solve.
+        grow: where :meth:`ExactForceModel.covering` puts an axis the model did not vary yet:
+            ``"tensor"`` (calibration: exact cross terms) or ``"additive"`` (diagnosis: one
+            effect at a time, few planes).
 
     Axes: see :data:`mfdesign.physics.planes.AXES` (``jm``, ``ring``, ``gradient``,
     ``prestretch``, ``offset``). Coordinate 0 is the reference.
@@ -354,4 +396,6 @@ def build_exact(design_keys: Sequence[str], *, h_max_mm: float = 80.0, p_max_pa:
     grid = pl.PlaneGrid.covering(h_max_mm, p_max_pa)
     t_nodes = {k: pl.node_range(pl.AXES[k], *v) for k, v in (tensor or {}).items()}
     a_nodes = {k: pl.node_range(pl.AXES[k], *v) for k, v in (additive or {}).items()}
-    return _assemble(tuple(design_keys), base, t_nodes, a_nodes, grid, outside, cache, progress)
+    if grow not in ("tensor", "additive"):
+        raise ValueError(f"grow must be 'tensor' or 'additive', got {grow!r}")
+    return _assemble(tuple(design_keys), base, t_nodes, a_nodes, grid, outside, cache, progress, grow)

@@ -12,7 +12,7 @@ with ``params`` fields scalar or ``[N]`` (row-wise effects). Three implementatio
   simulator over the whole design space, for searches (acquisition, optimisation); its
   error (about 1 N RMS) is stated where it is used, and winners are checked by the
   simulator;
-* ``standin`` (:class:`~mfdesign.calibration.standin.StandinForceModel`): a closed-form
+* ``standin`` (:class:`~mfdesign.models.standin.StandinForceModel`): a closed-form
   shape with no physics, for fast tests.
 
 Sensitivities are autodiff (``jax.jacfwd``) through the implementation.
@@ -21,13 +21,13 @@ Sensitivities are autodiff (``jax.jacfwd``) through the implementation.
 from __future__ import annotations
 
 import abc
-from typing import ClassVar, Mapping
+from typing import ClassVar
 
 import equinox as eqx
 
 from mfdesign.physics.params import SimParams
 
-__all__ = ["FORCE_MODELS", "ForceModel"]
+__all__ = ["FORCE_MODELS", "ForceModel", "force_model_for"]
 
 FORCE_MODELS = ("exact", "emulator", "standin")
 
@@ -45,10 +45,56 @@ class ForceModel(eqx.Module):
         """Ranges of simulator constants where the model is valid (priors stay inside)."""
         return {}
 
-    def covering(self, box: Mapping[str, tuple[float, float]], progress: bool = False) -> "ForceModel":
-        """A model valid on ``box`` (lattice-axis name -> coordinate range); models valid
-        everywhere return themselves."""
+    def input_ranges(self) -> dict[str, tuple[float, float]]:
+        """Plate heights [mm] and gauge pressures [Pa] the model vouches for."""
+        return {"height_mm": (0.0, float("inf")), "pressure_pa": (0.0, float("inf"))}
+
+    def covers(self, params: SimParams, margin: int = 0) -> bool:
+        """Whether the model vouches for every constant in ``params`` (fields of any shape),
+        ``margin`` lattice nodes inside its edge (for lattice-based models)."""
+        return True
+
+    def covering(self, params: SimParams, progress: bool = False, margin: int = 0) -> "ForceModel":
+        """A model that holds every constant in ``params``; models valid everywhere (the
+        emulator inside its ranges, the stand-in) return themselves, the exact model grows
+        its lattice of simulator planes."""
         return self
 
-    def covers(self, box: Mapping[str, tuple[float, float]]) -> bool:
-        return True
+    def strict(self, strict: bool = True) -> "ForceModel":
+        """The model for a sampler (``True``: NaN where it cannot vouch for a number) or for an
+        optimiser (``False``: no NaN, values held at the edge of its validity)."""
+        return self
+
+
+def force_model_for(name: str, design_keys=(), *, h_max_mm: float = 80.0, p_max_pa: float = 10_000.0,
+                    base: SimParams = SimParams(), progress: bool = False, cache=None) -> ForceModel:
+    """The force model called ``name`` (one of :data:`FORCE_MODELS`).
+
+    Arguments:
+        name: ``"exact"`` (simulator planes of ``design_keys``; the lattice grows as fits
+            need it), ``"emulator"`` (the bundled neural emulator) or ``"standin"``.
+        design_keys: the measured designs (exact only).
+        h_max_mm, p_max_pa: the highest plate height [mm] and gauge pressure [Pa] of the rows (exact only).
+        base: the reference simulator constants (exact only).
+        progress: progress bars while planes are solved.
+        cache: plane cache folder (exact only; default ``$MFDESIGN_CACHE_DIR/planes``).
+    """
+    if name == "exact":
+        from mfdesign.models.exact import build_exact
+
+        if not len(design_keys):
+            raise ValueError("the exact force model needs the measured designs")
+        return build_exact(design_keys, h_max_mm=h_max_mm, p_max_pa=p_max_pa, base=base, outside="clamp",
+                           cache=cache, progress=progress)
+    if name == "emulator":
+        from mfdesign.models.emulator import load_default
+
+        try:
+            return load_default()
+        except FileNotFoundError as err:
+            raise ValueError(f"no trained emulator artifact ({err}); train it or use --physics exact") from None
+    if name == "standin":
+        from mfdesign.models.standin import StandinForceModel
+
+        return StandinForceModel()
+    raise ValueError(f"--physics must be one of {list(FORCE_MODELS)}, got {name!r}")

@@ -285,14 +285,18 @@ class HierarchicalModel(eqx.Module):
     def pointwise_log_lik(self, x, data: CalibrationData) -> jax.Array:
         """log p(F_i | x) [N] (unweighted)."""
         sigma = self.unpack(x)["noise_n"]
-        r = (data.force_n - self.expected_force(x, data)) / sigma
+        f = self.expected_force(x, data)
+        # Double where: a NaN force (outside the force model's support) must not reach the
+        # arithmetic, or its NaN partials times the zero cotangent poison every gradient.
+        good = jnp.isfinite(f)
+        r = jnp.where(good, data.force_n - f, 0.0) / sigma
         if self.likelihood == "gaussian":
             ll = -0.5 * r**2 - jnp.log(sigma) - 0.5 * math.log(2 * math.pi)
         else:
             nu = self.nu
             c = (math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2) - 0.5 * math.log(nu * math.pi))
             ll = c - jnp.log(sigma) - 0.5 * (nu + 1) * jnp.log1p(r**2 / nu)
-        return jnp.where(jnp.isfinite(ll), ll, -1e10)  # a NaN force (emulator out of range) is "very unlikely"
+        return jnp.where(good & jnp.isfinite(ll), ll, -1e10)  # a NaN force (outside the model's support) is "very unlikely"
 
     def log_lik(self, x, data: CalibrationData) -> jax.Array:
         return jnp.sum(data.weight * self.pointwise_log_lik(x, data))

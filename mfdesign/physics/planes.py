@@ -47,7 +47,7 @@ __all__ = ["AXES", "Axis", "H_STEP_MM", "P_STEP_PA", "PlaneGrid", "cache_dir", "
 
 H_STEP_MM = 2.5
 P_STEP_PA = 250.0
-SCHEMA = 1  # bump when the plane content changes (solver, grid semantics): old cache files are ignored
+SCHEMA = 2  # bump when the plane content changes (solver, grid semantics): old cache files are ignored
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,13 +106,16 @@ class PlaneGrid:
     every ``P_STEP_PA`` (reduced: ``p / s``, see the module doc)."""
 
     h_top_mm: float = 80.0
-    p_top_pa: float = 12_500.0
+    p_top_pa: float = 16_000.0
+    P_MARGIN = 1.6  # reduced pressures reach 1.6 x the data's: membranes down to s = mu tf / mu0 = 0.625
 
     @classmethod
-    def covering(cls, h_max_mm: float, p_max_pa: float, p_margin: float = 1.35) -> "PlaneGrid":
+    def covering(cls, h_max_mm: float, p_max_pa: float, p_margin: float | None = None) -> "PlaneGrid":
         """The smallest grid holding heights up to ``h_max_mm`` and pressures up to
-        ``p_margin x p_max_pa`` (room for a softer or thinner membrane: ``p / s`` grows as
-        ``s`` falls; rows beyond the top are NaN, never extrapolated)."""
+        ``p_margin x p_max_pa`` (default :attr:`P_MARGIN`; room for a softer or thinner
+        membrane: ``p / s`` grows as ``s`` falls; rows beyond the top are NaN, never
+        extrapolated)."""
+        p_margin = cls.P_MARGIN if p_margin is None else p_margin
         h_top = H_STEP_MM * math.ceil(max(h_max_mm, H_STEP_MM) / H_STEP_MM + 1e-9)
         p_top = P_STEP_PA * math.ceil(max(p_margin * p_max_pa, 4 * P_STEP_PA) / P_STEP_PA + 1e-9)
         return cls(float(h_top), float(p_top))
@@ -151,6 +154,27 @@ def _fill_zero_pressure(f: np.ndarray) -> np.ndarray:
 
 
 _MEMO: dict[str, np.ndarray] = {}
+REPAIR_BATCH = 64  # unconverged plane nodes re-solved per call (one compiled size)
+
+
+def _repair(design: Membrane, params: SimParams, grid: PlaneGrid, f: np.ndarray, status: np.ndarray) -> None:
+    """Re-solve a plane's unconverged nodes one by one (in place).
+
+    Along a plane's continuation path a step can fail where a point's own path, from
+    p / 8 (:func:`~mfdesign.physics.solve.force_at`), converges: at low tension beside a
+    stiff ring the shooting is touchy. Left NaN, such a node would blank the
+    interpolation cells around it (rows the simulator can solve). Nodes past the Gent
+    limit or a limit point stay NaN: there the membrane has no such state."""
+    from mfdesign.physics.solve import force_at
+    from mfdesign.physics.status import Status
+
+    H, P = np.meshgrid(grid.h, grid.p[1:], indexing="ij")
+    idx = np.flatnonzero(~np.isfinite(f) & (status.ravel().reshape(f.shape) == Status.NOT_CONVERGED))
+    for a in range(0, idx.size, REPAIR_BATCH):
+        part = idx[a:a + REPAIR_BATCH]
+        pad = np.concatenate([part, np.full(REPAIR_BATCH - part.size, part[-1])])
+        res = force_at(design, H.ravel()[pad], P.ravel()[pad], params, signed=True)
+        f.ravel()[part] = np.asarray(res.force_n, float)[:part.size]
 
 
 def solve_planes(jobs: Sequence[tuple[Membrane, SimParams]], grid: PlaneGrid, cache: Path | None | bool = None,
@@ -178,8 +202,10 @@ def solve_planes(jobs: Sequence[tuple[Membrane, SimParams]], grid: PlaneGrid, ca
         todo[k] = job
     if todo:
         results = force_planes(list(todo.values()), grid.h, grid.p[1:], signed=True, progress=progress)
-        for k, res in zip(todo, results):
-            f = np.concatenate([np.full((grid.h.size, 1), np.nan), np.asarray(res.force_n, float)], axis=1)
+        for (k, (d, prm)), res in zip(todo.items(), results):
+            f = np.asarray(res.force_n, float)
+            _repair(d, prm, grid, f, np.asarray(res.status))
+            f = np.concatenate([np.full((grid.h.size, 1), np.nan), f], axis=1)
             _MEMO[k] = _fill_zero_pressure(f)
             if folder is not None:
                 folder.mkdir(parents=True, exist_ok=True)

@@ -287,11 +287,13 @@ def force_at(
     p_pa,
     params: SimParams = SimParams(),
     path_steps: int = PATH_STEPS,
+    signed: bool = False,
 ) -> SimResult:
     """Force on a plate held at height ``h_mm`` [mm] with gauge pressure ``p_pa`` [Pa].
 
     ``h_mm`` and ``p_pa`` broadcast together; every point is solved independently by
     quasi-static inflation in ``path_steps`` pressure steps at its height (vmapped).
+    ``signed``: ``NO_CONTACT`` points keep their negative force (see :func:`force_plane`).
     """
     h, p = np.broadcast_arrays(np.asarray(h_mm, float), np.asarray(p_pa, float))
     shape_ = h.shape
@@ -315,7 +317,7 @@ def force_at(
             if out[k] is None:
                 out[k] = np.empty(hs.shape, o.dtype)
             out[k][idx] = o
-    res = _classify(h.ravel(), p.ravel(), *out)
+    res = _classify(h.ravel(), p.ravel(), *out, signed=signed)
     return jax.tree.map(lambda a: a.reshape(shape_), res)
 
 

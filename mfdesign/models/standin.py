@@ -27,10 +27,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mfdesign.models.force import ForceModel
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status
 
-__all__ = ["standin_force", "standin_plane"]
+__all__ = ["StandinForceModel", "standin_force", "standin_plane"]
 
 _W_PA = 50.0
 
@@ -67,3 +68,12 @@ def standin_plane(design, h_grid, p_grid, params: SimParams = SimParams()):
     status = np.full(H.shape, int(Status.OK), np.int8)
     return SimpleNamespace(force_n=f.reshape(H.shape), status=status, max_locking=locking.reshape(H.shape),
                            max_rise_mm=P / 250.0 - H / 2.0)
+
+
+class StandinForceModel(ForceModel):
+    """:func:`standin_force` behind the force-model interface (fast tests, no physics)."""
+
+    name = "standin"
+
+    def __call__(self, design, h_mm, p_pa, params: SimParams = SimParams()):
+        return standin_force(design, h_mm, p_pa, params)
