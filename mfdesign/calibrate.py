@@ -30,6 +30,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp

@@ -26,7 +26,20 @@ app = typer.Typer(
 
 
 def enable_compilation_cache() -> Path:
-    """JAX's persistent compilation cache, so a second CLI call does not recompile."""
+    """JAX's persistent compilation cache, so a second CLI call does not recompile.
+
+    Folder: ``$MFDESIGN_CACHE_DIR`` (default ``~/.cache/mfdesign/jax``). Programs that
+    compile in under 1 s are not stored (recompiling them is as fast as reading them).
+
+    Why ``EQX_ON_ERROR=nan`` (unless already set): equinox's runtime checks inside the
+    solvers (``eqx.error_if``, used by optimistix / diffrax / lineax even with
+    ``throw=False``) are host callbacks by default, and XLA never stores an executable that
+    holds a host callback: the cache stayed empty after any number of ``simulate`` runs.
+    With ``nan`` such a check turns its outputs into NaN, which the physics already reports
+    as a failed point (every solve here runs with ``throw=False``). It must be set before
+    equinox is imported, i.e. here, before any command body runs.
+    """
+    os.environ.setdefault("EQX_ON_ERROR", "nan")
     import jax
 
     cache = Path(os.environ.get("MFDESIGN_CACHE_DIR", Path.home() / ".cache" / "mfdesign" / "jax"))
@@ -49,8 +62,19 @@ def fail(message: str) -> None:
     raise typer.Exit(code=2)
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from mfdesign import __version__
+
+        typer.echo(f"mfdesign {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _main() -> None:
+def _main(
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="Print the version and exit."),
+) -> None:
     enable_compilation_cache()
 
 

@@ -16,7 +16,6 @@ from typing import Optional
 
 import typer
 
-from mfdesign.design import DesignError, Membrane
 from mfdesign.rig.config import ConfigError, RigConfig
 from mfdesign.rig.protocol import DEFAULT_WATCHDOG_S, RigFault
 
@@ -32,6 +31,8 @@ def _config(path: Optional[Path]) -> RigConfig:
 
 
 def _design(key: str) -> Membrane:
+    from mfdesign.design import DesignError, Membrane
+
     try:
         return Membrane.from_key(key)
     except DesignError as exc:
