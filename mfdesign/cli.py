@@ -148,7 +148,7 @@ def fit(
     data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
     out: Path = typer.Option(..., help="Folder for the fitted model."),
     members: int = typer.Option(32, min=1, help="Ensemble members."),
-    steps: int = typer.Option(10_000, min=1, help="Training steps."),
+    steps: int = typer.Option(10_000, "--train-steps", min=1, help="Training steps (Adam) of every member."),
     batch: int = typer.Option(100, min=1, help="Minibatch size."),
     degree: int = typer.Option(2, min=1, max=3, help="Degree of the head polynomial in pressure."),
     monotone: bool = typer.Option(True, help="Force non-decreasing in pressure."),
@@ -167,10 +167,10 @@ def fit(
 @app.command()
 def cv(
     data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
-    model: str = typer.Option("ensemble", help="ensemble | curve-fit"),
+    model: str = typer.Option("ensemble", "--model-type", help="Model type: ensemble | curve-fit."),
     folds: int = typer.Option(0, min=0, help="k of k-fold by membrane; 0 = leave one membrane out."),
     members: int = typer.Option(32, min=1),
-    steps: int = typer.Option(10_000, min=1),
+    steps: int = typer.Option(10_000, "--train-steps", min=1, help="Training steps (Adam) of every member."),
     batch: int = typer.Option(100, min=1),
     degree: int = typer.Option(2, min=1, max=3),
     monotone: bool = typer.Option(True),
