@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import List
 
 import typer
 
@@ -145,7 +146,7 @@ def demo(
 
 @app.command()
 def fit(
-    data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
+    data: List[Path] = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md)."),
     out: Path = typer.Option(..., help="Folder for the fitted model."),
     members: int = typer.Option(32, min=1, help="Ensemble members."),
     steps: int = typer.Option(10_000, "--train-steps", min=1, help="Training steps (Adam) of every member."),
@@ -166,7 +167,7 @@ def fit(
 
 @app.command()
 def cv(
-    data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
+    data: List[Path] = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md)."),
     model: str = typer.Option("ensemble", "--model-type", help="Model type: ensemble | curve-fit."),
     folds: int = typer.Option(0, min=0, help="k of k-fold by membrane; 0 = leave one membrane out."),
     members: int = typer.Option(32, min=1),
@@ -185,6 +186,27 @@ def cv(
         commands.cv(data, model, folds, members, steps, batch, degree, monotone, seed, out, allow_outside_design_space)
     except ValueError as err:
         fail(str(err))
+
+
+@app.command("import")
+def import_(
+    sources: List[Path] = typer.Argument(..., help="Files or rig job folders to read, or 'mass-lift' (several: concatenated)."),
+    out: Path = typer.Option(..., help="Measurements Parquet file to write."),
+    fmt: str = typer.Option("auto", "--format",
+                            help="auto (from the name and content) | parquet | csv | mass-lift | characterisation | sim-planes | rig-job."),
+) -> None:
+    """Convert measurements into one Measurements Parquet file (schema: docs/data.md).
+
+    Reads Measurements Parquet / CSV, the SPA_Design pickles (mass-lift and characterisation
+    data dictionaries, through the restricted unpickler) and rig job folders.
+    """
+    from mfdesign.data.sources import load_sources
+
+    table = load_sources(sources, fmt)
+    table.to_parquet(out)
+    df = table.df
+    trials = df.groupby(["design_key", "trial"]).first()["experiment"].value_counts().to_dict()
+    typer.echo(f"{len(table)} rows, {len(table.design_keys)} membranes, trials {trials} -> {out}")
 
 
 # Modules that add commands to ``app``: each defines ``register(app: typer.Typer)`` and

@@ -119,7 +119,7 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
 
 
 # Options both commands take, declared once (typer reads them as parameter defaults).
-DATA = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data.")
+DATA = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).")
 EFFECTS = typer.Option(None, "--effects", help="Active effect (repeat for several).")
 SIMULATOR = typer.Option("emulator", help="Force model: emulator | standin.")
 LIKELIHOOD = typer.Option("gaussian", help="gaussian | student_t")
@@ -132,7 +132,7 @@ ALLOW_OUTSIDE = typer.Option(False, "--allow-outside-design-space",
 def register(app: typer.Typer) -> None:
     @app.command()
     def calibrate(
-        data: Path = DATA,
+        data: List[Path] = DATA,
         out: Path = typer.Option(..., help="Output folder (chain.h5, posterior.json/.npz, corner.png)."),
         effects: Optional[List[str]] = EFFECTS,
         steps: int = typer.Option(3000, "--mcmc-steps", min=1, help="emcee chain length (total; a rerun resumes)."),
@@ -150,7 +150,7 @@ def register(app: typer.Typer) -> None:
 
     @app.command("fit-mf")
     def fit_mf(
-        data: Path = DATA,
+        data: List[Path] = DATA,
         out: Path = typer.Option(..., help="Output folder."),
         effects: Optional[List[str]] = EFFECTS,
         steps: int = typer.Option(2000, "--mcmc-steps", min=1, help="emcee chain length (total; a rerun resumes)."),

@@ -29,7 +29,7 @@ from mfdesign.errors import anticipated, one_line
 __all__ = ["ContractCommand", "ContractGroup", "apply", "item_parser", "log_dir"]
 
 # Commands whose --out is one file, not a folder.
-FILE_OUTPUTS = {"cv"}
+FILE_OUTPUTS = {"cv", "import"}
 _LOG_DIR_KEY = "mfdesign.log_dir"
 
 
