@@ -80,7 +80,10 @@ class ContractGroup(TyperGroup):
         except (typer.Exit, typer.Abort, KeyboardInterrupt):
             raise
         except Exception as err:  # noqa: BLE001 -- the contract: no traceback ever reaches the user
-            from typer._click.exceptions import ClickException
+            try:  # typer >= 0.2x vendors click as typer._click; older typer uses click itself
+                from typer._click.exceptions import ClickException
+            except ImportError:
+                from click.exceptions import ClickException
 
             if isinstance(err, ClickException):  # usage errors: click prints them and exits 2
                 raise
