@@ -344,7 +344,12 @@ def save_inference_data(post: Posterior, path, model=None, data=None, **kwargs) 
     path.parent.mkdir(parents=True, exist_ok=True)
     idata = post.to_inference_data(model, data, **kwargs)
     with outputs.atomic_path(path) as tmp:
-        idata.to_netcdf(str(tmp), engine="h5netcdf")
+        try:
+            idata.to_netcdf(str(tmp), engine="h5netcdf")
+        except ValueError as err:  # older h5netcdf / xarray pairs know no "zlib" filter: store uncompressed
+            if "ompression" not in str(err):
+                raise
+            idata.to_netcdf(str(tmp), engine="h5netcdf", compress=False)
     return path
 
 
