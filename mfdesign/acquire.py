@@ -52,6 +52,7 @@ import math
 import time
 from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
 
+import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp

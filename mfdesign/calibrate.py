@@ -16,8 +16,10 @@ Steps of :func:`calibrate`:
 5. convergence: integrated autocorrelation time tau per parameter (Sokal 1989, emcee's
    estimator), chain length >= 50 tau, mean acceptance fraction in [0.2, 0.7]; a
    :class:`ConvergenceWarning` when one fails; burn-in ``2 max tau``, thinning ``min tau / 2``;
-6. a :class:`~mfdesign.calibration.posterior.Posterior` (physical units): samples, summary
-   table (median, 5 / 95 %), MAP, BIC and the Laplace log evidence.
+6. a :class:`~mfdesign.calibration.posterior.Posterior` (physical units): samples (flat and
+   per walker), summary table (median, 5 / 95 %), MAP, BIC and the Laplace log evidence; the
+   report also holds ArviZ's R-hat and bulk / tail ESS of the physical chain (walkers as
+   chains; :func:`~mfdesign.calibration.posterior.arviz_diagnostics`).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -380,6 +383,12 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
     u_s = sampler.get_chain(discard=burn, thin=thin, flat=True)
     lp_s = sampler.get_log_prob(discard=burn, thin=thin, flat=True)
     x_s = np.asarray(model.to_physical(u_s))
+    # the same draws per walker [draw, walker, dim] (physical) for ArviZ: chain x draw
+    x_chain = np.asarray(model.to_physical(sampler.get_chain(discard=burn, thin=thin)))
+    lp_chain = np.asarray(sampler.get_log_prob(discard=burn, thin=thin))
+    from mfdesign.calibration.posterior import arviz_diagnostics
+
+    report.update(arviz_diagnostics(x_chain, model.names))
     # The sampler saw NaN (rejected) outside the force model's lattice: a chain that
     # presses on its edge is truncated there, not converged.
     edge = _reaches_edge(model, data, u_s)
@@ -397,4 +406,5 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
     bic = dim * math.log(n_rows) - 2.0 * ll_map
     units = tuple(s.unit for s in model.specs)
     return Posterior(model.names, units, x_s, lp_s, x_map, ll_map, n_rows, bic, laplace, report,
-                     tuple(data.design_keys), tuple(model.effects), force_model=model.force_model)
+                     tuple(data.design_keys), tuple(model.effects), x_chain, lp_chain,
+                     force_model=model.force_model)

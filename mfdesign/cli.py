@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import List
 
 import typer
 
@@ -26,7 +27,20 @@ app = typer.Typer(
 
 
 def enable_compilation_cache() -> Path:
-    """JAX's persistent compilation cache, so a second CLI call does not recompile."""
+    """JAX's persistent compilation cache, so a second CLI call does not recompile.
+
+    Folder: ``$MFDESIGN_CACHE_DIR`` (default ``~/.cache/mfdesign/jax``). Programs that
+    compile in under 1 s are not stored (recompiling them is as fast as reading them).
+
+    Why ``EQX_ON_ERROR=nan`` (unless already set): equinox's runtime checks inside the
+    solvers (``eqx.error_if``, used by optimistix / diffrax / lineax even with
+    ``throw=False``) are host callbacks by default, and XLA never stores an executable that
+    holds a host callback: the cache stayed empty after any number of ``simulate`` runs.
+    With ``nan`` such a check turns its outputs into NaN, which the physics already reports
+    as a failed point (every solve here runs with ``throw=False``). It must be set before
+    equinox is imported, i.e. here, before any command body runs.
+    """
+    os.environ.setdefault("EQX_ON_ERROR", "nan")
     import jax
 
     cache = Path(os.environ.get("MFDESIGN_CACHE_DIR", Path.home() / ".cache" / "mfdesign" / "jax"))
@@ -49,8 +63,19 @@ def fail(message: str) -> None:
     raise typer.Exit(code=2)
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from mfdesign import __version__
+
+        typer.echo(f"mfdesign {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _main() -> None:
+def _main(
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="Print the version and exit."),
+) -> None:
     enable_compilation_cache()
 
 
@@ -121,10 +146,10 @@ def demo(
 
 @app.command()
 def fit(
-    data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
+    data: List[Path] = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md)."),
     out: Path = typer.Option(..., help="Folder for the fitted model."),
     members: int = typer.Option(32, min=1, help="Ensemble members."),
-    steps: int = typer.Option(10_000, min=1, help="Training steps."),
+    steps: int = typer.Option(10_000, "--train-steps", min=1, help="Training steps (Adam) of every member."),
     batch: int = typer.Option(100, min=1, help="Minibatch size."),
     degree: int = typer.Option(2, min=1, max=3, help="Degree of the head polynomial in pressure."),
     monotone: bool = typer.Option(True, help="Force non-decreasing in pressure."),
@@ -142,11 +167,11 @@ def fit(
 
 @app.command()
 def cv(
-    data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
-    model: str = typer.Option("ensemble", help="ensemble | curve-fit"),
+    data: List[Path] = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md)."),
+    model: str = typer.Option("ensemble", "--model-type", help="Model type: ensemble | curve-fit."),
     folds: int = typer.Option(0, min=0, help="k of k-fold by membrane; 0 = leave one membrane out."),
     members: int = typer.Option(32, min=1),
-    steps: int = typer.Option(10_000, min=1),
+    steps: int = typer.Option(10_000, "--train-steps", min=1, help="Training steps (Adam) of every member."),
     batch: int = typer.Option(100, min=1),
     degree: int = typer.Option(2, min=1, max=3),
     monotone: bool = typer.Option(True),
@@ -161,6 +186,27 @@ def cv(
         commands.cv(data, model, folds, members, steps, batch, degree, monotone, seed, out, allow_outside_design_space)
     except ValueError as err:
         fail(str(err))
+
+
+@app.command("import")
+def import_(
+    sources: List[Path] = typer.Argument(..., help="Files or rig job folders to read, or 'mass-lift' (several: concatenated)."),
+    out: Path = typer.Option(..., help="Measurements Parquet file to write."),
+    fmt: str = typer.Option("auto", "--format",
+                            help="auto (from the name and content) | parquet | csv | mass-lift | characterisation | sim-planes | rig-job."),
+) -> None:
+    """Convert measurements into one Measurements Parquet file (schema: docs/data.md).
+
+    Reads Measurements Parquet / CSV, the SPA_Design pickles (mass-lift and characterisation
+    data dictionaries, through the restricted unpickler) and rig job folders.
+    """
+    from mfdesign.data.sources import load_sources
+
+    table = load_sources(sources, fmt)
+    table.to_parquet(out)
+    df = table.df
+    trials = df.groupby(["design_key", "trial"]).first()["experiment"].value_counts().to_dict()
+    typer.echo(f"{len(table)} rows, {len(table.design_keys)} membranes, trials {trials} -> {out}")
 
 
 # Modules that add commands to ``app``: each defines ``register(app: typer.Typer)`` and

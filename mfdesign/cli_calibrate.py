@@ -3,7 +3,9 @@
 ``DATA`` is a Measurements Parquet file or ``mass-lift`` (the authors' real data). Both
 commands print the posterior summary table (median, 5 / 95 %, MAP, with units) and write
 into ``--out``: ``chain.h5`` (emcee HDF5 backend: rerunning the same command resumes a
-killed run), ``posterior.json`` + ``posterior.npz``, ``corner.png``; ``fit-mf`` adds the
+killed run; unconstrained parameters), ``posterior.json`` + ``posterior.npz``,
+``posterior.nc`` (ArviZ InferenceData in physical units, chain x draw, with
+log_likelihood / posterior_predictive / observed_data: ``az.from_netcdf``), ``corner.png``; ``fit-mf`` adds the
 discrepancy ensemble (``delta/``) and ``mf.json`` (residual noise, training RMSE and 90 %
 coverage).
 """
@@ -93,10 +95,15 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
     for w in caught:
         typer.echo(f"warning: {w.message}", err=True)
     post.save(out / "posterior")
+    from mfdesign.calibration.posterior import save_inference_data  # ArviZ: az.from_netcdf(OUT/posterior.nc)
+
+    save_inference_data(post, out / "posterior.nc", fit.model if multi_fidelity else model, table, max_draws=500,
+                        seed=seed, max_rows=max_rows)
     keep = [i for i, n in enumerate(post.names) if not n.startswith("z_thickness")]
     corner_plot(post.samples[:, keep], [post.names[i] for i in keep], out / "corner.png",
                 title=f"{data}: effects {effects or 'none'}")
-    written = {"chain": str(chain), "posterior": str(out / "posterior.json"), "corner": str(out / "corner.png")}
+    written = {"chain": str(chain), "posterior": str(out / "posterior.json"), "inference_data": str(out / "posterior.nc"),
+               "corner": str(out / "corner.png")}
     if multi_fidelity:
         from mfdesign.models.predictive import coverage
 
@@ -114,7 +121,7 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
 
 
 # Options both commands take, declared once (typer reads them as parameter defaults).
-DATA = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data.")
+DATA = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).")
 EFFECTS = typer.Option(None, "--effects", help="Active effect (repeat for several).")
 PHYSICS = typer.Option("exact", help="Force model where the model meets the data: exact (simulator planes of "
                        "the measured membranes, at simulator accuracy) | emulator (neural emulator, ~1 N error) | "
@@ -129,10 +136,10 @@ ALLOW_OUTSIDE = typer.Option(False, "--allow-outside-design-space",
 def register(app: typer.Typer) -> None:
     @app.command()
     def calibrate(
-        data: Path = DATA,
+        data: List[Path] = DATA,
         out: Path = typer.Option(..., help="Output folder (chain.h5, posterior.json/.npz, corner.png)."),
         effects: Optional[List[str]] = EFFECTS,
-        steps: int = typer.Option(3000, min=1, help="Chain length (total; a rerun resumes)."),
+        steps: int = typer.Option(3000, "--mcmc-steps", min=1, help="emcee chain length (total; a rerun resumes)."),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: max(32, 2 dim + 2))."),
         max_rows: int = typer.Option(3000, min=10, help="Rows used by the likelihood (evenly within trials)."),
         physics: str = PHYSICS,
@@ -147,10 +154,10 @@ def register(app: typer.Typer) -> None:
 
     @app.command("fit-mf")
     def fit_mf(
-        data: Path = DATA,
+        data: List[Path] = DATA,
         out: Path = typer.Option(..., help="Output folder."),
         effects: Optional[List[str]] = EFFECTS,
-        steps: int = typer.Option(2000, min=1, help="Chain length."),
+        steps: int = typer.Option(2000, "--mcmc-steps", min=1, help="emcee chain length (total; a rerun resumes)."),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: automatic)."),
         max_rows: int = typer.Option(1500, min=10, help="Rows used by the likelihood."),
         physics: str = PHYSICS,

@@ -26,10 +26,10 @@ from typer.core import TyperCommand, TyperGroup
 
 from mfdesign.errors import anticipated, one_line
 
-__all__ = ["ContractCommand", "ContractGroup", "apply", "log_dir"]
+__all__ = ["ContractCommand", "ContractGroup", "apply", "item_parser", "log_dir"]
 
 # Commands whose --out is one file, not a folder.
-FILE_OUTPUTS = {"cv"}
+FILE_OUTPUTS = {"cv", "import"}
 _LOG_DIR_KEY = "mfdesign.log_dir"
 
 
@@ -80,7 +80,10 @@ class ContractGroup(TyperGroup):
         except (typer.Exit, typer.Abort, KeyboardInterrupt):
             raise
         except Exception as err:  # noqa: BLE001 -- the contract: no traceback ever reaches the user
-            from typer._click.exceptions import ClickException
+            try:  # typer >= 0.2x vendors click as typer._click; older typer uses click itself
+                from typer._click.exceptions import ClickException
+            except ImportError:
+                from click.exceptions import ClickException
 
             if isinstance(err, ClickException):  # usage errors: click prints them and exits 2
                 raise
@@ -92,6 +95,22 @@ class ContractGroup(TyperGroup):
             typer.echo(f"error: unexpected {type(err).__name__} (a bug, not your input): "
                        f"{one_line(err, 200)}; traceback in {log}", err=True)
             raise typer.Exit(code=1) from None
+
+
+def item_parser(convert, what: str):
+    """``typer.Option(parser=...)`` for ONE item of a list option. Every list option of the
+    CLI is a repeated option (``--rings 0 --rings 2``); a comma list (the old form of some
+    options) is refused with a message that says so, exit status 2."""
+
+    def parse(text: str):
+        try:
+            return convert(text)
+        except (TypeError, ValueError):
+            hint = " (a comma-separated list is not accepted: repeat the option, one value each)" if "," in str(text) else ""
+            raise typer.BadParameter(f"{text!r} is not {what}{hint}") from None
+
+    parse.__name__ = what.replace(" ", "_")
+    return parse
 
 
 def apply(app: typer.Typer) -> None:

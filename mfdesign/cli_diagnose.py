@@ -75,7 +75,7 @@ def _split(values) -> list[str]:
 def register(app: typer.Typer) -> None:
     @app.command()
     def diagnose(
-        data: Path = typer.Argument(..., help="Measurements .parquet file, or 'mass-lift' for the real data."),
+        data: List[Path] = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md)."),
         out: Path = typer.Option(..., help="Folder for report.html, diagnosis.json and the PNGs."),
         model: Optional[Path] = typer.Option(None, help="Saved ensemble folder (default: the plain simulator)."),
         effects: Optional[List[str]] = typer.Option(None, "--effects", help="Effects to add (repeat or comma-separate)."),

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import typer
 
+from mfdesign.cli_contract import item_parser
+
 
 def read_targets(path: Path):
     """``HeightTargets`` or ``Waypoints`` from a CSV/JSON file; ``ValueError`` says what is wrong."""
@@ -71,10 +73,11 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(..., help="Output folder: optimize.json and optimize.png."),
         targets: Path = typer.Option(None, help="CSV/JSON: force_n, pressure_pa[, height_mm, weight]."),
         target_set: str = typer.Option(None, help="The paper's height-maximisation set: A or B."),
-        rings: str = typer.Option("0,1,2", help="Ring counts to try, comma-separated."),
+        rings: list[int] = typer.Option([0, 1, 2], parser=item_parser(int, "a ring count"),
+                                        help="Ring counts to try (repeat): 0, 1, 2."),
         starts: int = typer.Option(2500, min=1, help="Random starts per ring count."),
         refine: int = typer.Option(64, min=0, help="Starts refined by gradient steps (0 = all)."),
-        steps: int = typer.Option(100, min=0, help="Projected Adam steps per refined start."),
+        steps: int = typer.Option(100, "--opt-steps", min=0, help="Projected Adam steps per refined start."),
         seed: int = typer.Option(0, help="Random seed of the starts."),
         check: bool = typer.Option(True, help="Check the winner with the simulator (minutes)."),
     ) -> None:
@@ -83,12 +86,10 @@ def register(app: typer.Typer) -> None:
 
         if (targets is None) == (target_set is None):
             fail("give exactly one of --targets FILE or --target-set A|B")
-        try:
-            ring_list = tuple(int(r) for r in rings.split(","))
-        except ValueError:
-            fail(f"--rings must be comma-separated integers from 0, 1, 2, got {rings!r}")
-        if not ring_list or any(r not in (0, 1, 2) for r in ring_list):
-            fail(f"--rings must be comma-separated integers from 0, 1, 2, got {rings!r}")
+        ring_list = tuple(dict.fromkeys(rings))
+        bad_rings = [n for n in ring_list if n not in (0, 1, 2)]
+        if not ring_list or bad_rings:
+            fail(f"--rings must be 0, 1 or 2 (repeat the option for several), got {bad_rings[0] if bad_rings else 'none'}")
         if refine > starts:
             fail(f"--refine ({refine}) cannot exceed --starts ({starts})")
         from mfdesign import optimize as opt

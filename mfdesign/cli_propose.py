@@ -12,6 +12,8 @@ from pathlib import Path
 
 import typer
 
+from mfdesign.cli_contract import item_parser
+
 
 def load_predictor(model: Path):
     """A :class:`~mfdesign.acquire.Predictor` from a folder.
@@ -96,10 +98,11 @@ def register(app: typer.Typer) -> None:
         fidelity: list[str] = typer.Option(["rig"], help="Fidelities to choose from (repeat): rig, sim."),
         cost_rig: float = typer.Option(1.0, help="Cost of one rig membrane (e.g. days)."),
         cost_sim: float = typer.Option(0.01, help="Cost of one simulator plane, same unit."),
-        rings: list[int] = typer.Option([0, 1, 2], help="Ring counts to search (repeat): 0, 1, 2."),
+        rings: list[int] = typer.Option([0, 1, 2], parser=item_parser(int, "a ring count"),
+                                        help="Ring counts to search (repeat): 0, 1, 2."),
         restarts: int = typer.Option(1000, help="Random batches scored per ring count and fidelity."),
         refine: int = typer.Option(32, help="Best scored batches refined by L-BFGS."),
-        steps: int = typer.Option(20, help="L-BFGS iterations per refined batch."),
+        steps: int = typer.Option(20, "--opt-steps", help="L-BFGS iterations per refined batch."),
         seed: int = typer.Option(0, help="Random seed of the restarts."),
         out: Path = typer.Option(Path("out/propose"), help="Output folder (proposal.json, proposal.png)."),
     ) -> None:
@@ -113,7 +116,7 @@ def register(app: typer.Typer) -> None:
         if refine < 1:
             fail(f"--refine must be >= 1, got {refine}")
         if steps < 0:
-            fail(f"--steps must be >= 0, got {steps}")
+            fail(f"--opt-steps must be >= 0, got {steps}")
         bad = [f for f in fidelity if f not in ("rig", "sim")]
         if bad:
             fail(f"--fidelity must be rig or sim, got {bad[0]!r}")

@@ -244,7 +244,7 @@ def test_cli_writes_json_and_png(tmp_path):
 
     tiny_ensemble().save(tmp_path / "m")
     r = runner.invoke(app, ["propose", "--model", str(tmp_path / "m"), "--q", "2", "--rings", "1",
-                            "--restarts", "4", "--steps", "2", "--out", str(tmp_path / "o")])
+                            "--restarts", "4", "--opt-steps", "2", "--out", str(tmp_path / "o")])
     assert r.exit_code == 0, _text(r)
     out = json.loads((tmp_path / "o" / "proposal.json").read_text())
     assert len(out["designs"]) == 2 and out["fidelities"] == ["rig", "rig"]

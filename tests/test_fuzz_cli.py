@@ -60,9 +60,9 @@ def valid(tmp_path_factory):
     rig = VirtualRig(effects=[], seed=2, simulator=analytic_plane, protocol=Protocol(sample_hz=0.5))
     m = rig.run([Membrane.from_key(k) for k in KEYS], progress=False)
     m.to_parquet(d / "m.parquet")
-    for args in (["fit", d / "m.parquet", "--out", d / "ens", "--members", 2, "--steps", 10, "--batch", 16,
+    for args in (["fit", d / "m.parquet", "--out", d / "ens", "--members", 2, "--train-steps", 10, "--batch", 16,
                   "--no-monotone"],
-                 ["fit-mf", d / "m.parquet", "--out", d / "mf", "--simulator", "standin", "--steps", 12,
+                 ["fit-mf", d / "m.parquet", "--out", d / "mf", "--simulator", "standin", "--mcmc-steps", 12,
                   "--members", 2, "--delta-steps", 5, "--max-rows", 40]):
         r = runner.invoke(app, [str(a) for a in args])
         assert r.exit_code == 0, r.output
@@ -216,7 +216,7 @@ def category_cases(v: Path, w: Path):
         Measurements(t).to_parquet(w / f"{name}.parquet")
         cases.append((f"{name} -> diagnose", diag(w / f"{name}.parquet", w / f"o_{name}"), [w / f"{name}.parquet"], None, w / f"o_{name}"))
         cases.append((f"{name} -> calibrate", ["calibrate", w / f"{name}.parquet", "--out", w / f"oc_{name}", "--simulator",
-                                               "standin", "--steps", 3], [w / f"{name}.parquet"], None, w / f"oc_{name}"))
+                                               "standin", "--mcmc-steps", 3], [w / f"{name}.parquet"], None, w / f"oc_{name}"))
     # outputs that cannot be written: refused before computing
     (w / "afile").write_text("keep me")
     cases.append(("simulate --out <a file>", ["simulate", "--out", w / "afile"], [w / "afile"], None, None))
@@ -245,10 +245,10 @@ def category_cases(v: Path, w: Path):
     (trunc_ens / "ensemble.eqx").write_bytes((v / "ens" / "ensemble.eqx").read_bytes()[:100])
     for ens in (nan_ens, list_ens, nokey_ens, trunc_ens):
         cases.append((f"{ens.name} -> diagnose", diag(v / "m.parquet", w / f"od_{ens.name}", "--model", ens), [ens], None, w / f"od_{ens.name}"))
-        cases.append((f"{ens.name} -> propose", ["propose", "--model", ens, "--q", 1, "--restarts", 2, "--refine", 1, "--steps", 0,
+        cases.append((f"{ens.name} -> propose", ["propose", "--model", ens, "--q", 1, "--restarts", 2, "--refine", 1, "--opt-steps", 0,
                                                  "--out", w / f"op_{ens.name}"], [ens], None, w / f"op_{ens.name}"))
         cases.append((f"{ens.name} -> optimize", ["optimize", "--model", ens, "--target-set", "A", "--starts", 2, "--refine", 1,
-                                                  "--steps", 0, "--no-check", "--rings", "0", "--out", w / f"oo_{ens.name}"],
+                                                  "--opt-steps", 0, "--no-check", "--rings", "0", "--out", w / f"oo_{ens.name}"],
                       [ens], None, w / f"oo_{ens.name}"))
     nan_mf = _copy(v / "mf", w / "mf_nan")
     z = dict(np.load(nan_mf / "posterior.npz"))
@@ -257,12 +257,12 @@ def category_cases(v: Path, w: Path):
     list_mf = _copy(v / "mf", w / "mf_list")
     (list_mf / "posterior.json").write_text("[]")
     for mf in (nan_mf, list_mf):
-        cases.append((f"{mf.name} -> propose", ["propose", "--model", mf, "--q", 1, "--restarts", 2, "--refine", 1, "--steps", 0,
+        cases.append((f"{mf.name} -> propose", ["propose", "--model", mf, "--q", 1, "--restarts", 2, "--refine", 1, "--opt-steps", 0,
                                                 "--out", w / f"op_{mf.name}"], [mf], None, w / f"op_{mf.name}"))
     bad_chain = _copy(v / "mf", w / "chain_bad")
     (bad_chain / "chain.h5").write_bytes((v / "mf" / "chain.h5").read_bytes()[:2000])
     cases.append(("truncated chain.h5 -> calibrate", ["calibrate", v / "m.parquet", "--out", bad_chain, "--simulator", "standin",
-                                                      "--steps", 3, "--max-rows", 40], [v / "m.parquet"], None, None))
+                                                      "--mcmc-steps", 3, "--max-rows", 40], [v / "m.parquet"], None, None))
     return cases
 
 
@@ -274,7 +274,7 @@ def mutation_cases(v: Path, w: Path, n: int, seed: int = 0):
     for name, b in mutations((v / "m.parquet").read_bytes(), rng, n):
         p = w / f"m_{name}.parquet"
         p.write_bytes(b)
-        cmd = diag(p, w / f"om_{name}") if rng.uniform() < 0.7 else ["cv", p, "--model", "curve-fit", "--out", w / f"cv_{name}.json"]
+        cmd = diag(p, w / f"om_{name}") if rng.uniform() < 0.7 else ["cv", p, "--model-type", "curve-fit", "--out", w / f"cv_{name}.json"]
         cases.append((f"parquet {name} -> {cmd[0]}", cmd, [p], None, w / f"om_{name}"))
     for fname in ("ensemble.eqx", "ensemble.json"):
         for name, b in mutations((v / "ens" / fname).read_bytes(), rng, n):
@@ -287,12 +287,12 @@ def mutation_cases(v: Path, w: Path, n: int, seed: int = 0):
             mf = _copy(v / "mf", w / f"mf_{fname}_{name}")
             (mf / fname).write_bytes(b)
             cases.append((f"{fname} {name} -> propose", ["propose", "--model", mf, "--q", 1, "--restarts", 2, "--refine", 1,
-                                                         "--steps", 0, "--out", w / f"opm_{fname}_{name}"],
+                                                         "--opt-steps", 0, "--out", w / f"opm_{fname}_{name}"],
                           [mf], None, w / f"opm_{fname}_{name}"))
     for name, b in mutations((v / "mf" / "chain.h5").read_bytes(), rng, n):
         out = _copy(v / "mf", w / f"ch_{name}")
         (out / "chain.h5").write_bytes(b)
-        cases.append((f"chain.h5 {name} -> fit-mf", ["fit-mf", v / "m.parquet", "--out", out, "--simulator", "standin", "--steps",
+        cases.append((f"chain.h5 {name} -> fit-mf", ["fit-mf", v / "m.parquet", "--out", out, "--simulator", "standin", "--mcmc-steps",
                                                       12, "--members", 2, "--delta-steps", 5, "--max-rows", 40],
                       [v / "m.parquet"], None, None))
     pkl = (v / "shared" / "mass_lift_data_dictionary_N_Pa.pkl").read_bytes()

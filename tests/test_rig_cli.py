@@ -33,7 +33,7 @@ def test_characterize_and_lift(tmp_path):
     cfg = _cfg_file(tmp_path)
     with emulator(config=fast_config()) as em:
         r = runner.invoke(rig_app, ["characterize", "--port", em.port, "--design", RINGLESS, "--out",
-                                    str(tmp_path / "c"), "--config", str(cfg), "--heights", "10,20",
+                                    str(tmp_path / "c"), "--config", str(cfg), "--heights", "10", "--heights", "20",
                                     "--trials", "1", "--source", "virtual", "--no-progress"])
     assert r.exit_code == 0, r.output
     assert "complete: 2 trials now, 0 before" in r.output

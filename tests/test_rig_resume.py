@@ -38,7 +38,7 @@ def test_killed_job_resumes_without_loss_or_duplicates(tmp_path):
     cfg_path.write_text(json.dumps(cfg.to_dict()))
     job = tmp_path / "job"
     samples = job / "samples.csv"
-    args = ["--design", RINGLESS, "--out", str(job), "--config", str(cfg_path), "--heights", "10,20",
+    args = ["--design", RINGLESS, "--out", str(job), "--config", str(cfg_path), "--heights", "10", "--heights", "20",
             "--trials", "2", "--source", "virtual", "--no-progress"]
     with emulator(config=cfg) as em:
         proc = subprocess.Popen([sys.executable, "-m", "mfdesign.rig.commands", "characterize", "--port", em.port,

@@ -1,7 +1,10 @@
-"""A small pairwise ("corner") plot of posterior samples, matplotlib only.
+"""Pairwise ("corner") plots of posterior samples.
 
-Diagonal: histogram of each parameter with its 5 / 50 / 95 % quantiles; below the
-diagonal: 2-d histograms of each pair; optional ``truths`` drawn as lines.
+:func:`corner_plot` (matplotlib only; what the commands write): diagonal, histogram of
+each parameter with its 5 / 50 / 95 % quantiles; below the diagonal, 2-d histograms of
+each pair; optional ``truths`` drawn as lines. :func:`pair_plot`: the same with the
+``corner`` package (Foreman-Mackey 2016; the ``[viz]`` extra), from a
+:class:`~mfdesign.calibration.posterior.Posterior` or samples, truths as lines.
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["corner_plot"]
+__all__ = ["corner_plot", "pair_plot"]
 
 
 def corner_plot(samples, names: Sequence[str], path, truths: Sequence[float] | None = None,
@@ -58,6 +61,55 @@ def corner_plot(samples, names: Sequence[str], path, truths: Sequence[float] | N
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    from mfdesign import outputs
+
+    outputs.savefig(fig, path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def pair_plot(posterior, path, truths=None, names: Sequence[str] | None = None, title: str | None = None,
+              quantiles: Sequence[float] = (0.05, 0.5, 0.95)) -> Path:
+    """A ``corner.corner`` pair plot (PNG) of a Posterior (or samples [S, d] with ``names``).
+
+    ``truths``: a dict ``{name: value}`` (parameters not in it get no line) or a sequence
+    in the order of the plotted names; drawn as lines. For a Posterior the per-membrane
+    latents ``z_thickness[*]`` are left out unless ``names`` asks for them.
+    """
+    try:
+        import corner
+    except ImportError:  # pragma: no cover -- depends on the install
+        raise ImportError("pair_plot needs the corner package: pip install 'mfdesign[viz]'") from None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if hasattr(posterior, "samples") and hasattr(posterior, "names"):
+        all_names = list(posterior.names)
+        names = list(names) if names is not None else [n for n in all_names if not n.startswith("z_thickness")]
+        missing = [n for n in names if n not in all_names]
+        if missing:
+            raise KeyError(f"no parameter(s) {missing}; parameters: {all_names}")
+        samples = np.asarray(posterior.samples, float)[:, [all_names.index(n) for n in names]]
+        units = {n: u for n, u in zip(all_names, posterior.units)}
+        labels = [f"{n} [{units[n]}]" if units.get(n, "1") not in ("", "1") else n for n in names]
+    else:
+        samples = np.asarray(posterior, float)
+        if names is None or samples.ndim != 2 or samples.shape[1] != len(names):
+            raise ValueError(f"samples must be [S, len(names)], got {samples.shape} and names {names}")
+        names, labels = list(names), list(names)
+    if isinstance(truths, dict):
+        truths = [truths.get(n) for n in names]
+    elif truths is not None and len(truths) != len(names):
+        raise ValueError(f"{len(truths)} truths for {len(names)} parameters {names}")
+    fig = corner.corner(samples, labels=labels, truths=truths, truth_color="C3", quantiles=list(quantiles),
+                        show_titles=True, title_fmt=".3g", title_kwargs={"fontsize": 8},
+                        label_kwargs={"fontsize": 8})
+    if title:
+        fig.suptitle(title, fontsize=9)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     from mfdesign import outputs

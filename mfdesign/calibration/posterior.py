@@ -20,7 +20,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-__all__ = ["Posterior"]
+__all__ = ["Posterior", "arviz_diagnostics", "load_inference_data", "save_inference_data"]
+
+NETCDF_NAME = "posterior.nc"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,7 +33,10 @@ class Posterior:
     burn-in and thinning; ``log_prob`` [S]; ``x_map`` [dim] physical MAP; ``log_lik_map``
     (weighted log-likelihood at the MAP); ``n_rows``; ``bic``; ``log_evidence_laplace``;
     ``convergence`` (dict, see :func:`mfdesign.calibrate.convergence_report`);
-    ``design_keys`` (membrane order of the latents); ``effects``.
+    ``design_keys`` (membrane order of the latents); ``effects``;
+    ``chain`` [draw, walker, dim] the same samples per walker (physical units, before
+    flattening; ``None`` for a posterior saved before it was kept) and ``log_prob_chain``
+    [draw, walker]: what :meth:`to_inference_data` turns into ArviZ's ``chain x draw``.
     """
 
     names: tuple[str, ...]
@@ -46,6 +51,8 @@ class Posterior:
     convergence: dict[str, Any]
     design_keys: tuple[str, ...] = ()
     effects: tuple[str, ...] = ()
+    chain: np.ndarray | None = None
+    log_prob_chain: np.ndarray | None = None
     # The force model the chain was sampled with (the exact model's lattice grows during
     # calibration); not saved: a reloaded posterior rebuilds its model from the data.
     force_model: Any = dataclasses.field(default=None, compare=False, repr=False)
@@ -108,6 +115,76 @@ class Posterior:
                 "convergence": self.convergence, "design_keys": list(self.design_keys),
                 "effects": list(self.effects), "n_samples": int(len(self.samples))}
 
+    # -- ArviZ ------------------------------------------------------------------------------
+    def chains(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(x [chain, draw, dim], log_prob [chain, draw])``: one ArviZ chain per emcee
+        walker; a posterior without a stored chain (an old ``posterior.npz``) is one chain."""
+        if self.chain is not None:
+            return np.swapaxes(self.chain, 0, 1), np.swapaxes(self.log_prob_chain, 0, 1)
+        return self.samples[None], self.log_prob[None]
+
+    def to_inference_data(self, model=None, data=None, *, max_draws: int | None = 1000, seed: int = 0,
+                          max_rows: int | None = 3000):
+        """An ``arviz.InferenceData`` in physical units, dims ``chain x draw`` (walkers as chains).
+
+        Groups: ``posterior`` (one variable per parameter, ``z_thickness`` as one variable
+        over ``membrane``; each with its ``units`` attribute), ``sample_stats`` (``lp``: the
+        log posterior). With ``model`` (the :class:`~mfdesign.models.hierarchical.HierarchicalModel`
+        that was sampled) and ``data`` (its ``CalibrationData``, or Measurements: then the
+        rows are drawn as :meth:`CalibrationData.from_measurements` draws them with
+        ``max_rows`` and ``seed``, i.e. the rows the calibration used) also:
+
+        * ``log_likelihood``: ``force_n`` [chain, draw, row], each row's weighted term
+          ``w_i log p(F_i | x)`` of the log-likelihood the sampler saw (sums to
+          ``model.log_lik``), for ``az.loo`` / ``az.waic``;
+        * ``posterior_predictive``: ``force_n`` [chain, draw, row], a replicated force
+          [N]: ``model.sample_force`` plus the model's noise (Gaussian or Student-t);
+        * ``observed_data``: ``force_n`` [row]; ``constant_data``: ``height_mm``,
+          ``pressure_pa``, ``weight``, ``membrane`` (index into ``design_keys``).
+
+        Rows of weight 0 (padding) are left out. ``max_draws``: with a model, the draws of
+        every chain are thinned evenly so that chains x draws <= ``max_draws`` (the
+        pointwise groups cost draws x rows force evaluations); ``None`` keeps all.
+        """
+        import arviz as az
+
+        x, lp = self.chains()
+        n_chain, n_draw = x.shape[:2]
+        if model is not None and data is not None and max_draws is not None and n_chain * n_draw > max_draws:
+            step = int(np.ceil(n_chain * n_draw / max_draws))
+            x, lp = x[:, ::step], lp[:, ::step]
+            n_draw = x.shape[1]
+        posterior, dims, units = {}, {}, {}
+        z = [i for i, n in enumerate(self.names) if n.startswith("z_thickness[")]
+        for i, name in enumerate(self.names):
+            if i not in z:
+                posterior[name], units[name] = x[..., i], self.units[i]
+        coords: dict[str, Any] = {}
+        if z:
+            posterior["z_thickness"], units["z_thickness"] = x[..., z], self.units[z[0]]
+            dims["z_thickness"] = ["membrane"]
+            coords["membrane"] = list(self.design_keys) if len(self.design_keys) == len(z) else list(range(len(z)))
+        groups: dict[str, Any] = {"posterior": posterior, "sample_stats": {"lp": lp}}
+        if model is not None and data is not None:
+            groups.update(_pointwise_groups(model, data, x.reshape(n_chain * n_draw, -1), (n_chain, n_draw),
+                                            seed=seed, max_rows=max_rows, design_keys=self.design_keys))
+            dims.update({"force_n": ["row"], "height_mm": ["row"], "pressure_pa": ["row"], "weight": ["row"],
+                         "membrane_index": ["row"]})
+        import warnings
+
+        with warnings.catch_warnings():  # "more chains than draws": many walkers, short thinned chains
+            warnings.filterwarnings("ignore", message="More chains", category=UserWarning)
+            idata = az.from_dict(**groups, coords=coords or None, dims=dims or None)
+        for name, unit in units.items():
+            idata.posterior[name].attrs["units"] = unit
+        for group in ("observed_data", "posterior_predictive"):
+            if hasattr(idata, group):
+                getattr(idata, group)["force_n"].attrs["units"] = "N"
+        idata.posterior.attrs.update({"effects": ",".join(self.effects), "design_keys": json.dumps(list(self.design_keys)),
+                                      "chains_are": "emcee walkers (not independent chains)",
+                                      "n_samples_in_npz": int(len(self.samples))})
+        return idata
+
     def save(self, path) -> Path:
         """``path.json`` (summary, diagnostics) and ``path.npz`` (samples), each written atomically."""
         from mfdesign import outputs
@@ -115,7 +192,8 @@ class Posterior:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         with outputs.atomic_path(path.with_suffix(".npz")) as tmp:
-            np.savez(tmp, samples=self.samples, log_prob=self.log_prob, x_map=self.x_map)
+            extra = {} if self.chain is None else {"chain": self.chain, "log_prob_chain": self.log_prob_chain}
+            np.savez(tmp, samples=self.samples, log_prob=self.log_prob, x_map=self.x_map, **extra)
         outputs.write_json(path.with_suffix(".json"), self.to_json(), default=float)
         return path.with_suffix(".json")
 
@@ -135,12 +213,14 @@ class Posterior:
             meta = json.loads(js.read_text())
             if not isinstance(meta, dict):
                 raise InputError(f"{js}: expected a JSON object, got {type(meta).__name__}")
-            arrays = _read_npz_bounded(npz, ("samples", "log_prob", "x_map"))
+            arrays = _read_npz_bounded(npz, ("samples", "log_prob", "x_map"), optional=("chain", "log_prob_chain"))
             samples, log_prob, x_map = (np.asarray(arrays[k], dtype=np.float64) for k in ("samples", "log_prob", "x_map"))
+            chain, lp_chain = (np.asarray(arrays[k], dtype=np.float64) if k in arrays else None
+                               for k in ("chain", "log_prob_chain"))
             post = cls(tuple(map(str, meta["names"])), tuple(map(str, meta["units"])), samples, log_prob, x_map,
                        float(meta["log_lik_map"]), float(meta["n_rows"]), float(meta["bic"]),
                        float(meta["log_evidence_laplace"]), dict(meta["convergence"]),
-                       tuple(map(str, meta["design_keys"])), tuple(map(str, meta["effects"])))
+                       tuple(map(str, meta["design_keys"])), tuple(map(str, meta["effects"])), chain, lp_chain)
         except InputError:
             raise
         except Exception as err:  # noqa: BLE001 -- corrupt JSON / zip / npy fail in many ways
@@ -152,6 +232,11 @@ class Posterior:
             raise InputError(f"{path}: samples {samples.shape}, log_prob {log_prob.shape}, x_map {x_map.shape} and "
                              f"{dim} names / {len(post.units)} units do not fit; allowed: samples [S, dim], "
                              "log_prob [S], x_map [dim]")
+        if chain is not None and (chain.ndim != 3 or chain.shape[2] != dim or lp_chain is None
+                                  or lp_chain.shape != chain.shape[:2] or not np.isfinite(chain).all()):
+            raise InputError(f"{npz}: chain {chain.shape} / log_prob_chain "
+                             f"{None if lp_chain is None else lp_chain.shape} do not fit {dim} parameters; "
+                             "allowed: finite chain [draw, walker, dim] and log_prob_chain [draw, walker]")
         for name, a in (("samples", samples), ("x_map", x_map)):
             if not np.isfinite(a).all():
                 raise InputError(f"{npz}: {int((~np.isfinite(a)).sum())} {name} values are NaN or infinite; "
@@ -159,7 +244,7 @@ class Posterior:
         return post
 
 
-def _read_npz_bounded(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+def _read_npz_bounded(path: Path, names: tuple[str, ...], optional: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
     """Arrays of an ``np.savez`` file, each header checked first: a corrupt header may
     declare a shape of terabytes, which ``np.load`` would allocate before reading."""
     import zipfile
@@ -169,6 +254,8 @@ def _read_npz_bounded(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarra
     limit = path.stat().st_size  # np.savez stores uncompressed: no array is larger than the file
     out = {}
     with zipfile.ZipFile(path) as z:
+        present = {n[:-4] for n in z.namelist() if n.endswith(".npy")}
+        names = tuple(names) + tuple(n for n in optional if n in present)
         for name in names:
             with z.open(f"{name}.npy") as fh:
                 version = np.lib.format.read_magic(fh)
@@ -181,3 +268,102 @@ def _read_npz_bounded(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarra
             for name in names:
                 out[name] = z[name]
     return out
+
+
+def _pointwise_groups(model, data, x_flat: np.ndarray, shape: tuple[int, int], *, seed: int, max_rows: int | None,
+                      design_keys) -> dict[str, dict[str, np.ndarray]]:
+    """``log_likelihood``, ``posterior_predictive``, ``observed_data``, ``constant_data``
+    (see :meth:`Posterior.to_inference_data`); calls the model's own ``pointwise_log_lik``
+    and ``sample_force``."""
+    import jax
+    import jax.numpy as jnp
+
+    from mfdesign.models.hierarchical import CalibrationData
+
+    if not isinstance(data, CalibrationData):
+        data = CalibrationData.from_measurements(data, max_rows=max_rows, seed=seed,
+                                                 design_keys=tuple(design_keys) or None)
+    w = np.asarray(data.weight, float)
+    keep = np.flatnonzero(w > 0)
+    xs = jnp.asarray(x_flat)
+    ll = np.asarray(jax.lax.map(lambda xi: model.pointwise_log_lik(xi, data), xs, batch_size=16))
+    mean_force = np.asarray(model.sample_force(xs, data, jax.random.PRNGKey(seed)))
+    rng = np.random.default_rng(seed)
+    sigma = np.asarray(xs[:, model.names.index("noise_n")])[:, None]
+    eps = (rng.standard_normal(mean_force.shape) if model.likelihood == "gaussian"
+           else rng.standard_t(model.nu, mean_force.shape))
+    replicated = mean_force + sigma * eps
+
+    def shaped(a):
+        return a[:, keep].reshape(*shape, len(keep))
+
+    return {
+        "log_likelihood": {"force_n": shaped(w[None, :] * ll)},
+        "posterior_predictive": {"force_n": shaped(replicated)},
+        "observed_data": {"force_n": np.asarray(data.force_n, float)[keep]},
+        "constant_data": {"height_mm": np.asarray(data.rows.h_mm, float)[keep],
+                          "pressure_pa": np.asarray(data.rows.p_pa, float)[keep], "weight": w[keep],
+                          "membrane_index": np.asarray(data.rows.membrane)[keep]},
+    }
+
+
+def arviz_diagnostics(chain: np.ndarray, names) -> dict[str, Any]:
+    """R-hat and bulk / tail ESS (ArviZ; Vehtari et al. 2021) of a physical chain
+    [draw, walker, dim], walkers taken as chains. The walkers of an ensemble sampler are
+    not independent chains, so R-hat is a check of mixing across walkers, not a proof of
+    convergence; the autocorrelation time stays the primary criterion."""
+    import arviz as az
+
+    chain = np.asarray(chain, float)
+    out: dict[str, Any] = {"rhat": {}, "ess_bulk": {}, "ess_tail": {}}
+    if chain.ndim != 3 or chain.shape[0] < 4:  # ArviZ needs a few draws per chain
+        return out | {"rhat_max": float("nan"), "ess_bulk_min": float("nan"), "ess_tail_min": float("nan")}
+    per_chain = np.swapaxes(chain, 0, 1)  # [chain, draw, dim]
+    for i, name in enumerate(names):
+        a = per_chain[..., i]
+        out["rhat"][name] = float(az.rhat(a))
+        out["ess_bulk"][name] = float(az.ess(a, method="bulk"))
+        out["ess_tail"][name] = float(az.ess(a, method="tail"))
+
+    def _agg(values, fn):
+        v = np.asarray(list(values), float)
+        v = v[np.isfinite(v)]
+        return float(fn(v)) if len(v) else float("nan")
+
+    out["rhat_max"] = _agg(out["rhat"].values(), np.max)
+    out["ess_bulk_min"] = _agg(out["ess_bulk"].values(), np.min)
+    out["ess_tail_min"] = _agg(out["ess_tail"].values(), np.min)
+    return out
+
+
+def save_inference_data(post: Posterior, path, model=None, data=None, **kwargs) -> Path:
+    """``post.to_inference_data(model, data, **kwargs)`` written atomically as netCDF
+    (``posterior.nc``; engine h5netcdf). Reload: :func:`load_inference_data`."""
+    from mfdesign import outputs
+
+    path = Path(path)
+    if path.suffix != ".nc":
+        path = path / NETCDF_NAME
+    path.parent.mkdir(parents=True, exist_ok=True)
+    idata = post.to_inference_data(model, data, **kwargs)
+    with outputs.atomic_path(path) as tmp:
+        try:
+            idata.to_netcdf(str(tmp), engine="h5netcdf")
+        except ValueError as err:  # older h5netcdf / xarray pairs know no "zlib" filter: store uncompressed
+            if "ompression" not in str(err):
+                raise
+            idata.to_netcdf(str(tmp), engine="h5netcdf", compress=False)
+    return path
+
+
+def load_inference_data(folder):
+    """The ``arviz.InferenceData`` a sampling command wrote into ``folder`` (``posterior.nc``)."""
+    import arviz as az
+
+    from mfdesign.errors import InputError
+
+    path = Path(folder)
+    path = path if path.suffix == ".nc" else path / NETCDF_NAME
+    if not path.is_file():
+        raise InputError(f"no {path}; allowed: the --out folder of `mfdesign calibrate` / `mfdesign fit-mf`")
+    return az.from_netcdf(str(path), engine="h5netcdf")

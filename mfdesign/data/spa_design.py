@@ -124,6 +124,12 @@ def _numpy_reconstructors() -> dict[tuple[str, str], object]:
             out[(mod, "_reconstruct")] = getattr(importlib.import_module(mod), "_reconstruct")
         except (ImportError, AttributeError):
             pass
+    # A file pickled under NumPy 2 names numpy._core, one pickled under NumPy 1 numpy.core:
+    # both mean the same reconstructor, whichever NumPy reads them.
+    if out:
+        fun = next(iter(out.values()))
+        for mod in ("numpy._core.multiarray", "numpy.core.multiarray"):
+            out.setdefault((mod, "_reconstruct"), fun)
     return out
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 
+import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import jax.numpy as jnp
 import numpy as np
 

@@ -1,7 +1,7 @@
 """Plain functions behind ``mfdesign fit`` and ``mfdesign cv`` (registered in ``mfdesign.cli``).
 
-``DATA`` is a Measurements Parquet file, or ``mass-lift`` for the authors' real mass-lift
-data. Both print one line per result and write JSON; errors in inputs raise ``ValueError``
+``DATA`` is one or more sources (:func:`load_data`): Measurements Parquet / CSV files,
+``mass-lift`` for the authors' real mass-lift data, SPA_Design pickles, rig job folders. Both print one line per result and write JSON; errors in inputs raise ``ValueError``
 with a message fit for the terminal.
 """
 
@@ -28,29 +28,21 @@ MIN_ROWS = {"fit": 10, "cv": 10, "calibrate": 20, "fit-mf": 20, "diagnose": 20}
 MAX_DUPLICATE_FRACTION = 0.5
 
 
-def load_data(data: Path, command: str | None = None, allow_outside_design_space: bool = False):
-    """A Measurements table from a Parquet path or the name ``mass-lift``.
+def load_data(data, command: str | None = None, allow_outside_design_space: bool = False):
+    """A Measurements table from the ``DATA`` argument of a command: one source or several
+    (a Measurements Parquet or CSV file, ``mass-lift``, an SPA_Design pickle, a rig job
+    folder; :func:`mfdesign.data.sources.load_sources`), concatenated with trial ids made
+    unique per membrane.
 
     With ``command`` (a key of :data:`MIN_ROWS`) the table is also checked for what that
     command needs (:func:`check_table`); errors are ``InputError`` / ``MeasurementError``
     with one line saying what is allowed."""
-    from mfdesign.errors import InputError
+    from mfdesign.data.sources import load_sources
 
-    if str(data) == "mass-lift":
-        from mfdesign.data.spa_design import load_mass_lift
-
-        table = load_mass_lift()
-    else:
-        from mfdesign.data.measurements import Measurements
-
-        path = Path(data)
-        if not path.exists():
-            raise InputError(f"data file {path} does not exist (give a Measurements .parquet or 'mass-lift')")
-        if not path.is_file():
-            raise InputError(f"data {path} is a folder; allowed: a Measurements .parquet file or 'mass-lift'")
-        table = Measurements.from_parquet(path)
+    items = [data] if isinstance(data, (str, Path)) else list(data)
+    table = load_sources(items)
     if command is not None:
-        check_table(table, command, str(data), allow_outside_design_space)
+        check_table(table, command, ", ".join(map(str, items)), allow_outside_design_space)
     return table
 
 

@@ -39,6 +39,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp

@@ -21,6 +21,7 @@ import argparse
 import math
 from pathlib import Path
 
+import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -15,6 +15,7 @@ returns ``F_s`` as ``[S, N]`` so that every consumer of the ``ForceModel`` proto
 
 from __future__ import annotations
 
+import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp

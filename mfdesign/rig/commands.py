@@ -16,7 +16,7 @@ from typing import Optional
 
 import typer
 
-from mfdesign.design import DesignError, Membrane
+from mfdesign.cli_contract import item_parser
 from mfdesign.rig.config import ConfigError, RigConfig
 from mfdesign.rig.protocol import DEFAULT_WATCHDOG_S, RigFault
 
@@ -32,19 +32,18 @@ def _config(path: Optional[Path]) -> RigConfig:
 
 
 def _design(key: str) -> Membrane:
+    from mfdesign.design import DesignError, Membrane
+
     try:
         return Membrane.from_key(key)
     except DesignError as exc:
         raise typer.BadParameter(str(exc), param_hint="--design") from None
 
 
-def _heights(text: str) -> tuple[float, ...]:
-    try:
-        hs = tuple(float(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise typer.BadParameter(f"heights are comma-separated mm, got {text!r}", param_hint="--heights") from None
+def _heights(values) -> tuple[float, ...]:
+    hs = tuple(float(x) for x in values or ())
     if not hs or any(not math.isfinite(h) for h in hs):
-        raise typer.BadParameter(f"need at least one finite height, got {text!r}", param_hint="--heights")
+        raise typer.BadParameter(f"need at least one finite height, got {list(hs)}", param_hint="--heights")
     return hs
 
 
@@ -136,7 +135,9 @@ def characterize(
     design: str = typer.Option(..., help='design key, e.g. "[2.0, 25.4, nan, nan, nan, nan]"'),
     out: Path = typer.Option(..., help="job directory (created; reused to resume)"),
     config: Optional[Path] = typer.Option(None, help="rig config (.toml/.json)"),
-    heights: str = typer.Option("0,10,20,30,40,50,60,70", help="plate heights, mm"),
+    heights: list[float] = typer.Option([0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0],
+                                        parser=item_parser(float, "a height in mm"),
+                                        help="plate height, mm (repeat for several)"),
     trials: int = typer.Option(3, min=1, max=100),
     source: str = typer.Option("rig", help="'rig' (real rig) or 'virtual' (emulator)"),
     progress: bool = typer.Option(True, help="progress bar"),

@@ -1,0 +1,260 @@
+"""Every way measurements come in, read into one :class:`Measurements` table.
+
+One function, :func:`load_sources`, is what every command's ``DATA`` argument goes
+through (via :func:`mfdesign.models.commands.load_data`) and what ``mfdesign import``
+converts. A source is:
+
+* ``mass-lift``: the authors' real mass-lift file from the shared data folder;
+* a Measurements **Parquet** file (``mfdesign.data.store``; a plain Parquet file with the
+  Measurements columns is accepted too);
+* a **CSV** file with the Measurements columns (``docs/data.md``); a missing column is
+  refused with the list of missing ones;
+* a **pickle** in one of the SPA_Design formats, read with the restricted unpickler
+  (:func:`mfdesign.data.spa_design.restricted_load`, NumPy arrays only):
+
+  - ``mass-lift``: the mass-lift dictionary (:func:`~mfdesign.data.spa_design.load_mass_lift`);
+  - ``characterisation``: the "data dictionary" of the characterisation rig, key
+    ``"[t, c, r1, w1, r2, w2]"`` -> ``((us [n, 7], ys [n, 1]), Fs [n, 1], ws [n, 1])``,
+    ``us[:, 0]`` the plate's set height [mm], ``ys`` pressure [Pa], ``Fs`` the force [N]
+    on the held plate over a pressure sweep: FORCE trials, one per (membrane, set height);
+  - ``sim-planes``: the authors' simulated planes, ``sim_membranes.pkl``
+    (:func:`~mfdesign.data.spa_design.sim_planes_as_measurements`, source "simulated");
+
+* a **rig job folder** (``mfdesign rig characterize / lift --out DIR``): its journal
+  (completed trials), or its ``measurements.parquet``.
+
+Several sources are concatenated; trial ids are renumbered per membrane so that they stay
+unique (``Measurements.concat(..., renumber_trials=True)``). One source keeps its ids.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import pandas as pd
+
+from mfdesign.data.measurements import COLUMNS, MeasurementError, Measurements
+from mfdesign.errors import InputError
+
+__all__ = ["FORMATS", "MASS_LIFT_NAME", "detect_format", "load_sources", "read_characterisation", "read_csv",
+           "read_source"]
+
+FORMATS = ("parquet", "csv", "mass-lift", "characterisation", "sim-planes", "rig-job")
+MASS_LIFT_NAME = "mass-lift"
+_PICKLE_SUFFIXES = (".pkl", ".pickle")
+_ALLOWED = (f"allowed: '{MASS_LIFT_NAME}', a Measurements .parquet or .csv file, an SPA_Design .pkl "
+            "(mass-lift or characterisation data dictionary, simulated planes) or a rig job folder")
+
+
+def _is_rig_job(path: Path) -> bool:
+    return path.is_dir() and ((path / "job.json").is_file() or (path / "measurements.parquet").is_file())
+
+
+def _sniff(path: Path) -> bytes:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(8)
+    except OSError as err:
+        raise InputError(f"cannot read {path}: {err.strerror or err}") from None
+
+
+def _pickle_kind(obj, where: str) -> str:
+    """``mass-lift``, ``characterisation`` (or ``sim-planes``) for a loaded SPA_Design pickle.
+
+    The two dictionaries have the same layout; what differs is which column is held: a
+    mass-lift trial holds the force (the weight of its mass: a few distinct values per
+    membrane) while the plate height moves; a characterisation trial holds the plate at a
+    few set heights while the force changes at nearly every sample. So: fewer distinct
+    forces than distinct heights in every membrane means mass-lift."""
+    if isinstance(obj, list) and obj and all(isinstance(e, tuple) and len(e) == 2 and isinstance(e[0], str) for e in obj):
+        return "sim-planes"
+    if not isinstance(obj, dict) or not obj:
+        raise InputError(f"{where}: a pickle, but not an SPA_Design data dictionary (a non-empty dict of "
+                         f"design key -> ((us, ys), Fs, ws)); got {type(obj).__name__}; {_ALLOWED}")
+    lift = []
+    for key, value in obj.items():
+        try:
+            (us, _), fs, _ = value
+            f = np.asarray(fs, dtype=np.float64).reshape(-1)
+            h = np.asarray(us, dtype=np.float64)[:, 0]
+        except (TypeError, ValueError, IndexError):
+            raise InputError(f"{where}: entry {key!r} is not ((us, ys), Fs, ws); {_ALLOWED}") from None
+        lift.append(len(np.unique(f[np.isfinite(f)])) < len(np.unique(h[np.isfinite(h)])))
+    if all(lift):
+        return "mass-lift"
+    if not any(lift):
+        return "characterisation"
+    raise InputError(f"{where}: some membranes look like mass-lift trials, others like characterisation; "
+                     "give --format mass-lift or --format characterisation")
+
+
+def detect_format(path: str | os.PathLike) -> str:
+    """The format of ``path`` (one of :data:`FORMATS`), from the name and the first bytes;
+    an unknown one raises ``InputError`` in one line."""
+    if str(path) == MASS_LIFT_NAME:
+        return "mass-lift"
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"data {p} does not exist; {_ALLOWED}")
+    if p.is_dir():
+        if _is_rig_job(p):
+            return "rig-job"
+        raise InputError(f"data {p} is a folder without job.json or measurements.parquet (not a rig job); {_ALLOWED}")
+    head, suffix = _sniff(p), p.suffix.lower()
+    if head.startswith(b"PAR1") or suffix == ".parquet":
+        return "parquet"
+    if suffix in _PICKLE_SUFFIXES or head[:1] == b"\x80":
+        from mfdesign.data.spa_design import restricted_load
+
+        return _pickle_kind(restricted_load(p), str(p))
+    if suffix == ".csv":
+        return "csv"
+    raise InputError(f"data {p}: unknown format (suffix {suffix or 'none'!r}, first bytes {head[:4]!r}); {_ALLOWED}")
+
+
+def _checked_frame(df: pd.DataFrame, where: str) -> Measurements:
+    missing = [c for c in COLUMNS if c not in df.columns]
+    if missing:
+        raise InputError(f"{where}: missing column(s) {missing}; allowed: a table with the Measurements columns "
+                         f"{list(COLUMNS)} (docs/data.md)")
+    try:
+        return Measurements(df[list(COLUMNS)])
+    except MeasurementError as err:
+        raise MeasurementError(f"{where}: {err}") from None
+
+
+def read_csv(path: str | os.PathLike) -> Measurements:
+    """A CSV with the Measurements columns (any order, extra columns ignored; docs/data.md)."""
+    p = Path(path)
+    try:
+        df = pd.read_csv(p, dtype={"design_key": str, "experiment": str, "phase": str, "source": str})
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, ValueError) as err:
+        raise InputError(f"{p}: not a readable CSV ({type(err).__name__}: {str(err)[:160]})") from None
+    return _checked_frame(df, str(p))
+
+
+def _read_parquet(path: Path) -> Measurements:
+    from mfdesign.data.store import FORMAT_KEY, read_parquet
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        meta = pq.read_schema(path).metadata or {}
+    except (pa.ArrowInvalid, OSError) as err:
+        raise MeasurementError(f"{path} is not a readable Parquet file: {err}") from None
+    if FORMAT_KEY in meta:
+        return read_parquet(path)
+    return _checked_frame(pq.read_table(path).to_pandas(), str(path))  # a plain table with the columns
+
+
+def read_characterisation(source, where: str | None = None) -> Measurements:
+    """The SPA_Design characterisation data dictionary (a path, or the loaded dict) as
+    Measurements: experiment "force", source "file", one trial per (membrane, set height)
+    numbered in order of first appearance, ``height_set_mm = height_mm = us[:, 0]``,
+    phase "inflate", no time stamps, weights ``ws``."""
+    from mfdesign.data.spa_design import _column, _design_of, restricted_load
+
+    if isinstance(source, (str, os.PathLike)):
+        where = where or str(source)
+        source = restricted_load(source)
+    where = where or "characterisation data"
+    if not isinstance(source, dict) or not source:
+        raise InputError(f"{where}: expected a non-empty dict of membranes, got {type(source).__name__}")
+    frames = []
+    for key, value in source.items():
+        design = _design_of(key, where)
+        try:
+            (us, ys), fs, ws = value
+            us = np.asarray(us, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError(f"{where}: entry {key} is not ((us [n, 7], ys), Fs, ws) of numbers") from None
+        if us.ndim != 2 or us.shape[1] != 7:
+            raise InputError(f"{where}: entry {key}: us has shape {us.shape}, expected (n, 7)")
+        n = len(us)
+        if not np.allclose(us[:, 1:7], design.to_array(), rtol=1e-6, atol=1e-5, equal_nan=True):
+            raise InputError(f"{where}: entry {key}: the design columns us[:, 1:7] disagree with the key")
+        height = us[:, 0]
+        _, trial = np.unique(np.round(height, 6), return_inverse=True)
+        first = {}
+        for t in trial:  # number the set heights in order of first appearance
+            first.setdefault(int(t), len(first))
+        frames.append(pd.DataFrame({
+            "design_key": design.key(),
+            "trial": np.array([first[int(t)] for t in trial], dtype=np.int64),
+            "experiment": "force",
+            "phase": "inflate",
+            "time_s": np.nan,
+            "height_set_mm": height,
+            "height_mm": height,
+            "pressure_pa": _column(ys, n, "ys"),
+            "force_n": _column(fs, n, "Fs"),
+            "weight": _column(ws, n, "ws"),
+            "source": "file",
+        }))
+    try:
+        return Measurements(pd.concat(frames, ignore_index=True))
+    except MeasurementError as err:
+        raise MeasurementError(f"{where}: {err}") from None
+
+
+def _read_rig_job(path: Path) -> Measurements:
+    if (path / "job.json").is_file() and (path / "samples.csv").is_file():
+        from mfdesign.rig.procedures import to_measurements
+
+        try:
+            return to_measurements(path)
+        except (MeasurementError, InputError):
+            raise
+        except Exception as err:  # noqa: BLE001 -- a damaged journal fails in many ways
+            raise InputError(f"rig job {path}: journal not readable ({type(err).__name__}: {str(err)[:160]})") from None
+    return _read_parquet(path / "measurements.parquet")
+
+
+def read_source(source: str | os.PathLike, fmt: str = "auto") -> Measurements:
+    """One source (module doc) as Measurements; ``fmt``: ``auto`` or one of :data:`FORMATS`."""
+    if fmt not in ("auto",) + FORMATS:
+        raise InputError(f"--format {fmt!r} is not known; allowed: auto, {', '.join(FORMATS)}")
+    if str(source) == MASS_LIFT_NAME and fmt in ("auto", "mass-lift"):
+        from mfdesign.data.spa_design import load_mass_lift
+
+        return load_mass_lift()
+    kind = detect_format(source) if fmt == "auto" else fmt
+    p = Path(source)
+    if fmt != "auto" and not p.exists():
+        raise InputError(f"data {p} does not exist; {_ALLOWED}")
+    if kind == "rig-job":
+        if not _is_rig_job(p):
+            raise InputError(f"{p} is not a rig job folder (no job.json or measurements.parquet)")
+        return _read_rig_job(p)
+    if p.is_dir():
+        raise InputError(f"data {p} is a folder; --format {kind} reads a file")
+    if kind == "parquet":
+        return _read_parquet(p)
+    if kind == "csv":
+        return read_csv(p)
+    if kind == "mass-lift":
+        from mfdesign.data.spa_design import load_mass_lift
+
+        return load_mass_lift(p)
+    if kind == "sim-planes":
+        from mfdesign.data.spa_design import sim_planes_as_measurements
+
+        return sim_planes_as_measurements(p)
+    return read_characterisation(p)
+
+
+def load_sources(sources: str | os.PathLike | Sequence[str | os.PathLike], fmt: str = "auto") -> Measurements:
+    """Several sources (module doc) as one Measurements; trial ids renumbered per membrane
+    when there is more than one source."""
+    items: Iterable = [sources] if isinstance(sources, (str, os.PathLike)) else list(sources)
+    items = list(items)
+    if not items:
+        raise InputError(f"no data given; {_ALLOWED}")
+    parts = [read_source(s, fmt) for s in items]
+    if len(parts) == 1:
+        return parts[0]
+    return Measurements.concat(parts, renumber_trials=True)

@@ -1,0 +1,115 @@
+"""ArviZ output of a calibration: constrained values, chain x draw, pointwise groups, netCDF.
+
+Stand-in force model and short chains: this checks the plumbing (physical units, walkers
+as chains, log-likelihood terms that sum to the model's), not the posterior's quality.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import arviz as az
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from mfdesign.calibrate import ConvergenceWarning, build_model, calibrate
+from mfdesign.calibration.plots import pair_plot
+from mfdesign.calibration.posterior import Posterior, load_inference_data, save_inference_data
+from mfdesign.calibration.standin import standin_force
+
+GROUPS = {"posterior", "sample_stats", "log_likelihood", "posterior_predictive", "observed_data", "constant_data"}
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    from test_calibrate import virtual_data
+
+    table, data = virtual_data(rows=120)
+    model = build_model(standin_force, data, ["pressure_sensor"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        post = calibrate(data, model, n_steps=200, progress=False, seed=0)
+    return table, data, model, post
+
+
+def test_posterior_keeps_the_physical_chain_and_arviz_diagnostics(fitted):
+    _, _, model, post = fitted
+    n_draw, n_walker, dim = post.chain.shape
+    assert dim == model.dim and post.log_prob_chain.shape == (n_draw, n_walker)
+    np.testing.assert_allclose(np.sort(post.chain.reshape(-1, dim), 0), np.sort(post.samples, 0))
+    c = post.convergence
+    for key in ("tau", "tau_max", "acceptance", "rhat", "ess_bulk", "ess_tail", "rhat_max", "ess_bulk_min"):
+        assert key in c
+    assert set(c["rhat"]) == set(model.names) and c["rhat_max"] >= 0.99 and c["ess_bulk_min"] > 0
+
+
+@pytest.mark.filterwarnings("ignore:Estimated shape parameter of Pareto")  # tiny chain: PSIS k is high
+def test_netcdf_roundtrip_gives_constrained_values_and_groups(fitted, tmp_path):
+    _, data, model, post = fitted
+    path = save_inference_data(post, tmp_path, model, data, max_draws=None)
+    assert path == tmp_path / "posterior.nc"
+    idata = az.from_netcdf(path)
+    assert GROUPS <= set(idata.groups())
+    mu = idata.posterior["mu_pa"]
+    assert mu.dims == ("chain", "draw") and mu.shape == post.chain.shape[1::-1]
+    assert 20e3 < float(mu.mean()) < 50e3 and mu.attrs["units"] == "Pa"  # physical, not log(mu / prior) ~ 0.16
+    np.testing.assert_allclose(np.sort(mu.values.ravel()), np.sort(post.samples[:, model.names.index("mu_pa")]))
+    assert idata.posterior["z_thickness"].dims == ("chain", "draw", "membrane")
+    assert list(idata.posterior["membrane"].values) == list(post.design_keys)
+    off = idata.posterior["pressure_sensor.offset_pa"]
+    assert 50 < float(off.mean()) < 300  # the hidden offset of the virtual rig, 150 Pa
+    # log-likelihood: one weighted term per row, summing to the model's log-likelihood
+    ll = idata.log_likelihood["force_n"]
+    n_rows = int((np.asarray(data.weight) > 0).sum())
+    assert ll.dims == ("chain", "draw", "row") and ll.shape[2] == n_rows
+    x0 = np.array([float(idata.posterior[n][0, 0]) for n in model.names if not n.startswith("z_")]
+                  + list(idata.posterior["z_thickness"][0, 0].values))
+    order = [n for n in model.names if not n.startswith("z_")] + [n for n in model.names if n.startswith("z_")]
+    x0 = x0[[order.index(n) for n in model.names]]
+    np.testing.assert_allclose(float(ll[0, 0].sum()), float(model.log_lik(x0, data)), rtol=1e-8)
+    assert idata.posterior_predictive["force_n"].shape == ll.shape
+    assert idata.observed_data["force_n"].shape == (n_rows,)
+    loo = az.loo(idata)
+    assert np.isfinite(loo.elpd_loo)
+    # the one-line reload
+    again = load_inference_data(tmp_path)
+    np.testing.assert_allclose(again.posterior["jm"].values, idata.posterior["jm"].values)
+
+
+def test_npz_roundtrip_keeps_the_chain_and_max_draws_thins(fitted, tmp_path):
+    _, data, model, post = fitted
+    post.save(tmp_path / "posterior")
+    back = Posterior.load(tmp_path / "posterior")
+    np.testing.assert_array_equal(back.chain, post.chain)
+    idata = back.to_inference_data(model, data, max_draws=100)
+    n_chain, n_draw = idata.posterior.sizes["chain"], idata.posterior.sizes["draw"]
+    assert n_chain == post.chain.shape[1] and n_chain * n_draw <= 100 + n_chain
+    plain = back.to_inference_data()  # without model and data: posterior and sample_stats only
+    assert set(plain.groups()) == {"posterior", "sample_stats"}
+
+
+def test_pair_plot_with_truths(fitted, tmp_path):
+    *_, post = fitted
+    path = pair_plot(post, tmp_path / "pair.png", truths={"mu_pa": 34e3, "jm": 45.0}, names=["mu_pa", "jm", "noise_n"])
+    assert path.stat().st_size > 10_000
+    with pytest.raises(KeyError):
+        pair_plot(post, tmp_path / "x.png", names=["nope"])
+
+
+def test_calibrate_command_writes_posterior_nc(tmp_path):
+    from mfdesign.cli import app
+    from mfdesign.data.store import read_parquet, write_parquet
+    from mfdesign.demo import BUNDLED
+
+    meas = read_parquet(BUNDLED)
+    data = tmp_path / "two.parquet"
+    write_parquet(meas.subset(meas.design_keys[:2]), data)
+    out = tmp_path / "cal"
+    r = CliRunner().invoke(app, ["calibrate", str(data), "--out", str(out), "--simulator", "standin",
+                                 "--mcmc-steps", "40", "--walkers", "16", "--max-rows", "60"])
+    assert r.exit_code == 0, r.output
+    idata = az.from_netcdf(out / "posterior.nc")
+    assert GROUPS <= set(idata.groups())
+    assert idata.posterior["mu_pa"].dims == ("chain", "draw") and idata.posterior.sizes["chain"] == 16
+    assert 10e3 < float(idata.posterior["mu_pa"].mean()) < 100e3  # pascals (bundled truth 31.7e3), not ~0.16
