@@ -192,7 +192,7 @@ def fit_force_model(model: HierarchicalModel, data: CalibrationData, res: MapRes
 
 
 def _cover_starts(model: HierarchicalModel, data: CalibrationData, progress: bool) -> HierarchicalModel:
-    """The force model grown to hold the MAP search's start (prior median) +- 2 nodes."""
+    """The force model grown to hold the MAP search's start (prior median) +- 1 node."""
     from mfdesign.models.force import ForceModel
 
     if not isinstance(model.force_model, ForceModel):
@@ -200,7 +200,7 @@ def _cover_starts(model: HierarchicalModel, data: CalibrationData, progress: boo
     u0 = model.to_unconstrained(model.initial_physical())
     # Small steps of every parameter: each constant the parameters move gets its axis.
     pts = np.vstack([u0, u0 + 0.01 * np.eye(model.dim), u0 - 0.01 * np.eye(model.dim)])
-    fm = model.force_model.covering(_params_at(model, data, pts), progress=progress, margin=2)
+    fm = model.force_model.covering(_params_at(model, data, pts), progress=progress, margin=1)
     return eqx.tree_at(lambda m: m.force_model, model, fm)
 
 
@@ -333,7 +333,6 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
         raise ValueError(f"emcee needs n_walkers >= 2 * dim = {2 * dim}, got {n_walkers}")
     if n_steps < 1:
         raise ValueError(f"n_steps must be >= 1, got {n_steps}")
-    logp = LogPosterior(model, data, pool=pool)
     fp = _fingerprint(model, data)
 
     backend, stored = None, None
@@ -361,6 +360,7 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
 
     if moves is None:
         moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    logp = LogPosterior(model, data, pool=pool)  # the model as the lattice fit left it
     sampler = emcee.EnsembleSampler(n_walkers, dim, logp, vectorize=True, backend=backend, moves=moves)
     done = 0 if backend is None else int(backend.iteration)
     if done and backend.shape != (n_walkers, dim):

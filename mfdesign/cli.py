@@ -120,7 +120,7 @@ def simulate(
 def demo(
     out: Path = typer.Option(Path("out/demo"), help="Output folder (report: OUT/index.html)."),
     quick: bool = typer.Option(False, help="Shrink every stage (a smoke test of the whole loop)."),
-    simulator: str = typer.Option("emulator", help="Force model: emulator (the simulator's) | standin (tests)."),
+    physics: str = typer.Option("exact", help="Where the model meets the data: exact (simulator planes) | emulator | standin (tests)."),
     seed: int = typer.Option(0, help="Random seed."),
 ) -> None:
     """The main job on the embedded default (no hardware, no external data).
@@ -134,9 +134,10 @@ def demo(
 
     from mfdesign.demo import DemoSettings, run_demo
 
-    if simulator not in ("emulator", "standin"):
-        fail(f"--simulator must be emulator or standin, got {simulator!r}")
-    settings = DemoSettings.quick(simulator) if quick else DemoSettings(force_model=simulator)
+    if physics not in ("exact", "emulator", "standin"):
+        fail(f"--physics must be one of ['exact', 'emulator', 'standin'], got {physics!r}")
+    settings = DemoSettings.quick(physics) if quick else DemoSettings(
+        force_model=physics, search_model="standin" if physics == "standin" else "emulator")
     settings = dataclasses.replace(settings, seed=seed)
     try:
         run_demo(out, settings, echo=typer.echo)

@@ -1,16 +1,17 @@
 """``mfdesign diagnose``: compare a model with measurements, find the missing effect, add it.
 
     mfdesign diagnose DATA [--model DIR] [--effects NAME ...] [--theta JSON] [--config FILE]
-                      [--effects-module FILE.py ...] [--simulator emulator|full|analytic] --out DIR
+                      [--effects-module FILE.py ...] [--physics exact|emulator|standin] --out DIR
 
 ``DATA``: a Measurements Parquet file or ``mass-lift``. Without ``--model`` the model is
-the plain simulator (authors' constants), evaluated by ``--simulator``: ``emulator``
-(default: the bundled neural emulator of the simulator, exact autodiff screen and
-nonlinear refit of every candidate), ``full`` (simulator planes per membrane and parameter
-set, minutes each; linearised check) or ``analytic`` (a cheap stand-in, for trials); ``--effects`` adds effects to it (calibrated
+the plain simulator (authors' constants), evaluated by ``--physics``: ``exact`` (default:
+simulator planes of the measured membranes at simulator accuracy, solved once and cached;
+autodiff screen and nonlinear refit of every candidate), ``emulator`` (the bundled neural
+emulator, about 1 N RMS off the simulator: fast, but its error is as large as the gaps
+diagnosis looks for) or ``standin`` (a cheap stand-in, for trials); ``--effects`` adds effects to it (calibrated
 unless ``--theta`` fixes every parameter), giving a before/after report. A config file
 (TOML or JSON) may hold any of ``effects``, ``theta``, ``effects_module``, ``model``,
-``simulator``, ``candidates``; command-line values win.
+``physics``, ``candidates``; command-line values win.
 """
 
 from __future__ import annotations
@@ -21,12 +22,12 @@ from typing import List, Optional
 
 import typer
 
-SIMULATORS = ("emulator", "full", "analytic")
+PHYSICS = ("exact", "emulator", "standin")
 
 
 def load_config(path: Path) -> dict:
     """Options from a TOML (``.toml``) or JSON file; unknown keys are an error."""
-    allowed = {"effects", "theta", "effects_module", "model", "simulator", "candidates"}
+    allowed = {"effects", "theta", "effects_module", "model", "physics", "candidates"}
     if not path.is_file():
         raise ValueError(f"config file {path} does not exist")
     text = path.read_text()
@@ -83,11 +84,11 @@ def register(app: typer.Typer) -> None:
         config: Optional[Path] = typer.Option(None, help="TOML/JSON file with effects, theta, effects_module, ..."),
         effects_module: Optional[List[Path]] = typer.Option(None, "--effects-module", help="Python file(s) registering new effects."),
         candidates: Optional[List[str]] = typer.Option(None, "--candidates", help="Effects the search may try (default: all)."),
-        simulator: str = typer.Option("emulator", help="emulator (neural emulator of the simulator) | full (simulator planes, slow) | analytic (a cheap stand-in for trials)."),
+        physics: str = typer.Option("exact", help="exact (simulator planes of the measured membranes, cached) | emulator (neural emulator, ~1 N RMS error) | standin (no physics; trials)."),
         search: bool = typer.Option(True, help="Search for the missing effect."),
         check_top: int = typer.Option(3, min=1, help="Candidates given the full check."),
         max_steps: int = typer.Option(2, min=1, help="Rounds of forward selection."),
-        shapes: bool = typer.Option(True, help="Plot the simulated shape at the worst points (full simulator only)."),
+        shapes: bool = typer.Option(True, help="Plot the simulated shape at the worst points (exact physics only)."),
         cache_dir: Optional[Path] = typer.Option(None, help="Plane cache (default ~/.cache/mfdesign/planes)."),
         allow_outside_design_space: bool = typer.Option(
             False, "--allow-outside-design-space",
@@ -116,9 +117,9 @@ def register(app: typer.Typer) -> None:
             if not isinstance(th, dict):
                 raise ValueError("theta must be an object {\"effect.parameter\": value}")
             fx.split_theta(names, th) if names else (th and fx.split_theta([], th))
-            sim_name = cfg.get("simulator", simulator) if simulator == "emulator" else simulator
-            if sim_name not in SIMULATORS:
-                raise ValueError(f"--simulator must be one of {SIMULATORS}, got {sim_name!r}")
+            sim_name = cfg.get("physics", physics) if physics == "exact" else physics
+            if sim_name not in PHYSICS:
+                raise ValueError(f"--physics must be one of {list(PHYSICS)}, got {sim_name!r}")
             model_dir = model if model is not None else (Path(cfg["model"]) if cfg.get("model") else None)
             from mfdesign.models.commands import load_data
 
@@ -127,7 +128,6 @@ def register(app: typer.Typer) -> None:
             fail(str(err).strip('"'))
         import numpy as np
 
-        from mfdesign.diagnose.expected import PlaneSimulator
         from mfdesign.diagnose.pipeline import diagnose as run
         from mfdesign.diagnose.report import write_report
 
@@ -145,21 +145,17 @@ def register(app: typer.Typer) -> None:
                 return np.asarray(ens.mean_std(a["design"], a["height_mm"], a["pressure_pa"])[0], float)
 
             model_name = f"ensemble {model_dir}"
-        cache = cache_dir or Path.home() / ".cache" / "mfdesign" / "planes"
-        if sim_name == "full":
-            sim = PlaneSimulator(cache_dir=cache, progress=True)
-        else:
-            from mfdesign.diagnose.emulated import EmulatorModel, analytic_force, likelihood_effects
+        from mfdesign.diagnose.emulated import forward_model, likelihood_effects
 
-            try:
-                likelihood_effects(names + _split(candidates or cfg.get("candidates", [])))
-                sim = EmulatorModel(analytic_force if sim_name == "analytic" else None, progress=True)
-            except (ValueError, FileNotFoundError) as err:
-                fail(str(err))
+        try:
+            likelihood_effects(names + _split(candidates or cfg.get("candidates", [])))
+            sim = forward_model(sim_name, meas, cache=cache_dir, progress=True)
+        except (ValueError, FileNotFoundError) as err:
+            fail(str(err))
         diag = run(meas, sim, model=predict, model_name=model_name, effects=names, theta=th,
                    candidates=_split(candidates) or _split(cfg.get("candidates", [])) or None, search=search,
                    check_top=check_top, max_steps=max_steps, progress=True)
-        paths = write_report(diag, out, shapes=shapes and sim_name == "full")
+        paths = write_report(diag, out, shapes=shapes and sim_name == "exact")
         b = diag.before
         typer.echo(f"before: RMSE {b.rmse_n:.3f} N, noise floor {b.noise_floor_n:.3f} N")
         for w in (diag.to_json()["before"]["worst_regions"]):

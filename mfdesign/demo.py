@@ -38,12 +38,12 @@ CARD = ROOT / "data" / "bundled_card.json"
 class DemoSettings:
     """Sizes of every stage (defaults: the full demo)."""
 
-    # Every stage evaluates the simulator's emulator (4 MLPs, float64); on the 2-core CPU an
-    # emcee step of 28 walkers on 400 rows took 0.31 s, so the sizes below keep the whole
-    # loop near 10 minutes (measured stage by stage, see summary.json "timings_s").
-    mcmc_steps: int = 200  # 300 took 80 s of a 694 s demo (fresh cache, idle 2-core machine)
-    walkers: int = 28
-    max_rows: int = 300
+    # Calibration and diagnosis run on exact physics (simulator planes of the six bundled
+    # membranes, solved once and cached); an emcee step of 32 walkers on 1,500 rows costs a
+    # few ms, so the chain can be long enough to converge (>= 50 tau).
+    mcmc_steps: int = 6000
+    walkers: int = 32
+    max_rows: int = 1500
     delta_members: int = 8
     delta_steps: int = 2000
     check_top: int = 2  # effects refitted in full per diagnosis round
@@ -56,13 +56,16 @@ class DemoSettings:
     optimise_starts: int = 500
     optimise_refine: int = 8
     optimise_steps: int = 20
-    force_model: str = "emulator"  # or "standin" (tests)
+    force_model: str = "exact"  # where the model meets data: exact | emulator | standin (tests)
+    search_model: str = "emulator"  # design searches (propose, optimise) over new membranes
     seed: int = 0
 
     @classmethod
-    def quick(cls, force_model: str = "emulator") -> "DemoSettings":
-        return cls(mcmc_steps=200, walkers=28, max_rows=200, delta_members=4, delta_steps=300, propose_restarts=2,
-                   propose_steps=5, optimise_starts=128, optimise_refine=4, optimise_steps=10, force_model=force_model)
+    def quick(cls, force_model: str = "exact") -> "DemoSettings":
+        search = "standin" if force_model == "standin" else "emulator"
+        return cls(mcmc_steps=300, walkers=32, max_rows=300, delta_members=4, delta_steps=300, propose_restarts=2,
+                   propose_steps=5, optimise_starts=128, optimise_refine=4, optimise_steps=10, force_model=force_model,
+                   search_model=search)
 
 
 def _short(key: str) -> str:
@@ -147,6 +150,20 @@ def _proposal_figure(meas, proposal, path: Path) -> None:
     plt.close(fig)
 
 
+def _truth_check(post, card: dict) -> dict:
+    """Each parameter with a known truth (the authors' constants, the card's hidden effect):
+    its 90 % interval and whether the truth lies inside."""
+    truth = {"mu_pa": 31.7e3, "jm": 39.6, **card["hidden_effect"]["theta"]}
+    out = {}
+    for name, value in truth.items():
+        if name not in post.names:
+            continue
+        x = post.samples[:, post.names.index(name)]
+        lo, hi = (float(v) for v in np.quantile(x, [0.05, 0.95]))
+        out[name] = {"truth": value, "q05": lo, "q95": hi, "inside": bool(lo <= value <= hi)}
+    return out
+
+
 def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path: str | Path = BUNDLED,
              echo=print, progress: bool = True) -> dict:
     """Run the whole loop (module doc) into ``out``; returns the summary written to
@@ -155,9 +172,9 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
 
     from mfdesign.acquire import Grid, propose
     from mfdesign.calibration.plots import corner_plot
-    from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named
+    from mfdesign.calibration.workflow import fit_multi_fidelity, for_search, force_model_named
     from mfdesign.data.store import read_parquet
-    from mfdesign.diagnose.emulated import EmulatorModel
+    from mfdesign.diagnose.emulated import forward_model
     from mfdesign.diagnose.pipeline import diagnose
     from mfdesign.diagnose.report import write_report
     from mfdesign.models.ensemble import EnsembleConfig
@@ -173,7 +190,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
 
     with log.stage("load data and force model"):
         meas = read_parquet(data_path)
-        force_model = force_model_named(s.force_model)
+        force_model = force_model_named(s.force_model, meas, progress=progress)
     summary["rows"], summary["membranes"] = len(meas), len(meas.design_keys)
     ens_cfg = EnsembleConfig(n_members=s.delta_members, steps=s.delta_steps, monotone=False,
                              chunk=min(1000, s.delta_steps))
@@ -206,14 +223,18 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
     # soak up part of a measurement effect, and without them (diagnosis has none) the
     # leftover looks like a thickness deviation (seen on the bundled data).
     with log.stage("diagnose: where the model fails, which effect is missing"):
-        sim = EmulatorModel(force_model)
-        diag = diagnose(meas, sim=sim, model_name="plain simulator (emulator, authors' constants)",
+        sim = forward_model("standin" if s.force_model == "standin" else s.force_model, meas, progress=progress)
+        diag = diagnose(meas, sim=sim, model_name=f"plain simulator ({s.force_model} physics, authors' constants)",
                         check_top=s.check_top, progress=progress)
         dpaths = write_report(diag, out / "diagnose")
     found = list(diag.found)
+    floor = diag.before.noise_floor_n
     summary["diagnosis"] = {"found": found, "rmse_before_n": diag.before.rmse_n,
                             "rmse_after_n": None if diag.after is None else diag.after.rmse_n,
-                            "noise_floor_n": diag.before.noise_floor_n}
+                            "noise_floor_n": floor,
+                            "after_over_floor": (None if diag.after is None or not floor > 0
+                                                 else diag.after.rmse_n / floor),
+                            "physics": s.force_model}
 
     # 4. add the effect(s) and refit
     if found:
@@ -223,10 +244,17 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
     else:
         fit1, post1 = fit0, post0
 
+    summary["convergence"] = {tag: {k: f.posterior.convergence.get(k) for k in
+                                    ("converged", "steps_over_tau", "tau_max", "acceptance", "problems")}
+                              for tag, f in (("plain", fit0), ("with_effects", fit1))}
+    if card is not None:
+        summary["truth_check"] = _truth_check(fit1.posterior, card)
+    search_mf = for_search(fit1, s.search_model) if s.force_model == "exact" else fit1.mf
+
     # 5. propose the next membranes
     DEMO_GRID = Grid(h_mm=(0.0, 20.0, 40.0, 60.0), p_pa=(2000.0, 4000.0, 6000.0, 8000.0))
     with log.stage("propose the next 2 membranes (rig or simulator)"):
-        predictor = fit1.mf.predictor(s.design_draws)
+        predictor = search_mf.predictor(s.design_draws)
         proposal = propose(predictor, 2, fidelities=("rig", "sim"), n_restarts=s.propose_restarts,
                            n_steps=s.propose_steps, grid=DEMO_GRID, key=s.seed, progress=progress)
         (out / "propose").mkdir(exist_ok=True)
@@ -235,7 +263,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
 
     # 6. optimise a membrane for a lift task
     with log.stage("optimise a membrane for lift task A (height maximisation)"):
-        result = optimize(fit1.mf.thinned(s.design_draws), TARGET_SETS["A"], n_starts=s.optimise_starts, n_refine=s.optimise_refine,
+        result = optimize(search_mf.thinned(s.design_draws), TARGET_SETS["A"], n_starts=s.optimise_starts, n_refine=s.optimise_refine,
                           steps=s.optimise_steps, seed=s.seed, progress=progress, batch_size=50)
         (out / "optimize").mkdir(exist_ok=True)
         plot_optimum(result, out / "optimize" / "optimum.png", title="lift task A")

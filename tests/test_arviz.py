@@ -106,7 +106,7 @@ def test_calibrate_command_writes_posterior_nc(tmp_path):
     data = tmp_path / "two.parquet"
     write_parquet(meas.subset(meas.design_keys[:2]), data)
     out = tmp_path / "cal"
-    r = CliRunner().invoke(app, ["calibrate", str(data), "--out", str(out), "--simulator", "standin",
+    r = CliRunner().invoke(app, ["calibrate", str(data), "--out", str(out), "--physics", "standin",
                                  "--mcmc-steps", "40", "--walkers", "16", "--max-rows", "60"])
     assert r.exit_code == 0, r.output
     idata = az.from_netcdf(out / "posterior.nc")

@@ -68,7 +68,7 @@ def test_two_runs_at_once_and_a_killed_runs_lock(tmp_path):
         [Membrane.from_key("[2.0, 25.4, nan, nan, nan, nan]")], progress=False).to_parquet(data)
     out = tmp_path / "rep"
     out.mkdir()
-    args = ["diagnose", str(data), "--simulator", "analytic", "--no-search", "--out", str(out)]
+    args = ["diagnose", str(data), "--physics", "standin", "--no-search", "--out", str(out)]
     first = _holder(out)
     try:
         second = runner.invoke(app, args)

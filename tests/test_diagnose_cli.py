@@ -51,7 +51,7 @@ def data(tmp_path_factory):
 
 def test_effects_give_a_before_after_report(data, tmp_path):
     out = tmp_path / "rep"
-    r = runner.invoke(app, ["diagnose", str(data), "--simulator", "analytic", "--effects", "load_cell_offset",
+    r = runner.invoke(app, ["diagnose", str(data), "--physics", "standin", "--effects", "load_cell_offset",
                             "--no-search", "--out", str(out)])
     assert r.exit_code == 0, r.output
     js = json.loads((out / "diagnosis.json").read_text())
@@ -67,7 +67,7 @@ def test_config_file_and_user_effect_module(data, tmp_path):
     mod = tmp_path / "my_effects.py"
     mod.write_text(USER_EFFECT)
     cfg = tmp_path / "diag.toml"
-    cfg.write_text(f'effects = ["force_gain_test"]\neffects_module = ["{mod}"]\nsimulator = "analytic"\n'
+    cfg.write_text(f'effects = ["force_gain_test"]\neffects_module = ["{mod}"]\nphysics = "standin"\n'
                    '[theta]\n"force_gain_test.gain" = 1.0\n')
     out = tmp_path / "rep"
     r = runner.invoke(app, ["diagnose", str(data), "--config", str(cfg), "--no-search", "--out", str(out)])
@@ -80,7 +80,7 @@ def test_config_file_and_user_effect_module(data, tmp_path):
 def test_effect_without_likelihood_hook_is_refused_by_the_exact_backend(data, tmp_path):
     mod = tmp_path / "nohook.py"
     mod.write_text(NO_HOOK_EFFECT)
-    r = runner.invoke(app, ["diagnose", str(data), "--simulator", "analytic", "--effects-module", str(mod),
+    r = runner.invoke(app, ["diagnose", str(data), "--physics", "standin", "--effects-module", str(mod),
                             "--effects", "force_gain_nohook", "--no-search", "--out", str(tmp_path / "x")])
     assert r.exit_code == 2
     assert "no likelihood hook" in r.output and len(r.output.strip().splitlines()) == 1
@@ -89,7 +89,7 @@ def test_effect_without_likelihood_hook_is_refused_by_the_exact_backend(data, tm
 @pytest.mark.parametrize("args, words", [
     (["--effects", "no_such_effect"], "unknown effect 'no_such_effect'"),
     (["--theta", "{not json"], "--theta is not valid JSON"),
-    (["--simulator", "quantum"], "--simulator must be one of"),
+    (["--physics", "quantum"], "--physics must be one of"),
     (["--effects-module", "nothere.py"], "not a Python file"),
 ])
 def test_bad_input_is_one_line_exit_2(data, tmp_path, args, words):

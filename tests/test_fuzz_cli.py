@@ -62,7 +62,7 @@ def valid(tmp_path_factory):
     m.to_parquet(d / "m.parquet")
     for args in (["fit", d / "m.parquet", "--out", d / "ens", "--members", 2, "--train-steps", 10, "--batch", 16,
                   "--no-monotone"],
-                 ["fit-mf", d / "m.parquet", "--out", d / "mf", "--simulator", "standin", "--mcmc-steps", 12,
+                 ["fit-mf", d / "m.parquet", "--out", d / "mf", "--physics", "standin", "--mcmc-steps", 12,
                   "--members", 2, "--delta-steps", 5, "--max-rows", 40]):
         r = runner.invoke(app, [str(a) for a in args])
         assert r.exit_code == 0, r.output
@@ -187,7 +187,7 @@ def category_cases(v: Path, w: Path):
     import pandas as pd
 
     cases = []
-    diag = lambda data, out, *more: ["diagnose", data, "--simulator", "analytic", "--no-search", "--out", out, *more]  # noqa: E731
+    diag = lambda data, out, *more: ["diagnose", data, "--physics", "standin", "--no-search", "--out", out, *more]  # noqa: E731
     # unsafe / crafted pickles as the shared data
     evil = {
         "malicious": b"\x80\x02cos\nsystem\nX\x04\x00\x00\x00trueq\x85R.",
@@ -215,7 +215,7 @@ def category_cases(v: Path, w: Path):
     for name, t in tables.items():
         Measurements(t).to_parquet(w / f"{name}.parquet")
         cases.append((f"{name} -> diagnose", diag(w / f"{name}.parquet", w / f"o_{name}"), [w / f"{name}.parquet"], None, w / f"o_{name}"))
-        cases.append((f"{name} -> calibrate", ["calibrate", w / f"{name}.parquet", "--out", w / f"oc_{name}", "--simulator",
+        cases.append((f"{name} -> calibrate", ["calibrate", w / f"{name}.parquet", "--out", w / f"oc_{name}", "--physics",
                                                "standin", "--mcmc-steps", 3], [w / f"{name}.parquet"], None, w / f"oc_{name}"))
     # outputs that cannot be written: refused before computing
     (w / "afile").write_text("keep me")
@@ -261,7 +261,7 @@ def category_cases(v: Path, w: Path):
                                                 "--out", w / f"op_{mf.name}"], [mf], None, w / f"op_{mf.name}"))
     bad_chain = _copy(v / "mf", w / "chain_bad")
     (bad_chain / "chain.h5").write_bytes((v / "mf" / "chain.h5").read_bytes()[:2000])
-    cases.append(("truncated chain.h5 -> calibrate", ["calibrate", v / "m.parquet", "--out", bad_chain, "--simulator", "standin",
+    cases.append(("truncated chain.h5 -> calibrate", ["calibrate", v / "m.parquet", "--out", bad_chain, "--physics", "standin",
                                                       "--mcmc-steps", 3, "--max-rows", 40], [v / "m.parquet"], None, None))
     return cases
 
@@ -270,7 +270,7 @@ def mutation_cases(v: Path, w: Path, n: int, seed: int = 0):
     """Random mutations of each valid file, thrown at the commands that read it."""
     rng = np.random.default_rng(seed)
     cases = []
-    diag = lambda data, out, *more: ["diagnose", data, "--simulator", "analytic", "--no-search", "--out", out, *more]  # noqa: E731
+    diag = lambda data, out, *more: ["diagnose", data, "--physics", "standin", "--no-search", "--out", out, *more]  # noqa: E731
     for name, b in mutations((v / "m.parquet").read_bytes(), rng, n):
         p = w / f"m_{name}.parquet"
         p.write_bytes(b)
@@ -292,7 +292,7 @@ def mutation_cases(v: Path, w: Path, n: int, seed: int = 0):
     for name, b in mutations((v / "mf" / "chain.h5").read_bytes(), rng, n):
         out = _copy(v / "mf", w / f"ch_{name}")
         (out / "chain.h5").write_bytes(b)
-        cases.append((f"chain.h5 {name} -> fit-mf", ["fit-mf", v / "m.parquet", "--out", out, "--simulator", "standin", "--mcmc-steps",
+        cases.append((f"chain.h5 {name} -> fit-mf", ["fit-mf", v / "m.parquet", "--out", out, "--physics", "standin", "--mcmc-steps",
                                                       12, "--members", 2, "--delta-steps", 5, "--max-rows", 40],
                       [v / "m.parquet"], None, None))
     pkl = (v / "shared" / "mass_lift_data_dictionary_N_Pa.pkl").read_bytes()

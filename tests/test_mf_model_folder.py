@@ -28,7 +28,7 @@ def folder(tmp_path_factory):
     data = tmp / "two.parquet"
     write_parquet(meas.subset(meas.design_keys[:2]), data)
     out = tmp / "fit"
-    r = runner.invoke(app, ["fit-mf", str(data), "--out", str(out), "--simulator", "standin", "--mcmc-steps", "30",
+    r = runner.invoke(app, ["fit-mf", str(data), "--out", str(out), "--physics", "standin", "--mcmc-steps", "30",
                             "--walkers", "16", "--max-rows", "60", "--members", "2", "--delta-steps", "20",
                             "--effects", "pressure_sensor"])
     assert r.exit_code == 0, r.output

@@ -21,7 +21,7 @@ import numpy as np
 
 from mfdesign.physics.effects import LogNormal
 
-__all__ = ["MFFit", "fit_multi_fidelity", "force_model_named", "lifted_rows", "load_multi_fidelity",
+__all__ = ["MFFit", "for_search", "fit_multi_fidelity", "force_model_named", "lifted_rows", "load_multi_fidelity",
            "model_for"]
 
 def force_model_named(name: str, table=None, progress: bool = False):
@@ -102,6 +102,20 @@ def fit_multi_fidelity(table, force_model, effects=(), *, n_steps: int = 2000, n
     noise = float(np.sqrt(np.average((resid - d_mean) ** 2, weights=w)))
     mf = MultiFidelity.from_posterior(model, post, delta, noise_n=noise, seed=seed)
     return MFFit(model, post, delta, noise, mf, tuple(data.design_keys))
+
+
+def for_search(fit: MFFit, physics: str = "emulator"):
+    """The fit's predictive with the force model of design searches (default: the emulator).
+
+    The exact model holds planes of the calibrated membranes only; a search over new
+    designs runs the same posterior and discrepancy on the emulator, whose error (about
+    1 N RMS against the simulator) adds to the prediction there: say so where it is used
+    and check winners with the simulator."""
+    from mfdesign.models.force import force_model_for
+    from mfdesign.models.predictive import MultiFidelity
+
+    model = eqx.tree_at(lambda m: m.force_model, fit.model, force_model_for(physics))
+    return MultiFidelity.from_posterior(model, fit.posterior, fit.delta, noise_n=fit.noise_n)
 
 
 def load_multi_fidelity(folder) -> MFFit:

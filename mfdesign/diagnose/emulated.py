@@ -42,7 +42,7 @@ from mfdesign.physics import effects as fx
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status
 
-__all__ = ["EmulatorModel", "analytic_force", "emulator_plane", "likelihood_effects"]
+__all__ = ["EmulatorModel", "analytic_force", "emulator_plane", "forward_model", "likelihood_effects"]
 
 LATTICE_ROUNDS = 4  # refits while the exact model's lattice grows around the optima
 CHUNK = 4096  # rows per compiled call (bounds the memory of the emulator's activations)
@@ -337,3 +337,35 @@ class EmulatorModel:
             if self.force_model is before:
                 break
         return x, ok
+
+
+def forward_model(physics: str, meas: Measurements, *, cache=None, progress: bool = False) -> EmulatorModel:
+    """Diagnosis' forward model on ``physics`` (:data:`~mfdesign.models.force.FORCE_MODELS`).
+
+    Arguments:
+        physics: ``"exact"`` (simulator planes of the measured membranes, at simulator
+            accuracy; mechanical effects on additive lattice axes that grow where the
+            fits go), ``"emulator"`` (the bundled neural emulator; about 1 N RMS off the
+            simulator) or ``"standin"`` (the analytic stand-in; tests).
+        meas: the measurements (the exact model needs their designs and ranges).
+        cache: plane cache folder (exact; default ``$MFDESIGN_CACHE_DIR/planes``).
+        progress: progress bars while planes are solved.
+    """
+    from mfdesign.models.force import FORCE_MODELS
+
+    if physics == "exact":
+        from mfdesign.models.exact import build_exact
+
+        df = meas._df
+        if len(df) == 0:
+            raise ValueError("no rows to diagnose")
+        h = query_heights(meas)
+        fm = build_exact(tuple(dict.fromkeys(df["design_key"])), h_max_mm=float(np.nanmax(h)),
+                         p_max_pa=float(df["pressure_pa"].max()), outside="clamp", grow="additive", cache=cache,
+                         progress=progress)
+        return EmulatorModel(fm, progress=progress)
+    if physics == "emulator":
+        return EmulatorModel(None, progress=progress)
+    if physics == "standin":
+        return EmulatorModel(analytic_force, progress=progress)
+    raise ValueError(f"--physics must be one of {list(FORCE_MODELS)}, got {physics!r}")

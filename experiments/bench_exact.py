@@ -1,0 +1,164 @@
+"""Benchmark of the exact force model (issue 17, item 3). Writes JSON.
+
+* accuracy: the exact model against direct simulator calls (``force_at``) at random rows of
+  the bundled data's six membranes and at random constants: mu, J_m and the thickness
+  factor inside the calibration's reach, and each mechanical effect at a random value of
+  its prior (one at a time: the additive axes of diagnosis);
+* timings (wall clock, with the load average before and after): ``mfdesign diagnose`` of a
+  450-row, 6-membrane characterisation set (75 force rows per membrane, evenly spaced in
+  each trial) with an empty cache (cold) and again (warm); ``mfdesign diagnose`` of the
+  whole bundled set; ``mfdesign calibrate`` on the six membranes to the chain length the
+  convergence report asks for.
+
+    python experiments/bench_exact.py [--skip-timings] [--mcmc-steps 6000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "experiments" / "out"
+BUNDLED = ROOT / "data" / "bundled_virtual.parquet"
+
+
+def load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def accuracy(n_rows: int, seed: int) -> dict:
+    import jax.numpy as jnp
+
+    from mfdesign.data.store import read_parquet
+    from mfdesign.design import Membrane
+    from mfdesign.diagnose.expected import query_heights
+    from mfdesign.models.exact import build_exact
+    from mfdesign.physics.params import SimParams
+    from mfdesign.physics.solve import force_at
+
+    meas = read_parquet(BUNDLED)
+    df = meas.df
+    h_all = query_heights(meas)
+    keys = list(dict.fromkeys(df["design_key"]))
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    fm = build_exact(keys, h_max_mm=float(np.nanmax(h_all)), p_max_pa=float(df["pressure_pa"].max()),
+                     grow="additive", progress=True)
+    cases = []
+    effects = {"offset": ("contact_offset_mm", 0.0, 6.0), "prestretch": ("clamp_prestretch", 1.0, 1.08),
+               "gradient": ("thickness_gradient", -0.3, 0.3), "ring": ("ring_mu_pa", 0.1e6, 1e6)}
+    for key in keys:
+        idx = np.flatnonzero((df["design_key"] == key).to_numpy() & (df["pressure_pa"].to_numpy() > 200))
+        for case in ("constants", "constants", "offset", "prestretch", "gradient", "ring"):
+            if case == "ring" and Membrane.from_key(key).n_rings == 0:
+                continue
+            params = SimParams(mu_pa=31.7e3 * float(np.exp(rng.uniform(-0.1, 0.1))),
+                               jm=39.6 * float(np.exp(rng.uniform(-0.1, 0.1))),
+                               thickness_factor=float(np.exp(rng.uniform(-0.08, 0.08))))
+            if case != "constants":  # one mechanical effect, at the reference rubber (diagnosis' use)
+                field, lo, hi = effects[case]
+                params = dataclasses.replace(SimParams(), **{field: float(rng.uniform(lo, hi))})
+            fm = fm.covering(params, progress=True)
+            pick = rng.choice(idx, size=min(n_rows, idx.size), replace=False)
+            h, p = h_all[pick], df["pressure_pa"].to_numpy(float)[pick]
+            ref = force_at(Membrane.from_key(key), h, p, params).force_n
+            d = np.broadcast_to(Membrane.from_key(key).to_array(), (pick.size, 6))
+            got = np.asarray(fm(jnp.asarray(d), jnp.asarray(h), jnp.asarray(p), params))
+            both = np.isfinite(ref) & np.isfinite(got)
+            e = got[both] - ref[both]
+            cases.append({"design": key, "case": case, "params": {f.name: float(getattr(params, f.name))
+                                                                   for f in dataclasses.fields(params)},
+                          "n": int(both.sum()), "model_nan_where_simulator_finite": int(np.sum(np.isfinite(ref) & ~np.isfinite(got))),
+                          "rmse_n": float(np.sqrt(np.mean(e**2))) if e.size else None,
+                          "max_abs_n": float(np.max(np.abs(e))) if e.size else None})
+            print(f"{key} {case}: rmse {cases[-1]['rmse_n']:.4f} N, max {cases[-1]['max_abs_n']:.4f} N "
+                  f"(n {cases[-1]['n']})", flush=True)
+    e_all = np.concatenate([[c["rmse_n"]] * c["n"] for c in cases if c["n"]])
+    sq = sum(c["rmse_n"] ** 2 * c["n"] for c in cases if c["n"])
+    n = sum(c["n"] for c in cases)
+    return {"cases": cases, "rmse_n": float(np.sqrt(sq / n)), "max_abs_n": float(max(c["max_abs_n"] for c in cases if c["n"])),
+            "rows": int(n), "nan_where_simulator_finite": int(sum(c["model_nan_where_simulator_finite"] for c in cases)),
+            "target": {"rmse_n": 0.05, "max_abs_n": 0.15}, "wall_s": round(time.perf_counter() - t0, 1),
+            "lattice": {"tensor": [(a.name, a.k0, a.n) for a in fm.tensor_axes],
+                        "additive": [(a.name, a.k0, a.n) for a in fm.additive_axes]}, "_": len(e_all)}
+
+
+def characterisation_450(path: Path) -> None:
+    from mfdesign.data.measurements import Measurements
+    from mfdesign.data.store import read_parquet, write_parquet
+
+    df = read_parquet(BUNDLED).df
+    df = df[df["experiment"] == "force"]
+    keep = []
+    for _, g in df.groupby("design_key", sort=False):
+        keep.append(g.index[np.linspace(0, len(g) - 1, 75).astype(int)])
+    write_parquet(Measurements(df.loc[np.concatenate(keep)].reset_index(drop=True)), path)
+
+
+def timed(cmd: list[str], cache: Path) -> dict:
+    env = dict(os.environ, MFDESIGN_CACHE_DIR=str(cache))
+    before = load()
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    tail = [ln for ln in r.stdout.splitlines() if ln.strip()][-6:]
+    return {"cmd": " ".join(cmd), "wall_s": round(wall, 1), "rc": r.returncode, "load_before": before,
+            "load_after": load(), "stdout_tail": tail, "stderr_tail": r.stderr.splitlines()[-3:] if r.returncode else []}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--rows", type=int, default=30, help="random rows per design and case")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--skip-timings", action="store_true")
+    ap.add_argument("--skip-accuracy", action="store_true")
+    ap.add_argument("--mcmc-steps", type=int, default=6000)
+    args = ap.parse_args()
+    OUT.mkdir(parents=True, exist_ok=True)
+    out = {"machine": {"cpus": os.cpu_count(), "load_at_start": load()}}
+    path = OUT / "bench_exact.json"
+    if path.exists():  # keep the other half of an earlier run
+        old = json.loads(path.read_text())
+        out = {**old, **out}
+    if not args.skip_accuracy:
+        out["accuracy"] = accuracy(args.rows, args.seed)
+        print(f"accuracy: rmse {out['accuracy']['rmse_n']:.4f} N, max {out['accuracy']['max_abs_n']:.4f} N over "
+              f"{out['accuracy']['rows']} rows", flush=True)
+        path.write_text(json.dumps(out, indent=1))
+    if not args.skip_timings:
+        exe = [sys.executable, "-m", "mfdesign.cli"]
+        with tempfile.TemporaryDirectory() as tmp:
+            tmp = Path(tmp)
+            small = tmp / "char450.parquet"
+            characterisation_450(small)
+            cold = tmp / "cache_cold"
+            t = {}
+            t["diagnose_450_cold"] = timed(exe + ["diagnose", str(small), "--out", str(tmp / "d1")], cold)
+            t["diagnose_450_warm"] = timed(exe + ["diagnose", str(small), "--out", str(tmp / "d2")], cold)
+            t["diagnose_bundled"] = timed(exe + ["diagnose", str(BUNDLED), "--out", str(tmp / "d3")], cold)
+            t["calibrate_6_membranes"] = timed(exe + ["calibrate", str(BUNDLED), "--out", str(tmp / "c1"),
+                                                      "--effects", "pressure_sensor", "--mcmc-steps",
+                                                      str(args.mcmc_steps), "--max-rows", "1500"], cold)
+            t["targets_s"] = {"diagnose_450_cold": 90, "diagnose_450_warm": 30, "diagnose_bundled": 180,
+                              "calibrate_6_membranes": 180}
+        out["timings"] = t
+        for k, v in t.items():
+            if isinstance(v, dict) and "wall_s" in v:
+                print(f"{k}: {v['wall_s']} s (rc {v['rc']}; load {v['load_before']} -> {v['load_after']})", flush=True)
+    out["machine"]["load_at_end"] = load()
+    path.write_text(json.dumps(out, indent=1))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

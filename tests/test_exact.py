@@ -1,0 +1,79 @@
+"""The exact force model against direct simulator calls (its accuracy bound) and its contract:
+NaN, never a silent number, outside what its planes hold."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mfdesign.design import Membrane
+from mfdesign.models.exact import build_exact
+from mfdesign.physics.params import SimParams
+from mfdesign.physics.solve import force_at
+
+KEYS = ("[2.0, 25.4, nan, nan, nan, nan]", "[1.5, 30.0, 45.0, 6.0, nan, nan]")
+H_MAX, P_MAX = 40.0, 6000.0
+
+
+@pytest.fixture(scope="module")
+def exact(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("planes")
+    return build_exact(KEYS, h_max_mm=H_MAX, p_max_pa=P_MAX, tensor={"jm": (-0.1, 0.1), "ring": (-0.1, 0.1)},
+                       cache=cache)
+
+
+def _rows(key, n, rng):
+    d = Membrane.from_key(key)
+    return np.broadcast_to(d.to_array(), (n, 6)), rng.uniform(0.0, H_MAX, n), rng.uniform(300.0, P_MAX, n)
+
+
+def test_exact_model_matches_direct_simulator_calls_at_random_rows_and_parameters(exact):
+    """The accuracy bound of issue 17: 0.05 N RMS, 0.15 N max, at random rows and at random
+    constants (mu, J_m, thickness factor and a mechanical effect) inside the lattice it grew."""
+    rng = np.random.default_rng(7)
+    errors = []
+    fm = exact
+    for trial in range(4):
+        key = KEYS[trial % 2]
+        params = SimParams(mu_pa=31.7e3 * np.exp(rng.uniform(-0.08, 0.08)), jm=39.6 * np.exp(rng.uniform(-0.08, 0.08)),
+                           thickness_factor=float(np.exp(rng.uniform(-0.1, 0.1))))
+        if trial >= 2:  # a mechanical effect: the lattice grows a new axis for it
+            params = dataclasses.replace(params, contact_offset_mm=float(rng.uniform(0.2, 1.3)))
+        fm = fm.covering(params)
+        assert fm.covers(params)
+        design, h, p = _rows(key, 12, rng)
+        ref = force_at(Membrane.from_key(key), h, p, params).force_n
+        got = np.asarray(fm(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), params))
+        ok = np.isfinite(ref)
+        assert np.all(np.isfinite(got[ok])), "the exact model returned NaN where the simulator has a number"
+        errors.append(got[ok] - ref[ok])
+    e = np.concatenate(errors)
+    assert e.size >= 40
+    assert np.sqrt(np.mean(e**2)) <= 0.05
+    assert np.max(np.abs(e)) <= 0.15
+
+
+def test_exact_model_is_nan_outside_what_it_holds(exact):
+    design, h, p = _rows(KEYS[0], 4, np.random.default_rng(0))
+    ok = np.asarray(exact(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), SimParams()))
+    assert np.all(np.isfinite(ok))
+    other = np.broadcast_to(Membrane.from_key("[1.0, 38.1, nan, nan, nan, nan]").to_array(), (4, 6))
+    assert np.all(np.isnan(np.asarray(exact(jnp.asarray(other), jnp.asarray(h), jnp.asarray(p), SimParams()))))
+    far = SimParams(jm=39.6 * 2.0)  # beyond the J_m lattice: strict model says NaN, clamped one holds the edge
+    assert np.all(np.isnan(np.asarray(exact(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), far))))
+    assert np.all(np.isfinite(np.asarray(exact.strict(False)(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), far))))
+    moved = SimParams(clamp_prestretch=1.02)  # a constant the lattice does not vary
+    assert np.all(np.isnan(np.asarray(exact(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), moved))))
+    top = np.asarray(exact(jnp.asarray(design), jnp.asarray(h), jnp.full(4, 3.0 * P_MAX), SimParams()))
+    assert np.all(np.isnan(top)), "above the planes' pressure top"
+
+
+def test_mu_and_thickness_scale_one_plane_exactly(exact):
+    """F(h, p; s mu0) = s G(h, p / s): mu and the thickness factor cost no plane."""
+    design, h, p = _rows(KEYS[0], 6, np.random.default_rng(1))
+    f1 = np.asarray(exact(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), SimParams(thickness_factor=1.05)))
+    f2 = np.asarray(exact(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), SimParams(mu_pa=31.7e3 * 1.05)))
+    np.testing.assert_allclose(f1, f2, rtol=1e-12, atol=1e-12)
