@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from mfdesign.calibrate import ConvergenceWarning, build_model, calibrate
 from mfdesign.calibration.plots import pair_plot
 from mfdesign.calibration.posterior import Posterior, load_inference_data, save_inference_data
-from mfdesign.calibration.standin import standin_force
+from mfdesign.models.standin import standin_force
 
 GROUPS = {"posterior", "sample_stats", "log_likelihood", "posterior_predictive", "observed_data", "constant_data"}
 

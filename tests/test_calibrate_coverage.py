@@ -24,7 +24,7 @@ def test_virtual_truth_coverage_10_seeds():
 
 def test_virtual_truth_coverage_fast():
     """The CI version: 3 seeds, shorter chains; 95 % intervals still cover >= 9 of 12 cases."""
-    trials = [truth_trial(seed, standin_force, standin_plane, n_steps=300, rows=160) for seed in range(3)]
+    trials = [truth_trial(seed, standin_force, standin_plane, n_steps=600, rows=160) for seed in range(3)]
     covered = np.array([[t["covered"][k] for k in ("mu_pa", "jm", "pressure_sensor.offset_pa",
                                                     "pressure_sensor.gain")] for t in trials])
     assert covered.sum() >= 9, [t["intervals"] for t in trials]

@@ -210,6 +210,9 @@ class ExactForceModel(ForceModel):
         """Coordinate range per axis of ``params`` (fields of any shape); axes whose
         coordinate never leaves 0 are omitted, and ``ring`` when no design has rings."""
         prm = jax.tree.map(lambda a: np.asarray(a, float), params)
+        # Fields batched as [K] (per draw) and [K, N] (per draw and row) align on the left.
+        nd = max(np.ndim(a) for a in jax.tree.leaves(prm))
+        prm = jax.tree.map(lambda a: a.reshape(a.shape + (1,) * (nd - a.ndim)), prm)
         box = {}
         for name, axis in pl.AXES.items():
             if axis.ringed_only and not bool(np.any(np.asarray(self.ringed))):
