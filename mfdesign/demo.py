@@ -39,8 +39,10 @@ class DemoSettings:
     """Sizes of every stage (defaults: the full demo)."""
 
     # Calibration and diagnosis run on exact physics (simulator planes of the six bundled
-    # membranes, solved once and cached); an emcee step of 32 walkers on 1,500 rows costs a
-    # few ms, so the chain can be long enough to converge (>= 50 tau).
+    # membranes, solved once and cached). The log posterior of 32 walkers on 1,500 rows
+    # costs ~5 ms, so the chain can be long enough to converge (>= 50 tau); measured:
+    # emcee's HDF5 backend (one file write per step) dominates, ~0.1 s a step of system
+    # time. The full demo's time at these sizes is not measured yet.
     mcmc_steps: int = 6000
     walkers: int = 32
     max_rows: int = 1500
