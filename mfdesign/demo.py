@@ -39,10 +39,10 @@ class DemoSettings:
     """Sizes of every stage (defaults: the full demo)."""
 
     # Calibration and diagnosis run on exact physics (simulator planes of the six bundled
-    # membranes, solved once and cached). The log posterior of 32 walkers on 1,500 rows
-    # costs ~5 ms, so the chain can be long enough to converge (>= 50 tau); measured:
-    # emcee's HDF5 backend (one file write per step) dominates, ~0.1 s a step of system
-    # time. The full demo's time at these sizes is not measured yet.
+    # membranes, solved once and cached). Measured (session 7): an emcee step of 32 walkers
+    # on 1,500 rows costs ~0.1 s on the grown lattice (3,000 steps: 522 s), and the chain
+    # needs ~200 tau-steps x 50: the full demo's time at these sizes is NOT measured yet
+    # and will exceed 5 minutes until the step cost or tau comes down.
     mcmc_steps: int = 6000
     walkers: int = 32
     max_rows: int = 1500
