@@ -284,13 +284,21 @@ class ExactForceModel(ForceModel):
 
     def _contract_planes(self, arr, axes, cs):
         """Contract the lattice axes (1 .. D) of ``arr`` at scalar coordinates: [M, nh+2, np+2]."""
+        pos = [_position(c, a.lo, a.axis.step, a.n, self.outside == "clamp") for a, c in zip(axes, cs)]
         valid = jnp.asarray(True)
-        for a, c in zip(axes, cs):
-            i, t, v = _position(c, a.lo, a.axis.step, a.n, self.outside == "clamp")
-            block = jax.lax.dynamic_slice_in_dim(arr, i, 4, axis=1)
-            arr = _contract(block, t, axis=1)
+        for _, _, v in pos:
             valid = valid & v
-        return arr, valid
+        if not pos:
+            return arr, valid
+        # One slice of the 4^D stencil block, then the axes contracted last to first: the
+        # first contraction then works on 4^D planes, not on 4 x the full lattice.
+        D = len(pos)
+        zero = jnp.zeros((), jnp.int32)
+        start = (zero, *(i for i, _, _ in pos), zero, zero)
+        block = jax.lax.dynamic_slice(arr, start, (arr.shape[0], *(4,) * D, *arr.shape[-2:]))
+        for k in reversed(range(D)):
+            block = _contract(block, pos[k][1], axis=1 + k)
+        return block, valid
 
     def _rows_plane(self, g, m, h, P):
         """2-D cubic convolution of planes ``g`` [M, nh+2, np+2] at each row's (h, P)."""
