@@ -105,15 +105,24 @@ def _neg_log_post(u, args):
     return -model.log_posterior_u(u, data)
 
 
+def _neg_log_post_per_row(u, args):
+    # BFGS starts from the identity as its inverse Hessian: on the unscaled sum over
+    # ~1,000 rows its first step is thousands of units of u long, far off the force
+    # model's lattice, and the backtracking search then stalls at the start (seen with the
+    # Student-t likelihood: "converged" at the start point). Per row the first step is O(1).
+    model, data = args
+    return _neg_log_post(u, args) / jnp.maximum(jnp.sum(data.weight), 1.0)
+
+
 @eqx.filter_jit
 def _map_kernel(model: HierarchicalModel, inits, data: CalibrationData, max_steps: int):
     """BFGS from every start at once, and the Hessian at every end point (one compile)."""
     import optimistix as optx
 
-    solver = optx.BFGS(rtol=1e-7, atol=1e-7)
+    solver = optx.BFGS(rtol=1e-9, atol=1e-9)
 
     def one(u):
-        sol = optx.minimise(_neg_log_post, solver, u, args=(model, data), max_steps=max_steps, throw=False)
+        sol = optx.minimise(_neg_log_post_per_row, solver, u, args=(model, data), max_steps=max_steps, throw=False)
         u = sol.value
         hess = jax.hessian(_neg_log_post)(u, (model, data))
         return u, sol.result == optx.RESULTS.successful, -_neg_log_post(u, (model, data)), hess
@@ -140,16 +149,15 @@ LATTICE_ROUNDS = 8
 EDGE_STEP = 3  # lattice nodes added past a MAP that sits on the lattice's edge
 
 
-def _laplace_sd(result: MapResult) -> np.ndarray:
-    """Posterior sd in ``u`` from the Hessian at the MAP (0.5 where it is not positive definite)."""
+def _laplace_sd(result: MapResult) -> np.ndarray | None:
+    """Posterior sd in ``u`` from the Hessian at the MAP (``None`` where it is not positive
+    definite: no Laplace approximation there)."""
     h = np.asarray(result.hessian)
     try:
         d = np.diag(np.linalg.inv(0.5 * (h + h.T)))
-        if np.all(np.isfinite(d)) and np.all(d > 0):
-            return np.minimum(np.sqrt(d), 0.5)
     except np.linalg.LinAlgError:
-        pass
-    return np.full(h.shape[0], 0.5)
+        return None
+    return np.sqrt(d) if np.all(np.isfinite(d)) and np.all(d > 0) else None
 
 
 def _params_at(model: HierarchicalModel, data: CalibrationData, u: np.ndarray):
@@ -177,11 +185,14 @@ def fit_force_model(model: HierarchicalModel, data: CalibrationData, res: MapRes
         return model, res
     for _ in range(LATTICE_ROUNDS):
         at_map = _params_at(model, data, np.asarray(res.u)[None])
+        sd = _laplace_sd(res)
         if not fm.covers(at_map, margin=1):
+            grown = fm.covering(at_map, progress=progress, margin=EDGE_STEP)
+        elif sd is None:  # no curvature to size the lattice by: a few nodes around the MAP only
             grown = fm.covering(at_map, progress=progress, margin=EDGE_STEP)
         else:
             u = np.asarray(res.u)
-            steps = np.diag(LATTICE_SD * _laplace_sd(res))
+            steps = np.diag(LATTICE_SD * np.minimum(sd, 0.5))
             grown = fm.covering(_params_at(model, data, np.vstack([u, u + steps, u - steps])), progress=progress)
         if grown is fm:
             break
@@ -235,6 +246,30 @@ def _ball(result: MapResult, n_walkers: int, scale: float, rng: np.random.Genera
     except np.linalg.LinAlgError:
         pass
     return np.asarray(result.u)[None, :] + width[None, :] * rng.standard_normal((n_walkers, h.shape[0]))
+
+
+LAPLACE_SHARE = 0.6  # of the steps: independence proposals from the Laplace approximation
+
+
+def default_moves(result: MapResult, laplace_share: float | None = None) -> list:
+    """emcee moves: independence proposals from the Laplace approximation at the MAP
+    (:class:`~mfdesign.calibration.laplace_move.LaplaceMove`) for ``laplace_share`` of the
+    steps, the rest differential evolution and its snooker update (ter Braak 2006; ter
+    Braak & Vrugt 2008). DE alone where the Hessian is not positive definite."""
+    import emcee
+
+    from mfdesign.calibration.laplace_move import LaplaceMove
+
+    share = LAPLACE_SHARE if laplace_share is None else float(laplace_share)
+    de = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    h = np.asarray(result.hessian)
+    try:
+        lap = LaplaceMove(np.asarray(result.u), np.linalg.inv(0.5 * (h + h.T)))
+    except np.linalg.LinAlgError:
+        return de
+    if share <= 0 or not np.all(np.isfinite(lap.chol)):
+        return de
+    return [(lap, share)] + [(m, (1 - share) * w) for m, w in de]
 
 
 def convergence_report(sampler, names: Sequence[str], min_ratio: float = MIN_TAU_RATIO,
@@ -309,7 +344,8 @@ def _store_map(path: Path, fingerprint: str, res: MapResult, names) -> None:
 def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n_steps: int = 3000,
               chain_path: str | os.PathLike | None = None, resume: bool = True, pool=None, seed: int = 0,
               progress: bool = True, max_rows: int | None = 3000, map_starts: int = 4, ball: float = 0.1,
-              callback: Callable[[int], None] | None = None, warn: bool = True, moves=None) -> Posterior:
+              callback: Callable[[int], None] | None = None, warn: bool = True, moves=None,
+              stop_when_converged: bool = False, check_every: int = 100) -> Posterior:
     """Sample the posterior of ``model`` given ``data`` (Measurements or CalibrationData).
 
     ``n_steps``: total chain length (a resumed run samples only the missing steps);
@@ -319,6 +355,10 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
     ``callback(iteration)`` after every step (progress hooks, tests); ``moves``: emcee
     moves, default differential evolution mixed with its snooker update (ter Braak 2006;
     ter Braak & Vrugt 2008), which mixes faster than the stretch move on these posteriors.
+    ``stop_when_converged``: ``n_steps`` is then the most steps; every ``check_every``
+    steps the autocorrelation time is estimated and sampling stops once the chain is
+    ``MIN_TAU_RATIO`` times the longest tau and that estimate moved < 5 % since the last
+    check (emcee's documented monitoring recipe).
     """
     import emcee
 
@@ -359,7 +399,7 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
                       ConvergenceWarning, stacklevel=2)
 
     if moves is None:
-        moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+        moves = default_moves(res)
     logp = LogPosterior(model, data, pool=pool)  # the model as the lattice fit left it
     sampler = emcee.EnsembleSampler(n_walkers, dim, logp, vectorize=True, backend=backend, moves=moves)
     done = 0 if backend is None else int(backend.iteration)
@@ -371,9 +411,17 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
         start = _ball(res, n_walkers, ball, rng)
     else:
         start = sampler.get_last_sample()  # continue from the stored walkers (and random state)
+    old_tau = np.inf
     for _ in sampler.sample(start, iterations=max(n_steps - done, 0), progress=progress):
+        it = int(sampler.iteration)
         if callback is not None:
-            callback(int(sampler.iteration))
+            callback(it)
+        if stop_when_converged and it % max(int(check_every), 1) == 0:
+            tau = np.asarray(sampler.get_autocorr_time(tol=0, quiet=True), float)
+            if (np.all(np.isfinite(tau)) and it >= MIN_TAU_RATIO * np.max(tau)
+                    and np.all(np.abs(old_tau - tau) < 0.05 * tau)):
+                break
+            old_tau = tau
 
     report = convergence_report(sampler, model.names, warn=warn)
     tau_max = report["tau_max"] if np.isfinite(report["tau_max"]) else 1.0

@@ -84,7 +84,8 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
             else:
                 cdata = CalibrationData.from_measurements(table, max_rows=max_rows, seed=seed)
                 model = model_for(force_model, cdata, effects, likelihood=likelihood)
-                post = calibrate(cdata, model, n_steps=steps, n_walkers=walkers or None, chain_path=chain, seed=seed)
+                post = calibrate(cdata, model, n_steps=steps, n_walkers=walkers or None, chain_path=chain, seed=seed,
+                                 stop_when_converged=True)
         except ValueError as err:
             fail(str(err))
     typer.echo(post.format_table())
@@ -99,7 +100,7 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
 
     save_inference_data(post, out / "posterior.nc", fit.model if multi_fidelity else model, table, max_draws=500,
                         seed=seed, max_rows=max_rows)
-    keep = [i for i, n in enumerate(post.names) if not n.startswith("z_thickness")]
+    keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
     corner_plot(post.samples[:, keep], [post.names[i] for i in keep], out / "corner.png",
                 title=f"{data}: effects {effects or 'none'}")
     written = {"chain": str(chain), "posterior": str(out / "posterior.json"), "inference_data": str(out / "posterior.nc"),
@@ -126,7 +127,8 @@ EFFECTS = typer.Option(None, "--effects", help="Active effect (repeat for severa
 PHYSICS = typer.Option("exact", help="Force model where the model meets the data: exact (simulator planes of "
                        "the measured membranes, at simulator accuracy) | emulator (neural emulator, ~1 N error) | "
                        "standin (no physics; tests).")
-LIKELIHOOD = typer.Option("gaussian", help="gaussian | student_t")
+LIKELIHOOD = typer.Option("student_t", help="student_t (nu = 4: robust to rows the model cannot hold, e.g. a "
+                                              "lifted plate mid snap-through or at the rig's top stop) | gaussian")
 SEED = typer.Option(0, help="Random seed.")
 RESUME = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists.")
 ALLOW_OUTSIDE = typer.Option(False, "--allow-outside-design-space",
@@ -139,7 +141,7 @@ def register(app: typer.Typer) -> None:
         data: List[Path] = DATA,
         out: Path = typer.Option(..., help="Output folder (chain.h5, posterior.json/.npz, corner.png)."),
         effects: Optional[List[str]] = EFFECTS,
-        steps: int = typer.Option(3000, "--mcmc-steps", min=1, help="emcee chain length (total; a rerun resumes)."),
+        steps: int = typer.Option(3000, "--mcmc-steps", min=1, help="Most emcee steps (total; a rerun resumes); sampling stops earlier once the chain is >= 50 autocorrelation times long."),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: max(32, 2 dim + 2))."),
         max_rows: int = typer.Option(3000, min=10, help="Rows used by the likelihood (evenly within trials)."),
         physics: str = PHYSICS,
@@ -157,7 +159,7 @@ def register(app: typer.Typer) -> None:
         data: List[Path] = DATA,
         out: Path = typer.Option(..., help="Output folder."),
         effects: Optional[List[str]] = EFFECTS,
-        steps: int = typer.Option(2000, "--mcmc-steps", min=1, help="emcee chain length (total; a rerun resumes)."),
+        steps: int = typer.Option(2000, "--mcmc-steps", min=1, help="Most emcee steps (total; a rerun resumes); sampling stops earlier once the chain is >= 50 autocorrelation times long."),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: automatic)."),
         max_rows: int = typer.Option(1500, min=10, help="Rows used by the likelihood."),
         physics: str = PHYSICS,

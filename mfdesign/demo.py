@@ -39,11 +39,11 @@ class DemoSettings:
     """Sizes of every stage (defaults: the full demo)."""
 
     # Calibration and diagnosis run on exact physics (simulator planes of the six bundled
-    # membranes, solved once and cached). Measured (session 7): an emcee step of 32 walkers
-    # on 1,500 rows costs ~0.1 s on the grown lattice (3,000 steps: 522 s), and the chain
-    # needs ~200 tau-steps x 50: the full demo's time at these sizes is NOT measured yet
-    # and will exceed 5 minutes until the step cost or tau comes down.
-    mcmc_steps: int = 6000
+    # membranes, solved once and cached). emcee stops once the chain is 50 autocorrelation
+    # times long (``mcmc_steps`` is the most it may take): with the Laplace independence
+    # move and the centred thickness latents tau is ~20-30 steps (session 8), so ~1,500
+    # steps at ~0.05 s each.
+    mcmc_steps: int = 4000
     walkers: int = 32
     max_rows: int = 1500
     delta_members: int = 8
@@ -209,9 +209,9 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
         post = fit_.posterior
         table = post.summary()
         outputs.write_text(d / "posterior.json", json.dumps(post.to_json(), indent=1, default=str))
-        keep = [i for i, n in enumerate(post.names) if not n.startswith("z_thickness")]
+        keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
         corner_plot(post.samples[:, keep], [post.names[i] for i in keep], d / "corner.png")
-        rows = table[~table["parameter"].str.startswith("z_thickness")]
+        rows = table  # with the per-membrane thickness rows: spurious latents show there
         return [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
                 for r in rows[["parameter", "unit", "median", "q05", "q95"]].to_dict("records")]
 

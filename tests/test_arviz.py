@@ -55,7 +55,7 @@ def test_netcdf_roundtrip_gives_constrained_values_and_groups(fitted, tmp_path):
     assert mu.dims == ("chain", "draw") and mu.shape == post.chain.shape[1::-1]
     assert 20e3 < float(mu.mean()) < 50e3 and mu.attrs["units"] == "Pa"  # physical, not log(mu / prior) ~ 0.16
     np.testing.assert_allclose(np.sort(mu.values.ravel()), np.sort(post.samples[:, model.names.index("mu_pa")]))
-    assert idata.posterior["z_thickness"].dims == ("chain", "draw", "membrane")
+    assert idata.posterior["thickness"].dims == ("chain", "draw", "membrane")
     assert list(idata.posterior["membrane"].values) == list(post.design_keys)
     off = idata.posterior["pressure_sensor.offset_pa"]
     assert 50 < float(off.mean()) < 300  # the hidden offset of the virtual rig, 150 Pa
@@ -63,9 +63,10 @@ def test_netcdf_roundtrip_gives_constrained_values_and_groups(fitted, tmp_path):
     ll = idata.log_likelihood["force_n"]
     n_rows = int((np.asarray(data.weight) > 0).sum())
     assert ll.dims == ("chain", "draw", "row") and ll.shape[2] == n_rows
-    x0 = np.array([float(idata.posterior[n][0, 0]) for n in model.names if not n.startswith("z_")]
-                  + list(idata.posterior["z_thickness"][0, 0].values))
-    order = [n for n in model.names if not n.startswith("z_")] + [n for n in model.names if n.startswith("z_")]
+    x0 = np.array([float(idata.posterior[n][0, 0]) for n in model.names if not n.startswith("thickness[")]
+                  + list(idata.posterior["thickness"][0, 0].values))
+    order = ([n for n in model.names if not n.startswith("thickness[")]
+             + [n for n in model.names if n.startswith("thickness[")])
     x0 = x0[[order.index(n) for n in model.names]]
     np.testing.assert_allclose(float(ll[0, 0].sum()), float(model.log_lik(x0, data)), rtol=1e-8)
     assert idata.posterior_predictive["force_n"].shape == ll.shape

@@ -76,7 +76,7 @@ def pair_plot(posterior, path, truths=None, names: Sequence[str] | None = None, 
 
     ``truths``: a dict ``{name: value}`` (parameters not in it get no line) or a sequence
     in the order of the plotted names; drawn as lines. For a Posterior the per-membrane
-    latents ``z_thickness[*]`` are left out unless ``names`` asks for them.
+    latents ``thickness[*]`` are left out unless ``names`` asks for them.
     """
     try:
         import corner
@@ -89,7 +89,7 @@ def pair_plot(posterior, path, truths=None, names: Sequence[str] | None = None, 
 
     if hasattr(posterior, "samples") and hasattr(posterior, "names"):
         all_names = list(posterior.names)
-        names = list(names) if names is not None else [n for n in all_names if not n.startswith("z_thickness")]
+        names = list(names) if names is not None else [n for n in all_names if not n.startswith("thickness[")]
         missing = [n for n in names if n not in all_names]
         if missing:
             raise KeyError(f"no parameter(s) {missing}; parameters: {all_names}")

@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from mfdesign.models.hierarchical import LATENT
+
 __all__ = ["Posterior", "arviz_diagnostics", "load_inference_data", "save_inference_data"]
 
 NETCDF_NAME = "posterior.nc"
@@ -65,28 +67,25 @@ class Posterior:
         return np.median(self.samples, axis=0)
 
     def derived(self) -> tuple[list[str], list[str], np.ndarray]:
-        """Per-membrane relative thickness ``t_m = thickness_sd z_m`` [S, M] (if latent)."""
-        if "thickness_sd" not in self.names:
+        """Per-membrane relative thickness ``t_m`` [S, M] (if latent), named by design key."""
+        if f"{LATENT}0]" not in self.names:
             return [], [], np.zeros((len(self.samples), 0))
-        sd = self.samples[:, self.names.index("thickness_sd")]
-        k = self.names.index("z_thickness[0]")
-        z = self.samples[:, k:k + len(self.design_keys)]
+        k = self.names.index(f"{LATENT}0]")
         names = [f"thickness_rel {key}" for key in self.design_keys]
-        return names, ["1"] * len(names), sd[:, None] * z
+        return names, ["1"] * len(names), self.samples[:, k:k + len(names)]
 
     def summary(self) -> pd.DataFrame:
         """One row per parameter (and derived per-membrane thickness): unit, median, 5 / 95 %
         and 2.5 / 97.5 % quantiles, MAP."""
         d_names, d_units, d_samples = self.derived()
-        keep = [i for i, n in enumerate(self.names) if not n.startswith("z_thickness")]
+        keep = [i for i, n in enumerate(self.names) if not n.startswith(LATENT)]
         names = [self.names[i] for i in keep] + d_names
         units = [self.units[i] for i in keep] + d_units
         samples = np.concatenate([self.samples[:, keep], d_samples], axis=1)
         x_map = list(self.x_map[keep])
         if d_names:
-            sd = self.x_map[self.names.index("thickness_sd")]
-            k = self.names.index("z_thickness[0]")
-            x_map += list(sd * self.x_map[k:k + len(d_names)])
+            k = self.names.index(f"{LATENT}0]")
+            x_map += list(self.x_map[k:k + len(d_names)])
         q = np.quantile(samples, [0.5, 0.05, 0.95, 0.025, 0.975], axis=0)
         return pd.DataFrame({"parameter": names, "unit": units, "median": q[0], "q05": q[1], "q95": q[2],
                              "q025": q[3], "q975": q[4], "map": x_map})
@@ -127,7 +126,7 @@ class Posterior:
                           max_rows: int | None = 3000):
         """An ``arviz.InferenceData`` in physical units, dims ``chain x draw`` (walkers as chains).
 
-        Groups: ``posterior`` (one variable per parameter, ``z_thickness`` as one variable
+        Groups: ``posterior`` (one variable per parameter, ``thickness`` (the per-membrane latents) as one variable
         over ``membrane``; each with its ``units`` attribute), ``sample_stats`` (``lp``: the
         log posterior). With ``model`` (the :class:`~mfdesign.models.hierarchical.HierarchicalModel`
         that was sampled) and ``data`` (its ``CalibrationData``, or Measurements: then the
@@ -155,14 +154,14 @@ class Posterior:
             x, lp = x[:, ::step], lp[:, ::step]
             n_draw = x.shape[1]
         posterior, dims, units = {}, {}, {}
-        z = [i for i, n in enumerate(self.names) if n.startswith("z_thickness[")]
+        z = [i for i, n in enumerate(self.names) if n.startswith(LATENT)]
         for i, name in enumerate(self.names):
             if i not in z:
                 posterior[name], units[name] = x[..., i], self.units[i]
         coords: dict[str, Any] = {}
         if z:
-            posterior["z_thickness"], units["z_thickness"] = x[..., z], self.units[z[0]]
-            dims["z_thickness"] = ["membrane"]
+            posterior["thickness"], units["thickness"] = x[..., z], self.units[z[0]]
+            dims["thickness"] = ["membrane"]
             coords["membrane"] = list(self.design_keys) if len(self.design_keys) == len(z) else list(range(len(z)))
         groups: dict[str, Any] = {"posterior": posterior, "sample_stats": {"lp": lp}}
         if model is not None and data is not None:

@@ -74,8 +74,11 @@ class MFFit:
 
 def fit_multi_fidelity(table, force_model, effects=(), *, n_steps: int = 2000, n_walkers: int | None = None,
                        max_rows: int = 1500, chain_path=None, ensemble_config=None, seed: int = 0,
-                       progress: bool = True, likelihood: str = "gaussian", pool=None) -> MFFit:
-    """Calibrate on ``table`` (Measurements), fit delta on the residuals, build the predictive."""
+                       progress: bool = True, likelihood: str = "student_t", pool=None,
+                       stop_when_converged: bool = True) -> MFFit:
+    """Calibrate on ``table`` (Measurements), fit delta on the residuals, build the predictive
+    (``n_steps``: the most emcee steps; see :func:`~mfdesign.calibrate.calibrate` for
+    ``stop_when_converged``)."""
     from mfdesign.calibrate import calibrate
     from mfdesign.models.ensemble import EnsembleConfig
     from mfdesign.models.hierarchical import CalibrationData, fit_discrepancy
@@ -88,7 +91,7 @@ def fit_multi_fidelity(table, force_model, effects=(), *, n_steps: int = 2000, n
     data = data.padded(max(len(data), max_rows + n_trials))  # equal shapes across folds: one compile
     model = model_for(force_model, data, effects, likelihood=likelihood)
     post = calibrate(data, model, n_steps=n_steps, n_walkers=n_walkers, chain_path=chain_path, seed=seed,
-                     progress=progress, pool=pool)
+                     progress=progress, pool=pool, stop_when_converged=stop_when_converged)
     if post.force_model is not None:  # the exact model's lattice grew to hold the posterior
         model = eqx.tree_at(lambda m: m.force_model, model, post.force_model)
     cfg = ensemble_config or EnsembleConfig(n_members=8, steps=3000, monotone=False)

@@ -153,6 +153,23 @@ def _fill_zero_pressure(f: np.ndarray) -> np.ndarray:
     return f
 
 
+def _fill_above_no_contact(f: np.ndarray) -> np.ndarray:
+    """Unsolved nodes straight above a no-contact node (negative signed force) in the same
+    pressure column: there the membrane does not reach the plate either (it reaches less
+    high at the same pressure), so the recorded force is 0. The signed force needs a
+    number for the interpolation; it continues the column's descent (never rises), so it
+    stays negative and clips to 0. Seen at 75-77.5 mm on a two-ring membrane whose
+    shooting cannot pull it that high at any pressure: left NaN, these nodes blanked the
+    rows at 70 mm of that membrane as soon as a lattice coordinate moved off a node."""
+    f = f.copy()
+    for i in range(2, f.shape[0]):
+        below, below2 = f[i - 1], f[i - 2]
+        fill = ~np.isfinite(f[i]) & np.isfinite(below) & (below < 0)
+        step = np.where(np.isfinite(below2), np.minimum(below - below2, 0.0), 0.0)
+        f[i] = np.where(fill, below + step, f[i])
+    return f
+
+
 _MEMO: dict[str, np.ndarray] = {}
 REPAIR_BATCH = 64  # unconverged plane nodes re-solved per call (one compiled size)
 
@@ -195,7 +212,7 @@ def solve_planes(jobs: Sequence[tuple[Membrane, SimParams]], grid: PlaneGrid, ca
             try:
                 arr = np.load(path, allow_pickle=False)
                 if arr.shape == (grid.h.size, grid.p.size):
-                    _MEMO[k] = arr
+                    _MEMO[k] = _fill_above_no_contact(arr)
                     continue
             except (OSError, ValueError):
                 pass  # a torn or foreign file: solve again and overwrite it
@@ -212,6 +229,7 @@ def solve_planes(jobs: Sequence[tuple[Membrane, SimParams]], grid: PlaneGrid, ca
                 tmp = folder / f".{k}.{os.getpid()}.npy"
                 np.save(tmp, _MEMO[k], allow_pickle=False)
                 os.replace(tmp, folder / f"{k}.npy")  # atomic: a reader never sees half a plane
+            _MEMO[k] = _fill_above_no_contact(_MEMO[k])
     return [_MEMO[k] for k in keys]
 
 
