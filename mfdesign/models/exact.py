@@ -226,7 +226,7 @@ class ExactForceModel(ForceModel):
     def _axis_names(self) -> set[str]:
         return {a.name for a in self.tensor_axes + self.additive_axes}
 
-    def covers(self, params: SimParams, margin: int = 0) -> bool:
+    def covers(self, params: SimParams, margin: float = 0) -> bool:
         """Whether the lattice holds every constant in ``params`` (fields of any shape) with
         ``margin`` nodes to spare on each side (short of an axis' hard limit)."""
         box = self._box(params)

@@ -49,7 +49,7 @@ class ForceModel(eqx.Module):
         """Plate heights [mm] and gauge pressures [Pa] the model vouches for."""
         return {"height_mm": (0.0, float("inf")), "pressure_pa": (0.0, float("inf"))}
 
-    def covers(self, params: SimParams, margin: int = 0) -> bool:
+    def covers(self, params: SimParams, margin: float = 0) -> bool:
         """Whether the model vouches for every constant in ``params`` (fields of any shape),
         ``margin`` lattice nodes inside its edge (for lattice-based models)."""
         return True
