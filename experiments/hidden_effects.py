@@ -114,7 +114,7 @@ def run_case(hidden, seed, physics, sample_hz):
     after = d.after.rmse_n if d.after is not None else d.before.rmse_n
     if outside:  # no library effect is the truth: nothing to rank, the truth's own rows are the oracle
         hidden = (NARROW_RINGS,)
-        oracle = float("nan")
+        oracle = None
     return {
         "hidden": list(hidden), "seed": seed, "rows": len(meas), "outside_library": outside,
         "after_over_noise": after / floor,
@@ -129,7 +129,7 @@ def run_case(hidden, seed, physics, sample_hz):
         "rmse_before_n": d.before.rmse_n, "noise_floor_n": d.before.noise_floor_n,
         "heldout_rmse_after_n": heldout,
         "heldout_over_noise": heldout / d.before.noise_floor_n,
-        "oracle_rmse_n": oracle, "heldout_over_oracle": heldout / oracle,
+        "oracle_rmse_n": oracle, "heldout_over_oracle": None if oracle is None else heldout / oracle,
         "verdicts": [s["verdict"]["words"] for s in d.steps], "seconds": time.time() - t0,
     }
 
@@ -160,7 +160,8 @@ def summarise(cases):
                                                     for c in single]),
         "max_heldout_over_noise": max((c["heldout_over_noise"] for c in single), default=None),
         "heldout_within_1.2x_oracle": frac([c["heldout_over_oracle"] <= 1.2 for c in single if "heldout_over_oracle" in c]),
-        "noise_floor_over_oracle": [round(c["noise_floor_n"] / c["oracle_rmse_n"], 3) for c in cases if "oracle_rmse_n" in c],
+        "noise_floor_over_oracle": [round(c["noise_floor_n"] / c["oracle_rmse_n"], 3) for c in cases
+                                    if c.get("oracle_rmse_n")],
         "two_effect_cases": len(pairs), "two_effect_both_found": frac([c["all_found"] for c in pairs]),
         "clean_cases": len(clean), "false_positive_rate": frac([c["false_positive"] for c in clean]),
         "right_set_claimed": frac([sorted(c["found"]) == sorted(c["hidden"]) for c in single + pairs]
