@@ -196,7 +196,9 @@ def plot(summary, cases, path):
     ax.set_xticks(range(len(effects)), effects, rotation=30, ha="right")
     ax.set_ylabel("RMSE / noise floor")
     ax.set_yscale("log")
-    ax.set_title(f"hidden effects: x before, dot after (green = claimed first); screen top-1 {summary['ranking_accuracy']:.2f}")
+    top1 = summary["ranking_accuracy"]
+    ax.set_title("hidden effects: x before, dot after (green = claimed first)"
+                 + (f"; screen top-1 {top1:.2f}" if top1 is not None else ""))
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
