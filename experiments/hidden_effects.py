@@ -86,6 +86,7 @@ def run_case(hidden, seed, physics, sample_hz):
     from mfdesign.diagnose.emulated import forward_model
     from mfdesign.diagnose.pipeline import diagnose
     from mfdesign.physics import effects as fx
+    from mfdesign.physics.planes import cache_dir
     from mfdesign.rig.virtual import Protocol, VirtualRig
 
     truth = backend(physics)
@@ -95,7 +96,7 @@ def run_case(hidden, seed, physics, sample_hz):
     fine = {"height_step_mm": 2.0, "pressure_step_pa": 50.0} if physics == "emulator" else {}
     rig = VirtualRig(effects=list(hidden), theta=fx.typical_theta(hidden), seed=seed, simulator=truth,
                      protocol=Protocol(deflate=True, sample_hz=sample_hz, **fine),
-                     cache_dir=ROOT / "experiments" / "out" / "cache" / "rig_planes")
+                     cache_dir=cache_dir().parent / "rig_planes")  # $MFDESIGN_CACHE_DIR/rig_planes
     t0 = time.time()
     meas = rig.run([Membrane.from_key(k) for k in DESIGNS], progress=False)
     sim = forward_model(physics, meas)
