@@ -263,42 +263,44 @@ ADAPT_STEPS = 200  # first stage of the default moves (see calibrate)
 ADAPTED_SHARE = 0.8  # of the second stage's steps: independence proposals fitted to the walkers
 
 
+def _mixture(mean, cov, share: float, inflate: float) -> list:
+    """``share`` of the steps independence proposals (Student-t at ``mean`` with scale
+    ``cov``), the rest differential evolution and its snooker update (ter Braak 2006; ter
+    Braak & Vrugt 2008); DE alone where ``cov`` is not positive definite or ``share`` <= 0."""
+    import emcee
+
+    from mfdesign.calibration.laplace_move import LaplaceMove
+
+    de = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    if share <= 0:
+        return de
+    try:
+        lap = LaplaceMove(mean, cov, inflate=inflate)
+    except np.linalg.LinAlgError:
+        return de
+    if not np.all(np.isfinite(lap.chol)):
+        return de
+    return [(lap, share)] + [(m, (1 - share) * w) for m, w in de]
+
+
 def adapted_moves(draws: np.ndarray) -> list:
     """The second stage's moves: the independence proposal with the mean and covariance of
     ``draws`` [K, dim] (the first stage's second half) for ``ADAPTED_SHARE`` of the steps,
-    differential evolution for the rest (it keeps exploring where the Student-t fits
-    badly). DE alone when the covariance is singular."""
-    import emcee
-
-    from mfdesign.calibration.laplace_move import LaplaceMove
-
-    de = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
-    try:
-        lap = LaplaceMove(np.mean(draws, 0), np.cov(draws.T), inflate=1.2)
-    except np.linalg.LinAlgError:
-        return de
-    return [(lap, ADAPTED_SHARE)] + [(m, (1 - ADAPTED_SHARE) * w) for m, w in de]
+    differential evolution for the rest (it keeps exploring where the Student-t fits badly)."""
+    return _mixture(np.mean(draws, 0), np.cov(draws.T), ADAPTED_SHARE, inflate=1.2)
 
 
 def default_moves(result: MapResult, laplace_share: float | None = None) -> list:
-    """emcee moves: independence proposals from the Laplace approximation at the MAP
-    (:class:`~mfdesign.calibration.laplace_move.LaplaceMove`) for ``laplace_share`` of the
-    steps, the rest differential evolution and its snooker update (ter Braak 2006; ter
-    Braak & Vrugt 2008). DE alone where the Hessian is not positive definite."""
-    import emcee
-
-    from mfdesign.calibration.laplace_move import LaplaceMove
-
+    """emcee moves of the first stage: independence proposals from the Laplace
+    approximation at the MAP (:class:`~mfdesign.calibration.laplace_move.LaplaceMove`) for
+    ``laplace_share`` of the steps, differential evolution for the rest."""
     share = LAPLACE_SHARE if laplace_share is None else float(laplace_share)
-    de = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
     h = np.asarray(result.hessian)
     try:
-        lap = LaplaceMove(np.asarray(result.u), np.linalg.inv(0.5 * (h + h.T)))
+        cov = np.linalg.inv(0.5 * (h + h.T))
     except np.linalg.LinAlgError:
-        return de
-    if share <= 0 or not np.all(np.isfinite(lap.chol)):
-        return de
-    return [(lap, share)] + [(m, (1 - share) * w) for m, w in de]
+        return _mixture(None, None, 0.0, 1.0)
+    return _mixture(np.asarray(result.u), cov, share, inflate=1.3)
 
 
 def convergence_report(sampler, names: Sequence[str], min_ratio: float = MIN_TAU_RATIO,
