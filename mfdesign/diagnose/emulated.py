@@ -304,11 +304,13 @@ class EmulatorModel:
         P = np.zeros((len(names), k))
         for j, f in enumerate(free):
             P[names.index(f), j] = 1.0
-        # Around theta, not only at it: a mechanical effect at its neutral value moves no
+        # Beside theta, not only at it: a mechanical effect at its neutral value moves no
         # constant, so covering theta alone adds no lattice axis for it, and its derivative
-        # came out 0 (a hidden clamp pre-stretch was ranked 7th by the screen).
+        # came out 0 (a hidden clamp pre-stretch was ranked 7th by the screen). One side
+        # suffices (a one-node axis differentiates as a forward difference) and halves the
+        # planes a cold screen solves; a fit that goes the other way grows the axis there.
         steps = JACOBIAN_COVER_STEP * P[:, :len(free)].T
-        self._cover(meas, order, np.vstack([t[None], t + steps, t - steps]), rows)
+        self._cover(meas, order, np.vstack([t[None], t + steps]), rows)
         design, rws = self.data(meas)
         if rows is not None:
             design, rws = _take(design, rws, rows)

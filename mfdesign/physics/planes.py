@@ -171,7 +171,7 @@ def _fill_above_no_contact(f: np.ndarray) -> np.ndarray:
 
 
 _MEMO: dict[str, np.ndarray] = {}
-REPAIR_BATCH = 64  # unconverged plane nodes re-solved per call (one compiled size)
+REPAIR_BATCH = 8  # unconverged plane nodes re-solved per call: force_at's smallest size, shared with other callers
 
 
 def _repair(design: Membrane, params: SimParams, grid: PlaneGrid, f: np.ndarray, status: np.ndarray) -> None:
@@ -218,10 +218,14 @@ def solve_planes(jobs: Sequence[tuple[Membrane, SimParams]], grid: PlaneGrid, ca
                 pass  # a torn or foreign file: solve again and overwrite it
         todo[k] = job
     if todo:
-        results = force_planes(list(todo.values()), grid.h, grid.p[1:], signed=True, progress=progress)
-        for (k, (d, prm)), res in zip(todo.items(), results):
+        def repaired(job, res):
             f = np.asarray(res.force_n, float)
-            _repair(d, prm, grid, f, np.asarray(res.status))
+            _repair(*job, grid, f, np.asarray(res.status))
+            return f
+
+        results = force_planes(list(todo.values()), grid.h, grid.p[1:], signed=True, progress=progress,
+                               then=repaired)
+        for k, f in zip(todo, results):
             f = np.concatenate([np.full((grid.h.size, 1), np.nan), f], axis=1)
             _MEMO[k] = _fill_zero_pressure(f)
             if folder is not None:

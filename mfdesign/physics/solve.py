@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
-from typing import Sequence
+from typing import Any, Callable, Sequence
 
 import equinox as eqx
 import jax
@@ -157,25 +157,30 @@ def _point_outputs(x, geom, params, h, p_at, p_mpa):
 
 
 @eqx.filter_jit
-def _points_kernel(geom, params, h, p_mpa, n_steps: int, descend: bool = False):
-    """Scattered points: each gets its own path ``p * k / n_steps``, k = 1..n_steps; with
-    ``descend`` the path runs at ``LOW_HEIGHT_MM`` and the plate is then lowered to ``h``."""
+def _points_kernel(geom, params, h, p_mpa, n_steps: int):
+    """Scattered points: each gets its own path ``p * k / n_steps``, k = 1..n_steps; a point
+    below ``LOW_HEIGHT_MM`` runs its path there and the plate is then lowered to ``h``.
+
+    One kernel for both kinds (the descent is masked off above ``LOW_HEIGHT_MM``, at the
+    cost of ``DESCENT_STEPS`` residual evaluations): a kernel per kind compiled twice per
+    ring count, ~4 s each, most of a cold plane repair."""
 
     def one(hh, pp):
         path = pp * jnp.arange(1, n_steps + 1) / n_steps
-        h_path = jnp.maximum(hh, LOW_HEIGHT_MM) if descend else hh
+        low = hh < LOW_HEIGHT_MM
+        h_path = jnp.maximum(hh, LOW_HEIGHT_MM)
         xs, conv, passed = _path(geom, params, h_path, path)
         x, p_at = _last_good(xs, conv, path)
-        conv_end, h_at = conv[-1], h_path
-        if descend:
-            x_low, conv_low = _descend(x, geom, params, h_path, hh, pp, active=conv_end)
-            x = jnp.where(conv_end & conv_low, x_low, x)
-            h_at = jnp.where(conv_end & conv_low, hh, h_path)
-            conv_end = conv_end & conv_low
+        conv_end = conv[-1]
+        x_low, conv_low = _descend(x, geom, params, h_path, hh, pp, active=conv_end & low)
+        down = low & conv_end & conv_low
+        x = jnp.where(down, x_low, x)
+        h_at = jnp.where(down, hh, h_path)
+        conv_end = jnp.where(low, down, conv_end)
         force, wrinkled, locking, rise, ok_prof = _point_outputs(x, geom, params, h_at, p_at, pp)
         # No converged state on the whole path: nothing is known about locking.
         locking = jnp.where(jnp.any(conv), locking, jnp.nan)
-        return conv_end, passed[-1], force, wrinkled, locking, rise, ok_prof
+        return conv_end, passed[-1], force, wrinkled, locking, rise, ok_prof, x
 
     return jax.vmap(one)(h, p_mpa)
 
@@ -301,24 +306,18 @@ def force_at(
     if hs.size == 0:
         empty = np.zeros(shape_)
         return SimResult(empty, empty.astype(np.int8), empty, empty, empty.astype(bool))
-    geom = sh.geometry_of(design)
-    params = _traced(params)
-    low = hs < LOW_HEIGHT_MM
-    out = [None] * 7
-    for group in (~low, low):  # two batches: the low points descend (module constants)
-        idx = np.nonzero(group)[0]
-        if not idx.size:
-            continue
-        m = idx.size
-        got = _points_kernel(geom, params, jnp.asarray(_pad(hs[idx], m)),
-                             jnp.asarray(_pad(ps[idx], m)) * PA_TO_MPA, path_steps, bool(group is low))
-        for k, o in enumerate(got):
-            o = np.asarray(o)[:m]
-            if out[k] is None:
-                out[k] = np.empty(hs.shape, o.dtype)
-            out[k][idx] = o
-    res = _classify(h.ravel(), p.ravel(), *out, signed=signed)
+    out = _solve_points(design, hs, ps, params, path_steps)
+    res = _classify(h.ravel(), p.ravel(), *out[:7], signed=signed)
     return jax.tree.map(lambda a: a.reshape(shape_), res)
+
+
+def _solve_points(design: Membrane, hs: np.ndarray, ps_pa: np.ndarray, params: SimParams, path_steps: int) -> list:
+    """``_points_kernel``'s outputs (last: the shooting state) at sanitised points, the batch
+    padded to a power of two so that few compiled sizes serve every caller."""
+    n = hs.size
+    got = _points_kernel(sh.geometry_of(design), _traced(params), jnp.asarray(_pad(hs, n)),
+                         jnp.asarray(_pad(ps_pa, n)) * PA_TO_MPA, path_steps)
+    return [np.asarray(o)[:n] for o in got]
 
 
 def _traced(params: SimParams) -> SimParams:
@@ -466,7 +465,8 @@ def force_planes(
     p_grid_pa: Sequence[float],
     signed: bool = False,
     progress: bool = False,
-) -> list[SimResult]:
+    then: Callable[[tuple[Membrane, SimParams], SimResult], Any] | None = None,
+) -> list:
     """:func:`force_plane` of many ``(design, params)`` jobs on one grid, using every local
     core or device (:func:`n_workers`).
 
@@ -476,8 +476,11 @@ def force_planes(
         p_grid_pa: gauge pressures [Pa], strictly increasing.
         signed: keep the negative force of ``NO_CONTACT`` points (see :func:`force_plane`).
         progress: a tqdm bar over the jobs.
+        then: run on each ``(job, SimResult)`` in the same worker as its plane, its value
+            returned in the result's place (post-processing such as re-solving unconverged
+            nodes: its own compilations then overlap with other workers' planes).
 
-    Returns one :class:`SimResult` per job, in order. On a single-device CPU the jobs run
+    Returns one :class:`SimResult` (or ``then``'s value) per job, in order. On a single-device CPU the jobs run
     on one thread per core (each plane in one piece); with several devices each plane's
     heights are sharded across them (``jax.sharding``). A cluster runs the same function
     over slices of the job list (e.g. one Dask or Ray task per slice); nothing here
@@ -491,7 +494,8 @@ def force_planes(
             from tqdm.auto import tqdm
 
             it = tqdm(jobs, desc="simulator planes", unit="plane")
-        return [force_plane(d, h_grid_mm, p_grid_pa, prm, signed=signed) for d, prm in it]
+        out = [force_plane(d, h_grid_mm, p_grid_pa, prm, signed=signed) for d, prm in it]
+        return out if then is None else [then(job, res) for job, res in zip(jobs, out)]
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -501,6 +505,8 @@ def force_planes(
     def run(job):
         d, prm = job
         res = force_plane(d, h_grid_mm, p_grid_pa, prm, signed=signed, parts=1)
+        if then is not None:
+            res = then(job, res)
         if bar is not None:
             bar.update(1)
         return res
@@ -702,7 +708,7 @@ def _final_state(geom, params, h, p_mpa):
     return jnp.where(conv, x, xs[-1])
 
 
-_final_state_jit = eqx.filter_jit(_final_state)
+_profile_jit = eqx.filter_jit(sh.profile)
 
 
 @eqx.filter_jit
@@ -742,12 +748,16 @@ class Shape(eqx.Module):
 
 def shape(design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimParams(), n_per_segment: int = 64) -> Shape:
     """The deformed membrane at plate height ``h_mm`` [mm] and pressure ``p_pa`` [Pa]."""
-    res = force_at(design, np.array([h_mm]), np.array([p_pa]), params)
+    h, p = np.array([float(h_mm)]), np.array([float(p_pa)])
+    # The scattered-point kernel gives the state too: one compiled program per ring count,
+    # shared with force_at and the plane repairs (a separate state kernel cost a cold
+    # diagnosis two more compilations).
+    out = _solve_points(design, *_sanitize(h, p), params, PATH_STEPS)
+    res = _classify(h, p, *out[:7])
     geom = sh.geometry_of(design)
     params = _traced(params)
-    p_mpa = float(p_pa) * PA_TO_MPA
-    x = np.asarray(_final_state_jit(geom, params, jnp.asarray(float(h_mm)), jnp.asarray(p_mpa)))
-    r, y, w1, w2, _, _ = sh.profile(jnp.asarray(x), geom, params, h_mm, p_mpa, n_save=n_per_segment)
+    r, y, w1, w2, _, _ = _profile_jit(jnp.asarray(out[7][0]), geom, params, jnp.asarray(float(h_mm)),
+                                      jnp.asarray(float(p_pa) * PA_TO_MPA), n_save=n_per_segment)
     segs = sh.segments(geom, params)
     t = jnp.repeat(segs.seg.t_mm, n_per_segment)
     r, y, w1, w2, t = (np.asarray(v) for v in (r, y, w1, w2, t))
