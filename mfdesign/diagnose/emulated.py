@@ -155,6 +155,13 @@ def _fit_batch(force_model, order, names, base, h_max, p_max, design, rows, obs,
     return jax.lax.map(lambda a: one(*a), (t0, P, w, tau, x0))
 
 
+def _row_params(order, names, base: SimParams, rows: fx.Rows, thetas) -> SimParams:
+    """Simulator constants of every row at each parameter vector of ``thetas`` [B, n]."""
+    thetas = jnp.atleast_2d(jnp.asarray(thetas, float))
+    return jax.vmap(lambda th: fx.apply_row_sim_params(order, {n: th[i] for i, n in enumerate(names)},
+                                                        base, rows))(thetas)
+
+
 def _rows_of(meas: Measurements) -> tuple[jax.Array, fx.Rows]:
     df = meas._df
     keys = df["design_key"].to_numpy(object).astype(str)
@@ -219,11 +226,7 @@ class EmulatorModel:
         _, rws = self.data(meas)
         if rows is not None:
             rws = rws.take(jnp.asarray(rows))
-        names = self.names(order)
-        base = self.base_params
-        thetas = np.atleast_2d(np.asarray(thetas, float))
-        params = jax.vmap(lambda th: fx.apply_row_sim_params(order, {n: th[i] for i, n in enumerate(names)},
-                                                              base, rws))(jnp.asarray(thetas))
+        params = _row_params(order, self.names(order), self.base_params, rws, thetas)
         self.force_model = self.force_model.covering(params, progress=self.progress)
 
     # -- layout ---------------------------------------------------------------------------------
@@ -369,10 +372,20 @@ def forward_model(physics: str, meas: Measurements, *, cache=None, progress: boo
         if len(df) == 0:
             raise ValueError("no rows to diagnose")
         h = query_heights(meas)
+        # The screen differentiates every candidate at neutral (a step of each parameter,
+        # :meth:`EmulatorModel.jacobian`): its planes are solved with the reference ones.
+        order = canonical_order()
+        names = EmulatorModel.names(order)
+        t0 = np.array([fx.neutral_theta(order)[n] for n in names], float)
+        steps = t0 + JACOBIAN_COVER_STEP * np.eye(len(names))
+        base = SimParams()
+        _, rows = _rows_of(meas)
+        some = np.unique(np.linspace(0, len(df) - 1, min(len(df), 256)).astype(int))  # per-row effects vary
+        also = _row_params(order, names, base, rows.take(jnp.asarray(some)), steps)
         fm = build_exact(tuple(dict.fromkeys(df["design_key"])), h_max_mm=float(np.nanmax(h)),
                          p_max_pa=float(df["pressure_pa"].max()), outside="clamp", grow="additive", cache=cache,
-                         progress=progress)
-        return EmulatorModel(fm, progress=progress)
+                         progress=progress, base=base, also=also)
+        return EmulatorModel(fm, base_params=base, progress=progress)
     if physics == "emulator":
         return EmulatorModel(None, progress=progress)
     if physics == "standin":

@@ -207,21 +207,7 @@ class ExactForceModel(ForceModel):
                 "thickness_factor": (0.85, 1.15)}
 
     def _box(self, params: SimParams) -> dict[str, tuple[float, float]]:
-        """Coordinate range per axis of ``params`` (fields of any shape); axes whose
-        coordinate never leaves 0 are omitted, and ``ring`` when no design has rings."""
-        prm = jax.tree.map(lambda a: np.asarray(a, float), params)
-        # Fields batched as [K] (per draw) and [K, N] (per draw and row) align on the left.
-        nd = max(np.ndim(a) for a in jax.tree.leaves(prm))
-        prm = jax.tree.map(lambda a: a.reshape(a.shape + (1,) * (nd - a.ndim)), prm)
-        box = {}
-        for name, axis in pl.AXES.items():
-            if axis.ringed_only and not bool(np.any(np.asarray(self.ringed))):
-                continue
-            c = np.asarray(axis.coord(prm, self.base), float)
-            c = c[np.isfinite(c)]
-            if c.size and (np.max(np.abs(c)) > 1e-9 or name in self._axis_names()):
-                box[name] = (float(np.min(c)), float(np.max(c)))
-        return box
+        return _box_of(params, self.base, bool(np.any(np.asarray(self.ringed))), self._axis_names())
 
     def _axis_names(self) -> set[str]:
         return {a.name for a in self.tensor_axes + self.additive_axes}
@@ -331,6 +317,24 @@ class ExactForceModel(ForceModel):
         return jax.vmap(one)(m, ii, tt, ih, ip, th, tp)
 
 
+def _box_of(params: SimParams, base: SimParams, any_ringed: bool, axis_names=frozenset()) -> dict:
+    """Coordinate range per axis of ``params`` (fields of any shape); axes whose coordinate
+    never leaves 0 are omitted (unless in ``axis_names``), and ``ring`` without ringed designs."""
+    prm = jax.tree.map(lambda a: np.asarray(a, float), params)
+    # Fields batched as [K] (per draw) and [K, N] (per draw and row) align on the left.
+    nd = max(np.ndim(a) for a in jax.tree.leaves(prm))
+    prm = jax.tree.map(lambda a: a.reshape(a.shape + (1,) * (nd - a.ndim)), prm)
+    box = {}
+    for name, axis in pl.AXES.items():
+        if axis.ringed_only and not any_ringed:
+            continue
+        c = np.asarray(axis.coord(prm, base), float)
+        c = c[np.isfinite(c)]
+        if c.size and (np.max(np.abs(c)) > 1e-9 or name in axis_names):
+            box[name] = (float(np.min(c)), float(np.max(c)))
+    return box
+
+
 def _grown(axes, box):
     out = {}
     for a in axes:
@@ -355,13 +359,17 @@ def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progres
     t_nodes = {k: _ensure_two(pl.AXES[k], *v) for k, v in t_nodes.items()}
     # An additive axis is a difference from its reference node, which it must hold.
     a_nodes = {k: _ensure_two(pl.AXES[k], min(v[0], 0), max(v[1], 0)) for k, v in a_nodes.items()}
-    tensor = pl.lattice_planes(designs, base, t_nodes, grid, cache=cache, progress=progress)
+    # Every plane the lattice lacks in one solve (one pool over all cores, no tail per axis).
+    parts = [pl.lattice_jobs(designs, base, t_nodes)] + [pl.lattice_jobs(designs, base, {name: rng})
+                                                         for name, rng in a_nodes.items()]
+    planes = pl.solve_planes([j for jobs, _ in parts for j in jobs], grid, cache=cache, progress=progress)
+    stacked, at = [], 0
+    for jobs, stack in parts:
+        stacked.append(stack(planes[at:at + len(jobs)]))
+        at += len(jobs)
     lat = len(t_nodes)
-    tensor = _pad_ghosts(tensor, range(1, lat + 3))
-    additive = []
-    for name, rng in a_nodes.items():
-        arr = pl.lattice_planes(designs, base, {name: rng}, grid, cache=cache, progress=progress)
-        additive.append(jnp.asarray(_pad_ghosts(arr, range(1, 4))))
+    tensor = _pad_ghosts(stacked[0], range(1, lat + 3))
+    additive = [jnp.asarray(_pad_ghosts(arr, range(1, 4))) for arr in stacked[1:]]
     return ExactForceModel(
         designs=jnp.asarray(np.stack([d.to_array() for d in designs])),
         ringed=jnp.asarray([d.n_rings > 0 for d in designs]),
@@ -377,7 +385,8 @@ def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progres
 def build_exact(design_keys: Sequence[str], *, h_max_mm: float = 80.0, p_max_pa: float = 10_000.0,
                 tensor: Mapping[str, tuple[float, float]] | None = None,
                 additive: Mapping[str, tuple[float, float]] | None = None, base: SimParams = SimParams(),
-                outside: str = "nan", cache=None, progress: bool = False, grow: str = "tensor") -> ExactForceModel:
+                outside: str = "nan", cache=None, progress: bool = False, grow: str = "tensor",
+                also: SimParams | None = None) -> ExactForceModel:
     """An :class:`ExactForceModel` of the membranes ``design_keys``.
 
     Arguments:
@@ -395,6 +404,9 @@ def build_exact(design_keys: Sequence[str], *, h_max_mm: float = 80.0, p_max_pa:
         grow: where :meth:`ExactForceModel.covering` puts an axis the model did not vary yet:
             ``"tensor"`` (calibration: exact cross terms) or ``"additive"`` (diagnosis: one
             effect at a time, few planes).
+        also: constants (fields of any shape) to hold from the start, on new axes placed as
+            ``grow`` says: their planes are solved in one pool with the reference planes
+            (a later :meth:`ExactForceModel.covering` would solve them after, one more wait).
 
     Axes: see :data:`mfdesign.physics.planes.AXES` (``jm``, ``ring``, ``gradient``,
     ``prestretch``, ``offset``). Coordinate 0 is the reference.
@@ -409,4 +421,12 @@ def build_exact(design_keys: Sequence[str], *, h_max_mm: float = 80.0, p_max_pa:
     a_nodes = {k: pl.node_range(pl.AXES[k], *v) for k, v in (additive or {}).items()}
     if grow not in ("tensor", "additive"):
         raise ValueError(f"grow must be 'tensor' or 'additive', got {grow!r}")
+    if also is not None:
+        ringed = any(Membrane.from_key(k).n_rings > 0 for k in design_keys)
+        for name, (lo, hi) in _box_of(also, base, ringed).items():
+            nodes = t_nodes if name in t_nodes else a_nodes if name in a_nodes else (
+                t_nodes if grow == "tensor" else a_nodes)
+            k0, k1 = pl.node_range(pl.AXES[name], lo, hi)
+            old = nodes.get(name, (k0, k1))
+            nodes[name] = (min(old[0], k0), max(old[1], k1))
     return _assemble(tuple(design_keys), base, t_nodes, a_nodes, grid, outside, cache, progress, grow)

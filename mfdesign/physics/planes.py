@@ -248,11 +248,9 @@ def node_range(axis: Axis, lo: float, hi: float) -> tuple[int, int]:
     return k0, max(k0, k1)
 
 
-def lattice_planes(designs: Sequence[Membrane], base: SimParams, nodes: Mapping[str, tuple[int, int]],
-                   grid: PlaneGrid, cache=None, progress: bool = False) -> np.ndarray:
-    """Planes ``[M, n_1, ..., n_D, len(grid.h), len(grid.p)]`` on the tensor lattice of
-    ``nodes`` (axis name -> inclusive node index range), reference constants ``base`` with
-    ``mu`` as given and ``tf = 1``. A ringless membrane's ring axis repeats one plane."""
+def lattice_jobs(designs: Sequence[Membrane], base: SimParams, nodes: Mapping[str, tuple[int, int]]):
+    """The ``(design, params)`` jobs of :func:`lattice_planes`, and a function that stacks
+    their solved planes into its array."""
     names = list(nodes)
     axes = [AXES[n] for n in names]
     ranges = [range(nodes[n][0], nodes[n][1] + 1) for n in names]
@@ -266,11 +264,23 @@ def lattice_planes(designs: Sequence[Membrane], base: SimParams, nodes: Mapping[
                 params = a.at(params, k * a.step)
             jobs.append((d, params))
             where.append((m, *idx))
-    planes = solve_planes(jobs, grid, cache=cache, progress=progress)
-    out = np.empty((len(designs), *shape, grid.h.size, grid.p.size))
-    for w, f in zip(where, planes):
-        out[w] = f
-    return out
+
+    def stack(planes: Sequence[np.ndarray]) -> np.ndarray:
+        out = np.empty((len(designs), *shape, *planes[0].shape))
+        for w, f in zip(where, planes):
+            out[w] = f
+        return out
+
+    return jobs, stack
+
+
+def lattice_planes(designs: Sequence[Membrane], base: SimParams, nodes: Mapping[str, tuple[int, int]],
+                   grid: PlaneGrid, cache=None, progress: bool = False) -> np.ndarray:
+    """Planes ``[M, n_1, ..., n_D, len(grid.h), len(grid.p)]`` on the tensor lattice of
+    ``nodes`` (axis name -> inclusive node index range), reference constants ``base`` with
+    ``mu`` as given and ``tf = 1``. A ringless membrane's ring axis repeats one plane."""
+    jobs, stack = lattice_jobs(designs, base, nodes)
+    return stack(solve_planes(jobs, grid, cache=cache, progress=progress))
 
 
 def designs_of(keys: Iterable[str]) -> list[Membrane]:
