@@ -1,11 +1,12 @@
-"""Differentiable forward model of diagnosis: a JAX force model (the simulator's emulator) + the effects.
+"""Differentiable forward model of diagnosis: a JAX force model + the effects.
 
-:class:`EmulatorModel` has the interface of :class:`~mfdesign.diagnose.expected.PlaneSimulator`
-(``expected_force(meas, effects, theta) -> F [N] per row``, ``predict``) but evaluates a pure
-JAX ``force_model(design [N, 6] mm, h_mm [N], p_pa [N], SimParams) -> F [N]`` directly at every
-row instead of interpolating simulator planes: the emulator of the simulator
-(:func:`mfdesign.models.emulator.load_default`), or :func:`analytic_force` (the JAX twin of
-the virtual rig's cheap stand-in :func:`~mfdesign.rig.virtual.analytic_plane`, for tests).
+:class:`EmulatorModel` (``expected_force(meas, effects, theta) -> F [N] per row``, ``predict``,
+``jacobian``, ``fit``) evaluates a pure JAX ``force_model(design [N, 6] mm, h_mm [N], p_pa [N],
+SimParams) -> F [N]`` at every row: the exact model (simulator planes of the measured
+membranes, :mod:`mfdesign.models.exact`; the default of ``mfdesign diagnose``), the
+simulator's emulator (:func:`mfdesign.models.emulator.load_default`), or
+:func:`analytic_force` (the JAX twin of the virtual rig's cheap stand-in
+:func:`~mfdesign.rig.virtual.analytic_plane`, for tests). :func:`forward_model` builds one.
 
 The expected recorded force of a row recorded at ``(h, p)`` with effects ``theta`` is the
 calibration's likelihood model (:mod:`mfdesign.physics.effects`, "the likelihood side")::

@@ -22,7 +22,6 @@ import numpy as np
 
 from mfdesign.data.measurements import Measurements
 from mfdesign.diagnose.check import calibrate_effects, full_check, verdict
-from mfdesign.diagnose.expected import PlaneSimulator
 from mfdesign.diagnose.residuals import Residuals, breakdowns, compute_residuals, trend_words, worst_regions
 from mfdesign.diagnose.screen import screen
 from mfdesign.physics import effects as fx
@@ -64,13 +63,12 @@ def diagnose(meas: Measurements, sim=None,
              model: Callable[[Measurements], np.ndarray] | None = None, model_name: str = "simulator",
              effects: Sequence[str | fx.Effect] = (), theta: Mapping[str, Any] | None = None,
              candidates: Sequence[str] | None = None, search: bool = True, check_top: int = 3,
-             max_steps: int = 2, n_folds: int = 3, max_nfev: int = 30, max_nfev_mechanical: int | None = None,
-             progress: bool = False) -> Diagnosis:
+             max_steps: int = 2, n_folds: int = 3, progress: bool = False) -> Diagnosis:
     """Diagnose ``model`` (default: the plain simulator of ``sim``) on ``meas`` (module doc).
 
-    ``sim``: the forward model, :class:`~mfdesign.diagnose.emulated.EmulatorModel` (default:
-    the bundled emulator; exact autodiff screen, nonlinear refit) or
-    :class:`~mfdesign.diagnose.expected.PlaneSimulator` (simulator planes; linearised check).
+    ``sim``: the forward model, :class:`~mfdesign.diagnose.emulated.EmulatorModel` on a force
+    model (:func:`~mfdesign.diagnose.emulated.forward_model`: exact, emulator or stand-in;
+    default: the bundled emulator): autodiff screen, nonlinear refit.
 
     ``effects``: effects the user adds; their ``theta`` is calibrated unless every
     parameter is given in ``theta``. ``candidates``: effects the search may try (default:
@@ -94,19 +92,17 @@ def diagnose(meas: Measurements, sim=None,
             th = {k: float(given[k]) for k in needed}
             pred = sim.expected_force(meas, effects, th) + (0.0 if offset is None else offset)
         else:
-            th, pred = calibrate_effects(sim, meas, before, effects, given, offset, max_nfev=max_nfev)
+            th, pred = calibrate_effects(sim, meas, before, effects, given, offset)
         cur_res, cur_effects, cur_theta = compute_residuals(meas, pred), effects, th
         out.after, out.effects, out.theta = cur_res, [e.name for e in effects], th
     if not search:
         return out
     if candidates is not None:
         pool = list(candidates)
-    elif hasattr(sim, "jacobian"):  # exact back end: every effect with a likelihood hook
+    else:  # every effect with a likelihood hook
         from mfdesign.diagnose.emulated import likelihood_effects
 
         pool = likelihood_effects()
-    else:
-        pool = sorted(fx.EFFECTS)
     for _ in range(max_steps):
         names = [e.name for e in cur_effects]
         cands = [c for c in pool if c not in names]
@@ -120,7 +116,7 @@ def diagnose(meas: Measurements, sim=None,
         # base for the check: the current model (``offset`` carries a non-simulator base model)
         checks = full_check(sim, meas, cur_res, sets, theta0={**cur_theta, **{k: v for r in ranked[:check_top] for k, v in r.theta.items()}},
                             base_pred=None if offset is None else e0 + offset, n_folds=n_folds,
-                            max_nfev=max_nfev, max_nfev_mechanical=max_nfev_mechanical, progress=progress)
+                            progress=progress)
         v = verdict(cur_res, checks)
         out.steps.append({"base_effects": names, "screen": ranked, "checks": checks, "verdict": v})
         if v["status"] not in ("explained", "partly_explained"):

@@ -1,14 +1,11 @@
 """Fast effect screen: how much of the residual can each candidate effect explain, to first order?
 
 For a candidate effect with parameters ``theta`` (neutral ``theta0``), the sensitivity of
-the expected observed force at every recorded (h, p) is, on an exact (JAX) back end
-(:class:`~mfdesign.diagnose.emulated.EmulatorModel`), the derivative
-``J[:, j] = dF/dtheta_j (theta0)`` by forward-mode autodiff (``jax.jacfwd``; one call for
-every candidate's parameters at once); on the plane simulator it is the secant
-``J[:, j] = (F(theta0 + s_j e_j) - F(theta0)) / s_j`` with ``s_j`` the effect's realistic
-magnitude (``typical - neutral``; where that is 0, the prior's scale), through
-:meth:`~mfdesign.diagnose.expected.PlaneSimulator.expected_force` (finite differences of the
-simulator for mechanical effects, of the ``observe`` hook for measurement ones).
+the expected observed force at every recorded (h, p) is the derivative
+``J[:, j] = dF/dtheta_j (theta0)`` of the forward model
+(:meth:`~mfdesign.diagnose.emulated.EmulatorModel.jacobian`: forward-mode autodiff,
+``jax.jacfwd``, one call for every candidate's parameters at once; a mechanical effect
+differentiates through the exact model's lattice).
 
 The residuals are then regressed on ``J`` by prior-weighted (ridge) least squares,
 ``min |r - J d|^2 / s^2 + sum_j (d_j / tau_j)^2`` with ``s`` the noise floor and ``tau_j``
@@ -24,18 +21,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 
 from mfdesign.data.measurements import Measurements
-from mfdesign.diagnose.expected import PlaneSimulator
 from mfdesign.diagnose.residuals import Residuals, subsample
 from mfdesign.physics import effects as fx
 
+if TYPE_CHECKING:
+    from mfdesign.diagnose.emulated import EmulatorModel
+
 SCREEN_ROWS = 10000  # rows the screen differentiates at most
 
-__all__ = ["ScreenResult", "effect_jacobian", "parameter_scale", "parameter_step", "screen"]
+__all__ = ["ScreenResult", "parameter_scale", "parameter_step", "screen"]
 
 
 def parameter_scale(p: fx.Parameter) -> float:
@@ -55,29 +54,6 @@ def parameter_step(p: fx.Parameter) -> float:
     """Secant step: the realistic magnitude ``typical - neutral`` (prior scale if that is 0)."""
     s = float(p.typical - p.neutral)
     return s if s != 0.0 else parameter_scale(p)
-
-
-def effect_jacobian(sim: PlaneSimulator, meas: Measurements, eff: str | fx.Effect,
-                    base_effects: Sequence[str | fx.Effect] = (), base_theta: Mapping[str, Any] | None = None,
-                    f0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``(J [rows, k], steps [k])``: secant sensitivities [N per unit] of the expected observed
-    force to each parameter of ``eff`` at its neutral value (on top of ``base_effects``)."""
-    e = fx.effect(eff)
-    base_effects = [fx.effect(b) for b in base_effects]
-    if e.name in [b.name for b in base_effects]:
-        raise ValueError(f"effect {e.name!r} is already in the model")
-    base_theta = dict(base_theta or {})
-    steps = np.array([parameter_step(p) for p in e.parameters])
-    if hasattr(sim, "jacobian"):  # exact: autodiff at the neutral point
-        return sim.jacobian(meas, [e.qualified(p.name) for p in e.parameters], base_effects, base_theta), steps
-    if f0 is None:
-        f0 = sim.expected_force(meas, base_effects, base_theta)
-    cols = []
-    for p, s in zip(e.parameters, steps):
-        th = {**base_theta, **{e.qualified(q.name): q.neutral for q in e.parameters}}
-        th[e.qualified(p.name)] = p.neutral + s
-        cols.append((sim.expected_force(meas, [*base_effects, e], th) - f0) / s)
-    return np.stack(cols, axis=1), steps
 
 
 def lag1_autocorrelation(frame, r: np.ndarray) -> float:
@@ -150,7 +126,7 @@ def _fit_one(res: Residuals, J: np.ndarray, e: fx.Effect) -> ScreenResult:
     )
 
 
-def screen(res: Residuals, meas: Measurements, sim: PlaneSimulator,
+def screen(res: Residuals, meas: Measurements, sim: EmulatorModel,
            candidates: Sequence[str | fx.Effect] | None = None,
            base_effects: Sequence[str | fx.Effect] = (), base_theta: Mapping[str, Any] | None = None,
            progress: bool = False, max_rows: int = SCREEN_ROWS) -> list[ScreenResult]:
@@ -165,25 +141,12 @@ def screen(res: Residuals, meas: Measurements, sim: PlaneSimulator,
     cands = [fx.effect(c) for c in (candidates if candidates is not None else sorted(fx.EFFECTS))]
     cands = [c for c in cands if c.name not in names]
     rows = res.frame["row"].to_numpy()
-    if hasattr(sim, "jacobian"):  # exact: one jacfwd for every candidate parameter
-        free = [c.qualified(p.name) for c in cands for p in c.parameters]
-        J_all = sim.jacobian(meas, free, base, base_theta, rows=rows)
-        out, j = [], 0
-        for c in cands:
-            k = len(c.parameters)
-            out.append(_fit_one(res, J_all[:, j:j + k], c))
-            j += k
-        out.sort(key=lambda s: -s.explained_fraction)
-        return out
-    f0 = sim.expected_force(meas, base, base_theta)
-    it = cands
-    if progress:
-        from tqdm.auto import tqdm
-
-        it = tqdm(cands, desc="effect screen", unit="effect")
-    out = []
-    for c in it:
-        J, _ = effect_jacobian(sim, meas, c, base, base_theta, f0=f0)
-        out.append(_fit_one(res, J[rows], c))
+    free = [c.qualified(p.name) for c in cands for p in c.parameters]
+    J_all = sim.jacobian(meas, free, base, base_theta, rows=rows)  # one jacfwd for every candidate
+    out, j = [], 0
+    for c in cands:
+        k = len(c.parameters)
+        out.append(_fit_one(res, J_all[:, j:j + k], c))
+        j += k
     out.sort(key=lambda s: -s.explained_fraction)
     return out
