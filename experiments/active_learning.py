@@ -19,7 +19,9 @@ membranes (one per ring count, Latin hypercube in the unit cube, per seed), then
 * ``mf-rig``: the paper's acquisition (rig only) on the calibrated multi-fidelity model of
   issue 5 (``mfdesign.calibration.workflow.fit_multi_fidelity``: emcee calibration of mu,
   J_m, the thickness hierarchy and the ``--mf-effects`` through the simulator's emulator,
-  then an RPN discrepancy on the residuals). Default effect: ``pressure_sensor``, the one
+  or, with ``--simulator simulator``, through the exact force model (simulator planes of the
+  fabricated and held-out membranes; the acquisition then searches on the emulator), then
+  an RPN discrepancy on the residuals). Default effect: ``pressure_sensor``, the one
   ``mfdesign diagnose`` names on this rig's data (the demo finds it); ``--mf-effects``
   with no name runs the bare model. Its simulator fidelity is the pre-trained emulator, so
   sim runs would add nothing: rig only. Its acquisition runs on a 4 x 4 grid and refines
@@ -41,7 +43,7 @@ iterations. ``--quick`` swaps the simulator for the analytic stand-in
 ``--simulator emulator`` (default): the truth rig and the sim fidelity run on the
 simulator's emulator (0.5 % of the force range from the simulator, held out; planes in
 milliseconds instead of minutes), as the hidden-effect sweep does; ``--simulator simulator``
-runs the shooting simulator itself (planes cached in ``experiments/out/plane_cache``).
+runs the shooting simulator itself (planes cached in ``$MFDESIGN_CACHE_DIR/rig_planes``).
 A checkpoint per (seed, arm) after every iteration (``experiments/out/active_learning_runs/``)
 lets a killed run resume (same command), and lets arms run in parallel processes.
 
@@ -99,7 +101,9 @@ class Lab:
             sim = emulator_plane(load_default())
         else:
             sim = analytic_plane if simulator == "analytic" else None
-        cache = OUT / "plane_cache" if simulator == "simulator" else None
+        from mfdesign.physics.planes import cache_dir
+
+        cache = cache_dir().parent / "rig_planes" if simulator == "simulator" else None  # $MFDESIGN_CACHE_DIR
         self.simulator = simulator
         self.truth = VirtualRig(effects=[HIDDEN[0]], theta=HIDDEN[1], seed=777, simulator=sim, cache_dir=cache)
         self.nominal = VirtualRig(simulator=sim, cache_dir=cache)
@@ -110,16 +114,27 @@ class Lab:
         self.held = {k: v[::5] for k, v in held.items() if k in ("design", "height_mm", "pressure_pa", "force_n")}
 
     def simulator_rmse(self) -> float | None:
-        """Held-out RMSE [N] of the nominal simulator alone (the emulator at the truth's
-        constants, no data, no discrepancy): the zero-membrane reference of a physics model.
-        None unless the truth runs on the emulator."""
+        """Held-out RMSE [N] of the nominal simulator alone (the truth's physics at the
+        truth's constants, no data, no discrepancy): the zero-membrane reference of a physics
+        model. None for the analytic stand-in."""
+        h = self.held
+        if self.simulator == "simulator":
+            from mfdesign.design import Membrane
+            from mfdesign.physics.solve import force_at
+
+            f = np.full(len(h["force_n"]), np.nan)
+            keys = np.array([Membrane.from_array(d).key() for d in h["design"]])
+            for k in dict.fromkeys(keys):
+                i = np.flatnonzero(keys == k)
+                f[i] = force_at(Membrane.from_key(k), h["height_mm"][i], h["pressure_pa"][i],
+                                self.nominal.base_params).force_n
+            return float(np.sqrt(np.nanmean((f - h["force_n"]) ** 2)))
         if self.simulator != "emulator":
             return None
         import jax.numpy as jnp
 
         from mfdesign.models.emulator import load_default
 
-        h = self.held
         f = load_default()(jnp.asarray(h["design"]), jnp.asarray(h["height_mm"]), jnp.asarray(h["pressure_pa"]),
                            self.nominal.base_params)
         return float(np.sqrt(np.mean((np.asarray(f) - h["force_n"]) ** 2)))
@@ -191,11 +206,26 @@ class Model:
             from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named
             from mfdesign.data.measurements import Measurements
 
-            fit = fit_multi_fidelity(Measurements.concat(tables), force_model_named("emulator"), tuple(args.mf_effects),
+            table = Measurements.concat(tables)
+            if args.simulator == "simulator":
+                # Truth on simulator planes: calibrate on exact physics, whose planes cover the
+                # fabricated membranes and the held-out ones (the metric); the acquisition
+                # searches new designs on the emulator (``for_search``), the CLI's split.
+                from mfdesign.calibration.workflow import for_search
+                from mfdesign.models.force import force_model_for
+
+                h_held, p_held = args.held_ranges
+                keys = tuple(dict.fromkeys([*table.df["design_key"], *HELD_OUT]))
+                fm = force_model_for("exact", keys, h_max_mm=max(float(table.df["height_mm"].max()), h_held),
+                                     p_max_pa=max(float(table.df["pressure_pa"].max()), p_held))
+            else:
+                fm = force_model_named("emulator")
+            fit = fit_multi_fidelity(table, fm, tuple(args.mf_effects),
                                      n_steps=args.mcmc_steps, n_walkers=args.walkers, max_rows=args.mf_rows,
                                      ensemble_config=cfgs["disc"], seed=seed, progress=False)
             self.mf = fit.mf
-            self.predictor = fit.mf.predictor(n_draws=args.mf_draws)
+            search = for_search(fit) if args.simulator == "simulator" else fit.mf
+            self.predictor = search.predictor(n_draws=args.mf_draws)
             # 32 draws: the mean over them is what the metric needs, at a quarter of the cost.
             self.predict = lambda d, h, p: np.asarray(self.mf.thinned(32).predict(d, h, p)).mean(0)
             return
@@ -361,7 +391,8 @@ def main() -> None:
     ap.add_argument("--restarts", type=int, default=1000, help="random batches screened per ring count")
     ap.add_argument("--refine", type=int, default=32, help="screened batches refined by L-BFGS")
     ap.add_argument("--warm-sims", type=int, default=12, help="fidelity arm: Latin-hypercube sims before round 1")
-    ap.add_argument("--mcmc-steps", type=int, default=200, help="mf arms: emcee steps per fit")
+    ap.add_argument("--mcmc-steps", type=int, default=200,
+                    help="mf arms: most emcee steps per fit (the chain stops once converged)")
     ap.add_argument("--walkers", type=int, default=28, help="mf arms: emcee walkers")
     ap.add_argument("--mf-rows", type=int, default=800, help="mf arms: rows the calibration sees")
     ap.add_argument("--mf-effects", nargs="*", default=["pressure_sensor"],
@@ -409,6 +440,7 @@ def main() -> None:
     cfgs = {"rig": EnsembleConfig(monotone=True, **common), "disc": EnsembleConfig(monotone=False, **common)}
     t0 = time.perf_counter()
     lab = Lab(args.simulator)
+    args.held_ranges = (float(lab.held["height_mm"].max()), float(lab.held["pressure_pa"].max()))
     args.simulator_rmse = lab.simulator_rmse()
     print(f"nominal simulator alone: held-out RMSE {args.simulator_rmse} N", flush=True)
     print(f"held-out: {len(lab.held['force_n'])} rows of {len(HELD_OUT)} membranes ({time.perf_counter() - t0:.0f} s)",
@@ -433,7 +465,8 @@ def main() -> None:
         r, a = summary["random"]["final_rmse_n_mean"], summary["rig"]["final_rmse_n_mean"]
         print(f"ratio final RMSE random / rig acquisition: {r / a:.2f}", flush=True)
     out = {"command": "python experiments/active_learning.py " + " ".join(
-               f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k not in ("save", "simulator_rmse")),
+               f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()
+               if k not in ("save", "simulator_rmse", "held_ranges")),
            "quick": args.quick, "simulator": args.simulator, "hidden_effect": {"name": HIDDEN[0], "theta": HIDDEN[1]},
            "held_out": list(HELD_OUT),
            # --report-only: complete when every (seed, arm) has a curve (arms may have run for
