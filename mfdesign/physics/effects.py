@@ -41,6 +41,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Iterable, Mapping, Sequence
 
+import equinox as _eqx
+import jax as _jax
+import jax.numpy as _jnp
 import numpy as np
 
 from mfdesign.physics.params import SimParams
@@ -88,6 +91,11 @@ class Uniform:
     def sample(self, rng: np.random.Generator, size=None):
         return rng.uniform(self.low, self.high, size=size)
 
+    def logpdf_jax(self, x):
+        """JAX log-density (same maths as :meth:`logpdf`), for jitted log-posteriors."""
+        inside = (x >= self.low) & (x <= self.high)
+        return _jnp.where(inside, -math.log(self.high - self.low), -_jnp.inf)
+
 
 @dataclass(frozen=True)
 class Normal:
@@ -125,6 +133,12 @@ class Normal:
         out = out[:n]
         return float(out[0]) if size is None else out.reshape(size)
 
+    def logpdf_jax(self, x):
+        """JAX log-density (same maths as :meth:`logpdf`), for jitted log-posteriors."""
+        z = (x - self.mean) / self.sd
+        lp = -0.5 * z**2 - math.log(self.sd * math.sqrt(2.0 * math.pi)) - math.log(self._mass())
+        return _jnp.where((x >= self.low) & (x <= self.high), lp, -_jnp.inf)
+
 
 @dataclass(frozen=True)
 class LogNormal:
@@ -157,6 +171,13 @@ class LogNormal:
 
     def sample(self, rng: np.random.Generator, size=None):
         return np.exp(self._log_normal().sample(rng, size))
+
+    def logpdf_jax(self, x):
+        """JAX log-density (same maths as :meth:`logpdf`), for jitted log-posteriors."""
+        pos = x > 0
+        lx = _jnp.log(_jnp.where(pos, x, 1.0))
+        lp = self._log_normal().logpdf_jax(lx) - lx
+        return _jnp.where(pos, lp, -_jnp.inf)
 
 
 # -- parameters, samples, context -------------------------------------------------------------
@@ -277,6 +298,34 @@ class Effect:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
+
+    # -- the likelihood side (JAX): every effect inside a jitted log-likelihood ------------------
+    # The hooks above turn true values into recorded ones (NumPy, for the virtual rig); these
+    # give, for a recorded row, the EXPECTED recorded force at the row's RECORDED height and
+    # pressure as a pure JAX function of theta (traced), so that emcee / optimistix can
+    # differentiate and vectorise it.
+    def row_sim_params(self, base: SimParams, theta, rows: "Rows") -> SimParams:
+        """Row-wise simulator inputs (fields scalar or ``[N]``); default: ``sim_params`` without
+        a context. Override when the mechanics depend on the row (trial, phase)."""
+        return self.sim_params(base, theta, None)
+
+    def observed_force_fn(self, theta, force_fn, rows: "Rows"):
+        """Map ``force_fn(h_rec, p_rec) -> F`` (the expected recorded force of the effects applied
+        so far) to the same with this effect applied; default: identity (no measurement effect).
+
+        ``force_fn`` is element-wise over the rows (row i depends on ``h[i], p[i]`` only), which
+        lets effects take ``dF/dh`` with one ``jax.jvp``.
+        """
+        return force_fn
+
+    def expected_force(self, theta, force_fn, rows: "Rows"):
+        """Expected recorded force [N] of every row at its recorded (h, p) with this effect alone."""
+        return self.observed_force_fn(theta, force_fn, rows)(rows.h_mm, rows.p_pa)
+
+    @property
+    def has_likelihood(self) -> bool:
+        """False for a measurement effect without a JAX likelihood hook (calibration refuses it)."""
+        return (not self.acts_on_measurement) or type(self).observed_force_fn is not Effect.observed_force_fn
 
 
 EFFECTS: dict[str, type[Effect]] = {}
@@ -474,6 +523,10 @@ class StressSoftening(Effect):
             return base
         return _replace(base, mu_pa=base.mu_pa * (1.0 + theta["stiffening"]))
 
+    def row_sim_params(self, base, theta, rows):
+        factor = 1.0 + theta["stiffening"] * rows.is_first_trial.astype(float)
+        return _replace(base, mu_pa=base.mu_pa * factor)
+
 
 # -- measurement chain --------------------------------------------------------------------
 @register_effect
@@ -489,6 +542,10 @@ class PressureSensor(Effect):
     def observe(self, theta, sample, context):
         return sample.replace(pressure_pa=theta["gain"] * sample.pressure_pa + theta["offset_pa"])
 
+    def observed_force_fn(self, theta, force_fn, rows):
+        # recorded p = gain * p_true + offset  =>  p_true = (p - offset) / gain
+        return lambda h, p: force_fn(h, (p - theta["offset_pa"]) / theta["gain"])
+
 
 @register_effect
 @dataclass(frozen=True)
@@ -503,6 +560,9 @@ class LoadCellOffset(Effect):
         if context.experiment != "force":
             return sample  # in a mass lift the force column is the known weight
         return sample.replace(force_n=sample.force_n + theta["offset_n"])
+
+    def observed_force_fn(self, theta, force_fn, rows):
+        return lambda h, p: force_fn(h, p) + _jnp.where(rows.is_force, theta["offset_n"], 0.0)
 
 
 @register_effect
@@ -536,6 +596,17 @@ class RigCompliance(Effect):
         denom = np.maximum(1.0 - slope * c, 0.2)  # guard a rising F(h): never amplify > 5x
         return sample.replace(force_n=sample.force_n / denom)
 
+    def observed_force_fn(self, theta, force_fn, rows):
+        c = theta["compliance_mm_per_n"]
+
+        def fn(h, p):
+            f, slope = _jax.jvp(lambda hh: force_fn(hh, p), (h,), (_jnp.ones_like(h),))
+            slope = _jnp.nan_to_num(slope, nan=0.0)
+            denom = _jnp.maximum(1.0 - slope * c, 0.2)
+            return _jnp.where(rows.is_force, f / denom, f)
+
+        return fn
+
 
 @register_effect
 @dataclass(frozen=True)
@@ -566,15 +637,15 @@ class Hysteresis(Effect):
         dh = np.where(ok, loss * sample.force_n / np.where(ok, slope, -1.0), 0.0)
         return sample.replace(height_mm=np.where(down, np.maximum(sample.height_mm + dh, 0.0), sample.height_mm))
 
+    def observed_force_fn(self, theta, force_fn, rows):
+        # Force rows: the load cell reads (1 - loss) F. Lift rows: the plate settles where
+        # (1 - loss) F(h, p) = W at the recorded h, so the expected "force" sample is the same
+        # (1 - loss) F (the forward model moves the height to first order instead).
+        loss = theta["loss"]
+        return lambda h, p: _jnp.where(rows.is_deflate, (1.0 - loss) * force_fn(h, p), force_fn(h, p))
 
-# -- the likelihood side: every effect inside a jitted log-likelihood (JAX) -------------------
-# Added for calibration (``mfdesign.calibrate``): the forward hooks above turn true values
-# into recorded ones (NumPy, for the virtual rig); the hooks below give, for a recorded row,
-# the EXPECTED recorded force at the row's RECORDED height and pressure, as a pure JAX
-# function of theta (traced), so that emcee / optimistix can differentiate and vectorise it.
-import equinox as _eqx  # noqa: E402
-import jax as _jax  # noqa: E402
-import jax.numpy as _jnp  # noqa: E402
+
+# -- the likelihood side: the rows a jitted log-likelihood sees (JAX) -------------------------
 
 
 class Rows(_eqx.Module):
@@ -629,38 +700,6 @@ class Rows(_eqx.Module):
         return _jax.tree.map(lambda a: a[idx], self)
 
 
-def _row_sim_params_default(self, base: SimParams, theta, rows: Rows) -> SimParams:
-    """Row-wise simulator inputs (fields scalar or ``[N]``); default: ``sim_params`` without
-    a context. Override when the mechanics depend on the row (trial, phase)."""
-    return self.sim_params(base, theta, None)
-
-
-def _observed_force_fn_default(self, theta, force_fn, rows: Rows):
-    """Map ``force_fn(h_rec, p_rec) -> F`` (the expected recorded force of the effects applied
-    so far) to the same with this effect applied; default: identity (no measurement effect).
-
-    ``force_fn`` is element-wise over the rows (row i depends on ``h[i], p[i]`` only), which
-    lets effects take ``dF/dh`` with one ``jax.jvp``.
-    """
-    return force_fn
-
-
-def _expected_force(self, theta, force_fn, rows: Rows):
-    """Expected recorded force [N] of every row at its recorded (h, p) with this effect alone."""
-    return self.observed_force_fn(theta, force_fn, rows)(rows.h_mm, rows.p_pa)
-
-
-def _has_likelihood(self) -> bool:
-    """False for a measurement effect without a JAX likelihood hook (calibration refuses it)."""
-    return (not self.acts_on_measurement) or type(self).observed_force_fn is not Effect.observed_force_fn
-
-
-Effect.row_sim_params = _row_sim_params_default
-Effect.observed_force_fn = _observed_force_fn_default
-Effect.expected_force = _expected_force
-Effect.has_likelihood = property(_has_likelihood)
-
-
 def apply_row_sim_params(effects, theta, base: SimParams, rows: Rows) -> SimParams:
     """Row-wise simulator inputs with every mechanical effect applied, in list order (JAX)."""
     effects = _as_effects(effects)
@@ -688,69 +727,5 @@ def apply_expected_force(effects, theta, force_fn, rows: Rows):
     """Expected recorded force [N] of every row at its recorded (h, p), all effects applied."""
     return observed_force_fn(effects, theta, force_fn, rows)(rows.h_mm, rows.p_pa)
 
-
-def _stress_rows(self, base, theta, rows):
-    factor = 1.0 + theta["stiffening"] * rows.is_first_trial.astype(float)
-    return _replace(base, mu_pa=base.mu_pa * factor)
-
-
-def _pressure_fn(self, theta, force_fn, rows):
-    # recorded p = gain * p_true + offset  =>  p_true = (p - offset) / gain
-    return lambda h, p: force_fn(h, (p - theta["offset_pa"]) / theta["gain"])
-
-
-def _load_cell_fn(self, theta, force_fn, rows):
-    return lambda h, p: force_fn(h, p) + _jnp.where(rows.is_force, theta["offset_n"], 0.0)
-
-
-def _compliance_fn(self, theta, force_fn, rows):
-    c = theta["compliance_mm_per_n"]
-
-    def fn(h, p):
-        f, slope = _jax.jvp(lambda hh: force_fn(hh, p), (h,), (_jnp.ones_like(h),))
-        slope = _jnp.nan_to_num(slope, nan=0.0)
-        denom = _jnp.maximum(1.0 - slope * c, 0.2)
-        return _jnp.where(rows.is_force, f / denom, f)
-
-    return fn
-
-
-def _hysteresis_fn(self, theta, force_fn, rows):
-    # Force rows: the load cell reads (1 - loss) F. Lift rows: the plate settles where
-    # (1 - loss) F(h, p) = W at the recorded h, so the expected "force" sample is the same
-    # (1 - loss) F (the forward model moves the height to first order instead).
-    loss = theta["loss"]
-    return lambda h, p: _jnp.where(rows.is_deflate, (1.0 - loss) * force_fn(h, p), force_fn(h, p))
-
-
-StressSoftening.row_sim_params = _stress_rows
-PressureSensor.observed_force_fn = _pressure_fn
-LoadCellOffset.observed_force_fn = _load_cell_fn
-RigCompliance.observed_force_fn = _compliance_fn
-Hysteresis.observed_force_fn = _hysteresis_fn
-
-
-# JAX log-densities of the priors (same maths as ``logpdf``), for jitted log-posteriors.
-def _uniform_jax(self, x):
-    inside = (x >= self.low) & (x <= self.high)
-    return _jnp.where(inside, -math.log(self.high - self.low), -_jnp.inf)
-
-
-def _normal_jax(self, x):
-    z = (x - self.mean) / self.sd
-    lp = -0.5 * z**2 - math.log(self.sd * math.sqrt(2.0 * math.pi)) - math.log(self._mass())
-    return _jnp.where((x >= self.low) & (x <= self.high), lp, -_jnp.inf)
-
-
-def _lognormal_jax(self, x):
-    pos = x > 0
-    lx = _jnp.log(_jnp.where(pos, x, 1.0))
-    lp = self._log_normal().logpdf_jax(lx) - lx
-    return _jnp.where(pos, lp, -_jnp.inf)
-
-
-Uniform.logpdf_jax = _uniform_jax
-Normal.logpdf_jax = _normal_jax
-LogNormal.logpdf_jax = _lognormal_jax
 
 __all__ += ["Rows", "apply_expected_force", "apply_row_sim_params", "observed_force_fn"]
