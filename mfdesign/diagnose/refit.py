@@ -62,12 +62,16 @@ def _bic(sim: EmulatorModel, meas, rows, target, effects, theta, resid) -> float
     data = CalibrationData(design, rws, jnp.asarray(target, float), jnp.ones(n), ("all",))
     base = sim.base_params
     mu, jm = float(base.mu_pa), float(base.jm)
+    # Every likelihood effect in the canonical order, those outside the set at their neutral
+    # values (exact identities): one compiled log-likelihood serves every candidate set.
+    order = sim.order(effects)
     model = HierarchicalModel(force_model=_Clipped(sim.force_model, float(sim.h_range_mm[1]), float(sim.p_range_pa[1])),
-                              effects=tuple(effects), n_membranes=0, membrane_latents=False,
+                              effects=tuple(order), n_membranes=0, membrane_latents=False,
                               mu_prior=fx.Uniform(mu * (1 - 1e-9), mu * (1 + 1e-9)),
                               jm_prior=fx.Uniform(jm * (1 - 1e-9), jm * (1 + 1e-9)), base=base)
     noise = max(float(np.sqrt(np.mean(np.square(resid)))), 1e-9)
-    v = {"mu_pa": mu, "jm": jm, "noise_n": noise, **{k: float(theta[k]) for k in fx.neutral_theta(effects)}}
+    v = {"mu_pa": mu, "jm": jm, "noise_n": noise, **fx.neutral_theta(order),
+         **{k: float(theta[k]) for k in fx.neutral_theta(effects)}}
     x = jnp.asarray([v[nm] for nm in model.names])
     ll = float(model.log_lik(x, data))
     k = sum(len(fx.effect(e).parameters) for e in effects) + 1
