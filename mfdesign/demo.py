@@ -55,7 +55,7 @@ class DemoSettings:
     # Design searches differentiate through every posterior draw at every grid point: with
     # 8 draws, 8 restarts x 3 ring counts x 10 L-BFGS steps on the 64-point grid one
     # fidelity took over 5 minutes, hence 3 restarts on a 4 x 4 grid here (the whole demo
-    # aims at 5 minutes on a 2-core CPU with empty caches; measured 292 s in session 9).
+    # aims at 5 minutes on a 2-core CPU with empty caches; measured 292 and 310 s in session 9).
     design_draws: int = 8
     propose_restarts: int = 3
     propose_steps: int = 10
