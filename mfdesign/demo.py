@@ -178,6 +178,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
 
     from mfdesign.acquire import Grid, propose
     from mfdesign.calibration.plots import corner_plot
+    from mfdesign.calibration.posterior import save_inference_data
     from mfdesign.calibration.workflow import fit_multi_fidelity, for_search, force_model_named
     from mfdesign.data.store import read_parquet
     from mfdesign.diagnose.emulated import forward_model
@@ -212,7 +213,11 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
         d.mkdir(parents=True, exist_ok=True)
         post = fit_.posterior
         table = post.summary()
-        outputs.write_text(d / "posterior.json", json.dumps(post.to_json(), indent=1, default=str))
+        # posterior.json + .npz (``Posterior.load``) and posterior.nc (``az.from_netcdf``: the
+        # constrained parameters, chain x draw). The pointwise groups (log-likelihood,
+        # predictive) are left to ``mfdesign calibrate``: they would cost the demo ~10 s.
+        post.save(d / "posterior")
+        save_inference_data(post, d / "posterior.nc")
         keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
         corner_plot(post.samples[:, keep], [post.names[i] for i in keep], d / "corner.png")
         rows = table  # with the per-membrane thickness rows: spurious latents show there
