@@ -141,7 +141,6 @@ class ExactForceModel(ForceModel):
         h = jnp.asarray(h_mm, float)
         p = jnp.asarray(p_pa, float)
         n = h.shape[0]
-        clamp = self.outside == "clamp"
         dist = _nan_match(design[:, None, :], self.designs[None, :, :])  # [N, M]
         m = jnp.argmin(dist, axis=1).astype(jnp.int32)
         ok = jnp.min(dist, axis=1) < 1e-6

@@ -19,7 +19,7 @@ Two facts keep their number small:
 * **Lattice.** Every other constant that changes the solution's shape is an axis with
   nodes ``c0 + k step`` of a coordinate (:data:`AXES`): ``log J_m``, ``log(rho / rho0)``,
   the thickness gradient, the clamp pre-stretch and the contact offset. A plane is solved
-  at each node that a fit needs (:func:`lattice_planes`), cached on disk.
+  at each node that a fit needs (:func:`lattice_jobs`, :func:`solve_planes`), cached on disk.
 
 Planes hold the *signed* force (:func:`~mfdesign.physics.solve.force_plane` with
 ``signed=True``) on heights ``0, 2.5, ... mm`` and reduced pressures ``0, 250, ... Pa``:
@@ -43,7 +43,7 @@ import numpy as np
 from mfdesign.design import Membrane
 from mfdesign.physics.params import SimParams
 
-__all__ = ["AXES", "Axis", "H_STEP_MM", "P_STEP_PA", "PlaneGrid", "cache_dir", "lattice_planes"]
+__all__ = ["AXES", "Axis", "H_STEP_MM", "P_STEP_PA", "PlaneGrid", "cache_dir", "lattice_jobs", "solve_planes"]
 
 H_STEP_MM = 2.5
 P_STEP_PA = 250.0
@@ -249,8 +249,11 @@ def node_range(axis: Axis, lo: float, hi: float) -> tuple[int, int]:
 
 
 def lattice_jobs(designs: Sequence[Membrane], base: SimParams, nodes: Mapping[str, tuple[int, int]]):
-    """The ``(design, params)`` jobs of :func:`lattice_planes`, and a function that stacks
-    their solved planes into its array."""
+    """The ``(design, params)`` jobs of the planes on the tensor lattice of ``nodes`` (axis
+    name -> inclusive node index range), reference constants ``base`` with ``mu`` as given
+    and ``tf = 1``, and a function that stacks their solved planes (:func:`solve_planes`)
+    into ``[M, n_1, ..., n_D, len(grid.h), len(grid.p)]``. A ringless membrane's ring axis
+    repeats one plane."""
     names = list(nodes)
     axes = [AXES[n] for n in names]
     ranges = [range(nodes[n][0], nodes[n][1] + 1) for n in names]
@@ -272,15 +275,6 @@ def lattice_jobs(designs: Sequence[Membrane], base: SimParams, nodes: Mapping[st
         return out
 
     return jobs, stack
-
-
-def lattice_planes(designs: Sequence[Membrane], base: SimParams, nodes: Mapping[str, tuple[int, int]],
-                   grid: PlaneGrid, cache=None, progress: bool = False) -> np.ndarray:
-    """Planes ``[M, n_1, ..., n_D, len(grid.h), len(grid.p)]`` on the tensor lattice of
-    ``nodes`` (axis name -> inclusive node index range), reference constants ``base`` with
-    ``mu`` as given and ``tf = 1``. A ringless membrane's ring axis repeats one plane."""
-    jobs, stack = lattice_jobs(designs, base, nodes)
-    return stack(solve_planes(jobs, grid, cache=cache, progress=progress))
 
 
 def designs_of(keys: Iterable[str]) -> list[Membrane]:
