@@ -176,8 +176,15 @@ class Predictor(Protocol):
     def members(self, design, h_mm, p_pa) -> jax.Array: ...
 
 
+@runtime_checkable
+class MembersModel(Protocol):
+    """``predict(design [N, 6] mm, h_mm [N], p_pa [N]) -> [M, N]`` forces in N (the RPN ensemble)."""
+
+    def predict(self, design, h_mm, p_pa) -> jax.Array: ...
+
+
 class EnsembleMembers(eqx.Module):
-    """Adapter: any model with ``predict(design, h, p) -> [M, N]`` (the RPN ensemble)."""
+    """Adapter: a :class:`MembersModel` as a :class:`Predictor`."""
 
     model: Any
 
@@ -186,10 +193,10 @@ class EnsembleMembers(eqx.Module):
 
 
 def as_predictor(model) -> Predictor:
-    """A :class:`Predictor` from a model with ``members`` or ``predict``."""
-    if hasattr(model, "members"):
+    """A :class:`Predictor` from a :class:`Predictor` or a :class:`MembersModel`."""
+    if isinstance(model, Predictor):
         return model
-    if hasattr(model, "predict"):
+    if isinstance(model, MembersModel):
         return EnsembleMembers(model)
     raise TypeError(f"{type(model).__name__} has neither members(design, h, p) nor predict(design, h, p)")
 
