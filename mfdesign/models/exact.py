@@ -236,11 +236,8 @@ class ExactForceModel(ForceModel):
             return self
         box = {k: (lo - margin * pl.AXES[k].step, hi + margin * pl.AXES[k].step)
                for k, (lo, hi) in self._box(params).items()}
-        t_nodes = _grown(self.tensor_axes, box)
-        a_nodes = _grown(self.additive_axes, box)
-        for name, (lo, hi) in box.items():
-            if name not in t_nodes and name not in a_nodes:
-                (t_nodes if self.grow == "tensor" else a_nodes)[name] = pl.node_range(pl.AXES[name], lo, hi)
+        t_nodes, a_nodes = _widen({a.name: (a.k0, a.k0 + a.n - 1) for a in self.tensor_axes},
+                                  {a.name: (a.k0, a.k0 + a.n - 1) for a in self.additive_axes}, box, self.grow)
         return _assemble(self.design_keys, self.base, t_nodes, a_nodes, self.grid, self.outside, self.cache,
                          progress, self.grow)
 
@@ -334,14 +331,17 @@ def _box_of(params: SimParams, base: SimParams, any_ringed: bool, axis_names=fro
     return box
 
 
-def _grown(axes, box):
-    out = {}
-    for a in axes:
-        lo, hi = a.lo, a.hi
-        if a.name in box:
-            lo, hi = min(lo, box[a.name][0]), max(hi, box[a.name][1])
-        out[a.name] = pl.node_range(a.axis, lo, hi)
-    return out
+def _widen(t_nodes: dict, a_nodes: dict, box: dict, grow: str) -> tuple[dict, dict]:
+    """Node ranges (axis -> (k0, k1)) widened, never shrunk, to hold ``box`` (axis ->
+    coordinate range); an axis in neither becomes a new one where ``grow`` says."""
+    t_nodes, a_nodes = dict(t_nodes), dict(a_nodes)
+    for name, (lo, hi) in box.items():
+        nodes = t_nodes if name in t_nodes else a_nodes if name in a_nodes else (
+            t_nodes if grow == "tensor" else a_nodes)
+        k0, k1 = pl.node_range(pl.AXES[name], lo, hi)
+        old = nodes.get(name, (k0, k1))
+        nodes[name] = (min(old[0], k0), max(old[1], k1))
+    return t_nodes, a_nodes
 
 
 def _ensure_two(axis: pl.Axis, k0: int, k1: int) -> tuple[int, int]:
@@ -422,10 +422,5 @@ def build_exact(design_keys: Sequence[str], *, h_max_mm: float = 80.0, p_max_pa:
         raise ValueError(f"grow must be 'tensor' or 'additive', got {grow!r}")
     if also is not None:
         ringed = any(Membrane.from_key(k).n_rings > 0 for k in design_keys)
-        for name, (lo, hi) in _box_of(also, base, ringed).items():
-            nodes = t_nodes if name in t_nodes else a_nodes if name in a_nodes else (
-                t_nodes if grow == "tensor" else a_nodes)
-            k0, k1 = pl.node_range(pl.AXES[name], lo, hi)
-            old = nodes.get(name, (k0, k1))
-            nodes[name] = (min(old[0], k0), max(old[1], k1))
+        t_nodes, a_nodes = _widen(t_nodes, a_nodes, _box_of(also, base, ringed), grow)
     return _assemble(tuple(design_keys), base, t_nodes, a_nodes, grid, outside, cache, progress, grow)
