@@ -5,7 +5,7 @@ rings in turn) and the ranges in :data:`PARAM_RANGES` (they cover the calibratio
 and the effects library's priors, :mod:`mfdesign.physics.effects`), solved by
 :func:`mfdesign.physics.solve.force_plane` on a randomly placed ``N_H x N_P`` grid of
 heights (0-80 mm) and pressures (0-10 kPa). The grid *shape* is fixed, so JAX compiles
-once per ring count; the *values* vary, so the data cover the plane densely. Points with
+once (every ring count has the same array shapes); the *values* vary, so the data cover the plane densely. Points with
 status OK or NO_CONTACT (force 0) are kept, failures dropped.
 
 Samples are written in parts (Parquet) of ``chunk`` samples: a killed run loses at most

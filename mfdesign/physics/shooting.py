@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-from mfdesign.design import Membrane
+from mfdesign.design import MAX_RINGS, Membrane
 from mfdesign.physics.membrane import PA_TO_MPA, Segment, jump_lambda1, rhs
 from mfdesign.physics.params import SimParams
 
@@ -42,34 +42,33 @@ FAILED_RESIDUAL = 1e3
 
 
 class Geometry(eqx.Module):
-    """A design as arrays (mm) for jit/vmap; ``ring_edges_mm`` = [in1, out1, in2, out2]."""
+    """A design as arrays (mm) for jit/vmap, always with ``MAX_RINGS`` ring slots.
+
+    ``ring_edges_mm`` = [in1, out1, in2, out2]; a slot without a ring has both edges at the
+    clamp and ``ring_used`` False. Every design thus has the same array shapes, so each
+    kernel compiles once for all ring counts (a compilation per ring count tripled a cold
+    start), and an unused slot adds two zero-width segments that the integration passes
+    through unchanged (diffrax takes no step on ``t0 == t1``, and the interface jump is
+    skipped).
+    """
 
     thickness_mm: jax.Array
     contact_mm: jax.Array
     outer_mm: jax.Array
     ring_edges_mm: jax.Array
-
-    @property
-    def n_rings(self) -> int:
-        return self.ring_edges_mm.shape[-1] // 2
+    ring_used: jax.Array
 
 
 def geometry_of(design: Membrane) -> Geometry:
     edges = [e for ring in design.rings for e in (ring.inner_mm, ring.outer_mm)]
+    edges += [design.outer_radius_mm] * (2 * MAX_RINGS - len(edges))
     return Geometry(
         thickness_mm=jnp.asarray(design.thickness_mm, float),
         contact_mm=jnp.asarray(design.contact_radius_mm, float),
         outer_mm=jnp.asarray(design.outer_radius_mm, float),
-        ring_edges_mm=jnp.asarray(edges, float).reshape(len(edges)),
+        ring_edges_mm=jnp.asarray(edges, float),
+        ring_used=jnp.arange(MAX_RINGS) < design.n_rings,
     )
-
-
-def stack_geometries(designs) -> Geometry:
-    """Stack designs with the same number of rings along a leading batch axis."""
-    geoms = [geometry_of(d) for d in designs]
-    if len({g.n_rings for g in geoms}) != 1:
-        raise ValueError("stack_geometries needs designs with the same number of rings")
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *geoms)
 
 
 class Segments(eqx.Module):
@@ -78,6 +77,7 @@ class Segments(eqx.Module):
 
     seg: Segment  # fields with a leading axis of length n_segments
     bounds: jax.Array
+    real: jax.Array  # False for the zero-width segments of an unused ring slot
 
     @property
     def r0(self):
@@ -96,7 +96,10 @@ def segments(geom: Geometry, params: SimParams) -> Segments:
     r_out = geom.outer_mm
     bounds = jnp.concatenate([jnp.stack([r0]), geom.ring_edges_mm, jnp.stack([r_out])])
     n = bounds.shape[0] - 1
-    is_fabric = (jnp.arange(n) % 2) == 1
+    real = jnp.concatenate([jnp.array([True]), jnp.repeat(geom.ring_used, 2)])
+    # An unused slot is rubber: its (repeated) profile points then carry the last real
+    # segment's stresses, harmless to the checks' minima and maxima.
+    is_fabric = ((jnp.arange(n) % 2) == 1) & real
     ones = jnp.ones(n)
     seg = Segment(
         mu_mpa=jnp.where(is_fabric, params.ring_mu_pa, params.mu_pa) * PA_TO_MPA,
@@ -106,7 +109,7 @@ def segments(geom: Geometry, params: SimParams) -> Segments:
         r_mid=0.5 * (r0 + r_out) * ones,
         span=(r_out - r0) * ones,
     )
-    return Segments(seg=seg, bounds=bounds)
+    return Segments(seg=seg, bounds=bounds, real=real)
 
 
 def _nonphysical(t, y, args, **kwargs):
@@ -132,14 +135,16 @@ def integrate(segs: Segments, p_mpa, y0, save_per_segment: int = 0):
     """
     n = segs.bounds.shape[0] - 1
     prev = jax.tree.map(lambda a: jnp.concatenate([a[:1], a[:-1]]), segs.seg)
-    xs = (segs.seg, prev, segs.bounds[:-1], segs.bounds[1:])
+    xs = (segs.seg, prev, segs.bounds[:-1], segs.bounds[1:], segs.real)
 
     def step(carry, x):
         y, ok = carry
-        seg, seg_prev, a, b = x
-        # Segment 0 "jumps" from itself: the identity, solved exactly.
+        seg, seg_prev, a, b, real = x
+        # Segment 0 "jumps" from itself: the identity, solved exactly. An unused ring
+        # slot has no interface: no jump.
         l1, ok_jump = jump_lambda1(seg_prev, seg, a, y[0], y[1], valid=ok)
-        y = y.at[0].set(l1)
+        y = y.at[0].set(jnp.where(real, l1, y[0]))
+        ok_jump = ok_jump | ~real
         if save_per_segment:
             ts = a + (b - a) * jnp.linspace(0.0, 1.0, save_per_segment)
             saveat = dfx.SaveAt(ts=ts)
@@ -324,7 +329,6 @@ def n_segments(n_rings: int) -> int:
 __all__ = [
     "Geometry",
     "geometry_of",
-    "stack_geometries",
     "segments",
     "integrate",
     "disk_force",

@@ -162,8 +162,9 @@ def _points_kernel(geom, params, h, p_mpa, n_steps: int):
     below ``LOW_HEIGHT_MM`` runs its path there and the plate is then lowered to ``h``.
 
     One kernel for both kinds (the descent is masked off above ``LOW_HEIGHT_MM``, at the
-    cost of ``DESCENT_STEPS`` residual evaluations): a kernel per kind compiled twice per
-    ring count, ~4 s each, most of a cold plane repair."""
+    cost of ``DESCENT_STEPS`` residual evaluations): a kernel per kind compiled twice,
+    ~4 s each, most of a cold plane repair. Like every kernel here it serves all ring
+    counts (:class:`~mfdesign.physics.shooting.Geometry` pads the ring slots)."""
 
     def one(hh, pp):
         path = pp * jnp.arange(1, n_steps + 1) / n_steps
@@ -749,8 +750,8 @@ class Shape(eqx.Module):
 def shape(design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimParams(), n_per_segment: int = 64) -> Shape:
     """The deformed membrane at plate height ``h_mm`` [mm] and pressure ``p_pa`` [Pa]."""
     h, p = np.array([float(h_mm)]), np.array([float(p_pa)])
-    # The scattered-point kernel gives the state too: one compiled program per ring count,
-    # shared with force_at and the plane repairs (a separate state kernel cost a cold
+    # The scattered-point kernel gives the state too: one compiled program, shared with
+    # force_at and the plane repairs (a separate state kernel cost a cold
     # diagnosis two more compilations).
     out = _solve_points(design, *_sanitize(h, p), params, PATH_STEPS)
     res = _classify(h, p, *out[:7])
@@ -760,7 +761,8 @@ def shape(design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimPar
                                       jnp.asarray(float(p_pa) * PA_TO_MPA), n_save=n_per_segment)
     segs = sh.segments(geom, params)
     t = jnp.repeat(segs.seg.t_mm, n_per_segment)
-    r, y, w1, w2, t = (np.asarray(v) for v in (r, y, w1, w2, t))
+    n = sh.n_segments(design.n_rings) * n_per_segment  # unused ring slots: repeats at the clamp
+    r, y, w1, w2, t = (np.asarray(v)[:n] for v in (r, y, w1, w2, t))
     return Shape(
         r_mm=r,
         R_mm=r * y[:, 1],
