@@ -212,7 +212,7 @@ class Model:
                 # fabricated membranes and the held-out ones (the metric); the acquisition
                 # searches new designs on the emulator (``for_search``), the CLI's split.
                 from mfdesign.calibration.workflow import for_search
-                from mfdesign.models.force import force_model_for
+                from mfdesign.models.backends import force_model_for
 
                 h_held, p_held = args.held_ranges
                 keys = tuple(dict.fromkeys([*table.df["design_key"], *HELD_OUT]))
@@ -414,7 +414,7 @@ def main() -> None:
     import jax
 
     import mfdesign  # noqa: F401
-    from mfdesign.cli import enable_compilation_cache
+    from mfdesign.cli._app import enable_compilation_cache
     from mfdesign.models.ensemble import EnsembleConfig
 
     enable_compilation_cache()

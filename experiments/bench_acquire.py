@@ -58,7 +58,7 @@ def main() -> None:
     from mfdesign.data.measurements import Measurements
     from mfdesign.models.ensemble import EnsembleConfig, Normaliser, fit_ensemble, init_ensemble
 
-    data = Measurements.from_parquet(ROOT / "data" / "bundled_virtual.parquet")
+    data = Measurements.from_parquet(ROOT / "mfdesign" / "data" / "files" / "bundled_virtual.parquet")
     a = data.arrays()
     sub = slice(None, None, 20)
     cfg = EnsembleConfig(n_members=args.members, steps=max(args.fit_steps, 1), chunk=max(args.fit_steps, 1),

@@ -33,7 +33,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "experiments" / "out"
-BUNDLED = ROOT / "data" / "bundled_virtual.parquet"
+BUNDLED = ROOT / "mfdesign" / "data" / "files" / "bundled_virtual.parquet"
 
 
 def load() -> str:

@@ -45,10 +45,10 @@ def main() -> None:
     import mfdesign  # noqa: F401  (float64)
     from active_learning import Lab, initial_designs
     from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named
-    from mfdesign.cli import enable_compilation_cache
+    from mfdesign.cli._app import enable_compilation_cache
     from mfdesign.data.measurements import Measurements
     from mfdesign.models.ensemble import EnsembleConfig
-    from mfdesign.models.force import force_model_for
+    from mfdesign.models.backends import force_model_for
     from mfdesign.models.predictive import MultiFidelity
     from mfdesign.physics.params import SimParams
 

@@ -104,7 +104,6 @@ def run_case(hidden, seed, physics, sample_hz):
     first = d.steps[0] if d.steps else None
     ranks = [r.effect for r in first["screen"]] if first else []
     check_order = [list(c.effects)[-1] for c in first["checks"]] if first else []
-    last = d.steps[-1]["verdict"] if d.steps else {}
     best_checks = [c for s in d.steps for c in s["checks"] if list(c.effects) == d.effects]
     heldout = best_checks[0].heldout_rmse_n if best_checks else d.before.rmse_n
     # The attainable floor: the true model (hidden effects at their true values) on the same rows.

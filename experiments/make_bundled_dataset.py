@@ -1,16 +1,16 @@
-"""Regenerate the bundled virtual dataset ``data/bundled_virtual.parquet`` bit for bit.
+"""Regenerate the bundled virtual dataset (``mfdesign/data/files/bundled_virtual.parquet``) bit for bit.
 
 Six membranes spanning the design space (ringless, one ring, two rings; four of them the
 real mass-lift designs), run through the virtual rig with the paper's protocol (force
 characterisation 0-70 mm, 3 trials per height; ringed to 4.3 then 6.1 kPa; ringless to
 contact with the rig; mass lifts at 1.5, 2.5, 4.0 kg, 2 trials each), the authors'
 simulator constants, sensor noise, and ONE hidden effect: a pressure-sensor zero offset
-(``pressure_sensor.offset_pa = 150 Pa``, gain 1). The card ``data/bundled_card.json``
+(``pressure_sensor.offset_pa = 150 Pa``, gain 1). The card ``bundled_card.json``
 records seed, effect, protocol, noise, designs, row count, SHA-256 of the Parquet file and
 the simulator fingerprint. Same seed, same simulator source and same library versions ->
 the same bytes (``tests/test_virtual_rig.py``).
 
-    python experiments/make_bundled_dataset.py [--out data] [--cache-dir DIR | --no-cache]
+    python experiments/make_bundled_dataset.py [--out mfdesign/data/files] [--cache-dir DIR | --no-cache]
 """
 
 from __future__ import annotations
@@ -104,11 +104,11 @@ def build(out_dir, designs=None, simulator=None, protocol=None, seed: int = SEED
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default=str(ROOT / "data"))
+    ap.add_argument("--out", default=str(ROOT / "mfdesign" / "data" / "files"))
     ap.add_argument("--cache-dir", default=str(ROOT / "experiments" / "out" / "plane_cache"))
     ap.add_argument("--no-cache", action="store_true", help="recompute every simulator plane")
     args = ap.parse_args(argv)
-    from mfdesign.cli import enable_compilation_cache
+    from mfdesign.cli._app import enable_compilation_cache
 
     enable_compilation_cache()
     res = build(args.out, cache_dir=None if args.no_cache else args.cache_dir)

@@ -5,7 +5,7 @@ Data: simulator samples made by ``python -m mfdesign.models.emulator_data`` (par
 Held out: every sample whose id is ``test_mod - 1`` modulo ``test_mod`` -- designs and
 parameters never seen in training. Reported against the simulator: RMSE, RMSE / force
 range (target <= 1 %), max error, per ring count; JSON + parity PNG in experiments/out/.
-The trained artifact goes to ``data/emulator/`` (``emulator.eqx`` + ``emulator.json``).
+The trained artifact goes into the package, ``mfdesign/data/files/emulator/`` (``emulator.eqx`` + ``emulator.json``).
 
     python -m mfdesign.models.emulator_data --n 3000          # simulator runs (resumable)
     python experiments/train_emulator.py [--steps 20000] [--width 128] [--depth 4]

@@ -56,7 +56,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
 
-    from mfdesign.cli import enable_compilation_cache
+    from mfdesign.cli._app import enable_compilation_cache
 
     enable_compilation_cache()
     import matplotlib
@@ -66,7 +66,8 @@ def main(argv=None) -> dict:
 
     from mfdesign.data.spa_design import load_mass_lift
     from mfdesign.design import Membrane
-    from mfdesign.rig.virtual import G, Noise, Protocol, VirtualRig, simulator_fingerprint
+    from mfdesign.rig.virtual import Noise, Protocol, VirtualRig, simulator_fingerprint
+    from mfdesign.units import G_M_S2 as G
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -19,13 +19,15 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from mfdesign.errors import InputError
+
 OUTER_RADIUS_MM = 70.0
 MIN_GAP_MM = 3.0  # fabric needs this much rubber between itself and the disk/clamp/other ring
 MAX_RINGS = 2
 _TOL = 1e-9
 
 
-class DesignError(ValueError):
+class DesignError(InputError):
     """A membrane design that cannot be built; the message names the field and the rule."""
 
 

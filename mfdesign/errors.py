@@ -1,9 +1,9 @@
 """The one exception type for bad input, and the list of those the CLI treats alike.
 
 The CLI promises: bad input prints ONE line naming what was wrong and what is allowed,
-and exits with status 2 (see :mod:`mfdesign.cli_contract`). Library code signals such
-input by raising :class:`InputError` (or one of the older, more specific types in
-:func:`anticipated`); anything else escaping a command is a bug and gets a log file.
+and exits with status 2 (see :mod:`mfdesign.cli._contract`). Library code signals such
+input by raising :class:`InputError` (or a subclass: each module's own bad-input type);
+anything else escaping a command is a bug and gets a log file.
 """
 
 from __future__ import annotations
@@ -19,14 +19,16 @@ class InputError(ValueError):
 
 
 def anticipated() -> tuple[type[BaseException], ...]:
-    """Exception types whose message is fit for the terminal as it is (exit status 2)."""
+    """Exception types whose message is fit for the terminal as it is (exit status 2).
+
+    Every module's own bad-input type (``DesignError``, ``MeasurementError``, ...) is an
+    :class:`InputError`, so this module imports nothing of the package (errors flow up
+    from every layer; the import does not flow down). A corrupt pickle from the standard
+    library's unpickler counts too.
+    """
     import pickle
 
-    from mfdesign.data.measurements import MeasurementError
-    from mfdesign.data.spa_design import SharedDataMissing, UnsafePickleError
-    from mfdesign.design import DesignError
-
-    return (InputError, DesignError, MeasurementError, UnsafePickleError, SharedDataMissing, pickle.UnpicklingError)
+    return (InputError, pickle.UnpicklingError)
 
 
 def one_line(text: object, limit: int = 600) -> str:

@@ -68,6 +68,7 @@ import optax
 
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.trajectory import P_MAX_PA
+from mfdesign.units import G_M_S2
 
 __all__ = [
     "MASSES_N", "TARGET_SETS", "Weights", "PAPER_WEIGHTS", "HeightTargets", "Waypoints",
@@ -77,9 +78,7 @@ __all__ = [
     "Result", "optimize", "lift_curves", "pressure_curves", "check_with_simulator",
 ]
 
-G_N = 9.81  # m/s^2, as in the data files (1.5 kg -> 14.715 N)
-MASSES_N = (1.5 * G_N, 2.5 * G_N, 4.0 * G_N)  # the paper's three masses: 14.715, 24.525, 39.24 N
-PSI_PA = 6894.757
+MASSES_N = (1.5 * G_M_S2, 2.5 * G_M_S2, 4.0 * G_M_S2)  # the paper's three masses: 14.715, 24.525, 39.24 N
 
 
 # --------------------------------------------------------------------------- problems

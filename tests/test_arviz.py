@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from mfdesign.calibrate import ConvergenceWarning, build_model, calibrate
+from mfdesign.calibration.mcmc import ConvergenceWarning, build_model, calibrate
 from mfdesign.calibration.plots import pair_plot
 from mfdesign.calibration.posterior import Posterior, load_inference_data, save_inference_data
 from mfdesign.models.standin import standin_force
@@ -101,7 +101,7 @@ def test_pair_plot_with_truths(fitted, tmp_path):
 def test_calibrate_command_writes_posterior_nc(tmp_path):
     from mfdesign.cli import app
     from mfdesign.data.store import read_parquet, write_parquet
-    from mfdesign.demo import BUNDLED
+    from mfdesign.cli._demo import BUNDLED
 
     meas = read_parquet(BUNDLED)
     data = tmp_path / "two.parquet"

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import mfdesign  # noqa: F401  (float64)
-from mfdesign.calibrate import ConvergenceWarning, LogPosterior, build_model, calibrate, find_map
+from mfdesign.calibration.mcmc import ConvergenceWarning, LogPosterior, build_model, calibrate, find_map
 from mfdesign.calibration.plots import corner_plot
 from mfdesign.calibration.posterior import Posterior
 from mfdesign.models.standin import standin_force
@@ -29,7 +29,6 @@ TRUTH = {"mu_pa": 34e3, "jm": 45.0, "pressure_sensor.offset_pa": 150.0}
 
 def virtual_data(seed: int = 1, rows: int = 240):
     """Virtual-rig data of 3 membranes on the stand-in simulator, hidden pressure offset 150 Pa."""
-    import mfdesign  # noqa: F401
     from mfdesign.models.standin import standin_plane
     from mfdesign.design import Membrane
     from mfdesign.models.hierarchical import CalibrationData
@@ -125,7 +124,7 @@ KILL_SCRIPT = """
 import os, signal, sys
 sys.path.insert(0, {tests!r})
 {source}
-from mfdesign.calibrate import build_model, calibrate
+from mfdesign.calibration.mcmc import build_model, calibrate
 from mfdesign.models.standin import standin_force
 table, data = virtual_data()
 model = build_model(standin_force, data, ["pressure_sensor"])

@@ -6,12 +6,12 @@ import json
 import numpy as np
 import pytest
 
-from mfdesign.browser import check_page, chromium_path
+from browser import check_page, chromium_path
 
 
 @pytest.mark.slow
 def test_quick_demo_writes_a_report_chromium_can_show(tmp_path):
-    from mfdesign.demo import DemoSettings, run_demo
+    from mfdesign.cli._demo import DemoSettings, run_demo
 
     summary = run_demo(tmp_path, DemoSettings.quick(), echo=lambda *_: None, progress=False)
     report = json.loads((tmp_path / "report.json").read_text())

@@ -97,7 +97,7 @@ def test_every_doc_command_runs(tmp_path):
 
 
 def test_cli_reference_is_in_sync():
-    from mfdesign.cli_reference import render
+    from tools.cli_reference import render
 
     assert (ROOT / "docs" / "cli.md").read_text() == render(), \
-        "docs/cli.md is stale: run `python -m mfdesign.cli_reference > docs/cli.md`"
+        "docs/cli.md is stale: run `python -m tools.cli_reference > docs/cli.md`"

@@ -7,6 +7,7 @@ import pickle
 
 import numpy as np
 import pandas as pd
+import pyarrow.parquet as pq
 import pytest
 
 from mfdesign.data import COLUMNS, MeasurementError, Measurements, read_parquet, write_parquet
@@ -206,7 +207,7 @@ def test_atomic_write_leaves_no_partial_file(tmp_path, monkeypatch):
         where.write(b"PAR1 half a file")
         raise OSError("disk full")
 
-    monkeypatch.setattr(store.pq, "write_table", broken)
+    monkeypatch.setattr(pq, "write_table", broken)
     with pytest.raises(OSError, match="disk full"):
         write_parquet(m, path)
     assert list(tmp_path.iterdir()) == []  # neither target nor temporary file
@@ -214,7 +215,7 @@ def test_atomic_write_leaves_no_partial_file(tmp_path, monkeypatch):
 
     write_parquet(m, path)
     before = path.read_bytes()
-    monkeypatch.setattr(store.pq, "write_table", broken)
+    monkeypatch.setattr(pq, "write_table", broken)
     with pytest.raises(OSError):
         write_parquet(Measurements(table(3)), path)
     assert path.read_bytes() == before  # the old good file survives

@@ -13,10 +13,10 @@ from typer.testing import CliRunner
 from mfdesign.acquire import Grid
 from mfdesign.calibration.workflow import load_multi_fidelity
 from mfdesign.cli import app
-from mfdesign.cli_optimize import load_model
-from mfdesign.cli_propose import load_predictor
+from mfdesign.cli.optimize import load_model
+from mfdesign.cli.propose import load_predictor
 from mfdesign.data.store import read_parquet, write_parquet
-from mfdesign.demo import BUNDLED
+from mfdesign.cli._demo import BUNDLED
 
 runner = CliRunner()
 

@@ -179,7 +179,7 @@ def test_cli_bad_input_fails_with_one_line(tmp_path):
 
 
 def test_cli_reads_targets_files(tmp_path):
-    from mfdesign.cli_optimize import read_targets
+    from mfdesign.cli.optimize import read_targets
 
     (tmp_path / "h.json").write_text(json.dumps({"targets": [{"force_n": 14.7, "pressure_pa": 6895}]}))
     assert isinstance(read_targets(tmp_path / "h.json"), opt.HeightTargets)

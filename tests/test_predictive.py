@@ -7,11 +7,11 @@ bundled dataset, and hand-made posterior draws around the model's starting point
 import numpy as np
 import pytest
 
-from mfdesign.calibrate import build_model
+from mfdesign.calibration.mcmc import build_model
 from mfdesign.calibration.posterior import Posterior
 from mfdesign.models.standin import standin_force
 from mfdesign.data.store import read_parquet
-from mfdesign.demo import BUNDLED
+from mfdesign.cli._demo import BUNDLED
 from mfdesign.models.hierarchical import CalibrationData
 from mfdesign.models.predictive import MultiFidelity, coverage
 

@@ -8,7 +8,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import pytest
 
-from mfdesign.browser import check_page, chromium_path
+from browser import check_page, chromium_path
 from mfdesign.report import Report
 
 

@@ -10,7 +10,8 @@ from pathlib import Path
 import pandas as pd
 from typer.testing import CliRunner
 
-from mfdesign.rig.commands import rig_app
+from mfdesign.units import G_M_S2
+from mfdesign.cli.rig import rig_app
 
 from test_rig_support import RINGLESS, emulator, fast_config
 
@@ -45,7 +46,7 @@ def test_characterize_and_lift(tmp_path):
                                     "--source", "virtual", "--no-progress"])
     assert r.exit_code == 0, r.output
     df = pd.read_parquet(tmp_path / "l" / "measurements.parquet")
-    assert (df["experiment"] == "lift").all() and df["force_n"].iloc[0] == 1.5 * 9.80665
+    assert (df["experiment"] == "lift").all() and df["force_n"].iloc[0] == 1.5 * G_M_S2
 
 
 def test_bad_input_gets_a_clear_message(tmp_path):
@@ -66,7 +67,7 @@ def test_bad_input_gets_a_clear_message(tmp_path):
 
 
 def test_emulate_prints_port_and_serves_until_ctrl_c(tmp_path):
-    proc = subprocess.Popen([sys.executable, "-m", "mfdesign.rig.commands", "emulate", "--time-scale", "25"],
+    proc = subprocess.Popen([sys.executable, "-m", "mfdesign.cli", "rig", "emulate", "--time-scale", "25"],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         port = proc.stdout.readline().strip()

@@ -4,6 +4,7 @@
 import numpy as np
 import pytest
 
+from mfdesign.units import G_M_S2
 from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
 from mfdesign.rig.procedures import (
@@ -67,7 +68,7 @@ def test_mass_lift_job(tmp_path):
     assert res.status == "complete"
     df = to_measurements(tmp_path).df
     assert (df["experiment"] == "lift").all() and df["height_set_mm"].isna().all()
-    assert np.allclose(df["force_n"], 1.5 * 9.80665)
+    assert np.allclose(df["force_n"], 1.5 * G_M_S2)
     inflate = df[df["phase"] == "inflate"]
     assert inflate["height_mm"].iloc[-1] > inflate["height_mm"].iloc[0] + 10  # the mass went up
     assert_no_lost_samples(em, tmp_path)

@@ -41,7 +41,7 @@ def test_killed_job_resumes_without_loss_or_duplicates(tmp_path):
     args = ["--design", RINGLESS, "--out", str(job), "--config", str(cfg_path), "--heights", "10", "--heights", "20",
             "--trials", "2", "--source", "virtual", "--no-progress"]
     with emulator(config=cfg) as em:
-        proc = subprocess.Popen([sys.executable, "-m", "mfdesign.rig.commands", "characterize", "--port", em.port,
+        proc = subprocess.Popen([sys.executable, "-m", "mfdesign.cli", "rig", "characterize", "--port", em.port,
                                  *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
         try:
             deadline = time.monotonic() + 60

@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from mfdesign.design import Membrane
-from mfdesign.rig.commands import rig_app
+from mfdesign.cli.rig import rig_app
 from mfdesign.rig.config import RigConfig
 from mfdesign.rig.emulator import WORKING_PRESSURE_PA, RigEmulator, pump_time_s
 from mfdesign.rig.procedures import RINGLESS_LIMIT_PA, iter_trial_events, lift_plan, membrane_plan, run_job

@@ -16,7 +16,8 @@ import pytest
 
 from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
-from mfdesign.rig.virtual import G, Noise, Protocol, TruthPlane, VirtualRig, analytic_plane
+from mfdesign.rig.virtual import Noise, Protocol, TruthPlane, VirtualRig, analytic_plane
+from mfdesign.units import G_M_S2 as G
 
 ROOT = Path(__file__).resolve().parents[1]
 RINGLESS = Membrane(2.0, 25.4)
@@ -180,11 +181,11 @@ def test_dataset_script_is_reproducible_tiny(tmp_path):
 
 
 def test_bundled_dataset_is_valid():
-    card_path = ROOT / "data" / "bundled_card.json"
+    card_path = ROOT / "mfdesign" / "data" / "files" / "bundled_card.json"
     if not card_path.is_file():
         pytest.skip("bundled dataset not generated yet (python experiments/make_bundled_dataset.py)")
     card = json.loads(card_path.read_text())
-    pq = ROOT / "data" / card["file"]
+    pq = card_path.parent / card["file"]
     assert pq.stat().st_size <= 5 * 1024 * 1024
     assert _sha(pq) == card["sha256"]
     m = Measurements.from_parquet(pq)
@@ -207,7 +208,7 @@ def test_real_simulator_small_plane():
 
 @pytest.mark.slow
 def test_bundled_dataset_regenerates_bit_for_bit(tmp_path):
-    card_path = ROOT / "data" / "bundled_card.json"
+    card_path = ROOT / "mfdesign" / "data" / "files" / "bundled_card.json"
     if not card_path.is_file():
         pytest.skip("bundled dataset not generated yet")
     card = json.loads(card_path.read_text())

@@ -7,7 +7,7 @@ the MAP with the inverse Hessian as its scale, a near-Gaussian posterior (many r
 dozen parameters) is crossed in one accepted step instead of the tens of ensemble steps
 an affine-invariant move needs per autocorrelation time; the heavier tails keep the
 chain correct (``q`` must cover ``p``'s tails). Mixed with differential evolution in
-:func:`mfdesign.calibrate.calibrate`, which keeps exploring where ``q`` fits badly.
+:func:`mfdesign.calibration.mcmc.calibrate`, which keeps exploring where ``q`` fits badly.
 """
 
 from __future__ import annotations

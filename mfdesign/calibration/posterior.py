@@ -34,7 +34,7 @@ class Posterior:
     ``names``/``units`` of the parameters; ``samples`` [S, dim] physical values after
     burn-in and thinning; ``log_prob`` [S]; ``x_map`` [dim] physical MAP; ``log_lik_map``
     (weighted log-likelihood at the MAP); ``n_rows``; ``bic``; ``log_evidence_laplace``;
-    ``convergence`` (dict, see :func:`mfdesign.calibrate.convergence_report`);
+    ``convergence`` (dict, see :func:`mfdesign.calibration.mcmc.convergence_report`);
     ``design_keys`` (membrane order of the latents); ``effects``;
     ``chain`` [draw, walker, dim] the same samples per walker (physical units, before
     flattening; ``None`` for a posterior saved before it was kept) and ``log_prob_chain``

@@ -24,7 +24,7 @@ def truth_trial(seed: int, force_model, plane, effects=("pressure_sensor",), *, 
                 n_steps: int = 600, n_walkers: int | None = None, level: float = 0.95, protocol=None,
                 designs=DESIGN_KEYS, model_kwargs=None) -> dict:
     """One virtual-truth calibration; returns truth, intervals and ``covered`` per parameter."""
-    from mfdesign.calibrate import ConvergenceWarning, build_model, calibrate
+    from mfdesign.calibration.mcmc import ConvergenceWarning, build_model, calibrate
     from mfdesign.design import Membrane
     from mfdesign.models.hierarchical import CalibrationData
     from mfdesign.physics import effects as fx

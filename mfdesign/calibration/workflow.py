@@ -20,6 +20,7 @@ import equinox as eqx
 import numpy as np
 
 from mfdesign.physics.effects import LogNormal
+from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
 __all__ = ["MFFit", "for_search", "fit_multi_fidelity", "force_model_named", "lifted_rows", "load_multi_fidelity",
            "model_for"]
@@ -27,7 +28,7 @@ __all__ = ["MFFit", "for_search", "fit_multi_fidelity", "force_model_named", "li
 def force_model_named(name: str, table=None, progress: bool = False):
     """The force model ``name`` (:data:`~mfdesign.models.force.FORCE_MODELS`) for the rows of
     ``table`` (Measurements; the exact model needs its designs, heights and pressures)."""
-    from mfdesign.models.force import force_model_for
+    from mfdesign.models.backends import force_model_for
 
     if name == "exact":
         if table is None:
@@ -45,7 +46,7 @@ def model_for(force_model, data, effects=(), **kwargs):
     of mu [Pa], J_m and the thickness spread stay inside the force model's support (an
     emulator extrapolates outside its training ranges; the exact model's planes reach a
     stated range of reduced pressure and J_m)."""
-    from mfdesign.calibrate import build_model
+    from mfdesign.calibration.mcmc import build_model
     from mfdesign.models.force import ForceModel
 
     ranges = force_model.support() if isinstance(force_model, ForceModel) else {}
@@ -53,8 +54,8 @@ def model_for(force_model, data, effects=(), **kwargs):
         mu_lo, mu_hi = ranges.get("mu_pa", (15e3, 50e3))
         jm_lo, jm_hi = ranges.get("jm", (10.0, 100.0))
         tf_lo, tf_hi = ranges.get("thickness_factor", (0.7, 1.3))
-        kwargs.setdefault("mu_prior", LogNormal(31.7e3, 0.3, float(mu_lo), float(mu_hi)))
-        kwargs.setdefault("jm_prior", LogNormal(39.6, 0.5, float(jm_lo), float(jm_hi)))
+        kwargs.setdefault("mu_prior", LogNormal(ECOFLEX_MU_PA, 0.3, float(mu_lo), float(mu_hi)))
+        kwargs.setdefault("jm_prior", LogNormal(ECOFLEX_JM, 0.5, float(jm_lo), float(jm_hi)))
         kwargs.setdefault("thickness_sd_prior", LogNormal(0.05, 0.8, 1e-3, float(min(1 - tf_lo, tf_hi - 1) / 3)))
     return build_model(force_model, data, effects, **kwargs)
 
@@ -77,9 +78,9 @@ def fit_multi_fidelity(table, force_model, effects=(), *, n_steps: int = 2000, n
                        progress: bool = True, likelihood: str = "student_t", pool=None,
                        stop_when_converged: bool = True) -> MFFit:
     """Calibrate on ``table`` (Measurements), fit delta on the residuals, build the predictive
-    (``n_steps``: the most emcee steps; see :func:`~mfdesign.calibrate.calibrate` for
+    (``n_steps``: the most emcee steps; see :func:`~mfdesign.calibration.mcmc.calibrate` for
     ``stop_when_converged``)."""
-    from mfdesign.calibrate import calibrate
+    from mfdesign.calibration.mcmc import calibrate
     from mfdesign.models.ensemble import EnsembleConfig
     from mfdesign.models.hierarchical import CalibrationData, fit_discrepancy
     from mfdesign.models.predictive import MultiFidelity
@@ -114,7 +115,7 @@ def for_search(fit: MFFit, physics: str = "emulator"):
     designs runs the same posterior and discrepancy on the emulator, whose error (about
     1 N RMS against the simulator) adds to the prediction there: say so where it is used
     and check winners with the simulator."""
-    from mfdesign.models.force import force_model_for
+    from mfdesign.models.backends import force_model_for
     from mfdesign.models.predictive import MultiFidelity
 
     model = eqx.tree_at(lambda m: m.force_model, fit.model, force_model_for(physics))

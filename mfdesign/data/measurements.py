@@ -25,12 +25,14 @@ from __future__ import annotations
 
 import math
 import os
+from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 import pandas as pd
 
 from mfdesign.design import DesignError, Membrane
+from mfdesign.errors import InputError
 
 __all__ = [
     "COLUMNS",
@@ -74,7 +76,12 @@ COLUMNS: tuple[str, ...] = (
 )
 
 
-class MeasurementError(ValueError):
+FORMAT_KEY = b"mfdesign.measurements.format_version"  # Parquet key-value metadata
+FORMAT_VERSION = "1"
+SUPPORTED_VERSIONS = (FORMAT_VERSION,)
+
+
+class MeasurementError(InputError):
     """A Measurements table that breaks the schema; the message names column, row and rule."""
 
 
@@ -356,15 +363,51 @@ class Measurements:
         return out
 
     # -- storage -------------------------------------------------------------------------
-    def to_parquet(self, path: str | os.PathLike) -> None:
-        """Write atomically to Parquet (see :func:`mfdesign.data.store.write_parquet`)."""
-        from mfdesign.data.store import write_parquet
+    # Why atomic: a crash half-way through a write must never leave a truncated file where
+    # a good one (or none) was (mfdesign.outputs.atomic_path). Why a version: a later schema
+    # change must be detected, not mis-read; it lives in the Parquet key-value metadata.
+    def to_parquet(self, path: str | os.PathLike) -> "Path":
+        """Write atomically to Parquet with the format version; the parent folder must exist."""
+        import pyarrow as pa
+        import pyarrow.parquet as pq
 
-        write_parquet(self, path)
+        from mfdesign.outputs import atomic_path
+
+        path = Path(path)
+        if not path.parent.is_dir():
+            raise FileNotFoundError(f"folder {path.parent} does not exist; create it first")
+        table = pa.Table.from_pandas(self._df, preserve_index=False)
+        table = table.replace_schema_metadata({**(table.schema.metadata or {}), FORMAT_KEY: FORMAT_VERSION.encode()})
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                pq.write_table(table, fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+        return path
 
     @classmethod
     def from_parquet(cls, path: str | os.PathLike, extra_ok: bool = False) -> "Measurements":
-        """Read and validate a Parquet file written by :meth:`to_parquet`."""
-        from mfdesign.data.store import read_parquet
+        """Read a file written by :meth:`to_parquet`; checks the format version and the table."""
+        import pyarrow as pa
+        import pyarrow.parquet as pq
 
-        return read_parquet(path, extra_ok=extra_ok)
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"no Measurements file at {path}")
+        try:
+            table = pq.read_table(path)
+        except (pa.ArrowInvalid, OSError) as err:
+            raise MeasurementError(f"{path} is not a readable Parquet file: {err}") from None
+        meta = table.schema.metadata or {}
+        if FORMAT_KEY not in meta:
+            raise MeasurementError(
+                f"{path} has no {FORMAT_KEY.decode()!r} metadata: not written by "
+                "mfdesign.data.store.write_parquet"
+            )
+        version = meta[FORMAT_KEY].decode(errors="replace")
+        if version not in SUPPORTED_VERSIONS:
+            raise MeasurementError(
+                f"{path} has Measurements format version {version!r}; this mfdesign reads "
+                f"versions {list(SUPPORTED_VERSIONS)} (upgrade mfdesign or convert the file)"
+            )
+        return cls(table.to_pandas(), extra_ok=extra_ok)

@@ -1,10 +1,12 @@
 """Every way measurements come in, read into one :class:`Measurements` table.
 
 One function, :func:`load_sources`, is what every command's ``DATA`` argument goes
-through (via :func:`mfdesign.models.commands.load_data`) and what ``mfdesign import``
+through (via :func:`mfdesign.cli.data.load_data`) and what ``mfdesign import``
 converts. A source is:
 
 * ``mass-lift``: the authors' real mass-lift file from the shared data folder;
+* ``bundled``: the virtual-rig dataset shipped with the package (the demo's data,
+  :mod:`mfdesign.data.shipped`);
 * a Measurements **Parquet** file (``mfdesign.data.store``; a plain Parquet file with the
   Measurements columns is accepted too);
 * a **CSV** file with the Measurements columns (``docs/data.md``); a missing column is
@@ -37,6 +39,7 @@ import numpy as np
 import pandas as pd
 
 from mfdesign.data.measurements import COLUMNS, MeasurementError, Measurements
+from mfdesign.data.shipped import BUNDLED_NAME, bundled_path
 from mfdesign.errors import InputError
 
 __all__ = ["FORMATS", "MASS_LIFT_NAME", "detect_format", "load_sources", "read_characterisation", "read_csv",
@@ -45,7 +48,7 @@ __all__ = ["FORMATS", "MASS_LIFT_NAME", "detect_format", "load_sources", "read_c
 FORMATS = ("parquet", "csv", "mass-lift", "characterisation", "sim-planes", "rig-job")
 MASS_LIFT_NAME = "mass-lift"
 _PICKLE_SUFFIXES = (".pkl", ".pickle")
-_ALLOWED = (f"allowed: '{MASS_LIFT_NAME}', a Measurements .parquet or .csv file, an SPA_Design .pkl "
+_ALLOWED = (f"allowed: '{MASS_LIFT_NAME}', '{BUNDLED_NAME}', a Measurements .parquet or .csv file, an SPA_Design .pkl "
             "(mass-lift or characterisation data dictionary, simulated planes) or a rig job folder")
 
 
@@ -222,6 +225,8 @@ def read_source(source: str | os.PathLike, fmt: str = "auto") -> Measurements:
         from mfdesign.data.spa_design import load_mass_lift
 
         return load_mass_lift()
+    if str(source) == BUNDLED_NAME and fmt in ("auto", "parquet") and not Path(source).exists():
+        return _read_parquet(bundled_path())
     kind = detect_format(source) if fmt == "auto" else fmt
     p = Path(source)
     if fmt != "auto" and not p.exists():

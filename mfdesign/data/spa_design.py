@@ -59,7 +59,7 @@ RUN_RESET_MM = 20.0  # a height jump up by more than this starts a new run (obse
 
 
 # -- where the data lives -----------------------------------------------------------------
-class SharedDataMissing(FileNotFoundError):
+class SharedDataMissing(FileNotFoundError, InputError):
     """The shared SPA_Design data is not where we looked."""
 
 
@@ -88,7 +88,7 @@ def _data_file(path: str | os.PathLike | None, name: str) -> Path:
 
 
 # -- restricted unpickling ----------------------------------------------------------------
-class UnsafePickleError(pickle.UnpicklingError):
+class UnsafePickleError(pickle.UnpicklingError, InputError):
     """A pickle that names, builds or sizes something this loader does not allow."""
 
 

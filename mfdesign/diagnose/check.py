@@ -20,12 +20,12 @@ else "explains part".
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Mapping, Sequence
 
 import numpy as np
 
 from mfdesign.data.measurements import Measurements
+from mfdesign.diagnose.refit import CheckResult, calibrate_exact, full_check_exact
 from mfdesign.diagnose.residuals import Residuals
 from mfdesign.physics import effects as fx
 
@@ -37,38 +37,12 @@ __all__ = ["CheckResult", "calibrate_effects", "full_check", "verdict"]
 FLOOR_FACTOR = 1.2
 
 
-@dataclass(frozen=True)
-class CheckResult:
-    effects: tuple[str, ...]
-    theta: dict
-    stderr: dict
-    rmse_n: float
-    heldout_rmse_n: float
-    heldout_rmse_base_n: float
-    delta_bic: float
-    n_eff: float
-    noise_floor_n: float
-    folds: list = field(default_factory=list)
-
-    @property
-    def heldout_over_noise(self) -> float:
-        return self.heldout_rmse_n / self.noise_floor_n if self.noise_floor_n > 0 else float("nan")
-
-    def to_json(self) -> dict:
-        d = dict(self.__dict__)
-        d["effects"] = list(self.effects)
-        d["heldout_over_noise"] = self.heldout_over_noise
-        return d
-
-
 def calibrate_effects(sim: EmulatorModel, meas: Measurements, res: Residuals, effects: Sequence[str | fx.Effect],
                       theta0: Mapping[str, float] | None = None,
                       base_offset: np.ndarray | None = None) -> tuple[dict, np.ndarray]:
     """Nonlinear least-squares ``theta`` of ``effects`` on the rows of ``res``; returns
     ``(theta, prediction per row of meas)``. ``base_offset``: ``base - E(theta0)`` per row
     of ``meas`` (0 for the plain simulator)."""
-    from mfdesign.diagnose.refit import calibrate_exact
-
     return calibrate_exact(sim, meas, res, effects, theta0, base_offset)
 
 
@@ -79,8 +53,6 @@ def full_check(sim: EmulatorModel, meas: Measurements, res: Residuals, candidate
     sorted by held-out RMSE (best first). ``res``: residuals of the model without them;
     ``base_pred``: that model's prediction per row of ``meas`` (default: the plain
     simulator). See :func:`mfdesign.diagnose.refit.full_check_exact`."""
-    from mfdesign.diagnose.refit import full_check_exact
-
     return full_check_exact(sim, meas, res, candidates, theta0=theta0, base_pred=base_pred,
                             n_folds=n_folds, seed=seed, progress=progress)
 

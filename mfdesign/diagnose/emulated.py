@@ -42,6 +42,7 @@ from mfdesign.diagnose.expected import query_heights, trial_order
 from mfdesign.physics import effects as fx
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status
+from mfdesign.materials import ECOFLEX_MU_PA
 
 __all__ = ["EmulatorModel", "analytic_force", "emulator_plane", "forward_model", "likelihood_effects"]
 
@@ -55,7 +56,7 @@ def analytic_force(design, h_mm, p_pa, params: SimParams = SimParams()) -> jax.A
     ``s = mu t tf / 31.7 kPa mm`` and ``r_eff = c + contact_offset`` [mm]; ``[N]``."""
     design = jnp.atleast_2d(jnp.asarray(design, float))
     n_rings = (~jnp.isnan(design[:, 2])).astype(float) + (~jnp.isnan(design[:, 4])).astype(float)
-    stiff = params.mu_pa * design[:, 0] * params.thickness_factor / 31.7e3
+    stiff = params.mu_pa * design[:, 0] * params.thickness_factor / ECOFLEX_MU_PA
     r_eff = design[:, 1] + params.contact_offset_mm
     p_contact = 40.0 * stiff * h_mm * (1.0 + 0.4 * n_rings)
     return jnp.maximum(0.0, jnp.pi * (r_eff * 1e-3) ** 2 * 1.6 * (p_pa - p_contact))

@@ -14,7 +14,7 @@ For each candidate set of effects (the effects already in the model plus one can
 4. ``delta BIC = BIC(set) - BIC(model without the candidate)`` with the calibration's
    likelihood (:meth:`~mfdesign.models.hierarchical.HierarchicalModel.log_lik`, Gaussian,
    noise at its maximum-likelihood value) and the formula of
-   :func:`mfdesign.calibrate.calibrate` (``k ln n - 2 ln L``), so that diagnosis and
+   :func:`mfdesign.calibration.mcmc.calibrate` (``k ln n - 2 ln L``), so that diagnosis and
    calibration rank models alike;
 5. standard errors from the exact Jacobian at the optimum, inflated for the serial
    correlation of the residuals within trials (AR(1) factor ``(1 + rho) / (1 - rho)``).
@@ -23,6 +23,7 @@ For each candidate set of effects (the effects already in the model plus one can
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 import equinox as eqx
@@ -35,10 +36,34 @@ from mfdesign.diagnose.residuals import Residuals, subsample
 from mfdesign.diagnose.screen import lag1_autocorrelation, parameter_scale, parameter_step
 from mfdesign.physics import effects as fx
 
-__all__ = ["calibrate_exact", "full_check_exact"]
+__all__ = ["CheckResult", "calibrate_exact", "full_check_exact"]
 
 MAX_ROWS = 1000  # rows per refit, evenly within trials (the bundled data ranks alike and fits the same offset as with 2,500)
 KMAX = 4  # parameters per fit are padded to this (and rows to max_rows): one compiled fit serves all
+
+
+@dataclass(frozen=True)
+class CheckResult:
+    effects: tuple[str, ...]
+    theta: dict
+    stderr: dict
+    rmse_n: float
+    heldout_rmse_n: float
+    heldout_rmse_base_n: float
+    delta_bic: float
+    n_eff: float
+    noise_floor_n: float
+    folds: list = field(default_factory=list)
+
+    @property
+    def heldout_over_noise(self) -> float:
+        return self.heldout_rmse_n / self.noise_floor_n if self.noise_floor_n > 0 else float("nan")
+
+    def to_json(self) -> dict:
+        d = dict(self.__dict__)
+        d["effects"] = list(self.effects)
+        d["heldout_over_noise"] = self.heldout_over_noise
+        return d
 
 
 class _Clipped(eqx.Module):
@@ -128,8 +153,6 @@ def full_check_exact(sim: EmulatorModel, meas: Measurements, res: Residuals, can
     """Refit each candidate set (module doc); ``res``: residuals of the current model (the
     sets' common prefix of effects at ``theta0``); ``base_pred``: prediction of the model
     under diagnosis without any effect (default: the plain back end). Sorted by held-out RMSE."""
-    from mfdesign.diagnose.check import CheckResult
-
     sets = [list(s) for s in candidates]
     if not sets:
         return []

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -46,12 +45,13 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from mfdesign.data.shipped import emulator_dir
 from mfdesign.design import OUTER_RADIUS_MM, DesignSpace
 from mfdesign.models.force import ForceModel
 from mfdesign.physics.params import SimParams
 
 FORMAT_VERSION = 1
-DEFAULT_DIR = Path(__file__).resolve().parents[2] / "data" / "emulator"
+DEFAULT_DIR = emulator_dir()  # shipped in the package (mfdesign.data.shipped)
 N_FEATURES = 14
 Q_SCALE = 1.0  # 1/mm: q = p / (mu t_eff) is at most ~1 in the training ranges
 PARAM_FIELDS = ("mu_pa", "jm", "ring_mu_pa", "ring_jm", "thickness_factor",
@@ -285,7 +285,7 @@ _DEFAULT: Emulator | None = None
 
 
 def load_default() -> Emulator:
-    """The trained artifact shipped in ``data/emulator/`` (loaded once, then cached)."""
+    """The trained artifact shipped in the package (``mfdesign/data/files/emulator``; loaded once, then cached)."""
     global _DEFAULT
     if _DEFAULT is None:
         _DEFAULT = Emulator.load(DEFAULT_DIR)

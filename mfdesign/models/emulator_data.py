@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from mfdesign.design import MIN_GAP_MM, DesignSpace
+from mfdesign.design import DesignSpace
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status
 
@@ -157,6 +157,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    import mfdesign  # noqa: F401  (float64)
-
     main()

@@ -15,7 +15,8 @@ with ``params`` fields scalar or ``[N]`` (row-wise effects). Three implementatio
 * ``standin`` (:class:`~mfdesign.models.standin.StandinForceModel`): a closed-form
   shape with no physics, for fast tests.
 
-Sensitivities are autodiff (``jax.jacfwd``) through the implementation.
+Sensitivities are autodiff (``jax.jacfwd``) through the implementation. One is chosen by
+name with :func:`mfdesign.models.backends.force_model_for`.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import equinox as eqx
 
 from mfdesign.physics.params import SimParams
 
-__all__ = ["FORCE_MODELS", "ForceModel", "force_model_for"]
+__all__ = ["FORCE_MODELS", "ForceModel"]
 
 FORCE_MODELS = ("exact", "emulator", "standin")
 
@@ -64,37 +65,3 @@ class ForceModel(eqx.Module):
         """The model for a sampler (``True``: NaN where it cannot vouch for a number) or for an
         optimiser (``False``: no NaN, values held at the edge of its validity)."""
         return self
-
-
-def force_model_for(name: str, design_keys=(), *, h_max_mm: float = 80.0, p_max_pa: float = 10_000.0,
-                    base: SimParams = SimParams(), progress: bool = False, cache=None) -> ForceModel:
-    """The force model called ``name`` (one of :data:`FORCE_MODELS`).
-
-    Arguments:
-        name: ``"exact"`` (simulator planes of ``design_keys``; the lattice grows as fits
-            need it), ``"emulator"`` (the bundled neural emulator) or ``"standin"``.
-        design_keys: the measured designs (exact only).
-        h_max_mm, p_max_pa: the highest plate height [mm] and gauge pressure [Pa] of the rows (exact only).
-        base: the reference simulator constants (exact only).
-        progress: progress bars while planes are solved.
-        cache: plane cache folder (exact only; default ``$MFDESIGN_CACHE_DIR/planes``).
-    """
-    if name == "exact":
-        from mfdesign.models.exact import build_exact
-
-        if not len(design_keys):
-            raise ValueError("the exact force model needs the measured designs")
-        return build_exact(design_keys, h_max_mm=h_max_mm, p_max_pa=p_max_pa, base=base, outside="clamp",
-                           cache=cache, progress=progress)
-    if name == "emulator":
-        from mfdesign.models.emulator import load_default
-
-        try:
-            return load_default()
-        except FileNotFoundError as err:
-            raise ValueError(f"no trained emulator artifact ({err}); train it or use --physics exact") from None
-    if name == "standin":
-        from mfdesign.models.standin import StandinForceModel
-
-        return StandinForceModel()
-    raise ValueError(f"--physics must be one of {list(FORCE_MODELS)}, got {name!r}")

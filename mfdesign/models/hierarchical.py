@@ -47,6 +47,7 @@ import numpy as np
 from mfdesign.physics import effects as fx
 from mfdesign.physics.effects import LogNormal, Normal, Rows
 from mfdesign.physics.params import SimParams
+from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
 __all__ = ["LATENT", "CalibrationData", "HierarchicalModel", "ParamSpec", "fit_discrepancy"]
 
@@ -182,8 +183,8 @@ class HierarchicalModel(eqx.Module):
     membrane_latents: bool = eqx.field(default=True, static=True)
     likelihood: str = eqx.field(default="gaussian", static=True)
     nu: float = eqx.field(default=4.0, static=True)
-    mu_prior: object = eqx.field(default=LogNormal(31.7e3, 0.5, 3e3, 300e3), static=True)
-    jm_prior: object = eqx.field(default=LogNormal(39.6, 0.6, 2.0, 1000.0), static=True)
+    mu_prior: object = eqx.field(default=LogNormal(ECOFLEX_MU_PA, 0.5, 3e3, 300e3), static=True)
+    jm_prior: object = eqx.field(default=LogNormal(ECOFLEX_JM, 0.6, 2.0, 1000.0), static=True)
     noise_prior: object = eqx.field(default=LogNormal(1.0, 1.5, 1e-4, 1e3), static=True)
     thickness_sd_prior: object = eqx.field(default=LogNormal(0.05, 0.8, 1e-3, 0.5), static=True)
     base: SimParams = SimParams()
@@ -239,8 +240,8 @@ class HierarchicalModel(eqx.Module):
 
     def initial_physical(self) -> np.ndarray:
         """A sensible starting point: prior medians (mu, J_m, noise, sigma_t), effects neutral, z = 0."""
-        start = {"mu_pa": self.mu_prior.median if hasattr(self.mu_prior, "median") else 31.7e3,
-                 "jm": self.jm_prior.median if hasattr(self.jm_prior, "median") else 39.6,
+        start = {"mu_pa": self.mu_prior.median if hasattr(self.mu_prior, "median") else ECOFLEX_MU_PA,
+                 "jm": self.jm_prior.median if hasattr(self.jm_prior, "median") else ECOFLEX_JM,
                  "noise_n": getattr(self.noise_prior, "median", 1.0),
                  "thickness_sd": getattr(self.thickness_sd_prior, "median", 0.05)}
         start.update(fx.neutral_theta(self.effects))

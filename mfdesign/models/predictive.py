@@ -109,10 +109,10 @@ class MultiFidelity(eqx.Module):
         return MultiFidelity(self.model, self.theta[:n_draws], self.delta, self.noise_n, self.design_keys)
 
     def predictor(self, n_draws: int = 16):
-        """An acquisition :class:`~mfdesign.acquire.FunctionPredictor` with two fidelities:
+        """A :class:`~mfdesign.models.predictor.FunctionPredictor` with two fidelities:
         ``rig`` (physics draws + discrepancy members) and ``sim`` (physics draws only: what a
         simulator run informs, never the sim-to-real discrepancy)."""
-        from mfdesign.acquire import FunctionPredictor
+        from mfdesign.models.predictor import FunctionPredictor
 
         thin = self.thinned(n_draws)
         sim = MultiFidelity(thin.model, thin.theta, None, thin.noise_n, thin.design_keys)

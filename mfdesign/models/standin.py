@@ -31,6 +31,7 @@ import numpy as np
 from mfdesign.models.force import ForceModel
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status
+from mfdesign.materials import ECOFLEX_MU_PA
 
 __all__ = ["StandinForceModel", "standin_force", "standin_plane"]
 
@@ -40,7 +41,7 @@ _W_PA = 50.0
 def _formula(xp, softplus, design, h_mm, p_pa, params: SimParams):
     """The module doc's formula in the array namespace ``xp`` (jax.numpy or numpy)."""
     n_rings = (~xp.isnan(design[:, 2])).astype(float) + (~xp.isnan(design[:, 4])).astype(float)
-    stiff = params.mu_pa * design[:, 0] * params.thickness_factor / 31.7e3
+    stiff = params.mu_pa * design[:, 0] * params.thickness_factor / ECOFLEX_MU_PA
     p_c = 40.0 * stiff * h_mm * (1.0 + 0.4 * n_rings)
     p_lock = 250.0 * params.jm * stiff
     r_m = (design[:, 1] + params.contact_offset_mm) * 1e-3

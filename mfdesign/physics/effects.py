@@ -38,8 +38,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Iterable, Mapping
 
 import equinox as _eqx
 import jax as _jax

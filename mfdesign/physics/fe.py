@@ -59,12 +59,12 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-import mfdesign  # noqa: F401  (float64)
+import mfdesign._x64  # noqa: F401  (float64)
 from mfdesign.design import Membrane
 from mfdesign.materials import Gent
 from mfdesign.physics.params import SimParams
+from mfdesign.units import PA_TO_MPA
 
-PA_TO_MPA = 1e-6
 _GAUSS = (0.5 - 0.5 / math.sqrt(3.0), 0.5 + 0.5 / math.sqrt(3.0))
 
 

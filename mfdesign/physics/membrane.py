@@ -33,7 +33,6 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-PA_TO_MPA = 1e-6
 
 
 class Segment(eqx.Module):

@@ -10,7 +10,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 
-from mfdesign.materials import Gent
+from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA, Gent
 
 Scalar = float | jax.Array
 
@@ -30,8 +30,8 @@ class SimParams(eqx.Module):
       so the rigid inner region has radius ``c + offset``.
     """
 
-    mu_pa: Scalar = 31.7e3
-    jm: Scalar = 39.6
+    mu_pa: Scalar = ECOFLEX_MU_PA
+    jm: Scalar = ECOFLEX_JM
     ring_mu_pa: Scalar = 1.0e6
     ring_jm: Scalar = 25.0
     thickness_factor: Scalar = 1.0
@@ -47,5 +47,3 @@ class SimParams(eqx.Module):
     def fabric(self) -> Gent:
         return Gent(mu_pa=self.ring_mu_pa, jm=self.ring_jm)
 
-
-PAPER_PARAMS = SimParams()  # the constants of the authors' simulated planes

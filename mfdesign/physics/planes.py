@@ -42,6 +42,7 @@ import numpy as np
 
 from mfdesign.design import Membrane
 from mfdesign.physics.params import SimParams
+from mfdesign.materials import ECOFLEX_JM
 
 __all__ = ["AXES", "Axis", "H_STEP_MM", "P_STEP_PA", "PlaneGrid", "cache_dir", "lattice_jobs", "solve_planes"]
 
@@ -82,7 +83,7 @@ AXES: dict[str, Axis] = {
     a.name: a
     for a in (
         Axis("jm", _jm_coord, lambda b, c: dataclasses.replace(b, jm=b.jm * math.exp(c)),
-             step=math.log(2.0) / 8, lo=math.log(10.0 / 39.6), hi=math.log(400.0 / 39.6),
+             step=math.log(2.0) / 8, lo=math.log(10.0 / ECOFLEX_JM), hi=math.log(400.0 / ECOFLEX_JM),
              doc="log(J_m / J_m0): Gent locking of the rubber"),
         Axis("ring", _ring_coord, lambda b, c: dataclasses.replace(b, ring_mu_pa=b.ring_mu_pa * math.exp(c)),
              step=math.log(2.0) / 4, lo=math.log(0.005), hi=math.log(20.0), ringed_only=True,

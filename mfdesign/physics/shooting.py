@@ -26,8 +26,9 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from mfdesign.design import MAX_RINGS, Membrane
-from mfdesign.physics.membrane import PA_TO_MPA, Segment, jump_lambda1, rhs
+from mfdesign.physics.membrane import Segment, jump_lambda1, rhs
 from mfdesign.physics.params import SimParams
+from mfdesign.units import PA_TO_MPA
 
 RTOL_ODE = 1e-8
 ATOL_ODE = 1e-9
@@ -315,7 +316,6 @@ def profile(x, geom: Geometry, params: SimParams, h_mm, p_mpa, n_save: int = 48)
     segs = segments(geom, params)
     _, ok, (r, y) = integrate(segs, p_mpa, start_state(x, h_mm), save_per_segment=n_save)
     # Which segment each saved point belongs to (static: n_save points per segment).
-    n = segs.bounds.shape[0] - 1
     seg_of_point = jax.tree.map(lambda a: jnp.repeat(a, n_save), segs.seg)
     stress = jax.vmap(lambda sg, l1, l2: (sg.w1(l1, l2), sg.w2(l1, l2), sg.locking(l1, l2)))
     w1, w2, locking = stress(seg_of_point, y[:, 0], y[:, 1])

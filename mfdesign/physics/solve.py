@@ -30,9 +30,9 @@ import optimistix as optx
 
 from mfdesign.design import Membrane
 from mfdesign.physics import shooting as sh
-from mfdesign.physics.membrane import PA_TO_MPA
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status
+from mfdesign.units import PA_TO_MPA
 
 WRINKLE_TOL = 1e-9  # MPa: a principal stress more negative than this is compression
 PATH_STEPS = 8  # pressure steps from p / PATH_STEPS to p for a scattered point

@@ -42,9 +42,9 @@ from typing import Literal, Protocol, runtime_checkable
 import numpy as np
 
 from mfdesign.rig.config import RigConfig
-from mfdesign.rig.protocol import DEFAULT_WATCHDOG_S, LBF_TO_N, PSI_TO_PA
+from mfdesign.rig.protocol import DEFAULT_WATCHDOG_S
+from mfdesign.units import G_M_S2, LBF_TO_N, PSI_TO_PA
 
-G = 9.80665
 log = logging.getLogger("mfdesign.rig.emulator")
 
 # the chamber model's defaults (RigEmulator arguments)
@@ -419,7 +419,7 @@ class RigEmulator:
             for side in ("left", "right"):
                 self.pos[side] = min(max(self.pos[side] + self.motion[side] * self.speed * h, 0.0), self.travel)
             if self.payload_kg > 0:
-                excess = self.plant.force_n(self.lift_height, self.pressure) - self.payload_kg * G
+                excess = self.plant.force_n(self.lift_height, self.pressure) - self.payload_kg * G_M_S2
                 v = max(-50.0, min(50.0, 10.0 * excess))  # plate settles within ~0.1 s
                 self.lift_height = min(max(self.lift_height + v * h, 0.0), self.travel)
         self._arm_faults(time.monotonic())

@@ -33,8 +33,8 @@ from tqdm import tqdm
 
 from mfdesign.rig.config import RigConfig
 from mfdesign.rig.protocol import Command, RigConnection, RigFault, Sample
+from mfdesign.units import G_M_S2
 
-G = 9.80665
 log = logging.getLogger("mfdesign.rig")
 
 RINGED_LIMITS_PA = (4300.0, 6100.0)  # first pass, retest when the membrane did not burst
@@ -618,7 +618,7 @@ def journal_frame(job_dir: str | Path) -> pd.DataFrame:
         "height_set_mm": df["height_set_mm"].astype(float),
         "height_mm": df["height_mm"].astype(float),
         "pressure_pa": df["pressure_pa"].astype(float),
-        "force_n": df["force_n"].astype(float) if plan.experiment == "force" else float(plan.mass_kg * G),
+        "force_n": df["force_n"].astype(float) if plan.experiment == "force" else float(plan.mass_kg * G_M_S2),
         "weight": 1.0,
         "source": plan.source,
     }, columns=MEASUREMENT_COLUMNS)

@@ -36,9 +36,8 @@ from dataclasses import dataclass
 import serial
 
 from mfdesign.rig.config import TOF_DROPOUT, RigConfig
+from mfdesign.units import LBF_TO_N, PSI_TO_PA
 
-LBF_TO_N = 4.4482216152605
-PSI_TO_PA = 6894.757293168
 N_FIELDS = 7
 MAX_LINE_BYTES = 256
 _LOG_FIRST_BAD = 20  # log this many bad lines verbatim, then every 100th

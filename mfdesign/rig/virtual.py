@@ -16,7 +16,7 @@ Protocol (the paper's, see ``docs/rig.md``); every number is a field of :class:`
   ``ringless_contact_rise_mm`` (20 mm, our choice: it makes the largest ringless forces
   ~100 N, as in the paper) above the plate; capped at ``ringless_limit_pa`` (10 kPa, the
   rig's cap).
-* **mass lift**: 1.5, 2.5 and 4.0 kg on the free plate (load ``m * 9.81`` N), 2 trials per
+* **mass lift**: 1.5, 2.5 and 4.0 kg on the free plate (load ``m g`` N, :data:`mfdesign.units.G_M_S2`), 2 trials per
   mass (as in the real file), inflation from 0 to ``lift_limit_pa`` (10 kPa) or until the
   plate reaches ``lift_height_max_mm`` (75 mm). Along the ramp the plate sits on the
   branch reached by quasi-static inflation from ``h = 0``: at each pressure, the first
@@ -61,13 +61,13 @@ from mfdesign.design import Membrane
 from mfdesign.physics import effects as fx
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status
+from mfdesign.units import G_M_S2, PSI_TO_PA
+from mfdesign.materials import ECOFLEX_MU_PA
 
 log = logging.getLogger(__name__)
 
-__all__ = ["G", "Noise", "Protocol", "TruthPlane", "VirtualRig", "analytic_plane", "simulator_fingerprint"]
+__all__ = ["Noise", "Protocol", "TruthPlane", "VirtualRig", "analytic_plane", "simulator_fingerprint"]
 
-G = 9.81  # m/s^2 (the real file: 1.5 kg -> 14.715 N)
-PSI_PA = 6894.757293168  # the real pressure sensor reads in steps of 1e-4 psi
 
 
 @dataclass(frozen=True)
@@ -78,7 +78,7 @@ class Noise:
     pressure_sd_pa: float = 10.0
     height_sd_mm: float = 0.3
     force_step_n: float = 0.01  # load-cell resolution
-    pressure_step_pa: float = 1e-4 * PSI_PA  # 0.69 Pa, as in the real mass-lift file
+    pressure_step_pa: float = 1e-4 * PSI_TO_PA  # 0.69 Pa: the real sensor reads in steps of 1e-4 psi, as in the real mass-lift file
     height_step_mm: float = 1.0  # time-of-flight sensors read whole millimetres
 
     @classmethod
@@ -259,7 +259,7 @@ def analytic_plane(design: Membrane, h_grid, p_grid, params: SimParams = SimPara
     from types import SimpleNamespace
 
     H, P = np.meshgrid(np.asarray(h_grid, float), np.asarray(p_grid, float), indexing="ij")
-    stiff = float(params.mu_pa) * design.thickness_mm * float(params.thickness_factor) / 31.7e3
+    stiff = float(params.mu_pa) * design.thickness_mm * float(params.thickness_factor) / ECOFLEX_MU_PA
     r_eff = design.contact_radius_mm + float(params.contact_offset_mm)
     p_contact = 40.0 * stiff * H * (1.0 + 0.4 * design.n_rings)
     force = np.maximum(0.0, np.pi * (r_eff * 1e-3) ** 2 * 1.6 * (P - p_contact))
@@ -508,7 +508,7 @@ class VirtualRig:
         threshold = self._threshold(design)
         frames, trial = [], first_trial
         for mass in masses:
-            load = float(mass) * G
+            load = float(mass) * G_M_S2
             for _ in range(pr.lift_trials):
                 plane = self.truth_plane(design, self.sim_params(design, "lift", trial))
                 h_star = plane.lift_height(load)

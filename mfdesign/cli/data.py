@@ -1,4 +1,4 @@
-"""Plain functions behind ``mfdesign fit`` and ``mfdesign cv`` (registered in ``mfdesign.cli``).
+"""``mfdesign fit``, ``cv`` and ``import``, and how every command reads its ``DATA``.
 
 ``DATA`` is one or more sources (:func:`load_data`): Measurements Parquet / CSV files,
 ``mass-lift`` for the authors' real mass-lift data, SPA_Design pickles, rig job folders. Both print one line per result and write JSON; errors in inputs raise ``ValueError``
@@ -8,10 +8,11 @@ with a message fit for the terminal.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import List
 
-from mfdesign.models.baselines import CurveFitConfig
-from mfdesign.models.cv import cross_validate
-from mfdesign.models.ensemble import EnsembleConfig
+import typer
+
+from mfdesign.cli._app import ALLOW_OUTSIDE, fail
 
 MODELS = ("ensemble", "curve-fit")
 
@@ -80,6 +81,9 @@ def check_table(table, command: str, where: str, allow_outside_design_space: boo
 
 
 def make_spec(model: str, members: int, steps: int, batch: int, degree: int, monotone: bool):
+    from mfdesign.models.baselines import CurveFitConfig
+    from mfdesign.models.ensemble import EnsembleConfig
+
     if model == "ensemble":
         return EnsembleConfig(n_members=members, steps=steps, batch=batch, degree=degree, monotone=monotone)
     if model == "curve-fit":
@@ -107,6 +111,8 @@ def cv(data: Path, model: str = "ensemble", folds: int = 0, members: int = 32, s
        batch: int = 100, degree: int = 2, monotone: bool = True, seed: int = 0,
        out: Path | None = None, allow_outside_design_space: bool = False) -> dict:
     """Leave-membranes-out CV (``folds`` = 0: leave-one-membrane-out); prints and returns metrics."""
+    from mfdesign.models.cv import cross_validate
+
     table = load_data(data, "cv", allow_outside_design_space)
     splits = table.leave_one_out() if folds == 0 else table.kfold(folds, seed=seed)
     spec = make_spec(model, members, steps, batch, degree, monotone)
@@ -124,3 +130,64 @@ def cv(data: Path, model: str = "ensemble", folds: int = 0, members: int = 32, s
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         outputs.write_json(out, {"model": model, **result.to_json()})
     return result.to_json()
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("fit")
+    def fit_command(
+        data: List[Path] = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md)."),
+        out: Path = typer.Option(..., help="Folder for the fitted model."),
+        members: int = typer.Option(32, min=1, help="Ensemble members."),
+        steps: int = typer.Option(10_000, "--train-steps", min=1, help="Training steps (Adam) of every member."),
+        batch: int = typer.Option(100, min=1, help="Minibatch size."),
+        degree: int = typer.Option(2, min=1, max=3, help="Degree of the head polynomial in pressure."),
+        monotone: bool = typer.Option(True, help="Force non-decreasing in pressure."),
+        seed: int = typer.Option(0, help="Random seed."),
+        allow_outside_design_space: bool = ALLOW_OUTSIDE,
+    ) -> None:
+        """Fit the paper's RPN ensemble to measurements and save it."""
+        try:
+            fit(data, out, members, steps, batch, degree, monotone, seed, allow_outside_design_space)
+        except ValueError as err:
+            fail(str(err))
+
+
+    @app.command("cv")
+    def cv_command(
+        data: List[Path] = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md)."),
+        model: str = typer.Option("ensemble", "--model-type", help="Model type: ensemble | curve-fit."),
+        folds: int = typer.Option(0, min=0, help="k of k-fold by membrane; 0 = leave one membrane out."),
+        members: int = typer.Option(32, min=1),
+        steps: int = typer.Option(10_000, "--train-steps", min=1, help="Training steps (Adam) of every member."),
+        batch: int = typer.Option(100, min=1),
+        degree: int = typer.Option(2, min=1, max=3),
+        monotone: bool = typer.Option(True),
+        seed: int = typer.Option(0),
+        out: Path = typer.Option(None, help="Write the metrics as JSON here."),
+        allow_outside_design_space: bool = ALLOW_OUTSIDE,
+    ) -> None:
+        """Leave-membranes-out cross-validation: RMSE [N], median error, interval coverage."""
+        try:
+            cv(data, model, folds, members, steps, batch, degree, monotone, seed, out, allow_outside_design_space)
+        except ValueError as err:
+            fail(str(err))
+
+    @app.command("import")
+    def import_(
+        sources: List[Path] = typer.Argument(..., help="Files or rig job folders to read, or 'mass-lift' (several: concatenated)."),
+        out: Path = typer.Option(..., help="Measurements Parquet file to write."),
+        fmt: str = typer.Option("auto", "--format",
+                                help="auto (from the name and content) | parquet | csv | mass-lift | characterisation | sim-planes | rig-job."),
+    ) -> None:
+        """Convert measurements into one Measurements Parquet file (schema: docs/data.md).
+
+        Reads Measurements Parquet / CSV, the SPA_Design pickles (mass-lift and characterisation
+        data dictionaries, through the restricted unpickler) and rig job folders.
+        """
+        from mfdesign.data.sources import load_sources
+
+        table = load_sources(sources, fmt)
+        table.to_parquet(out)
+        df = table.df
+        trials = df.groupby(["design_key", "trial"]).first()["experiment"].value_counts().to_dict()
+        typer.echo(f"{len(table)} rows, {len(table.design_keys)} membranes, trials {trials} -> {out}")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import typer
 
-from mfdesign.cli_contract import item_parser
+from mfdesign.cli._contract import item_parser
 
 
 def read_targets(path: Path):
@@ -82,7 +82,7 @@ def register(app: typer.Typer) -> None:
         check: bool = typer.Option(True, help="Check the winner with the simulator (minutes)."),
     ) -> None:
         """Optimise a membrane: height maximisation or trajectory targeting; JSON + PNG."""
-        from mfdesign.cli import fail
+        from mfdesign.cli._app import fail
 
         if (targets is None) == (target_set is None):
             fail("give exactly one of --targets FILE or --target-set A|B")

@@ -38,7 +38,7 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
          likelihood: str, seed: int, resume: bool, multi_fidelity: bool, members: int, delta_steps: int,
          allow_outside_design_space: bool = False) -> None:
     from mfdesign import outputs
-    from mfdesign.cli import fail
+    from mfdesign.cli._app import fail
 
     if likelihood not in ("gaussian", "student_t"):
         fail(f"--likelihood must be 'gaussian' or 'student_t', got {likelihood!r}")
@@ -46,13 +46,12 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
         fail(f"--walkers must be >= 2 (0 = automatic), got {walkers}")
     import warnings
 
-    import numpy as np
 
     from mfdesign.calibration.plots import corner_plot
     from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named, model_for
-    from mfdesign.calibrate import ConvergenceWarning, calibrate
+    from mfdesign.calibration.mcmc import ConvergenceWarning, calibrate
     from mfdesign.data.measurements import MeasurementError
-    from mfdesign.models.commands import load_data
+    from mfdesign.cli.data import load_data
     from mfdesign.models.hierarchical import CalibrationData
     from mfdesign.physics.effects import EFFECTS
 

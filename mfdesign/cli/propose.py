@@ -12,11 +12,11 @@ from pathlib import Path
 
 import typer
 
-from mfdesign.cli_contract import item_parser
+from mfdesign.cli._contract import item_parser
 
 
 def load_predictor(model: Path):
-    """A :class:`~mfdesign.acquire.Predictor` from a folder.
+    """A :class:`~mfdesign.models.predictor.Predictor` from a folder.
 
     * ``DIR/ensemble.json`` (``mfdesign fit``): the rig-only paper case;
     * ``DIR/sim/ensemble.json`` + ``DIR/discrepancy/ensemble.json``: a
@@ -26,7 +26,7 @@ def load_predictor(model: Path):
 
     Raises ``ValueError`` with what was found when the folder is neither.
     """
-    from mfdesign.acquire import EnsemblePredictor, SplitPredictor
+    from mfdesign.models.predictor import EnsemblePredictor, SplitPredictor
     from mfdesign.models.ensemble import Ensemble
 
     model = Path(model)
@@ -107,7 +107,7 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("out/propose"), help="Output folder (proposal.json, proposal.png)."),
     ) -> None:
         """Propose the next q membranes: max uncertainty reduction per cost (Campbell et al. 2025 for rig only)."""
-        from mfdesign.cli import fail
+        from mfdesign.cli._app import fail
 
         if q < 1:
             fail(f"--q must be an integer >= 1, got {q}")

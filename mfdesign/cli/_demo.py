@@ -1,7 +1,7 @@
 """The lab's whole loop on the bundled virtual dataset: the README's main job.
 
-1. **data**: ``data/bundled_virtual.parquet`` (virtual rig, one hidden effect, see
-   ``data/bundled_card.json``);
+1. **data**: the bundled virtual-rig dataset (one hidden effect, see its card;
+   :mod:`mfdesign.data.shipped`);
 2. **calibrate** mu and J_m (and every membrane's thickness) with emcee on the simulator's
    emulator, **fit** the multi-fidelity model (discrepancy ensemble on the residuals);
 3. **diagnose** the plain model: where it fails, which effect is missing;
@@ -25,13 +25,14 @@ from pathlib import Path
 import numpy as np
 
 from mfdesign import outputs  # atomic writes: a reader never sees a torn file
+from mfdesign.data.shipped import bundled_card_path, bundled_path
 from mfdesign.design import Membrane
+from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
 __all__ = ["DemoSettings", "run_demo", "BUNDLED"]
 
-ROOT = Path(__file__).resolve().parents[1]
-BUNDLED = ROOT / "data" / "bundled_virtual.parquet"
-CARD = ROOT / "data" / "bundled_card.json"
+BUNDLED = bundled_path()
+CARD = bundled_card_path()
 
 
 @dataclass(frozen=True)
@@ -159,7 +160,7 @@ def _proposal_figure(meas, proposal, path: Path) -> None:
 def _truth_check(post, card: dict) -> dict:
     """Each parameter with a known truth (the authors' constants, the card's hidden effect):
     its 90 % interval and whether the truth lies inside."""
-    truth = {"mu_pa": 31.7e3, "jm": 39.6, **card["hidden_effect"]["theta"]}
+    truth = {"mu_pa": ECOFLEX_MU_PA, "jm": ECOFLEX_JM, **card["hidden_effect"]["theta"]}
     out = {}
     for name, value in truth.items():
         if name not in post.names:

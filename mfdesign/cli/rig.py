@@ -1,6 +1,6 @@
 """``mfdesign rig ...``: emulate a rig, characterise a membrane, run mass-lift trials.
 
-``rig_app`` is a typer sub-app; ``mfdesign/cli.py`` registers it as ``rig``. Jobs write into
+``rig_app`` is a typer sub-app, registered as ``rig`` (:func:`register`). Jobs write into
 ``--out`` (journal, rig log, ``measurements.parquet``); run the same command again to
 resume an interrupted job. SIGTERM is treated like Ctrl-C (rig safe, port closed).
 """
@@ -16,7 +16,7 @@ from typing import Optional
 
 import typer
 
-from mfdesign.cli_contract import item_parser
+from mfdesign.cli._contract import item_parser
 from mfdesign.rig.config import ConfigError, RigConfig
 from mfdesign.rig.protocol import DEFAULT_WATCHDOG_S, RigFault
 
@@ -31,7 +31,7 @@ def _config(path: Optional[Path]) -> RigConfig:
         raise typer.BadParameter(str(exc), param_hint="--config") from None
 
 
-def _design(key: str) -> Membrane:
+def _design(key: str) -> "Membrane":  # noqa: F821  (imported on use: --help stays fast)
     from mfdesign.design import DesignError, Membrane
 
     try:
@@ -181,5 +181,5 @@ def lift(
     _finish(out, lambda: run_job(port, out, plan, cfg, progress=progress))
 
 
-if __name__ == "__main__":
-    rig_app()
+def register(app: typer.Typer) -> None:
+    app.add_typer(rig_app, name="rig", help="Drive the test rig (or its emulator) over a serial port.")

@@ -96,7 +96,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Residuals by height, pressure, design, trial and phase; worst regions in words; which
         effect is missing (screen + full check); before/after with --effects. Writes HTML + JSON."""
-        from mfdesign.cli import fail
+        from mfdesign.cli._app import fail
 
         try:
             cfg = load_config(config) if config is not None else {}
@@ -121,7 +121,7 @@ def register(app: typer.Typer) -> None:
             if sim_name not in PHYSICS:
                 raise ValueError(f"--physics must be one of {list(PHYSICS)}, got {sim_name!r}")
             model_dir = model if model is not None else (Path(cfg["model"]) if cfg.get("model") else None)
-            from mfdesign.models.commands import load_data
+            from mfdesign.cli.data import load_data
 
             meas = load_data(data, "diagnose", allow_outside_design_space)
         except (ValueError, KeyError) as err:

@@ -1,0 +1,18 @@
+"""The ``mfdesign`` command line (typer): one module per command, a thin shell over the
+library. Units: mm, Pa, N.
+
+Every command module defines ``register(app)`` and imports its heavy dependencies (JAX,
+emcee, ...) inside the command bodies, so that ``mfdesign --help`` stays fast. The
+contract (:mod:`._contract`): bad input prints one line and exits with status 2; anything
+else names a log file with the traceback and exits with status 1.
+"""
+
+from mfdesign.cli import _contract, calibrate, data, demo, diagnose, optimize, propose, rig, simulate
+from mfdesign.cli._app import app
+
+__all__ = ["app"]
+
+# Registration order is the order of ``mfdesign --help``.
+for _module in (simulate, demo, data, rig, calibrate, diagnose, propose, optimize):
+    _module.register(app)
+_contract.apply(app)  # every command: --out checked and locked before computing

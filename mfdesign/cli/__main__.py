@@ -1,0 +1,3 @@
+from mfdesign.cli import app
+
+app()

@@ -1,0 +1,77 @@
+"""The ``mfdesign`` application object and what every command module shares.
+
+Bad input (a design that cannot be built, a file that is not what it should be) prints
+one line saying what was wrong and what is allowed, and exits with status 2; an unexpected
+error prints one line naming a log file with the traceback and exits with status 1
+(:mod:`mfdesign.cli._contract`).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import typer
+
+from mfdesign.cli._contract import ContractGroup
+
+# ContractGroup turns whatever escapes a command into the one-line contract (module doc).
+app = typer.Typer(
+    help="Multi-fidelity Bayesian design of soft pneumatic actuators.",
+    no_args_is_help=True,
+    add_completion=False,
+    cls=ContractGroup,
+)
+
+
+def enable_compilation_cache() -> Path:
+    """JAX's persistent compilation cache, so a second CLI call does not recompile.
+
+    Folder: ``$MFDESIGN_CACHE_DIR`` (default ``~/.cache/mfdesign/jax``). Programs that
+    compile in under 1 s are not stored (recompiling them is as fast as reading them).
+
+    Why ``EQX_ON_ERROR=nan`` (unless already set): equinox's runtime checks inside the
+    solvers (``eqx.error_if``, used by optimistix / diffrax / lineax even with
+    ``throw=False``) are host callbacks by default, and XLA never stores an executable that
+    holds a host callback: the cache stayed empty after any number of ``simulate`` runs.
+    With ``nan`` such a check turns its outputs into NaN, which the physics already reports
+    as a failed point (every solve here runs with ``throw=False``). It must be set before
+    equinox is imported, i.e. here, before any command body runs.
+    """
+    os.environ.setdefault("EQX_ON_ERROR", "nan")
+    import jax
+
+    cache = Path(os.environ.get("MFDESIGN_CACHE_DIR", Path.home() / ".cache" / "mfdesign" / "jax"))
+    cache.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(cache))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return cache
+
+
+# Declared once; the data commands and simulate take it.
+ALLOW_OUTSIDE = typer.Option(False, "--allow-outside-design-space",
+                             help="Research: accept designs outside the product's space (thickness 1-3 mm, ...) "
+                                  "up to a wider physical range; the output says so.")
+
+
+def fail(message: str) -> None:
+    """Print one line to stderr and exit with status 2."""
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code=2)
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        from importlib.metadata import version
+
+        typer.echo(f"mfdesign {version('mfdesign')}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="Print the version and exit."),
+) -> None:
+    enable_compilation_cache()

@@ -1,0 +1,39 @@
+"""``mfdesign demo``: the main job on the embedded default (the pipeline: :mod:`._demo`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from mfdesign.cli._app import fail
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def demo(
+        out: Path = typer.Option(Path("out/demo"), help="Output folder (report: OUT/index.html)."),
+        quick: bool = typer.Option(False, help="Shrink every stage (a smoke test of the whole loop)."),
+        physics: str = typer.Option("exact", help="Where the model meets the data: exact (simulator planes) | emulator | standin (tests)."),
+        seed: int = typer.Option(0, help="Random seed."),
+    ) -> None:
+        """The main job on the embedded default (no hardware, no external data).
+
+        On the bundled virtual-rig dataset: calibrate mu and J_m (emcee), fit the multi-fidelity
+        model, diagnose it and find the hidden effect, add it and refit, propose the next two
+        membranes with their fidelities, optimise a membrane for a lift task, and write one
+        HTML report (OUT/index.html) with JSON beside it.
+        """
+        import dataclasses
+
+        from mfdesign.cli._demo import DemoSettings, run_demo
+
+        if physics not in ("exact", "emulator", "standin"):
+            fail(f"--physics must be one of ['exact', 'emulator', 'standin'], got {physics!r}")
+        settings = DemoSettings.quick(physics) if quick else DemoSettings(
+            force_model=physics, search_model="standin" if physics == "standin" else "emulator")
+        settings = dataclasses.replace(settings, seed=seed)
+        try:
+            run_demo(out, settings, echo=typer.echo)
+        except (ValueError, FileNotFoundError) as err:
+            fail(str(err))

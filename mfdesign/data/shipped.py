@@ -1,0 +1,34 @@
+"""Files shipped inside the package, found with :mod:`importlib.resources` (so that an
+installed wheel finds them as well as a source checkout does).
+
+* ``bundled_virtual.parquet``: the demo's dataset, six membranes measured on the virtual
+  rig with one hidden effect (``experiments/make_bundled_dataset.py`` regenerates it);
+  ``bundled_card.json`` says what is hidden;
+* ``emulator/``: the trained simulator emulator (``experiments/train_emulator.py``).
+"""
+
+from __future__ import annotations
+
+from importlib.resources import files
+from pathlib import Path
+
+__all__ = ["BUNDLED_NAME", "bundled_card_path", "bundled_path", "emulator_dir", "shipped_path"]
+
+BUNDLED_NAME = "bundled"  # the DATA keyword for the bundled dataset (mfdesign.data.sources)
+
+
+def shipped_path(name: str) -> Path:
+    """Path of the shipped file ``name`` (relative to ``mfdesign/data/files``)."""
+    return Path(str(files("mfdesign.data").joinpath("files", *name.split("/"))))
+
+
+def bundled_path() -> Path:
+    return shipped_path("bundled_virtual.parquet")
+
+
+def bundled_card_path() -> Path:
+    return shipped_path("bundled_card.json")
+
+
+def emulator_dir() -> Path:
+    return shipped_path("emulator")
