@@ -72,14 +72,32 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "experiments" / "out"
 HIDDEN = ("pressure_sensor", {"pressure_sensor.offset_pa": 150.0, "pressure_sensor.gain": 1.0})
 HELD_OUT = (
-    "[2.0, 25.4, nan, nan, nan, nan]", "[1.0, 38.1, nan, nan, nan, nan]",
-    "[1.5, 30.0, 45.0, 6.0, nan, nan]", "[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]",
-    "[2.33, 29.63, 37.63, 5.0, 62.0, 5.0]", "[2.0, 38.1, 47.55, 6.45, 62.0, 5.0]",
+    "[2.0, 25.4, nan, nan, nan, nan]",
+    "[1.0, 38.1, nan, nan, nan, nan]",
+    "[1.5, 30.0, 45.0, 6.0, nan, nan]",
+    "[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]",
+    "[2.33, 29.63, 37.63, 5.0, 62.0, 5.0]",
+    "[2.0, 38.1, 47.55, 6.45, 62.0, 5.0]",
 )
 ARMS = ("random", "rig", "fidelity", "mf-random", "mf-rig")
 # Options a run's checkpoint must share with the command that resumes it.
-SETTINGS = ("simulator", "q", "restarts", "refine", "lbfgs_steps", "members", "steps", "cost_sim", "warm_sims",
-            "mcmc_steps", "walkers", "mf_rows", "mf_draws", "mf_effects", "mf_refine")
+SETTINGS = (
+    "simulator",
+    "q",
+    "restarts",
+    "refine",
+    "lbfgs_steps",
+    "members",
+    "steps",
+    "cost_sim",
+    "warm_sims",
+    "mcmc_steps",
+    "walkers",
+    "mf_rows",
+    "mf_draws",
+    "mf_effects",
+    "mf_refine",
+)
 # The mf arms' acquisition grid: heights 0-60 mm x 2-8 kPa, 4 x 4 (the default 8 x 8 grid
 # through 8 posterior draws of the emulator took over 13 minutes per proposal).
 MF_GRID_H, MF_GRID_P = (0.0, 20.0, 40.0, 60.0), (2000.0, 4000.0, 6000.0, 8000.0)
@@ -126,8 +144,9 @@ class Lab:
             keys = np.array([Membrane.from_array(d).key() for d in h["design"]])
             for k in dict.fromkeys(keys):
                 i = np.flatnonzero(keys == k)
-                f[i] = force_at(Membrane.from_key(k), h["height_mm"][i], h["pressure_pa"][i],
-                                self.nominal.base_params).force_n
+                f[i] = force_at(
+                    Membrane.from_key(k), h["height_mm"][i], h["pressure_pa"][i], self.nominal.base_params
+                ).force_n
             return float(np.sqrt(np.nanmean((f - h["force_n"]) ** 2)))
         if self.simulator != "emulator":
             return None
@@ -135,8 +154,12 @@ class Lab:
 
         from mfdesign.models.emulator import load_default
 
-        f = load_default()(jnp.asarray(h["design"]), jnp.asarray(h["height_mm"]), jnp.asarray(h["pressure_pa"]),
-                           self.nominal.base_params)
+        f = load_default()(
+            jnp.asarray(h["design"]),
+            jnp.asarray(h["height_mm"]),
+            jnp.asarray(h["pressure_pa"]),
+            self.nominal.base_params,
+        )
         return float(np.sqrt(np.mean((np.asarray(f) - h["force_n"]) ** 2)))
 
     def fabricate(self, design, seed: int) -> dict:
@@ -166,8 +189,12 @@ class Lab:
         H, P = np.meshgrid(plane.h_grid, plane.p_grid, indexing="ij")
         ok = np.isfinite(plane.force_n) & (P <= p_top + 1e-9)
         n = int(ok.sum())
-        return {"design": np.repeat(design.to_array()[None], n, 0), "height_mm": H[ok],
-                "pressure_pa": P[ok], "force_n": plane.force_n[ok]}
+        return {
+            "design": np.repeat(design.to_array()[None], n, 0),
+            "height_mm": H[ok],
+            "pressure_pa": P[ok],
+            "force_n": plane.force_n[ok],
+        }
 
 
 def _mf_grid():
@@ -216,13 +243,25 @@ class Model:
 
                 h_held, p_held = args.held_ranges
                 keys = tuple(dict.fromkeys([*table.df["design_key"], *HELD_OUT]))
-                fm = force_model_for("exact", keys, h_max_mm=max(float(table.df["height_mm"].max()), h_held),
-                                     p_max_pa=max(float(table.df["pressure_pa"].max()), p_held))
+                fm = force_model_for(
+                    "exact",
+                    keys,
+                    h_max_mm=max(float(table.df["height_mm"].max()), h_held),
+                    p_max_pa=max(float(table.df["pressure_pa"].max()), p_held),
+                )
             else:
                 fm = force_model_named("emulator")
-            fit = fit_multi_fidelity(table, fm, tuple(args.mf_effects),
-                                     n_steps=args.mcmc_steps, n_walkers=args.walkers, max_rows=args.mf_rows,
-                                     ensemble_config=cfgs["disc"], seed=seed, progress=False)
+            fit = fit_multi_fidelity(
+                table,
+                fm,
+                tuple(args.mf_effects),
+                n_steps=args.mcmc_steps,
+                n_walkers=args.walkers,
+                max_rows=args.mf_rows,
+                ensemble_config=cfgs["disc"],
+                seed=seed,
+                progress=False,
+            )
             self.mf = fit.mf
             search = for_search(fit) if args.simulator == "simulator" else fit.mf
             self.predictor = search.predictor(n_draws=args.mf_draws)
@@ -235,13 +274,16 @@ class Model:
             self.predict = lambda d, h, p: np.asarray(self.ens.predict(jnp.asarray(d), h, p).mean(0))
             return
         self.sim = _fit(cfgs["rig"], sim_data, seed)
-        s = np.asarray(self.sim.predict(jnp.asarray(rig_data["design"]), rig_data["height_mm"],
-                                        rig_data["pressure_pa"]).mean(0))
+        s = np.asarray(
+            self.sim.predict(jnp.asarray(rig_data["design"]), rig_data["height_mm"], rig_data["pressure_pa"]).mean(0)
+        )
         resid = dict(rig_data, force_n=rig_data["force_n"] - s)
         self.disc = _fit(cfgs["disc"], resid, seed + 1)
         self.predictor = SplitPredictor(self.sim, self.disc)
-        self.predict = lambda d, h, p: (np.asarray(self.sim.predict(jnp.asarray(d), h, p).mean(0))
-                                        + np.asarray(self.disc.predict(jnp.asarray(d), h, p).mean(0)))
+        self.predict = lambda d, h, p: (
+            np.asarray(self.sim.predict(jnp.asarray(d), h, p).mean(0))
+            + np.asarray(self.disc.predict(jnp.asarray(d), h, p).mean(0))
+        )
 
 
 def _lhs(rng, n, dim):
@@ -275,8 +317,9 @@ def run_arm(lab, arm, seed, args, cfgs, state) -> dict:
     rig_keys = state.setdefault("rig", [d.key() for d in initial_designs(seed)])
     # The fidelity arm simulates its membranes and --warm-sims Latin-hypercube designs first
     # (cost 0.01 each): a sim ensemble fitted to three planes cannot tell designs apart.
-    sim_keys = state.setdefault("sim", list(rig_keys) + [d.key() for d in warm_sims(seed, args.warm_sims)]
-                                if arm == "fidelity" else [])
+    sim_keys = state.setdefault(
+        "sim", list(rig_keys) + [d.key() for d in warm_sims(seed, args.warm_sims)] if arm == "fidelity" else []
+    )
     curve = state.setdefault("curve", [])
     costs = {"rig": 1.0, "sim": args.cost_sim}
     while True:
@@ -293,22 +336,40 @@ def run_arm(lab, arm, seed, args, cfgs, state) -> dict:
         rmse = float(np.sqrt(np.mean(err**2)))
         cost = len(rig_keys) + args.cost_sim * len(sim_keys)
         if len(curve) == it:
-            curve.append({"iteration": it, "membranes": len(rig_keys), "sims": len(sim_keys), "cost": cost,
-                          "rmse_n": rmse, "fit_s": fit_s})
-        print(f"seed {seed} {arm:8s} it {it}: {len(rig_keys)} membranes, {len(sim_keys)} sims, cost {cost:.2f}: "
-              f"held-out RMSE {rmse:.2f} N (fit {fit_s:.1f} s)", flush=True)
+            curve.append(
+                {
+                    "iteration": it,
+                    "membranes": len(rig_keys),
+                    "sims": len(sim_keys),
+                    "cost": cost,
+                    "rmse_n": rmse,
+                    "fit_s": fit_s,
+                }
+            )
+        print(
+            f"seed {seed} {arm:8s} it {it}: {len(rig_keys)} membranes, {len(sim_keys)} sims, cost {cost:.2f}: "
+            f"held-out RMSE {rmse:.2f} N (fit {fit_s:.1f} s)",
+            flush=True,
+        )
         if it >= args.iters:
             return state
         t = time.perf_counter()
         if arm in ("random", "mf-random"):
-            new = [(space.decode(_lhs(rng, 1, space.dim(n))[0], n), "rig")
-                   for n in rng.integers(0, 3, size=args.q)]
+            new = [(space.decode(_lhs(rng, 1, space.dim(n))[0], n), "rig") for n in rng.integers(0, 3, size=args.q)]
         else:
             fids = ("rig", "sim") if arm == "fidelity" else ("rig",)
             cheap = arm.startswith("mf")  # every evaluation runs the emulator for each posterior draw
-            prop = propose(model.predictor, args.q, fidelities=fids, costs=costs, n_restarts=args.restarts,
-                           n_refine=args.mf_refine if cheap else args.refine, n_steps=args.lbfgs_steps,
-                           grid=_mf_grid() if cheap else Grid(), key=seed * 1000 + it)
+            prop = propose(
+                model.predictor,
+                args.q,
+                fidelities=fids,
+                costs=costs,
+                n_restarts=args.restarts,
+                n_refine=args.mf_refine if cheap else args.refine,
+                n_steps=args.lbfgs_steps,
+                grid=_mf_grid() if cheap else Grid(),
+                key=seed * 1000 + it,
+            )
             new = list(zip(prop.designs, prop.fidelities))
         curve[-1]["propose_s"] = time.perf_counter() - t
         curve[-1]["proposed"] = [[d.key(), f] for d, f in new]
@@ -336,12 +397,17 @@ def summarise(results, args) -> dict:
         for c in runs:
             for pt in c:
                 by_n.setdefault(pt["membranes"], []).append(pt["rmse_n"])
-        summary[arm] = {"seeds": len(runs), "final_rmse_n_mean": float(np.mean(finals)),
-                        "final_membranes": [c[-1]["membranes"] for c in runs],
-                        "rmse_n_by_membranes": {str(n): {"mean": float(np.mean(v)), "runs": len(v)}
-                                                for n, v in sorted(by_n.items())},
-                        "final_rmse_n": finals, "membranes_to_target": first,
-                        "final_cost_mean": float(np.mean([c[-1]["cost"] for c in runs]))}
+        summary[arm] = {
+            "seeds": len(runs),
+            "final_rmse_n_mean": float(np.mean(finals)),
+            "final_membranes": [c[-1]["membranes"] for c in runs],
+            "rmse_n_by_membranes": {
+                str(n): {"mean": float(np.mean(v)), "runs": len(v)} for n, v in sorted(by_n.items())
+            },
+            "final_rmse_n": finals,
+            "membranes_to_target": first,
+            "final_cost_mean": float(np.mean([c[-1]["cost"] for c in runs])),
+        }
     return summary
 
 
@@ -351,8 +417,13 @@ def plot(results, summary, args, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colours = {"random": "tab:gray", "rig": "tab:blue", "fidelity": "tab:orange", "mf-random": "tab:olive",
-               "mf-rig": "tab:red"}
+    colours = {
+        "random": "tab:gray",
+        "rig": "tab:blue",
+        "fidelity": "tab:orange",
+        "mf-random": "tab:olive",
+        "mf-rig": "tab:red",
+    }
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.8))
     for arm in ARMS:
         for s in results:
@@ -360,21 +431,35 @@ def plot(results, summary, args, path):
             if not c:
                 continue
             for ax, x in zip(axes, ("membranes", "cost")):
-                ax.plot([p[x] for p in c], [p["rmse_n"] for p in c], "o-", color=colours[arm], alpha=0.7,
-                        label=arm if s == min(results) else None, ms=3)
+                ax.plot(
+                    [p[x] for p in c],
+                    [p["rmse_n"] for p in c],
+                    "o-",
+                    color=colours[arm],
+                    alpha=0.7,
+                    label=arm if s == min(results) else None,
+                    ms=3,
+                )
     for ax, lab in zip(axes, ("membranes fabricated", "cost (rig runs; sim = %g)" % args.cost_sim)):
         ax.axhline(args.target_n, color="k", ls="--", lw=1, label=f"target {args.target_n} N")
         if args.simulator_rmse is not None:
-            ax.axhline(args.simulator_rmse, color="tab:green", ls=":", lw=1.5,
-                       label=f"nominal simulator, no data: {args.simulator_rmse:.2f} N")
+            ax.axhline(
+                args.simulator_rmse,
+                color="tab:green",
+                ls=":",
+                lw=1.5,
+                label=f"nominal simulator, no data: {args.simulator_rmse:.2f} N",
+            )
         ax.set_xlabel(lab)
         ax.set_ylabel("held-out force RMSE [N]")
         ax.set_yscale("log")
         ax.grid(alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8)
-    fig.suptitle(f"Active learning on the virtual rig ({args.simulator}{', quick' if args.quick else ''}; "
-                 f"{len(results)} seeds, q = {args.q})")
+    fig.suptitle(
+        f"Active learning on the virtual rig ({args.simulator}{', quick' if args.quick else ''}; "
+        f"{len(results)} seeds, q = {args.q})"
+    )
     fig.tight_layout(rect=(0, 0.12, 1, 1))
     fig.savefig(path, dpi=120)
 
@@ -382,8 +467,12 @@ def plot(results, summary, args, path):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="analytic stand-in simulator, short fits")
-    ap.add_argument("--simulator", choices=("simulator", "emulator", "analytic"), default="emulator",
-                    help="what the virtual rig's truth and the 'sim' fidelity run on (--quick: analytic)")
+    ap.add_argument(
+        "--simulator",
+        choices=("simulator", "emulator", "analytic"),
+        default="emulator",
+        help="what the virtual rig's truth and the 'sim' fidelity run on (--quick: analytic)",
+    )
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--arms", nargs="+", default=list(ARMS), choices=ARMS)
     ap.add_argument("--iters", type=int, default=6, help="acquisition rounds after the 3 initial membranes")
@@ -391,13 +480,18 @@ def main() -> None:
     ap.add_argument("--restarts", type=int, default=1000, help="random batches screened per ring count")
     ap.add_argument("--refine", type=int, default=32, help="screened batches refined by L-BFGS")
     ap.add_argument("--warm-sims", type=int, default=12, help="fidelity arm: Latin-hypercube sims before round 1")
-    ap.add_argument("--mcmc-steps", type=int, default=200,
-                    help="mf arms: most emcee steps per fit (the chain stops once converged)")
+    ap.add_argument(
+        "--mcmc-steps", type=int, default=200, help="mf arms: most emcee steps per fit (the chain stops once converged)"
+    )
     ap.add_argument("--walkers", type=int, default=28, help="mf arms: emcee walkers")
     ap.add_argument("--mf-rows", type=int, default=800, help="mf arms: rows the calibration sees")
-    ap.add_argument("--mf-effects", nargs="*", default=["pressure_sensor"],
-                    help="mf arms: effects calibrated (default: the one `mfdesign diagnose` names on this rig's "
-                         "data; pass none for the bare model)")
+    ap.add_argument(
+        "--mf-effects",
+        nargs="*",
+        default=["pressure_sensor"],
+        help="mf arms: effects calibrated (default: the one `mfdesign diagnose` names on this rig's "
+        "data; pass none for the bare model)",
+    )
     ap.add_argument("--mf-refine", type=int, default=8, help="mf arms: screened batches refined by L-BFGS")
     ap.add_argument("--mf-draws", type=int, default=8, help="mf arms: posterior draws the acquisition compares")
     ap.add_argument("--lbfgs-steps", type=int, default=15)
@@ -435,7 +529,9 @@ def main() -> None:
             tmp = path.with_suffix(".tmp")
             tmp.write_text(json.dumps(results[seed][arm], indent=1))
             tmp.replace(path)
+
         return save
+
     common = dict(n_members=args.members, steps=args.steps, chunk=min(500, args.steps), batch=100)
     cfgs = {"rig": EnsembleConfig(monotone=True, **common), "disc": EnsembleConfig(monotone=False, **common)}
     t0 = time.perf_counter()
@@ -443,8 +539,10 @@ def main() -> None:
     args.held_ranges = (float(lab.held["height_mm"].max()), float(lab.held["pressure_pa"].max()))
     args.simulator_rmse = lab.simulator_rmse()
     print(f"nominal simulator alone: held-out RMSE {args.simulator_rmse} N", flush=True)
-    print(f"held-out: {len(lab.held['force_n'])} rows of {len(HELD_OUT)} membranes ({time.perf_counter() - t0:.0f} s)",
-          flush=True)
+    print(
+        f"held-out: {len(lab.held['force_n'])} rows of {len(HELD_OUT)} membranes ({time.perf_counter() - t0:.0f} s)",
+        flush=True,
+    )
     for seed in [] if args.report_only else args.seeds:
         for arm in args.arms:
             state = results.setdefault(seed, {}).setdefault(arm, {})
@@ -452,33 +550,53 @@ def main() -> None:
                 continue
             settings = {k: getattr(args, k) for k in SETTINGS}
             if state.setdefault("settings", settings) != settings:
-                raise SystemExit(f"seed {seed} arm {arm}: its checkpoint in {runs_dir} was made with "
-                                 f"{state['settings']}, not {settings}; delete it or pass the same options")
+                raise SystemExit(
+                    f"seed {seed} arm {arm}: its checkpoint in {runs_dir} was made with "
+                    f"{state['settings']}, not {settings}; delete it or pass the same options"
+                )
             args.save = saver(seed, arm)
             run_arm(lab, arm, seed, args, cfgs, state)
             args.save()
     summary = summarise(results, args)
     for arm, s in summary.items():
-        print(f"{arm:8s}: final RMSE {s['final_rmse_n_mean']:.2f} N (mean of {s['seeds']} seeds), "
-              f"membranes to {args.target_n} N: {s['membranes_to_target']}", flush=True)
+        print(
+            f"{arm:8s}: final RMSE {s['final_rmse_n_mean']:.2f} N (mean of {s['seeds']} seeds), "
+            f"membranes to {args.target_n} N: {s['membranes_to_target']}",
+            flush=True,
+        )
     if "random" in summary and "rig" in summary:
         r, a = summary["random"]["final_rmse_n_mean"], summary["rig"]["final_rmse_n_mean"]
         print(f"ratio final RMSE random / rig acquisition: {r / a:.2f}", flush=True)
-    out = {"command": "python experiments/active_learning.py " + " ".join(
-               f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()
-               if k not in ("save", "simulator_rmse", "held_ranges")),
-           "quick": args.quick, "simulator": args.simulator, "hidden_effect": {"name": HIDDEN[0], "theta": HIDDEN[1]},
-           "held_out": list(HELD_OUT),
-           # --report-only: complete when every (seed, arm) has a curve (arms may have run for
-           # different --iters: the mf arms for 2, the others for 6).
-           "complete": all(len(results.get(s, {}).get(a, {}).get("curve", [])) > (0 if args.report_only else args.iters)
-                           for s in args.seeds for a in args.arms),
-           "target_n": args.target_n, "cost_sim": args.cost_sim, "simulator_alone_rmse_n": args.simulator_rmse,
-           "summary": summary,
-           "runs": {str(k): v for k, v in results.items()}, "wall_s": time.perf_counter() - t0,
-           "note": ("fidelity arm: SplitPredictor (sim ensemble + discrepancy ensemble, warm-started with "
-                    "--warm-sims simulator planes); mf-* arms: the issue-5 multi-fidelity model (emcee calibration "
-                    "through the emulator + RPN discrepancy)")}
+    out = {
+        "command": "python experiments/active_learning.py "
+        + " ".join(
+            f"--{k.replace('_', '-')} {v}"
+            for k, v in vars(args).items()
+            if k not in ("save", "simulator_rmse", "held_ranges")
+        ),
+        "quick": args.quick,
+        "simulator": args.simulator,
+        "hidden_effect": {"name": HIDDEN[0], "theta": HIDDEN[1]},
+        "held_out": list(HELD_OUT),
+        # --report-only: complete when every (seed, arm) has a curve (arms may have run for
+        # different --iters: the mf arms for 2, the others for 6).
+        "complete": all(
+            len(results.get(s, {}).get(a, {}).get("curve", [])) > (0 if args.report_only else args.iters)
+            for s in args.seeds
+            for a in args.arms
+        ),
+        "target_n": args.target_n,
+        "cost_sim": args.cost_sim,
+        "simulator_alone_rmse_n": args.simulator_rmse,
+        "summary": summary,
+        "runs": {str(k): v for k, v in results.items()},
+        "wall_s": time.perf_counter() - t0,
+        "note": (
+            "fidelity arm: SplitPredictor (sim ensemble + discrepancy ensemble, warm-started with "
+            "--warm-sims simulator planes); mf-* arms: the issue-5 multi-fidelity model (emcee calibration "
+            "through the emulator + RPN discrepancy)"
+        ),
+    }
     (OUT / f"active_learning{tag}.json").write_text(json.dumps(out, indent=2))
     plot(results, summary, args, OUT / f"active_learning{tag}.png")
     print(f"wrote {OUT / f'active_learning{tag}.json'} and .png", flush=True)

@@ -41,12 +41,20 @@ def main() -> None:
     ap.add_argument("--restarts", type=int, default=1000)
     ap.add_argument("--members", type=int, default=32)
     ap.add_argument("--refine", type=int, default=32, help="screened starts refined by L-BFGS")
-    ap.add_argument("--compare-full", type=int, default=100,
-                    help="also run every one of this many starts through L-BFGS (no screen); 0: skip")
+    ap.add_argument(
+        "--compare-full",
+        type=int,
+        default=100,
+        help="also run every one of this many starts through L-BFGS (no screen); 0: skip",
+    )
     ap.add_argument("--steps", type=int, default=20, help="L-BFGS iterations per restart")
     ap.add_argument("--q", type=int, default=2)
-    ap.add_argument("--fit-steps", type=int, default=300,
-                    help="training steps of the ensemble (0: untrained; the timing does not depend on it)")
+    ap.add_argument(
+        "--fit-steps",
+        type=int,
+        default=300,
+        help="training steps of the ensemble (0: untrained; the timing does not depend on it)",
+    )
     ap.add_argument("--rings", type=int, nargs="+", default=[2, 1, 0])
     ap.add_argument("--out", type=Path, default=ROOT / "experiments" / "out" / "bench_acquire.json")
     args = ap.parse_args()
@@ -61,11 +69,13 @@ def main() -> None:
     data = Measurements.from_parquet(ROOT / "mfdesign" / "data" / "files" / "bundled_virtual.parquet")
     a = data.arrays()
     sub = slice(None, None, 20)
-    cfg = EnsembleConfig(n_members=args.members, steps=max(args.fit_steps, 1), chunk=max(args.fit_steps, 1),
-                         monotone=True)
+    cfg = EnsembleConfig(
+        n_members=args.members, steps=max(args.fit_steps, 1), chunk=max(args.fit_steps, 1), monotone=True
+    )
     if args.fit_steps > 0:
-        ens = fit_ensemble(cfg, a["design"][sub], a["height_mm"][sub], a["pressure_pa"][sub], a["force_n"][sub],
-                           key=0, progress=False)
+        ens = fit_ensemble(
+            cfg, a["design"][sub], a["height_mm"][sub], a["pressure_pa"][sub], a["force_n"][sub], key=0, progress=False
+        )
     else:
         norm = Normaliser.fit(a["design"][sub], a["height_mm"][sub], a["pressure_pa"][sub], a["force_n"][sub])
         ens = init_ensemble(cfg, norm, jax.random.PRNGKey(0))
@@ -76,18 +86,30 @@ def main() -> None:
 
     def write(extra):
         out = {
-            "command": "python experiments/bench_acquire.py " + " ".join(
+            "command": "python experiments/bench_acquire.py "
+            + " ".join(
                 f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}"
-                for k, v in vars(args).items() if k != "out"),
-            "q": args.q, "restarts_per_ring_count": args.restarts, "refined_per_ring_count": args.refine,
+                for k, v in vars(args).items()
+                if k != "out"
+            ),
+            "q": args.q,
+            "restarts_per_ring_count": args.restarts,
+            "refined_per_ring_count": args.refine,
             "lbfgs_steps": args.steps,
-            "members": args.members, "ensemble_fit_steps": args.fit_steps, "grid_points": grid.size,
-            "per_ring_count": rows, "target_s": 10.0,
+            "members": args.members,
+            "ensemble_fit_steps": args.fit_steps,
+            "grid_points": grid.size,
+            "per_ring_count": rows,
+            "target_s": 10.0,
             "meets_target_per_ring_count": bool(rows) and bool(max(r["wall_s"] for r in rows) <= 10.0),
             "paper_gpu_s_per_ring_count": [21, 28],
-            "load_average_before": list(load_before), "load_average_after": list(os.getloadavg()),
-            "cpu_count": os.cpu_count(), "machine": platform.platform(), "jax": jax.__version__,
-            "backend": jax.default_backend(), **extra,
+            "load_average_before": list(load_before),
+            "load_average_after": list(os.getloadavg()),
+            "cpu_count": os.cpu_count(),
+            "machine": platform.platform(),
+            "jax": jax.__version__,
+            "backend": jax.default_backend(),
+            **extra,
         }
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(out, indent=2))
@@ -100,20 +122,36 @@ def main() -> None:
         t, c = time.perf_counter(), cpu_s()
         p = propose(pred, args.q, n_restarts=args.restarts, n_refine=args.refine, key=2, **kw)
         wall, cpu = time.perf_counter() - t, cpu_s() - c
-        row = {"n_rings": n, "first_call_incl_compile_s": first, "wall_s": wall, "process_cpu_s": cpu,
-               "utility_n": p.utility, "designs": [d.key() for d in p.designs]}
-        print(f"{n} rings: first call {first:.1f} s, after compilation {wall:.2f} s wall "
-              f"({cpu:.1f} s CPU); utility {p.utility:.1f} N; {[d.key() for d in p.designs]}", flush=True)
+        row = {
+            "n_rings": n,
+            "first_call_incl_compile_s": first,
+            "wall_s": wall,
+            "process_cpu_s": cpu,
+            "utility_n": p.utility,
+            "designs": [d.key() for d in p.designs],
+        }
+        print(
+            f"{n} rings: first call {first:.1f} s, after compilation {wall:.2f} s wall "
+            f"({cpu:.1f} s CPU); utility {p.utility:.1f} N; {[d.key() for d in p.designs]}",
+            flush=True,
+        )
         if args.compare_full > 0:
             full = args.compare_full
             propose(pred, args.q, n_restarts=full, n_refine=full, key=1, **kw)  # compile
             t = time.perf_counter()
             f = propose(pred, args.q, n_restarts=full, n_refine=full, key=2, **kw)
-            row |= {"full_lbfgs_restarts": full, "full_lbfgs_wall_s": time.perf_counter() - t,
-                    "full_lbfgs_utility_n": f.utility, "full_lbfgs_designs": [d.key() for d in f.designs],
-                    "utility_ratio_screened_to_full": p.utility / f.utility}
-            print(f"   plain L-BFGS from {full} starts: {row['full_lbfgs_wall_s']:.2f} s, utility {f.utility:.1f} N "
-                  f"(screened / plain: {row['utility_ratio_screened_to_full']:.3f})", flush=True)
+            row |= {
+                "full_lbfgs_restarts": full,
+                "full_lbfgs_wall_s": time.perf_counter() - t,
+                "full_lbfgs_utility_n": f.utility,
+                "full_lbfgs_designs": [d.key() for d in f.designs],
+                "utility_ratio_screened_to_full": p.utility / f.utility,
+            }
+            print(
+                f"   plain L-BFGS from {full} starts: {row['full_lbfgs_wall_s']:.2f} s, utility {f.utility:.1f} N "
+                f"(screened / plain: {row['utility_ratio_screened_to_full']:.3f})",
+                flush=True,
+            )
         rows.append(row)
         write({"complete": False})
     kw = dict(n_restarts=args.restarts, n_refine=args.refine, n_rings=tuple(args.rings), grid=grid, n_steps=args.steps)
@@ -123,11 +161,22 @@ def main() -> None:
     t, c = time.perf_counter(), cpu_s()
     p = propose(pred, args.q, key=3, **kw)
     all_wall, all_cpu = time.perf_counter() - t, cpu_s() - c
-    print(f"all three ring counts: {all_wall:.2f} s wall ({all_cpu:.1f} s CPU); ratio to 10 s target "
-          f"per ring count: {max(r['wall_s'] for r in rows) / 10.0:.2f}", flush=True)
-    write({"complete": True, "all_ring_counts_first_call_incl_compile_s": all_first, "all_ring_counts_wall_s": all_wall, "all_ring_counts_process_cpu_s": all_cpu,
-           "all_ring_counts_designs": [d.key() for d in p.designs], "all_ring_counts_utility_n": p.utility,
-           "meets_target_all_ring_counts": bool(all_wall <= 10.0)})
+    print(
+        f"all three ring counts: {all_wall:.2f} s wall ({all_cpu:.1f} s CPU); ratio to 10 s target "
+        f"per ring count: {max(r['wall_s'] for r in rows) / 10.0:.2f}",
+        flush=True,
+    )
+    write(
+        {
+            "complete": True,
+            "all_ring_counts_first_call_incl_compile_s": all_first,
+            "all_ring_counts_wall_s": all_wall,
+            "all_ring_counts_process_cpu_s": all_cpu,
+            "all_ring_counts_designs": [d.key() for d in p.designs],
+            "all_ring_counts_utility_n": p.utility,
+            "meets_target_all_ring_counts": bool(all_wall <= 10.0),
+        }
+    )
     print(f"wrote {args.out}", flush=True)
 
 

@@ -61,18 +61,27 @@ def accuracy(n_rows: int, seed: int) -> dict:
     # effect at a time on additive axes (exact for one effect, first order in cross terms,
     # which an additive lattice under the "constants" cases measured at up to 0.18 N).
     grid = dict(h_max_mm=float(np.nanmax(h_all)), p_max_pa=float(df["pressure_pa"].max()), progress=True)
-    models = {"tensor": build_exact(keys, grow="tensor", **grid), "additive": build_exact(keys, grow="additive", **grid)}
+    models = {
+        "tensor": build_exact(keys, grow="tensor", **grid),
+        "additive": build_exact(keys, grow="additive", **grid),
+    }
     cases = []
-    effects = {"offset": ("contact_offset_mm", 0.0, 6.0), "prestretch": ("clamp_prestretch", 1.0, 1.08),
-               "gradient": ("thickness_gradient", -0.3, 0.3), "ring": ("ring_mu_pa", 0.1e6, 1e6)}
+    effects = {
+        "offset": ("contact_offset_mm", 0.0, 6.0),
+        "prestretch": ("clamp_prestretch", 1.0, 1.08),
+        "gradient": ("thickness_gradient", -0.3, 0.3),
+        "ring": ("ring_mu_pa", 0.1e6, 1e6),
+    }
     for key in keys:
         idx = np.flatnonzero((df["design_key"] == key).to_numpy() & (df["pressure_pa"].to_numpy() > 200))
         for case in ("constants", "constants", "offset", "prestretch", "gradient", "ring"):
             if case == "ring" and Membrane.from_key(key).n_rings == 0:
                 continue
-            params = SimParams(mu_pa=31.7e3 * float(np.exp(rng.uniform(-0.1, 0.1))),
-                               jm=39.6 * float(np.exp(rng.uniform(-0.1, 0.1))),
-                               thickness_factor=float(np.exp(rng.uniform(-0.08, 0.08))))
+            params = SimParams(
+                mu_pa=31.7e3 * float(np.exp(rng.uniform(-0.1, 0.1))),
+                jm=39.6 * float(np.exp(rng.uniform(-0.1, 0.1))),
+                thickness_factor=float(np.exp(rng.uniform(-0.08, 0.08))),
+            )
             if case != "constants":  # one mechanical effect, at the reference rubber (diagnosis' use)
                 field, lo, hi = effects[case]
                 m = Membrane.from_key(key)
@@ -88,22 +97,42 @@ def accuracy(n_rows: int, seed: int) -> dict:
             got = np.asarray(fm(jnp.asarray(d), jnp.asarray(h), jnp.asarray(p), params))
             both = np.isfinite(ref) & np.isfinite(got)
             e = got[both] - ref[both]
-            cases.append({"design": key, "case": case, "lattice": use, "params": {f.name: float(getattr(params, f.name))
-                                                                   for f in dataclasses.fields(params)},
-                          "n": int(both.sum()), "model_nan_where_simulator_finite": int(np.sum(np.isfinite(ref) & ~np.isfinite(got))),
-                          "rmse_n": float(np.sqrt(np.mean(e**2))) if e.size else None,
-                          "max_abs_n": float(np.max(np.abs(e))) if e.size else None})
-            print(f"{key} {case}: rmse {cases[-1]['rmse_n']} N, max {cases[-1]['max_abs_n']} N "
-                  f"(n {cases[-1]['n']}, model NaN where the simulator is finite: "
-                  f"{cases[-1]['model_nan_where_simulator_finite']})", flush=True)
+            cases.append(
+                {
+                    "design": key,
+                    "case": case,
+                    "lattice": use,
+                    "params": {f.name: float(getattr(params, f.name)) for f in dataclasses.fields(params)},
+                    "n": int(both.sum()),
+                    "model_nan_where_simulator_finite": int(np.sum(np.isfinite(ref) & ~np.isfinite(got))),
+                    "rmse_n": float(np.sqrt(np.mean(e**2))) if e.size else None,
+                    "max_abs_n": float(np.max(np.abs(e))) if e.size else None,
+                }
+            )
+            print(
+                f"{key} {case}: rmse {cases[-1]['rmse_n']} N, max {cases[-1]['max_abs_n']} N "
+                f"(n {cases[-1]['n']}, model NaN where the simulator is finite: "
+                f"{cases[-1]['model_nan_where_simulator_finite']})",
+                flush=True,
+            )
     sq = sum(c["rmse_n"] ** 2 * c["n"] for c in cases if c["n"])
     n = sum(c["n"] for c in cases)
-    return {"cases": cases, "rmse_n": float(np.sqrt(sq / n)), "max_abs_n": float(max(c["max_abs_n"] for c in cases if c["n"])),
-            "rows": int(n), "nan_where_simulator_finite": int(sum(c["model_nan_where_simulator_finite"] for c in cases)),
-            "target": {"rmse_n": 0.05, "max_abs_n": 0.15}, "wall_s": round(time.perf_counter() - t0, 1),
-            "lattice": {use: {"tensor": [(a.name, a.k0, a.n) for a in fm.tensor_axes],
-                              "additive": [(a.name, a.k0, a.n) for a in fm.additive_axes]}
-                        for use, fm in models.items()}}
+    return {
+        "cases": cases,
+        "rmse_n": float(np.sqrt(sq / n)),
+        "max_abs_n": float(max(c["max_abs_n"] for c in cases if c["n"])),
+        "rows": int(n),
+        "nan_where_simulator_finite": int(sum(c["model_nan_where_simulator_finite"] for c in cases)),
+        "target": {"rmse_n": 0.05, "max_abs_n": 0.15},
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "lattice": {
+            use: {
+                "tensor": [(a.name, a.k0, a.n) for a in fm.tensor_axes],
+                "additive": [(a.name, a.k0, a.n) for a in fm.additive_axes],
+            }
+            for use, fm in models.items()
+        },
+    }
 
 
 def characterisation_450(path: Path) -> None:
@@ -125,8 +154,15 @@ def timed(cmd: list[str], cache: Path) -> dict:
     r = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     tail = [ln for ln in r.stdout.splitlines() if ln.strip()][-6:]
-    return {"cmd": " ".join(cmd), "wall_s": round(wall, 1), "rc": r.returncode, "load_before": before,
-            "load_after": load(), "stdout_tail": tail, "stderr_tail": r.stderr.splitlines()[-3:] if r.returncode else []}
+    return {
+        "cmd": " ".join(cmd),
+        "wall_s": round(wall, 1),
+        "rc": r.returncode,
+        "load_before": before,
+        "load_after": load(),
+        "stdout_tail": tail,
+        "stderr_tail": r.stderr.splitlines()[-3:] if r.returncode else [],
+    }
 
 
 def main() -> None:
@@ -145,8 +181,11 @@ def main() -> None:
         out = {**old, **out}
     if not args.skip_accuracy:
         out["accuracy"] = accuracy(args.rows, args.seed)
-        print(f"accuracy: rmse {out['accuracy']['rmse_n']:.4f} N, max {out['accuracy']['max_abs_n']:.4f} N over "
-              f"{out['accuracy']['rows']} rows", flush=True)
+        print(
+            f"accuracy: rmse {out['accuracy']['rmse_n']:.4f} N, max {out['accuracy']['max_abs_n']:.4f} N over "
+            f"{out['accuracy']['rows']} rows",
+            flush=True,
+        )
         path.write_text(json.dumps(out, indent=1))
     if not args.skip_timings:
         exe = [sys.executable, "-m", "mfdesign.cli"]
@@ -159,18 +198,45 @@ def main() -> None:
             t["diagnose_450_cold"] = timed(exe + ["diagnose", str(small), "--out", str(tmp / "d1")], cold)
             t["diagnose_450_warm"] = timed(exe + ["diagnose", str(small), "--out", str(tmp / "d2")], cold)
             t["diagnose_bundled"] = timed(exe + ["diagnose", str(BUNDLED), "--out", str(tmp / "d3")], cold)
-            t["calibrate_6_membranes"] = timed(exe + ["calibrate", str(BUNDLED), "--out", str(tmp / "c1"),
-                                                      "--effects", "pressure_sensor", "--mcmc-steps",
-                                                      str(args.mcmc_steps), "--max-rows", "1500"], cold)
+            t["calibrate_6_membranes"] = timed(
+                exe
+                + [
+                    "calibrate",
+                    str(BUNDLED),
+                    "--out",
+                    str(tmp / "c1"),
+                    "--effects",
+                    "pressure_sensor",
+                    "--mcmc-steps",
+                    str(args.mcmc_steps),
+                    "--max-rows",
+                    "1500",
+                ],
+                cold,
+            )
             try:
                 conv = json.loads((tmp / "c1" / "posterior.json").read_text())["convergence"]
                 t["calibrate_6_membranes"]["convergence"] = {
-                    k: conv.get(k) for k in ("converged", "n_steps", "n_walkers", "tau_max", "steps_over_tau",
-                                             "acceptance", "problems", "rhat")}
+                    k: conv.get(k)
+                    for k in (
+                        "converged",
+                        "n_steps",
+                        "n_walkers",
+                        "tau_max",
+                        "steps_over_tau",
+                        "acceptance",
+                        "problems",
+                        "rhat",
+                    )
+                }
             except (OSError, KeyError, ValueError) as err:
                 t["calibrate_6_membranes"]["convergence"] = f"unreadable: {err!r}"
-            t["targets_s"] = {"diagnose_450_cold": 90, "diagnose_450_warm": 30, "diagnose_bundled": 180,
-                              "calibrate_6_membranes": 180}
+            t["targets_s"] = {
+                "diagnose_450_cold": 90,
+                "diagnose_450_warm": 30,
+                "diagnose_bundled": 180,
+                "calibrate_6_membranes": 180,
+            }
         out["timings"] = t
         for k, v in t.items():
             if isinstance(v, dict) and "wall_s" in v:

@@ -48,16 +48,21 @@ def model(members: int):
     rng = np.random.default_rng(0)
     d = np.tile([[2.0, 30.0, 45.0, 5.0, 60.0, 5.0]], (64, 1))
     norm = Normaliser.fit(d, rng.uniform(0, 60, 64), rng.uniform(0, 1e4, 64), rng.uniform(0, 60, 64))
-    return init_ensemble(EnsembleConfig(n_members=members, monotone=True), norm, jax.random.PRNGKey(0)), \
-        f"untrained RPN ensemble ({members} members)"
+    return init_ensemble(
+        EnsembleConfig(n_members=members, monotone=True), norm, jax.random.PRNGKey(0)
+    ), f"untrained RPN ensemble ({members} members)"
 
 
 def timed(fn):
     load0 = os.getloadavg()
     w0, c0 = time.perf_counter(), time.process_time()
     out = fn()
-    return out, dict(wall_s=time.perf_counter() - w0, cpu_s=time.process_time() - c0,
-                     load_average_before=list(load0), load_average_after=list(os.getloadavg()))
+    return out, dict(
+        wall_s=time.perf_counter() - w0,
+        cpu_s=time.process_time() - c0,
+        load_average_before=list(load0),
+        load_average_after=list(os.getloadavg()),
+    )
 
 
 def main():
@@ -73,18 +78,34 @@ def main():
         "trajectory_screen_refine": (opt.trajectory_loss(ens, wp, space, 2), 6, dict(steps=60, n_refine=32)),
         "height_refine_all": (opt.height_loss(ens, opt.TARGET_SETS["A"], space, 2), 6, dict(steps=25, n_refine=None)),
     }
-    result = dict(model=what, n_starts=args.starts, target_s=20.0, machine=platform.processor() or platform.machine(),
-                  cpu_count=os.cpu_count(), jax=jax.__version__, cases={})
+    result = dict(
+        model=what,
+        n_starts=args.starts,
+        target_s=20.0,
+        machine=platform.processor() or platform.machine(),
+        cpu_count=os.cpu_count(),
+        jax=jax.__version__,
+        cases={},
+    )
     for name, (loss, dim, kw) in cases.items():
         run = lambda: opt.multistart(loss, dim, n_starts=args.starts, seed=0, **kw)  # noqa: E731
         _, first = timed(run)
         res, t = timed(run)
-        t.update(first_call_wall_s=first["wall_s"], screen_s=res["screen_s"], refine_s=res["refine_s"],
-                 best_loss=res["loss"], settings=kw, meets_target=t["wall_s"] <= 20.0)
+        t.update(
+            first_call_wall_s=first["wall_s"],
+            screen_s=res["screen_s"],
+            refine_s=res["refine_s"],
+            best_loss=res["loss"],
+            settings=kw,
+            meets_target=t["wall_s"] <= 20.0,
+        )
         result["cases"][name] = t
-        print(f"{name}: {t['wall_s']:.1f} s wall after compilation ({t['cpu_s']:.1f} s CPU; first call "
-              f"{first['wall_s']:.1f} s; load {t['load_average_before'][0]:.1f}); ratio to the 20 s target "
-              f"{t['wall_s'] / 20:.2f}", flush=True)
+        print(
+            f"{name}: {t['wall_s']:.1f} s wall after compilation ({t['cpu_s']:.1f} s CPU; first call "
+            f"{first['wall_s']:.1f} s; load {t['load_average_before'][0]:.1f}); ratio to the 20 s target "
+            f"{t['wall_s'] / 20:.2f}",
+            flush=True,
+        )
         OUT.mkdir(parents=True, exist_ok=True)  # after every case: a long run leaves what it measured
         (OUT / "bench_optimize.json").write_text(json.dumps(result, indent=2))
 

@@ -28,12 +28,15 @@ OUT = Path(__file__).parent / "out"
 
 def emulator_plane(emu):
     """The emulator as a ``VirtualRig`` simulator (grid layout of ``force_plane``)."""
+
     def plane(design, h_grid, p_grid, params):
         H, P = np.meshgrid(np.asarray(h_grid, float), np.asarray(p_grid, float), indexing="ij")
         d = np.broadcast_to(design.to_array(), (H.size, 6))
         f = np.asarray(emu(d, H.ravel(), P.ravel(), params)).reshape(H.shape)
-        return SimpleNamespace(force_n=f, status=np.zeros(H.shape, np.int8), max_locking=np.zeros(H.shape),
-                               max_rise_mm=P / 250.0 - H / 2.0)
+        return SimpleNamespace(
+            force_n=f, status=np.zeros(H.shape, np.int8), max_locking=np.zeros(H.shape), max_rise_mm=P / 250.0 - H / 2.0
+        )
+
     return plane
 
 
@@ -54,9 +57,14 @@ def main():
         from mfdesign.calibration.workflow import model_for  # noqa: F401  (priors inside the ranges)
         from mfdesign.physics.effects import LogNormal
 
-        plane, kw = emulator_plane(fm), {"mu_prior": LogNormal(31.7e3, 0.5, 15e3, 50e3),
-                                         "jm_prior": LogNormal(39.6, 0.6, 10.0, 100.0),
-                                         "thickness_sd_prior": LogNormal(0.05, 0.8, 1e-3, 0.1)}
+        plane, kw = (
+            emulator_plane(fm),
+            {
+                "mu_prior": LogNormal(31.7e3, 0.5, 15e3, 50e3),
+                "jm_prior": LogNormal(39.6, 0.6, 10.0, 100.0),
+                "thickness_sd_prior": LogNormal(0.05, 0.8, 1e-3, 0.1),
+            },
+        )
     else:
         from mfdesign.models.standin import standin_plane
 
@@ -64,16 +72,28 @@ def main():
     t0 = time.perf_counter()
     trials = []
     for seed in range(args.seeds):
-        trials.append(truth_trial(seed, fm, plane, tuple(args.effects), rows=args.rows, n_steps=args.steps,
-                                  model_kwargs=kw))
+        trials.append(
+            truth_trial(seed, fm, plane, tuple(args.effects), rows=args.rows, n_steps=args.steps, model_kwargs=kw)
+        )
         t = trials[-1]
         print(f"seed {seed}: covered {t['covered']}  steps/tau {t['steps_over_tau']:.1f}", flush=True)
     names = list(trials[0]["covered"])
     per = {n: float(np.mean([t["covered"][n] for t in trials])) for n in names}
     overall = float(np.mean([[t["covered"][n] for n in names] for t in trials]))
-    out = {"simulator": args.simulator, "effects": args.effects, "seeds": args.seeds, "steps": args.steps,
-           "rows": args.rows, "level": 0.95, "coverage_per_parameter": per, "coverage_overall": overall,
-           "target": ">= 0.85", "met": overall >= 0.85, "seconds": time.perf_counter() - t0, "trials": trials}
+    out = {
+        "simulator": args.simulator,
+        "effects": args.effects,
+        "seeds": args.seeds,
+        "steps": args.steps,
+        "rows": args.rows,
+        "level": 0.95,
+        "coverage_per_parameter": per,
+        "coverage_overall": overall,
+        "target": ">= 0.85",
+        "met": overall >= 0.85,
+        "seconds": time.perf_counter() - t0,
+        "trials": trials,
+    }
     OUT.mkdir(exist_ok=True)
     path = OUT / f"calibration_coverage_{args.simulator}.json"
     path.write_text(json.dumps(out, indent=2))

@@ -77,8 +77,10 @@ def coverage(plane, h, p):
 def region(h, p):
     if len(h) == 0:
         return None
-    return {"h_mm": [round(float(h.min()), 1), round(float(h.max()), 1)],
-            "p_pa": [round(float(p.min()), 0), round(float(p.max()), 0)]}
+    return {
+        "h_mm": [round(float(h.min()), 1), round(float(h.max()), 1)],
+        "p_pa": [round(float(p.min()), 0), round(float(p.max()), 0)],
+    }
 
 
 def compare_plane(plane, n, rng, params):
@@ -121,17 +123,24 @@ def compare_plane(plane, n, rng, params):
         "n_big": int(big.sum()),
         "big_region": region(h_s[big], p_s[big]),
         "worst_points": [
-            {"h_mm": float(h_s[i]), "p_pa": float(p_s[i]), "F_authors_n": float(F_a[i]),
-             "F_ours_n": float(F_o[i]), "max_rise_mm": float(rise[i])}
-            for i in worst if valid[i]
+            {
+                "h_mm": float(h_s[i]),
+                "p_pa": float(p_s[i]),
+                "F_authors_n": float(F_a[i]),
+                "F_ours_n": float(F_o[i]),
+                "max_rise_mm": float(rise[i]),
+            }
+            for i in worst
+            if valid[i]
         ],
         "nan_where_authors_have_force": {
             "count": int((~valid).sum()),
             "status_counts": summarize(st[~valid]) if (~valid).any() else {},
             "region": region(h_s[~valid], p_s[~valid]),
-            "points": [{"h_mm": float(a), "p_pa": float(b), "F_authors_n": float(c),
-                        "status": Status(int(s)).name}
-                       for a, b, c, s in zip(h_s[~valid], p_s[~valid], F_a[~valid], st[~valid])][:10],
+            "points": [
+                {"h_mm": float(a), "p_pa": float(b), "F_authors_n": float(c), "status": Status(int(s)).name}
+                for a, b, c, s in zip(h_s[~valid], p_s[~valid], F_a[~valid], st[~valid])
+            ][:10],
         },
         "reverse_grid": {
             "n_points": int(len(Hg)),
@@ -140,8 +149,10 @@ def compare_plane(plane, n, rng, params):
             "ours_no_contact": int((sg == Status.NO_CONTACT).sum()),
             "ours_contact_absent_from_authors": int(absent_fail.sum()),
             "ours_contact_beyond_authors_force_grid": int(beyond_grid.sum()),
-            "absent_points": [{"h_mm": float(a), "p_pa": float(b), "F_ours_n": float(c)}
-                              for a, b, c in zip(Hg[absent_fail], Pg[absent_fail], Fg[absent_fail])],
+            "absent_points": [
+                {"h_mm": float(a), "p_pa": float(b), "F_ours_n": float(c)}
+                for a, b, c in zip(Hg[absent_fail], Pg[absent_fail], Fg[absent_fail])
+            ],
             "authors_covered_but_ours_nan": int((covered & ~np.isfinite(Fg)).sum()),
         },
         "seconds": seconds,
@@ -170,16 +181,22 @@ def arbitrate(planes_by_key, rows, k, params, n_elements):
     for diff, key, w in tqdm(picked, desc="FE arbitration", file=sys.stdout):
         design = planes_by_key[key].design
         t0 = time.perf_counter()
-        fe = fe_force(design, np.array([w["h_mm"]]), np.array([w["p_pa"]]), params,
-                      n_elements=n_elements)
+        fe = fe_force(design, np.array([w["h_mm"]]), np.array([w["p_pa"]]), params, n_elements=n_elements)
         F_fe = float(np.asarray(fe.force_n)[0])
         verdict = "n/a (FE did not converge)"
         if np.isfinite(F_fe):
             e_o, e_a = abs(F_fe - w["F_ours_n"]), abs(F_fe - w["F_authors_n"])
             verdict = "ours" if e_o < e_a else "authors"
-        out.append({"design": key, **w, "F_fe_n": F_fe,
-                    "F_fe_disk_n": float(np.asarray(fe.force_disk_n)[0]),
-                    "closer_to_fe": verdict, "seconds": time.perf_counter() - t0})
+        out.append(
+            {
+                "design": key,
+                **w,
+                "F_fe_n": F_fe,
+                "F_fe_disk_n": float(np.asarray(fe.force_disk_n)[0]),
+                "closer_to_fe": verdict,
+                "seconds": time.perf_counter() - t0,
+            }
+        )
         tqdm.write(json.dumps(out[-1]))
     return out
 
@@ -202,28 +219,41 @@ def supplementary_checks(planes, rows, params, n_elements, n_label=20, seed=1):
         idx = rng.choice(len(pl), n_label, replace=False)
         h, p, Fa = pl.height_mm[idx], pl.pressure_pa[idx], pl.force_n[idx]
         fixed = np.asarray(fe_force(pl.design, h, p, params, n_elements=n_elements).force_n)
-        lab = np.asarray(fe_force(Membrane.from_key(pl.label_in_file), h, p, params,
-                                  n_elements=n_elements).force_n)
-        out["label_check"].append({
-            "plane_index": i, "fixed_design": pl.design.key(), "label_in_file": pl.label_in_file,
-            "median_abs_err_fixed_n": float(np.nanmedian(np.abs(fixed - Fa))),
-            "median_abs_err_as_labelled_n": float(np.nanmedian(np.abs(lab - Fa))),
-            "max_abs_err_as_labelled_n": float(np.nanmax(np.abs(lab - Fa)))})
+        lab = np.asarray(fe_force(Membrane.from_key(pl.label_in_file), h, p, params, n_elements=n_elements).force_n)
+        out["label_check"].append(
+            {
+                "plane_index": i,
+                "fixed_design": pl.design.key(),
+                "label_in_file": pl.label_in_file,
+                "median_abs_err_fixed_n": float(np.nanmedian(np.abs(fixed - Fa))),
+                "median_abs_err_as_labelled_n": float(np.nanmedian(np.abs(lab - Fa))),
+                "max_abs_err_as_labelled_n": float(np.nanmax(np.abs(lab - Fa))),
+            }
+        )
     by_key = {pl.design.key(): pl for pl in planes}
     for r in rows:
         design = by_key[r["design"]].design
         pts = r["nan_where_authors_have_force"]["points"]
         if pts:
-            fe = fe_force(design, np.array([q["h_mm"] for q in pts]),
-                          np.array([q["p_pa"] for q in pts]), params, n_elements=n_elements)
+            fe = fe_force(
+                design,
+                np.array([q["h_mm"] for q in pts]),
+                np.array([q["p_pa"] for q in pts]),
+                params,
+                n_elements=n_elements,
+            )
             for q, f, c in zip(pts, np.asarray(fe.force_n), np.asarray(fe.converged)):
-                out["nan_points"].append({"design": r["design"], **q, "F_fe_n": float(f),
-                                          "fe_converged": bool(c)})
+                out["nan_points"].append({"design": r["design"], **q, "F_fe_n": float(f), "fe_converged": bool(c)})
         if r["plane_index"] < 6:
             ab = [q for q in r["reverse_grid"]["absent_points"] if q["h_mm"] > 5][:2]
             if ab:
-                fe = fe_force(design, np.array([q["h_mm"] for q in ab]),
-                              np.array([q["p_pa"] for q in ab]), params, n_elements=n_elements)
+                fe = fe_force(
+                    design,
+                    np.array([q["h_mm"] for q in ab]),
+                    np.array([q["p_pa"] for q in ab]),
+                    params,
+                    n_elements=n_elements,
+                )
                 for q, f in zip(ab, np.asarray(fe.force_n)):
                     out["absent_points"].append({"design": r["design"], **q, "F_fe_n": float(f)})
     return out
@@ -245,8 +275,7 @@ def plot(rows, path):
         top = max([1.0] + Fa + Fo)
         ax.plot([0, top], [0, top], "k-", lw=0.7)
         med = r["median_abs_err_n"]
-        ax.set_title(f"{r['design']}\nmedian |dF| {med:.2g} N" if med is not None else r["design"],
-                     fontsize=6)
+        ax.set_title(f"{r['design']}\nmedian |dF| {med:.2g} N" if med is not None else r["design"], fontsize=6)
         ax.tick_params(labelsize=6)
     for ax in axes.ravel()[n:]:
         ax.axis("off")
@@ -264,17 +293,21 @@ def main(argv=None):
     ap.add_argument("--arbitrate", type=int, default=3, help="FE checks at the k worst points")
     ap.add_argument("--fe-elements", type=int, default=400)
     ap.add_argument("--out", type=Path, default=OUT)
-    ap.add_argument("--supplement", type=Path, default=None,
-                    help="only add the supplementary FE checks to this existing JSON")
+    ap.add_argument(
+        "--supplement", type=Path, default=None, help="only add the supplementary FE checks to this existing JSON"
+    )
     args = ap.parse_args(argv)
     enable_compilation_cache()
     if args.supplement:
         report = json.loads(args.supplement.read_text())
         t0 = time.perf_counter()
         report["supplementary_checks"] = supplementary_checks(
-            load_sim_planes(), report["planes"], SimParams(), args.fe_elements)
+            load_sim_planes(), report["planes"], SimParams(), args.fe_elements
+        )
         report["supplementary_checks"]["seconds"] = time.perf_counter() - t0
-        report["supplementary_checks"]["command"] = "python experiments/compare_authors_sim.py " + " ".join(argv or sys.argv[1:])
+        report["supplementary_checks"]["command"] = "python experiments/compare_authors_sim.py " + " ".join(
+            argv or sys.argv[1:]
+        )
         args.supplement.write_text(json.dumps(report, indent=1))
         print(json.dumps(report["supplementary_checks"], indent=1))
         return
@@ -289,13 +322,14 @@ def main(argv=None):
         row = compare_plane(planes[i], args.n, rngs[i], params)
         row["plane_index"] = i
         rows.append(row)
-        tqdm.write(f"[{i}] {row['design']}: valid {row['n_valid']}/{row['n_compared']} "
-                   f"median {row['median_abs_err_n']} max {row['max_abs_err_n']} N "
-                   f"status {row['status_counts']} ({row['seconds']:.0f} s)")
+        tqdm.write(
+            f"[{i}] {row['design']}: valid {row['n_valid']}/{row['n_compared']} "
+            f"median {row['median_abs_err_n']} max {row['max_abs_err_n']} N "
+            f"status {row['status_counts']} ({row['seconds']:.0f} s)"
+        )
         partial = [{k: v for k, v in r.items() if k != "_scatter"} for r in rows]
         (args.out / "compare_authors_sim.partial.json").write_text(json.dumps(partial, indent=1))
-    all_d = np.concatenate([np.abs(np.array(r["_scatter"][1]) - np.array(r["_scatter"][0]))
-                            for r in rows])
+    all_d = np.concatenate([np.abs(np.array(r["_scatter"][1]) - np.array(r["_scatter"][0])) for r in rows])
     overall = {
         "n_planes": len(rows),
         "n_compared": int(sum(r["n_compared"] for r in rows)),
@@ -308,9 +342,11 @@ def main(argv=None):
         "reverse_grid_points": int(sum(r["reverse_grid"]["n_points"] for r in rows)),
         "reverse_ours_contact": int(sum(r["reverse_grid"]["ours_contact"] for r in rows)),
         "reverse_ours_contact_absent_from_authors": int(
-            sum(r["reverse_grid"]["ours_contact_absent_from_authors"] for r in rows)),
+            sum(r["reverse_grid"]["ours_contact_absent_from_authors"] for r in rows)
+        ),
         "reverse_beyond_authors_force_grid": int(
-            sum(r["reverse_grid"]["ours_contact_beyond_authors_force_grid"] for r in rows)),
+            sum(r["reverse_grid"]["ours_contact_beyond_authors_force_grid"] for r in rows)
+        ),
     }
     stem = args.out / "compare_authors_sim"
     plot(rows, stem.with_suffix(".png"))
@@ -319,9 +355,18 @@ def main(argv=None):
     arb = []
     report = {
         "command": "python " + " ".join(["experiments/compare_authors_sim.py"] + (argv or sys.argv[1:])),
-        "params": {k: float(getattr(params, k)) for k in
-                   ("mu_pa", "jm", "ring_mu_pa", "ring_jm", "thickness_factor",
-                    "clamp_prestretch", "contact_offset_mm")},
+        "params": {
+            k: float(getattr(params, k))
+            for k in (
+                "mu_pa",
+                "jm",
+                "ring_mu_pa",
+                "ring_jm",
+                "thickness_factor",
+                "clamp_prestretch",
+                "contact_offset_mm",
+            )
+        },
         "big_threshold": f"|dF| > {BIG_N} N and > {BIG_REL:.0%} of max(|F_authors|, 1 N)",
         "overall": overall,
         "arbitration": arb,

@@ -55,12 +55,14 @@ def main() -> None:
     enable_compilation_cache()
     lab = Lab("simulator" if args.physics == "exact" else "emulator")
     h = lab.held
+
     def rmse(f):  # held-out rows the model has no value for are counted in the JSON, not hidden
         e = np.asarray(f, float) - h["force_n"]
         return float(np.sqrt(np.nanmean(e**2)))
 
     def n_nan(f):
         return int(np.sum(~np.isfinite(np.asarray(f, float))))
+
     table = Measurements.concat([lab.table(d, args.seed) for d in initial_designs(args.seed)])
     if args.physics == "exact":
         # Planes of the three fitted membranes and of the held-out six (the exact model holds
@@ -68,36 +70,65 @@ def main() -> None:
         from active_learning import HELD_OUT
 
         keys = tuple(dict.fromkeys([*table.df["design_key"], *HELD_OUT]))
-        fm = force_model_for("exact", keys, h_max_mm=float(max(table.df["height_mm"].max(), h["height_mm"].max())),
-                             p_max_pa=float(max(table.df["pressure_pa"].max(), h["pressure_pa"].max())), progress=True)
+        fm = force_model_for(
+            "exact",
+            keys,
+            h_max_mm=float(max(table.df["height_mm"].max(), h["height_mm"].max())),
+            p_max_pa=float(max(table.df["pressure_pa"].max(), h["pressure_pa"].max())),
+            progress=True,
+        )
         nominal = np.asarray(fm(h["design"], h["height_mm"], h["pressure_pa"], SimParams()))
         simulator_alone = float(np.sqrt(np.nanmean((nominal - h["force_n"]) ** 2)))
     else:
         fm = force_model_named("emulator")
         simulator_alone = lab.simulator_rmse()
-    out = {"command": "python experiments/few_membranes_mf.py " + " ".join(
-               f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()),
-           "membranes": [d.key() for d in initial_designs(args.seed)],
-           "truth": {"effect": "pressure_sensor", "offset_pa": 150.0, "mu_pa": 31.7e3, "jm": 39.6},
-           "physics": args.physics, "simulator_alone_rmse_n": simulator_alone, "fits": []}
+    out = {
+        "command": "python experiments/few_membranes_mf.py "
+        + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()),
+        "membranes": [d.key() for d in initial_designs(args.seed)],
+        "truth": {"effect": "pressure_sensor", "offset_pa": 150.0, "mu_pa": 31.7e3, "jm": 39.6},
+        "physics": args.physics,
+        "simulator_alone_rmse_n": simulator_alone,
+        "fits": [],
+    }
     cfg = EnsembleConfig(monotone=False, n_members=8, steps=1500, chunk=500, batch=100)
     for effects in ((), ("pressure_sensor",)):
         t = time.perf_counter()
-        fit = fit_multi_fidelity(table, fm, effects, n_steps=args.mcmc_steps,
-                                 n_walkers=args.walkers, max_rows=args.rows, ensemble_config=cfg, seed=args.seed,
-                                 progress=False)
+        fit = fit_multi_fidelity(
+            table,
+            fm,
+            effects,
+            n_steps=args.mcmc_steps,
+            n_walkers=args.walkers,
+            max_rows=args.rows,
+            ensemble_config=cfg,
+            seed=args.seed,
+            progress=False,
+        )
         fit_s = time.perf_counter() - t
         mf = fit.mf.thinned(32)
         bare = MultiFidelity(mf.model, mf.theta, None, mf.noise_n, mf.design_keys)
         post = fit.posterior
-        row = {"effects": list(effects), "fit_s": fit_s, "convergence": {
-                   k: post.convergence.get(k) for k in ("converged", "steps_over_tau", "tau_max", "acceptance")},
-               "posterior_median": {n: float(np.median(post.samples[:, i])) for i, n in enumerate(post.names)
-                                    if not n.startswith("thickness[")},
-               "heldout_rmse_n": rmse(mean := np.asarray(mf.predict(h["design"], h["height_mm"], h["pressure_pa"])).mean(0)),
-               "heldout_rows": int(len(mean)), "heldout_rows_without_prediction": n_nan(mean),
-               "heldout_rmse_without_discrepancy_n": rmse(
-                   np.asarray(bare.predict(h["design"], h["height_mm"], h["pressure_pa"])).mean(0))}
+        row = {
+            "effects": list(effects),
+            "fit_s": fit_s,
+            "convergence": {
+                k: post.convergence.get(k) for k in ("converged", "steps_over_tau", "tau_max", "acceptance")
+            },
+            "posterior_median": {
+                n: float(np.median(post.samples[:, i]))
+                for i, n in enumerate(post.names)
+                if not n.startswith("thickness[")
+            },
+            "heldout_rmse_n": rmse(
+                mean := np.asarray(mf.predict(h["design"], h["height_mm"], h["pressure_pa"])).mean(0)
+            ),
+            "heldout_rows": int(len(mean)),
+            "heldout_rows_without_prediction": n_nan(mean),
+            "heldout_rmse_without_discrepancy_n": rmse(
+                np.asarray(bare.predict(h["design"], h["height_mm"], h["pressure_pa"])).mean(0)
+            ),
+        }
         out["fits"].append(row)
         print(json.dumps(row), flush=True)
     path = OUT / ("few_membranes_mf.json" if args.physics == "exact" else "few_membranes_mf_emulator.json")

@@ -59,8 +59,11 @@ def narrow_ring_plane(design, h_grid, p_grid, params):
     from mfdesign.design import Membrane, Ring
     from mfdesign.rig.virtual import _force_plane
 
-    built = Membrane(design.thickness_mm, design.contact_radius_mm,
-                     [Ring(r.radius_mm, r.half_width_mm - RING_NARROWING_MM) for r in design.rings])
+    built = Membrane(
+        design.thickness_mm,
+        design.contact_radius_mm,
+        [Ring(r.radius_mm, r.half_width_mm - RING_NARROWING_MM) for r in design.rings],
+    )
     return _force_plane(built, h_grid, p_grid, params)
 
 
@@ -94,9 +97,14 @@ def run_case(hidden, seed, physics, sample_hz):
     if outside:
         hidden, truth = (), narrow_ring_plane
     fine = {"height_step_mm": 2.0, "pressure_step_pa": 50.0} if physics == "emulator" else {}
-    rig = VirtualRig(effects=list(hidden), theta=fx.typical_theta(hidden), seed=seed, simulator=truth,
-                     protocol=Protocol(deflate=True, sample_hz=sample_hz, **fine),
-                     cache_dir=cache_dir().parent / "rig_planes")  # $MFDESIGN_CACHE_DIR/rig_planes
+    rig = VirtualRig(
+        effects=list(hidden),
+        theta=fx.typical_theta(hidden),
+        seed=seed,
+        simulator=truth,
+        protocol=Protocol(deflate=True, sample_hz=sample_hz, **fine),
+        cache_dir=cache_dir().parent / "rig_planes",
+    )  # $MFDESIGN_CACHE_DIR/rig_planes
     t0 = time.time()
     meas = rig.run([Membrane.from_key(k) for k in DESIGNS], progress=False)
     sim = forward_model(physics, meas)
@@ -106,31 +114,43 @@ def run_case(hidden, seed, physics, sample_hz):
     check_order = [list(c.effects)[-1] for c in first["checks"]] if first else []
     best_checks = [c for s in d.steps for c in s["checks"] if list(c.effects) == d.effects]
     heldout = best_checks[0].heldout_rmse_n if best_checks else d.before.rmse_n
+    # The floor the verdict used: under the claimed effects (their own residuals' floor),
+    # else the model's as given.
+    floor = best_checks[0].noise_floor_n if best_checks else d.before.noise_floor_n
     # The attainable floor: the true model (hidden effects at their true values) on the same rows.
     from mfdesign.diagnose.residuals import compute_residuals, worst_regions
 
     oracle = compute_residuals(meas, sim.expected_force(meas, list(hidden), fx.typical_theta(hidden))).rmse_n
-    floor = d.before.noise_floor_n
     after = d.after.rmse_n if d.after is not None else d.before.rmse_n
     if outside:  # no library effect is the truth: nothing to rank, the truth's own rows are the oracle
         hidden = (NARROW_RINGS,)
         oracle = None
     return {
-        "hidden": list(hidden), "seed": seed, "rows": len(meas), "outside_library": outside,
+        "hidden": list(hidden),
+        "seed": seed,
+        "rows": len(meas),
+        "outside_library": outside,
         "after_over_noise": after / floor,
         # "explained": an effect was claimed AND its held-out error reaches 1.2 x the floor
         "explained": bool(d.found) and heldout <= 1.2 * floor,
-        "screen_ranking": ranks, "screen_rank_of_hidden": [ranks.index(h) + 1 if h in ranks else None for h in hidden if not outside],
-        "check_ranking": check_order, "found": d.found, "theta": d.theta,
+        "screen_ranking": ranks,
+        "screen_rank_of_hidden": [ranks.index(h) + 1 if h in ranks else None for h in hidden if not outside],
+        "check_ranking": check_order,
+        "found": d.found,
+        "theta": d.theta,
         "ranked_first": bool(hidden) and (check_order[:1] == [hidden[0]] or d.found[:1] == [hidden[0]]),
         "all_found": sorted(d.found) == sorted(hidden),
         "false_positive": (not hidden) and bool(d.found),
         "worst_regions": worst_regions(d.after or d.before)[:3] if outside else [],
-        "rmse_before_n": d.before.rmse_n, "noise_floor_n": d.before.noise_floor_n,
+        "rmse_before_n": d.before.rmse_n,
+        "noise_floor_n": floor,
+        "noise_floor_before_n": d.before.noise_floor_n,
         "heldout_rmse_after_n": heldout,
-        "heldout_over_noise": heldout / d.before.noise_floor_n,
-        "oracle_rmse_n": oracle, "heldout_over_oracle": None if oracle is None else heldout / oracle,
-        "verdicts": [s["verdict"]["words"] for s in d.steps], "seconds": time.time() - t0,
+        "heldout_over_noise": heldout / floor,
+        "oracle_rmse_n": oracle,
+        "heldout_over_oracle": None if oracle is None else heldout / oracle,
+        "verdicts": [s["verdict"]["words"] for s in d.steps],
+        "seconds": time.time() - t0,
     }
 
 
@@ -146,7 +166,7 @@ def summarise(cases):
         per.setdefault(e, []).append(c)
     # Detectable: the hidden effect moves the residual RMS above the claim threshold (1.2 x
     # the noise floor). Below it diagnosis must not claim anything, whatever is hidden.
-    detectable = [c for c in single if c["rmse_before_n"] > 1.2 * c["noise_floor_n"]]
+    detectable = [c for c in single if c["rmse_before_n"] > 1.2 * c.get("noise_floor_before_n", c["noise_floor_n"])]
     return {
         "single_effect_cases": len(single),
         "ranking_accuracy": frac([c["screen_rank_of_hidden"] == [1] for c in single]),
@@ -156,24 +176,44 @@ def summarise(cases):
         "undetectable_cases_claimed": sum(bool(c["found"]) for c in single if c not in detectable),
         "claimed_first_all_cases": frac([c["found"][:1] == c["hidden"] for c in single]),
         "heldout_within_1.2x_noise": frac([c["heldout_over_noise"] <= 1.2 for c in single]),
-        "heldout_within_1.2x_noise_or_oracle": frac([min(c["heldout_over_noise"], c.get("heldout_over_oracle", 9e9)) <= 1.2
-                                                    for c in single]),
+        "heldout_within_1.2x_noise_or_oracle": frac(
+            [min(c["heldout_over_noise"], c.get("heldout_over_oracle", 9e9)) <= 1.2 for c in single]
+        ),
         "max_heldout_over_noise": max((c["heldout_over_noise"] for c in single), default=None),
-        "heldout_within_1.2x_oracle": frac([c["heldout_over_oracle"] <= 1.2 for c in single if "heldout_over_oracle" in c]),
-        "noise_floor_over_oracle": [round(c["noise_floor_n"] / c["oracle_rmse_n"], 3) for c in cases
-                                    if c.get("oracle_rmse_n")],
-        "two_effect_cases": len(pairs), "two_effect_both_found": frac([c["all_found"] for c in pairs]),
-        "clean_cases": len(clean), "false_positive_rate": frac([c["false_positive"] for c in clean]),
-        "right_set_claimed": frac([sorted(c["found"]) == sorted(c["hidden"]) for c in single + pairs]
-                                  + [not c["found"] for c in clean]),
+        "heldout_within_1.2x_oracle": frac(
+            [c["heldout_over_oracle"] <= 1.2 for c in single if "heldout_over_oracle" in c]
+        ),
+        "noise_floor_over_oracle": [
+            round(c["noise_floor_n"] / c["oracle_rmse_n"], 3) for c in cases if c.get("oracle_rmse_n")
+        ],
+        "two_effect_cases": len(pairs),
+        "two_effect_both_found": frac([c["all_found"] for c in pairs]),
+        "clean_cases": len(clean),
+        "false_positive_rate": frac([c["false_positive"] for c in clean]),
+        "right_set_claimed": frac(
+            [sorted(c["found"]) == sorted(c["hidden"]) for c in single + pairs] + [not c["found"] for c in clean]
+        ),
         "right_set_claimed_means": "single, pair and clean cases whose claimed set is exactly the hidden set",
         "clean_after_over_noise": [round(c["after_over_noise"], 3) for c in clean],
-        "outside_library": [{"seed": c["seed"], "found": c["found"], "explained": c["explained"],
-                             "after_over_noise": round(c["after_over_noise"], 3), "verdicts": c["verdicts"],
-                             "worst_regions": c["worst_regions"]} for c in outside],
-        "per_effect": {e: {"found_first": frac([c["found"][:1] == c["hidden"] for c in cs]),
-                           "heldout_over_noise": [round(c["heldout_over_noise"], 3) for c in cs],
-                           "theta": [c["theta"] for c in cs]} for e, cs in per.items()},
+        "outside_library": [
+            {
+                "seed": c["seed"],
+                "found": c["found"],
+                "explained": c["explained"],
+                "after_over_noise": round(c["after_over_noise"], 3),
+                "verdicts": c["verdicts"],
+                "worst_regions": c["worst_regions"],
+            }
+            for c in outside
+        ],
+        "per_effect": {
+            e: {
+                "found_first": frac([c["found"][:1] == c["hidden"] for c in cs]),
+                "heldout_over_noise": [round(c["heldout_over_noise"], 3) for c in cs],
+                "theta": [c["theta"] for c in cs],
+            }
+            for e, cs in per.items()
+        },
     }
 
 
@@ -190,15 +230,25 @@ def plot(summary, cases, path):
         ys = [c["heldout_over_noise"] for c in single if c["hidden"][0] == e]
         ok = [c["found"][:1] == [e] for c in single if c["hidden"][0] == e]
         ax.scatter([i] * len(ys), ys, c=["tab:green" if o else "tab:red" for o in ok])
-        ax.scatter([i] * len(ys), [c["rmse_before_n"] / c["noise_floor_n"] for c in single if c["hidden"][0] == e],
-                   marker="x", c="grey")
+        ax.scatter(
+            [i] * len(ys),
+            [
+                c["rmse_before_n"] / c.get("noise_floor_before_n", c["noise_floor_n"])
+                for c in single
+                if c["hidden"][0] == e
+            ],
+            marker="x",
+            c="grey",
+        )
     ax.axhline(1.2, ls="--", c="k", lw=0.8)
     ax.set_xticks(range(len(effects)), effects, rotation=30, ha="right")
     ax.set_ylabel("RMSE / noise floor")
     ax.set_yscale("log")
     top1 = summary["ranking_accuracy"]
-    ax.set_title("hidden effects: x before, dot after (green = claimed first)"
-                 + (f"; screen top-1 {top1:.2f}" if top1 is not None else ""))
+    ax.set_title(
+        "hidden effects: x before, dot after (green = claimed first)"
+        + (f"; screen top-1 {top1:.2f}" if top1 is not None else "")
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -207,17 +257,23 @@ def plot(summary, cases, path):
 def record(args, summary, cases) -> dict:
     truth = {
         "exact": "the simulator (force_plane planes on the rig's 2.5 mm x 250 Pa grid, each hidden mechanical effect "
-                 "solved with its own constants); diagnosis on the exact force model (simulator planes of the "
-                 "measured designs): truth and model share no interpolant, emulator or fit",
+        "solved with its own constants); diagnosis on the exact force model (simulator planes of the "
+        "measured designs): truth and model share no interpolant, emulator or fit",
         "emulator": "emulator planes on a 2 mm x 50 Pa grid; diagnosis uses the same emulator: truth and model share "
-                    "the same physics, so this tests the diagnosis logic only, not the emulator's fidelity",
+        "the same physics, so this tests the diagnosis logic only, not the emulator's fidelity",
         "standin": "analytic stand-in planes (mfdesign.rig.virtual.analytic_plane); diagnosis uses its JAX twin",
     }[args.physics]
-    return {"physics": args.physics, "truth": truth, "sample_hz": args.sample_hz,
-            "magnitudes": "each effect at its library 'typical' value", "designs": list(DESIGNS),
-            "outside_library_case": f"{NARROW_RINGS}: ring half-widths {RING_NARROWING_MM:g} mm narrower than the "
-                                    "designs say, on the ringed membranes only (exact physics only)",
-            "summary": summary, "cases": cases}
+    return {
+        "physics": args.physics,
+        "truth": truth,
+        "sample_hz": args.sample_hz,
+        "magnitudes": "each effect at its library 'typical' value",
+        "designs": list(DESIGNS),
+        "outside_library_case": f"{NARROW_RINGS}: ring half-widths {RING_NARROWING_MM:g} mm narrower than the "
+        "designs say, on the ringed membranes only (exact physics only)",
+        "summary": summary,
+        "cases": cases,
+    }
 
 
 def main(argv=None):
@@ -225,18 +281,26 @@ def main(argv=None):
     ap.add_argument("--physics", choices=("exact", "emulator", "standin"), default="exact")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--clean-seeds", type=int, default=5)
-    ap.add_argument("--sample-hz", type=float, default=2.0, help="rig sampling rate (10 Hz in the paper; 2 Hz keeps the sweep lean)")
-    ap.add_argument("--effects", nargs="*", default=None, help="hidden effects to sweep (default: all the physics can show)")
+    ap.add_argument(
+        "--sample-hz", type=float, default=2.0, help="rig sampling rate (10 Hz in the paper; 2 Hz keeps the sweep lean)"
+    )
+    ap.add_argument(
+        "--effects", nargs="*", default=None, help="hidden effects to sweep (default: all the physics can show)"
+    )
     ap.add_argument("--no-outside", action="store_true", help="skip the out-of-library (narrow rings) case")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     from mfdesign.physics import effects as fx
 
     out = args.out or ROOT / "experiments" / "out" / (
-        "hidden_effects.json" if args.physics == "exact" else f"hidden_effects_{args.physics}.json")
+        "hidden_effects.json" if args.physics == "exact" else f"hidden_effects_{args.physics}.json"
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
-    names = args.effects if args.effects is not None else [
-        e for e in sorted(fx.EFFECTS) if args.physics != "standin" or e not in STAND_IN_BLIND]
+    names = (
+        args.effects
+        if args.effects is not None
+        else [e for e in sorted(fx.EFFECTS) if args.physics != "standin" or e not in STAND_IN_BLIND]
+    )
     plan = [((), 100 + s) for s in range(args.clean_seeds)]
     plan += [((e,), s) for e in names for s in range(args.seeds)]
     plan += [(p, s) for p in PAIRS if all(e in names for e in p) for s in range(1)]
@@ -249,8 +313,11 @@ def main(argv=None):
             continue
         c = run_case(hidden, seed, args.physics, args.sample_hz)
         done.append(c)
-        print(f"{'+'.join(hidden) or 'clean':35s} seed {seed}: found {c['found']} screen rank "
-              f"{c['screen_rank_of_hidden']} held-out/noise {c['heldout_over_noise']:.2f} ({c['seconds']:.0f} s)", flush=True)
+        print(
+            f"{'+'.join(hidden) or 'clean':35s} seed {seed}: found {c['found']} screen rank "
+            f"{c['screen_rank_of_hidden']} held-out/noise {c['heldout_over_noise']:.2f} ({c['seconds']:.0f} s)",
+            flush=True,
+        )
         summary = summarise(done)
         out.write_text(json.dumps(record(args, summary, done), indent=1))
     summary = summarise(done)

@@ -33,11 +33,19 @@ from mfdesign.models.cv import cross_validate
 from mfdesign.models.ensemble import EnsembleConfig
 
 OUT = Path(__file__).parent / "out"
-GRID = {"latent_depth": (1, 2, 3, 4), "latent_width": (8, 16, 32, 64), "degree": (1, 2, 3),
-        "ring_embed_dim": (3, 12, 24)}
+GRID = {
+    "latent_depth": (1, 2, 3, 4),
+    "latent_width": (8, 16, 32, 64),
+    "degree": (1, 2, 3),
+    "ring_embed_dim": (3, 12, 24),
+}
 BASE = {"latent_depth": 3, "latent_width": 32, "degree": 2, "ring_embed_dim": 12}
-AUTHORS = {"latent_depth": "latent_encoder_depth", "latent_width": "latent_encoder_width",
-           "degree": "poly_degree", "ring_embed_dim": "ring_emb_dim"}
+AUTHORS = {
+    "latent_depth": "latent_encoder_depth",
+    "latent_width": "latent_encoder_width",
+    "degree": "poly_degree",
+    "ring_embed_dim": "ring_emb_dim",
+}
 
 
 def grid_points(full: bool) -> list[dict]:
@@ -52,12 +60,17 @@ def grid_points(full: bool) -> list[dict]:
 def authors_summary() -> dict:
     """Marginal mean test RMSE per level of each factor, and the top configurations."""
     df = pd.read_csv(shared_data_dir() / "hyperparameter_ablations.csv")
-    out = {"n_runs": int(len(df)), "best": df.nsmallest(5, "test_rmse_in_newtons")[
-        list(AUTHORS.values()) + ["pre_processor_layers", "test_rmse_in_newtons"]].to_dict(orient="records"),
-        "marginal_rmse": {}}
+    out = {
+        "n_runs": int(len(df)),
+        "best": df.nsmallest(5, "test_rmse_in_newtons")[
+            list(AUTHORS.values()) + ["pre_processor_layers", "test_rmse_in_newtons"]
+        ].to_dict(orient="records"),
+        "marginal_rmse": {},
+    }
     for ours, theirs in AUTHORS.items():
-        out["marginal_rmse"][ours] = {str(k): float(v) for k, v in
-                                      df.groupby(theirs)["test_rmse_in_newtons"].mean().items()}
+        out["marginal_rmse"][ours] = {
+            str(k): float(v) for k, v in df.groupby(theirs)["test_rmse_in_newtons"].mean().items()
+        }
     return out
 
 
@@ -84,27 +97,49 @@ def main():
     folds = data.kfold(args.folds, seed=args.seed)
     rows = []
     for point in tqdm(grid_points(args.full_grid), desc="sweep"):
-        cfg = EnsembleConfig(n_members=args.members, steps=args.steps, monotone=True,
-                             chunk=min(500, args.steps), **point)
+        cfg = EnsembleConfig(
+            n_members=args.members, steps=args.steps, monotone=True, chunk=min(500, args.steps), **point
+        )
         t0 = time.perf_counter()
         cv = cross_validate(cfg, folds, seed=args.seed, progress=False)
-        rows.append({**point, "rmse_n": cv.overall["rmse_n"], "fold_rmse_mean_n": cv.overall["fold_rmse_mean_n"],
-                     "median_abs_n": cv.overall["median_abs_n"],
-                     "coverage95_total": cv.overall["coverage95_total"], "seconds": time.perf_counter() - t0})
+        rows.append(
+            {
+                **point,
+                "rmse_n": cv.overall["rmse_n"],
+                "fold_rmse_mean_n": cv.overall["fold_rmse_mean_n"],
+                "median_abs_n": cv.overall["median_abs_n"],
+                "coverage95_total": cv.overall["coverage95_total"],
+                "seconds": time.perf_counter() - t0,
+            }
+        )
         print(rows[-1], flush=True)
     table = pd.DataFrame(rows).sort_values("rmse_n")
-    ours = {name: {str(k): float(v) for k, v in _slice(table, name, args.full_grid).groupby(name)["rmse_n"].mean().items()}
-            for name in GRID}
+    ours = {
+        name: {str(k): float(v) for k, v in _slice(table, name, args.full_grid).groupby(name)["rmse_n"].mean().items()}
+        for name in GRID
+    }
     theirs = authors_summary()
-    comparison = {name: {"ours_best_level": min(ours[name], key=ours[name].get),
-                         "authors_best_level": min(theirs["marginal_rmse"][name], key=theirs["marginal_rmse"][name].get)}
-                  for name in GRID}
-    result = {"reduction": {"design": "full grid" if args.full_grid else "one factor at a time around base",
-                            "base": BASE, "members": args.members, "steps": args.steps,
-                            "folds": f"{args.folds}-fold leave-membranes-out on 7 real mass-lift membranes",
-                            "paper": "full 144-point grid x 3 pre-processors, 32 members, 10,000 steps, 22 membranes"},
-              "table": table.to_dict(orient="records"), "our_marginal_rmse": ours,
-              "authors": theirs, "comparison": comparison}
+    comparison = {
+        name: {
+            "ours_best_level": min(ours[name], key=ours[name].get),
+            "authors_best_level": min(theirs["marginal_rmse"][name], key=theirs["marginal_rmse"][name].get),
+        }
+        for name in GRID
+    }
+    result = {
+        "reduction": {
+            "design": "full grid" if args.full_grid else "one factor at a time around base",
+            "base": BASE,
+            "members": args.members,
+            "steps": args.steps,
+            "folds": f"{args.folds}-fold leave-membranes-out on 7 real mass-lift membranes",
+            "paper": "full 144-point grid x 3 pre-processors, 32 members, 10,000 steps, 22 membranes",
+        },
+        "table": table.to_dict(orient="records"),
+        "our_marginal_rmse": ours,
+        "authors": theirs,
+        "comparison": comparison,
+    }
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "hyperparameter_sweep.json").write_text(json.dumps(result, indent=2))
     table.to_csv(OUT / "hyperparameter_sweep.csv", index=False)

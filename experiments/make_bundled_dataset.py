@@ -45,8 +45,15 @@ def default_protocol():
     return Protocol()  # 10 Hz at 100 Pa/s: one sample per 10 Pa
 
 
-def build(out_dir, designs=None, simulator=None, protocol=None, seed: int = SEED,
-          cache_dir=ROOT / "experiments" / "out" / "plane_cache", progress: bool = True) -> dict:
+def build(
+    out_dir,
+    designs=None,
+    simulator=None,
+    protocol=None,
+    seed: int = SEED,
+    cache_dir=ROOT / "experiments" / "out" / "plane_cache",
+    progress: bool = True,
+) -> dict:
     """Run the virtual rig and write the Parquet file and its card into ``out_dir``."""
     import jax
     import numpy as np
@@ -61,8 +68,14 @@ def build(out_dir, designs=None, simulator=None, protocol=None, seed: int = SEED
     out_dir.mkdir(parents=True, exist_ok=True)
     designs = [Membrane.from_key(k) for k in DESIGN_KEYS] if designs is None else list(designs)
     protocol = default_protocol() if protocol is None else protocol
-    rig = VirtualRig(effects=[HIDDEN_EFFECT], theta=HIDDEN_THETA, seed=seed, protocol=protocol,
-                     simulator=simulator, cache_dir=cache_dir)
+    rig = VirtualRig(
+        effects=[HIDDEN_EFFECT],
+        theta=HIDDEN_THETA,
+        seed=seed,
+        protocol=protocol,
+        simulator=simulator,
+        cache_dir=cache_dir,
+    )
     t0 = time.time()
     m = rig.run(designs, progress=progress)
     parquet = out_dir / PARQUET
@@ -75,11 +88,12 @@ def build(out_dir, designs=None, simulator=None, protocol=None, seed: int = SEED
         "what": "virtual measurements of soft pneumatic actuator membranes (Measurements table, source 'virtual')",
         "seed": seed,
         "hidden_effect": {
-            "name": HIDDEN_EFFECT, "story": e.story,
+            "name": HIDDEN_EFFECT,
+            "story": e.story,
             "theta": HIDDEN_THETA,
             "units": {p.name: p.unit for p in e.parameters},
             "note": "observed pressure = gain * true pressure + offset (before sensor noise); "
-                    "the simulator constants are the authors' (SimParams() defaults)",
+            "the simulator constants are the authors' (SimParams() defaults)",
         },
         "simulator": "mfdesign.physics.solve.force_plane" if simulator is None else repr(simulator),
         "simulator_fingerprint": simulator_fingerprint(),
@@ -93,8 +107,13 @@ def build(out_dir, designs=None, simulator=None, protocol=None, seed: int = SEED
         "omitted_samples": int(sum(ev.get("n_omitted", 0) for ev in rig.events)),
         "sha256": sha,
         "bytes": parquet.stat().st_size,
-        "versions": {"python": sys.version.split()[0], "numpy": np.__version__, "pandas": pd.__version__,
-                     "pyarrow": pyarrow.__version__, "jax": jax.__version__},
+        "versions": {
+            "python": sys.version.split()[0],
+            "numpy": np.__version__,
+            "pandas": pd.__version__,
+            "pyarrow": pyarrow.__version__,
+            "jax": jax.__version__,
+        },
         "regenerate": "python experiments/make_bundled_dataset.py",
     }
     card_path = out_dir / CARD
@@ -113,8 +132,10 @@ def main(argv=None) -> None:
     enable_compilation_cache()
     res = build(args.out, cache_dir=None if args.no_cache else args.cache_dir)
     c = res["card_data"]
-    print(f"{res['parquet']}: {c['n_rows']} rows, {c['bytes'] / 1e6:.2f} MB, sha256 {c['sha256'][:16]}..., "
-          f"{len(c['bursts'])} burst(s), {res['seconds']} s")
+    print(
+        f"{res['parquet']}: {c['n_rows']} rows, {c['bytes'] / 1e6:.2f} MB, sha256 {c['sha256'][:16]}..., "
+        f"{len(c['bursts'])} burst(s), {res['seconds']} s"
+    )
 
 
 if __name__ == "__main__":

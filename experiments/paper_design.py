@@ -96,8 +96,9 @@ def real_scores(data, targets: opt.HeightTargets, tau: float) -> dict:
             vals = [real_lift_height(t, p) for _, t in g.groupby("trial")]
             hs.append(float(np.mean([v[0] for v in vals])))
             cens.append(any(v[1] for v in vals))
-        out[key] = dict(h_mm=hs, censored=cens, score_mm=float(opt.smooth_min(np.asarray(hs), tau)),
-                        min_h_mm=float(min(hs)))
+        out[key] = dict(
+            h_mm=hs, censored=cens, score_mm=float(opt.smooth_min(np.asarray(hs), tau)), min_h_mm=float(min(hs))
+        )
     return out
 
 
@@ -105,14 +106,26 @@ def model_scores(predictor, keys, targets: opt.HeightTargets, tau: float) -> dic
     import jax
     import jax.numpy as jnp
 
-    f = jax.jit(lambda d: opt.lift_heights(predictor, d, jnp.asarray(targets.force_n), jnp.asarray(targets.p_pa),
-                                           jnp.linspace(0.0, 80.0, 81), members=True)[0])
+    f = jax.jit(
+        lambda d: opt.lift_heights(
+            predictor,
+            d,
+            jnp.asarray(targets.force_n),
+            jnp.asarray(targets.p_pa),
+            jnp.linspace(0.0, 80.0, 81),
+            members=True,
+        )[0]
+    )
     out = {}
     for key in keys:
         hm = np.asarray(f(jnp.asarray(Membrane.from_key(key).to_array())))
         h = hm.mean(0)
-        out[key] = dict(h_mm=h.tolist(), h_std_mm=hm.std(0).tolist(), score_mm=float(opt.smooth_min(h, tau)),
-                        min_h_mm=float(h.min()))
+        out[key] = dict(
+            h_mm=h.tolist(),
+            h_std_mm=hm.std(0).tolist(),
+            score_mm=float(opt.smooth_min(h, tau)),
+            min_h_mm=float(h.min()),
+        )
     return out
 
 
@@ -130,28 +143,51 @@ def trajectory_study(model, data, args) -> dict:
     Fg, hg = np.array([F for F, _ in grid]), np.array([h for _, h in grid])
     modelled = {k: model_pressure(model, Membrane.from_key(k).to_array(), Fg, hg) for k in keys}
     E_real = [[scaled_rmse(measured[m], measured[t]) for t in keys] for m in keys]
-    E_model = [[scaled_rmse(np.where(np.isnan(modelled[m]), 2e4, modelled[m]), measured[t]) for t in keys] for m in keys]
+    E_model = [
+        [scaled_rmse(np.where(np.isnan(modelled[m]), 2e4, modelled[m]), measured[t]) for t in keys] for m in keys
+    ]
     designed = {}
     for t in keys:
         ok = np.isfinite(measured[t])
         problem = opt.Waypoints(Fg[ok], measured[t][ok], hg[ok])
         t0 = time.perf_counter()
-        res = opt.optimize(model, problem, n_starts=args.starts, steps=args.traj_steps, n_refine=args.traj_refine,
-                           seed=args.seed, progress=False)
-        designed[t] = dict(design_key=res.design_key, predicted_traj_rmse=res.prediction["traj_rmse"],
-                           model_traj_rmse_of_target_membrane=E_model[keys.index(t)][keys.index(t)],
-                           per_rings={r: v["loss"] for r, v in res.per_rings.items()},
-                           seconds=time.perf_counter() - t0)
-        print(f"target {t}: designed {res.design_key}, predicted e_p {res.prediction['traj_rmse']:.3f} "
-              f"(the target membrane itself, model: {designed[t]['model_traj_rmse_of_target_membrane']:.3f})", flush=True)
+        res = opt.optimize(
+            model,
+            problem,
+            n_starts=args.starts,
+            steps=args.traj_steps,
+            n_refine=args.traj_refine,
+            seed=args.seed,
+            progress=False,
+        )
+        designed[t] = dict(
+            design_key=res.design_key,
+            predicted_traj_rmse=res.prediction["traj_rmse"],
+            model_traj_rmse_of_target_membrane=E_model[keys.index(t)][keys.index(t)],
+            per_rings={r: v["loss"] for r, v in res.per_rings.items()},
+            seconds=time.perf_counter() - t0,
+        )
+        print(
+            f"target {t}: designed {res.design_key}, predicted e_p {res.prediction['traj_rmse']:.3f} "
+            f"(the target membrane itself, model: {designed[t]['model_traj_rmse_of_target_membrane']:.3f})",
+            flush=True,
+        )
     diag = np.diag(np.asarray(E_model))
-    print(f"model trajectory error on the five membranes (diagonal): mean {np.nanmean(diag):.3f} "
-          f"(paper: 0.02 known designs)", flush=True)
-    return dict(membranes=keys, waypoints=[dict(force_n=F, h_mm=h) for F, h in grid],
-                measured_p_pa={k: v.tolist() for k, v in measured.items()},
-                model_p_pa={k: v.tolist() for k, v in modelled.items()},
-                error_matrix_measured=E_real, error_matrix_model=E_model,
-                model_diagonal_mean=float(np.nanmean(diag)), designed=designed)
+    print(
+        f"model trajectory error on the five membranes (diagonal): mean {np.nanmean(diag):.3f} "
+        f"(paper: 0.02 known designs)",
+        flush=True,
+    )
+    return dict(
+        membranes=keys,
+        waypoints=[dict(force_n=F, h_mm=h) for F, h in grid],
+        measured_p_pa={k: v.tolist() for k, v in measured.items()},
+        model_p_pa={k: v.tolist() for k, v in modelled.items()},
+        error_matrix_measured=E_real,
+        error_matrix_model=E_model,
+        model_diagonal_mean=float(np.nanmean(diag)),
+        designed=designed,
+    )
 
 
 def height_study(model, data, args) -> dict:
@@ -163,28 +199,46 @@ def height_study(model, data, args) -> dict:
     for name, targets in (("A", opt.TARGET_SETS["A"]), ("B", opt.TARGET_SETS["B"]), ("A_notebook", NOTEBOOK_A)):
         real = real_scores(data, targets, tau)
         mod = model_scores(predictor, keys, targets, tau)
-        entry = dict(targets=dict(force_n=list(targets.force_n), p_pa=list(targets.p_pa)), real=real, model=mod,
-                     prior_real_mean_score_mm=float(np.mean([real[k]["score_mm"] for k in prior])),
-                     prior_model_mean_score_mm=float(np.mean([mod[k]["score_mm"] for k in prior])))
+        entry = dict(
+            targets=dict(force_n=list(targets.force_n), p_pa=list(targets.p_pa)),
+            real=real,
+            model=mod,
+            prior_real_mean_score_mm=float(np.mean([real[k]["score_mm"] for k in prior])),
+            prior_model_mean_score_mm=float(np.mean([mod[k]["score_mm"] for k in prior])),
+        )
         ak = authors.get(name[0])
         entry["authors_design"] = ak
         entry["authors_design_real_score_mm"] = real[ak]["score_mm"]
-        print(f"set {name}: real smooth-min score, authors' optimised {ak}: {real[ak]['score_mm']:.1f} mm vs "
-              f"prior average {entry['prior_real_mean_score_mm']:.1f} mm (paper A 29.4 vs 14.4, B 40.8 vs 25.7); "
-              f"model: {mod[ak]['score_mm']:.1f} vs {entry['prior_model_mean_score_mm']:.1f}", flush=True)
+        print(
+            f"set {name}: real smooth-min score, authors' optimised {ak}: {real[ak]['score_mm']:.1f} mm vs "
+            f"prior average {entry['prior_real_mean_score_mm']:.1f} mm (paper A 29.4 vs 14.4, B 40.8 vs 25.7); "
+            f"model: {mod[ak]['score_mm']:.1f} vs {entry['prior_model_mean_score_mm']:.1f}",
+            flush=True,
+        )
         if name in ("A", "B"):
             t0 = time.perf_counter()
-            res = opt.optimize(model, targets, n_starts=args.starts, steps=args.steps, n_refine=args.refine,
-                               seed=args.seed, check=args.check, progress=False)
+            res = opt.optimize(
+                model,
+                targets,
+                n_starts=args.starts,
+                steps=args.steps,
+                n_refine=args.refine,
+                seed=args.seed,
+                check=args.check,
+                progress=False,
+            )
             entry["optimised"] = res.to_json()
             entry["optimised"]["seconds"] = time.perf_counter() - t0
             opt.plot(res, OUT / f"paper_design_{name}.png", title=f"set {name}: {res.design_key}")
             p = res.prediction
             sim = res.simulator
-            print(f"set {name}: optimised {res.design_key}: model score {p['score_mm']:.1f} mm (min {p['min_h_mm']:.1f}, "
-                  f"member std {np.round(p['h_member_std_mm'], 1).tolist()} mm); ratio to prior model mean "
-                  f"{p['score_mm'] / entry['prior_model_mean_score_mm']:.2f}"
-                  + (f"; simulator heights {sim['h_sim_mm']} ({sim['status']})" if sim else ""), flush=True)
+            print(
+                f"set {name}: optimised {res.design_key}: model score {p['score_mm']:.1f} mm (min {p['min_h_mm']:.1f}, "
+                f"member std {np.round(p['h_member_std_mm'], 1).tolist()} mm); ratio to prior model mean "
+                f"{p['score_mm'] / entry['prior_model_mean_score_mm']:.2f}"
+                + (f"; simulator heights {sim['h_sim_mm']} ({sim['status']})" if sim else ""),
+                flush=True,
+            )
         out[name] = entry
     return out
 
@@ -235,8 +289,15 @@ def plot(result: dict, path: Path) -> None:
         ax.set_title(f"set {name} ({e['targets']['p_pa'][0] / 1e3:.1f} kPa): M6/M7 = authors' designs", fontsize=9)
         ax.legend(fontsize=7)
     axes[1, 2].axis("off")
-    axes[1, 2].text(0, 1, "\n".join(f"{k}: {v}" for k, v in result["summary"].items()), va="top", fontsize=7,
-                    family="monospace", wrap=True)
+    axes[1, 2].text(
+        0,
+        1,
+        "\n".join(f"{k}: {v}" for k, v in result["summary"].items()),
+        va="top",
+        fontsize=7,
+        family="monospace",
+        wrap=True,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -262,14 +323,25 @@ def main():
     hs = height_study(model, data, args)
     summary = {
         "model diagonal traj RMSE": round(tr["model_diagonal_mean"], 4),
-        **{f"{s} real authors/prior": f"{hs[s]['authors_design_real_score_mm']:.1f}/{hs[s]['prior_real_mean_score_mm']:.1f}"
-           for s in ("A", "B")},
-        **{f"{s} model opt/prior": f"{hs[s]['optimised']['prediction']['score_mm']:.1f}/{hs[s]['prior_model_mean_score_mm']:.1f}"
-           for s in ("A", "B")},
+        **{
+            f"{s} real authors/prior": f"{hs[s]['authors_design_real_score_mm']:.1f}/{hs[s]['prior_real_mean_score_mm']:.1f}"
+            for s in ("A", "B")
+        },
+        **{
+            f"{s} model opt/prior": f"{hs[s]['optimised']['prediction']['score_mm']:.1f}/{hs[s]['prior_model_mean_score_mm']:.1f}"
+            for s in ("A", "B")
+        },
         "paper": "A 29.4/14.4, B 40.8/25.7",
     }
-    result = dict(model=model_path, settings=vars(args) | {"model": model_path}, trajectories=tr, height=hs,
-                  summary=summary, seconds=time.perf_counter() - t0, load_average=list(os.getloadavg()))
+    result = dict(
+        model=model_path,
+        settings=vars(args) | {"model": model_path},
+        trajectories=tr,
+        height=hs,
+        summary=summary,
+        seconds=time.perf_counter() - t0,
+        load_average=list(os.getloadavg()),
+    )
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "paper_design.json").write_text(json.dumps(result, indent=2, default=str))
     plot(result, OUT / "paper_design.png")

@@ -59,10 +59,18 @@ def main():
     ap.add_argument("--ens-steps", type=int, default=3000)
     ap.add_argument("--folds", type=int, default=7)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--only", type=int, nargs="+", default=None, help="compute only these folds (checkpoints), no summary")
-    ap.add_argument("--physics", choices=("exact", "emulator"), default="exact",
-                    help="force model of (a), (b) and (e): simulator planes (exact) or the emulator")
-    ap.add_argument("--draws", type=int, default=32, help="posterior draws in the predictive (evaluation cost scales with it)")
+    ap.add_argument(
+        "--only", type=int, nargs="+", default=None, help="compute only these folds (checkpoints), no summary"
+    )
+    ap.add_argument(
+        "--physics",
+        choices=("exact", "emulator"),
+        default="exact",
+        help="force model of (a), (b) and (e): simulator planes (exact) or the emulator",
+    )
+    ap.add_argument(
+        "--draws", type=int, default=32, help="posterior draws in the predictive (evaluation cost scales with it)"
+    )
     args = ap.parse_args()
 
     from mfdesign.calibration.workflow import fit_multi_fidelity, lifted_rows, force_model_named
@@ -105,14 +113,23 @@ def main():
         a, b = tr.arrays(), te.arrays()
         key = test.design_keys[0]
         wp = waypoints[waypoints["design_key"] == key]
-        fit = fit_multi_fidelity(train, emu, (), n_steps=args.steps, n_walkers=args.walkers, max_rows=args.max_rows,
-                                 ensemble_config=EnsembleConfig(n_members=args.members, steps=args.ens_steps,
-                                                                monotone=False), seed=args.seed + i, progress=False)
+        fit = fit_multi_fidelity(
+            train,
+            emu,
+            (),
+            n_steps=args.steps,
+            n_walkers=args.walkers,
+            max_rows=args.max_rows,
+            ensemble_config=EnsembleConfig(n_members=args.members, steps=args.ens_steps, monotone=False),
+            seed=args.seed + i,
+            progress=False,
+        )
         t_fit = time.perf_counter() - t0
         calibrated = MultiFidelity.from_posterior(fit.model, fit.posterior, None, seed=args.seed).thinned(args.draws)
         paper = _Mean(lambda d, h, p: emu(d, h, p, SimParams()))  # the reference node of every lattice
         ens = EnsembleConfig(n_members=args.members, steps=args.ens_steps, monotone=True).fit(
-            a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=args.seed + i, progress=False)
+            a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=args.seed + i, progress=False
+        )
         curve = CurveFitConfig(degree=1).fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"])
         t_base = time.perf_counter() - t0 - t_fit
         for name, model in zip(names, (paper, calibrated, ens, curve, fit.mf.thinned(args.draws))):
@@ -131,23 +148,43 @@ def main():
             # their top) is left out of the metrics and counted.
             ok = np.isfinite(mean) & np.isfinite(lo) & np.isfinite(hi)
             _, traj = trajectory_errors(model, wp)
-            rows[name].append({"membrane": key, "rmse_n": float(np.sqrt(np.mean((f[ok] - mean[ok]) ** 2))),
-                               "coverage90": float(np.mean((f[ok] >= lo[ok]) & (f[ok] <= hi[ok]))), "n": int(ok.sum()),
-                               "n_without_prediction": int((~ok).sum()),
-                               "traj_rmse_p": traj[key]["traj_rmse_p"], "traj_unreached": traj[key]["unreached"]})
+            rows[name].append(
+                {
+                    "membrane": key,
+                    "rmse_n": float(np.sqrt(np.mean((f[ok] - mean[ok]) ** 2))),
+                    "coverage90": float(np.mean((f[ok] >= lo[ok]) & (f[ok] <= hi[ok]))),
+                    "n": int(ok.sum()),
+                    "n_without_prediction": int((~ok).sum()),
+                    "traj_rmse_p": traj[key]["traj_rmse_p"],
+                    "traj_unreached": traj[key]["unreached"],
+                }
+            )
         s = fit.posterior.summary().set_index("parameter")
-        rows["b_sim_calibrated"][-1].update(mu_pa=float(s.loc["mu_pa", "median"]), jm=float(s.loc["jm", "median"]),
-                                            thickness_sd=float(s.loc["thickness_sd", "median"])
-                                            if "thickness_sd" in s.index else None,
-                                            tau_ratio=fit.posterior.convergence["steps_over_tau"])
-        print(f"fold {i} {key}: " + "  ".join(f"{n[:1]} {rows[n][-1]['rmse_n']:.2f} N/{rows[n][-1]['traj_rmse_p']:.3f}/"
-                                              f"{rows[n][-1]['coverage90']:.2f}" for n in names)
-              + f"  ({time.perf_counter() - t0:.0f} s)", flush=True)
-        rows["b_sim_calibrated"][-1]["seconds"] = {"multi_fidelity_fit": t_fit, "baselines_fit": t_base,
-                                                    "total": time.perf_counter() - t0}
+        rows["b_sim_calibrated"][-1].update(
+            mu_pa=float(s.loc["mu_pa", "median"]),
+            jm=float(s.loc["jm", "median"]),
+            thickness_sd=float(s.loc["thickness_sd", "median"]) if "thickness_sd" in s.index else None,
+            tau_ratio=fit.posterior.convergence["steps_over_tau"],
+        )
+        print(
+            f"fold {i} {key}: "
+            + "  ".join(
+                f"{n[:1]} {rows[n][-1]['rmse_n']:.2f} N/{rows[n][-1]['traj_rmse_p']:.3f}/"
+                f"{rows[n][-1]['coverage90']:.2f}"
+                for n in names
+            )
+            + f"  ({time.perf_counter() - t0:.0f} s)",
+            flush=True,
+        )
+        rows["b_sim_calibrated"][-1]["seconds"] = {
+            "multi_fidelity_fit": t_fit,
+            "baselines_fit": t_base,
+            "total": time.perf_counter() - t0,
+        }
         ckpt(i).parent.mkdir(parents=True, exist_ok=True)
-        ckpt(i).write_text(json.dumps({"settings": settings, "rows": {n: rows[n][-1] for n in names}},
-                                      indent=1, default=float))
+        ckpt(i).write_text(
+            json.dumps({"settings": settings, "rows": {n: rows[n][-1] for n in names}}, indent=1, default=float)
+        )
     if args.only is not None:
         print(f"folds {args.only} done (--only: no summary)", flush=True)
         return
@@ -156,22 +193,41 @@ def main():
     for n in names:
         r = rows[n]
         w = np.array([x["n"] for x in r], float)
-        summary[n] = {"rmse_n": float(np.sqrt(np.sum(w * np.array([x["rmse_n"] for x in r]) ** 2) / w.sum())),
-                      "traj_rmse_p": float(np.sqrt(np.mean([x["traj_rmse_p"] ** 2 for x in r]))),
-                      "coverage90": float(np.sum(w * np.array([x["coverage90"] for x in r])) / w.sum())}
+        summary[n] = {
+            "rmse_n": float(np.sqrt(np.sum(w * np.array([x["rmse_n"] for x in r]) ** 2) / w.sum())),
+            "traj_rmse_p": float(np.sqrt(np.mean([x["traj_rmse_p"] ** 2 for x in r]))),
+            "coverage90": float(np.sum(w * np.array([x["coverage90"] for x in r])) / w.sum()),
+        }
     print("all 7: calibrating on every membrane for the posterior of mu, J_m", flush=True)
-    full = fit_multi_fidelity(data, emu, (), n_steps=args.steps, n_walkers=args.walkers, max_rows=args.max_rows,
-                              ensemble_config=EnsembleConfig(n_members=2, steps=10, monotone=False), seed=args.seed,
-                              progress=False)
+    full = fit_multi_fidelity(
+        data,
+        emu,
+        (),
+        n_steps=args.steps,
+        n_walkers=args.walkers,
+        max_rows=args.max_rows,
+        ensemble_config=EnsembleConfig(n_members=2, steps=10, monotone=False),
+        seed=args.seed,
+        progress=False,
+    )
     post = full.posterior.summary().set_index("parameter")
-    out = {"settings": vars(args), "physics": args.physics, "metrics_held_out": summary, "folds": rows,
-           "posterior_all_membranes": full.posterior.to_json(),
-           "mu_pa": {k: float(post.loc["mu_pa", k]) for k in ("median", "q05", "q95")}, "mu_pa_paper_uniaxial": 31.5e3,
-           "jm": {k: float(post.loc["jm", k]) for k in ("median", "q05", "q95")}, "jm_paper": 39.6,
-           "seconds": time.perf_counter() - t_all,
-           "notes": ("held-out rows: lift rows with h >= 2 mm (force = lifted weight); likelihood rows subsampled "
-                     f"to {args.max_rows} per fit; emcee {args.walkers} walkers x {args.steps} steps; ensembles "
-                     f"{args.members} members x {args.ens_steps} steps; {args.draws} posterior draws in the predictive")}
+    out = {
+        "settings": vars(args),
+        "physics": args.physics,
+        "metrics_held_out": summary,
+        "folds": rows,
+        "posterior_all_membranes": full.posterior.to_json(),
+        "mu_pa": {k: float(post.loc["mu_pa", k]) for k in ("median", "q05", "q95")},
+        "mu_pa_paper_uniaxial": 31.5e3,
+        "jm": {k: float(post.loc["jm", k]) for k in ("median", "q05", "q95")},
+        "jm_paper": 39.6,
+        "seconds": time.perf_counter() - t_all,
+        "notes": (
+            "held-out rows: lift rows with h >= 2 mm (force = lifted weight); likelihood rows subsampled "
+            f"to {args.max_rows} per fit; emcee {args.walkers} walkers x {args.steps} steps; ensembles "
+            f"{args.members} members x {args.ens_steps} steps; {args.draws} posterior draws in the predictive"
+        ),
+    }
     OUT.mkdir(exist_ok=True)
     stem = "real_mass_lift" if args.physics == "exact" else "real_mass_lift_emulator"
     (OUT / f"{stem}.json").write_text(json.dumps(out, indent=2, default=float))
@@ -187,8 +243,9 @@ def _plot(summary, rows, names, path):
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
-    for ax, metric, label in zip(axes, ("rmse_n", "traj_rmse_p", "coverage90"),
-                                 ("force RMSE [N]", "scaled trajectory RMSE", "90 % coverage")):
+    for ax, metric, label in zip(
+        axes, ("rmse_n", "traj_rmse_p", "coverage90"), ("force RMSE [N]", "scaled trajectory RMSE", "90 % coverage")
+    ):
         for j, n in enumerate(names):
             vals = [r[metric] for r in rows[n]]
             ax.scatter(np.full(len(vals), j), vals, s=12, color=f"C{j}", alpha=0.6)
@@ -197,8 +254,11 @@ def _plot(summary, rows, names, path):
         ax.set_title(label, fontsize=9)
         if metric == "coverage90":
             ax.axhline(0.9, color="k", lw=0.8, ls="--")
-    fig.suptitle("real mass-lift, leave one membrane out: a sim (paper), b calibrated sim, c ensemble, "
-                 "d curve fit, e multi-fidelity", fontsize=9)
+    fig.suptitle(
+        "real mass-lift, leave one membrane out: a sim (paper), b calibrated sim, c ensemble, "
+        "d curve fit, e multi-fidelity",
+        fontsize=9,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -62,9 +62,12 @@ def main():
         "ensemble": EnsembleConfig(n_members=args.members, steps=args.steps, monotone=True),
         "curve_fit": CurveFitConfig(degree=args.curve_degree),
     }
-    result = {"data": "mass_lift_data_dictionary_N_Pa.pkl (7 membranes, 45,924 rows)",
-              "protocol": "leave-one-membrane-out; force = lifted weight at measured (h, p)",
-              "machine": platform.processor() or platform.machine(), "models": {}}
+    result = {
+        "data": "mass_lift_data_dictionary_N_Pa.pkl (7 membranes, 45,924 rows)",
+        "protocol": "leave-one-membrane-out; force = lifted weight at measured (h, p)",
+        "machine": platform.processor() or platform.machine(),
+        "models": {},
+    }
     tables = {}
     for name, spec in specs.items():
         t0 = time.perf_counter()
@@ -73,16 +76,23 @@ def main():
         tables[name] = (cv, table)
         result["models"][name] = {
             "config": spec.__dict__ if not hasattr(spec, "to_dict") else spec.to_dict(),
-            "cv": cv.to_json(), "trajectory_new_designs": per,
-            "trajectory_rmse_p_new": traj_p, "trajectory_rmse_dist_new": traj_d,
-            "seconds": time.perf_counter() - t0}
-        print(f"{name}: force RMSE {cv.overall['rmse_n']:.2f} N (fold mean "
-              f"{cv.overall['fold_rmse_mean_n']:.2f}), trajectory RMSE new designs {traj_p:.3f} "
-              f"(dist {traj_d:.3f})", flush=True)
+            "cv": cv.to_json(),
+            "trajectory_new_designs": per,
+            "trajectory_rmse_p_new": traj_p,
+            "trajectory_rmse_dist_new": traj_d,
+            "seconds": time.perf_counter() - t0,
+        }
+        print(
+            f"{name}: force RMSE {cv.overall['rmse_n']:.2f} N (fold mean "
+            f"{cv.overall['fold_rmse_mean_n']:.2f}), trajectory RMSE new designs {traj_p:.3f} "
+            f"(dist {traj_d:.3f})",
+            flush=True,
+        )
     # the ensemble on known designs: fit on all 7, score the same 7
     a = data.arrays()
-    full = specs["ensemble"].fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"],
-                                 a["weight"], key=args.seed, progress=False)
+    full = specs["ensemble"].fit(
+        a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=args.seed, progress=False
+    )
     table, per = trajectory_errors(full, waypoints)
     result["models"]["ensemble"]["trajectory_table_known"] = table.to_dict(orient="records")
     e = (table["p_model_pa"] - table["p_pa"]) / 1e4

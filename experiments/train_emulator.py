@@ -48,11 +48,13 @@ def main(argv=None) -> dict:
     arrays = em.table_arrays(df)
     train_a = {k: v[~test] for k, v in arrays.items()}
     test_a = {k: v[test] for k, v in arrays.items()}
-    print(f"{df['sample'].nunique()} samples, {len(df)} points: train {int((~test).sum())}, "
-          f"held out {int(test.sum())} ({df.loc[test, 'sample'].nunique()} samples)", flush=True)
+    print(
+        f"{df['sample'].nunique()} samples, {len(df)} points: train {int((~test).sum())}, "
+        f"held out {int(test.sum())} ({df.loc[test, 'sample'].nunique()} samples)",
+        flush=True,
+    )
 
-    cfg = em.EmulatorConfig(n_members=a.members, width=a.width, depth=a.depth, steps=a.steps,
-                            batch=a.batch, lr=a.lr)
+    cfg = em.EmulatorConfig(n_members=a.members, width=a.width, depth=a.depth, steps=a.steps, batch=a.batch, lr=a.lr)
     t0 = time.perf_counter()
     emu, hist = em.fit_emulator(train_a, cfg)
     train_s = time.perf_counter() - t0
@@ -89,16 +91,24 @@ def main(argv=None) -> dict:
     (OUT / f"{a.tag}.json").write_text(json.dumps(report, indent=2))
     _parity(test_a, pred, acc, OUT / f"{a.tag}.png")
     if not a.no_save:
-        emu.save(a.artifact, extra={"held_out": acc, "n_samples": report["n_samples"],
-                                    "n_train_points": report["n_train_points"]})
+        emu.save(
+            a.artifact,
+            extra={"held_out": acc, "n_samples": report["n_samples"], "n_train_points": report["n_train_points"]},
+        )
     h = acc["all"]
-    print(f"held-out RMSE {h['rmse_n']:.3f} N = {100 * h['rmse_over_range']:.2f} % of the force range "
-          f"{acc['force_range_n']:.1f} N (target 1 %), max error {h['max_abs_err_n']:.2f} N", flush=True)
+    print(
+        f"held-out RMSE {h['rmse_n']:.3f} N = {100 * h['rmse_over_range']:.2f} % of the force range "
+        f"{acc['force_range_n']:.1f} N (target 1 %), max error {h['max_abs_err_n']:.2f} N",
+        flush=True,
+    )
     for k in range(3):
         r = acc[f"rings_{k}"]
         if r.get("n"):
-            print(f"  {k} rings: RMSE {r['rmse_n']:.3f} N ({100 * r['rmse_over_range']:.2f} %), "
-                  f"max {r['max_abs_err_n']:.2f} N, n={r['n']}", flush=True)
+            print(
+                f"  {k} rings: RMSE {r['rmse_n']:.3f} N ({100 * r['rmse_over_range']:.2f} %), "
+                f"max {r['max_abs_err_n']:.2f} N, n={r['n']}",
+                flush=True,
+            )
     print(f"train RMSE {acc_train['all']['rmse_n']:.3f} N; trained in {train_s:.0f} s", flush=True)
     return report
 
@@ -116,9 +126,11 @@ def _parity(test_a, pred, acc, path: Path) -> None:
         m = n_rings == k
         axes[0].scatter(test_a["F"][m], pred[m], s=4, alpha=0.5, color=col, label=f"{k} rings")
     axes[0].plot(lim, lim, "k--", lw=0.8)
-    axes[0].set(xlabel="simulator force [N]", ylabel="emulator force [N]",
-                title=f"held out: RMSE {acc['all']['rmse_n']:.2f} N "
-                      f"({100 * acc['all']['rmse_over_range']:.2f} % of range)")
+    axes[0].set(
+        xlabel="simulator force [N]",
+        ylabel="emulator force [N]",
+        title=f"held out: RMSE {acc['all']['rmse_n']:.2f} N ({100 * acc['all']['rmse_over_range']:.2f} % of range)",
+    )
     axes[0].legend()
     axes[1].scatter(test_a["p"], pred - test_a["F"], s=4, alpha=0.5, c=test_a["h"], cmap="viridis")
     axes[1].axhline(0, color="k", lw=0.8)

@@ -93,24 +93,27 @@ def main(argv=None) -> dict:
             load = f_n
             c = vc[np.isclose(vc["force_n"], load, atol=0.01)]
             n = vn[np.isclose(vn["force_n"], load, atol=0.01)]
-            pv = virtual_pressure_at(c["height_mm"].to_numpy(), c["pressure_pa"].to_numpy(),
-                                     r["height_mm"].to_numpy())
+            pv = virtual_pressure_at(c["height_mm"].to_numpy(), c["pressure_pa"].to_numpy(), r["height_mm"].to_numpy())
             ok = np.isfinite(pv)
             d = pv[ok] - r["pressure_pa"].to_numpy()[ok]
             mean_real = float(r["pressure_pa"].mean())
-            row = dict(design_key=key, mass_kg=round(f_n / G, 3), force_n=float(f_n), n_real=int(len(r)),
-                       coverage=float(ok.mean()) if len(r) else 0.0,
-                       rmse_pa=float(np.sqrt(np.mean(d**2))) if d.size else None,
-                       bias_pa=float(np.mean(d)) if d.size else None,
-                       mean_real_pa=mean_real,
-                       rmse_rel=float(np.sqrt(np.mean(d**2)) / mean_real) if d.size else None,
-                       virtual_max_height_mm=float(np.nanmax(c["height_mm"])) if len(c) else None,
-                       real_max_height_mm=float(r["height_mm"].max()) if len(r) else None)
+            row = dict(
+                design_key=key,
+                mass_kg=round(f_n / G, 3),
+                force_n=float(f_n),
+                n_real=int(len(r)),
+                coverage=float(ok.mean()) if len(r) else 0.0,
+                rmse_pa=float(np.sqrt(np.mean(d**2))) if d.size else None,
+                bias_pa=float(np.mean(d)) if d.size else None,
+                mean_real_pa=mean_real,
+                rmse_rel=float(np.sqrt(np.mean(d**2)) / mean_real) if d.size else None,
+                virtual_max_height_mm=float(np.nanmax(c["height_mm"])) if len(c) else None,
+                real_max_height_mm=float(r["height_mm"].max()) if len(r) else None,
+            )
             gaps.append(row)
             col = colours[f_n]
             ax.plot(r["height_mm"], r["pressure_pa"] / 1e3, ".", ms=1.5, color=col, alpha=0.25)
-            ax.plot(c["height_mm"], c["pressure_pa"] / 1e3, "-", lw=1.8, color=col,
-                    label=f"{row['mass_kg']:g} kg")
+            ax.plot(c["height_mm"], c["pressure_pa"] / 1e3, "-", lw=1.8, color=col, label=f"{row['mass_kg']:g} kg")
             ax.plot(n["height_mm"].iloc[::10], n["pressure_pa"].iloc[::10] / 1e3, "x", ms=2.5, color=col, alpha=0.6)
         ax.set_title(key, fontsize=8)
         ax.set_xlim(-2, 80)
@@ -132,17 +135,25 @@ def main(argv=None) -> dict:
         overall_bias_pa=float(np.sum(w * np.array([g["bias_pa"] for g in d_all])) / w.sum()),
         median_rmse_rel=float(np.median([g["rmse_rel"] for g in d_all])),
         mean_coverage=float(np.mean([g["coverage"] for g in gaps])),
-        n_pairs=len(gaps), n_pairs_matched=len(d_all),
+        n_pairs=len(gaps),
+        n_pairs_matched=len(d_all),
     )
     result = dict(
         what="virtual mass lift (plain physics, SimParams() defaults, no effect) vs real mass-lift file",
         metric="p_virtual(h) - p_real at the real samples' heights; p_virtual(h): pressure at which "
-               "the noise-free virtual plate first reaches h on inflation",
-        protocol=dict(ramp_pa_per_s=proto.ramp_pa_per_s, sample_hz=proto.sample_hz,
-                      height_step_mm=proto.height_step_mm, pressure_step_pa=proto.pressure_step_pa,
-                      lift_limit_pa=proto.lift_limit_pa, lift_height_max_mm=proto.lift_height_max_mm),
+        "the noise-free virtual plate first reaches h on inflation",
+        protocol=dict(
+            ramp_pa_per_s=proto.ramp_pa_per_s,
+            sample_hz=proto.sample_hz,
+            height_step_mm=proto.height_step_mm,
+            pressure_step_pa=proto.pressure_step_pa,
+            lift_limit_pa=proto.lift_limit_pa,
+            lift_height_max_mm=proto.lift_height_max_mm,
+        ),
         simulator_fingerprint=simulator_fingerprint(),
-        summary=summary, gaps=gaps, burst_events=[e for e in clean.events if e["status"] == "burst"],
+        summary=summary,
+        gaps=gaps,
+        burst_events=[e for e in clean.events if e["status"] == "burst"],
         seconds=round(time.time() - t0, 1),
     )
     (out / "virtual_vs_real.json").write_text(json.dumps(result, indent=1))

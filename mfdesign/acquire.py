@@ -70,8 +70,17 @@ from mfdesign.models.predictor import (  # noqa: F401  (re-exported: acquisition
 )
 
 __all__ = [
-    "FIDELITIES", "DEFAULT_COSTS", "Grid", "Predictor", "EnsemblePredictor", "SplitPredictor",
-    "FunctionPredictor", "Proposal", "deviations", "batch_utility", "evaluate",
+    "FIDELITIES",
+    "DEFAULT_COSTS",
+    "Grid",
+    "Predictor",
+    "EnsemblePredictor",
+    "SplitPredictor",
+    "FunctionPredictor",
+    "Proposal",
+    "deviations",
+    "batch_utility",
+    "evaluate",
     "propose",
 ]
 
@@ -101,8 +110,13 @@ def _deviation(predictor, fidelity, design, grid):
     return deviations(predictor.grid_members(fidelity, design, grid))
 
 
-def evaluate(predictor: Predictor, designs, fidelities: Sequence[str], grid: Grid = Grid(),
-             costs: Mapping[str, float] | None = None) -> dict:
+def evaluate(
+    predictor: Predictor,
+    designs,
+    fidelities: Sequence[str],
+    grid: Grid = Grid(),
+    costs: Mapping[str, float] | None = None,
+) -> dict:
     """Score a given batch: ``designs`` (Membranes or ``[q, 6]`` rows), one fidelity each.
 
     Returns ``utility`` (N, the paper's number for an all-rig batch), ``cost``, ``score``
@@ -158,8 +172,9 @@ def _optimise_fidelity(predictor, z0, n_rings, fidelity, grid, space, n_steps):
     (``jax.vmap`` over ring counts and restarts: one compiled call per fidelity, reused for
     any predictor of the same structure, e.g. a refitted ensemble). The ring count is data
     (:meth:`~mfdesign.design.DesignSpace.decode_any`), so it costs no extra compilation."""
-    opt = optax.lbfgs(linesearch=optax.scale_by_backtracking_linesearch(
-        max_backtracking_steps=LINESEARCH_STEPS, store_grad=True))
+    opt = optax.lbfgs(
+        linesearch=optax.scale_by_backtracking_linesearch(max_backtracking_steps=LINESEARCH_STEPS, store_grad=True)
+    )
 
     def one(z, n):
         def dev_of(z):
@@ -207,12 +222,18 @@ class Proposal:
 
     def to_json(self) -> dict:
         return {
-            "designs": [d.key() for d in self.designs], "fidelities": list(self.fidelities),
-            "scores": list(self.scores), "utility_n": self.utility, "cost": self.cost,
-            "score": self.score, "wall_s": self.wall_s,
-            "arms": [{k: v for k, v in a.items() if k not in ("u", "dev", "restart_utility")}
-                     | {"restart_utility_quantiles": np.quantile(a["restart_utility"], [0, 0.5, 0.9, 1]).tolist()}
-                     for a in self.arms],
+            "designs": [d.key() for d in self.designs],
+            "fidelities": list(self.fidelities),
+            "scores": list(self.scores),
+            "utility_n": self.utility,
+            "cost": self.cost,
+            "score": self.score,
+            "wall_s": self.wall_s,
+            "arms": [
+                {k: v for k, v in a.items() if k not in ("u", "dev", "restart_utility")}
+                | {"restart_utility_quantiles": np.quantile(a["restart_utility"], [0, 0.5, 0.9, 1]).tolist()}
+                for a in self.arms
+            ],
         }
 
     def save(self, path) -> None:
@@ -254,7 +275,7 @@ def _unit_array(units) -> tuple[np.ndarray, np.ndarray]:
     ``[K, 6]`` (only equal ring counts are compared, so the padding never matters)."""
     x = np.zeros((len(units), 6))
     for i, (_, u) in enumerate(units):
-        x[i, :len(u)] = u
+        x[i, : len(u)] = u
     return np.array([n for n, _ in units]), x
 
 
@@ -288,11 +309,20 @@ def _greedy(dev, cost, q, units):
     return chosen
 
 
-def propose(predictor: Predictor, q: int, fidelities: Sequence[str] = ("rig",),
-            costs: Mapping[str, float] | None = None, n_restarts: int = 1000,
-            n_rings: Sequence[int] = (0, 1, 2), grid: Grid = Grid(), key=0,
-            space: DesignSpace = DesignSpace(), n_steps: int = 20, progress: bool = False,
-            n_refine: int = 32) -> Proposal:
+def propose(
+    predictor: Predictor,
+    q: int,
+    fidelities: Sequence[str] = ("rig",),
+    costs: Mapping[str, float] | None = None,
+    n_restarts: int = 1000,
+    n_rings: Sequence[int] = (0, 1, 2),
+    grid: Grid = Grid(),
+    key=0,
+    space: DesignSpace = DesignSpace(),
+    n_steps: int = 20,
+    progress: bool = False,
+    n_refine: int = 32,
+) -> Proposal:
     """Choose ``q`` (design, fidelity) pairs maximising ``U / cost`` (module docstring).
 
     ``n_restarts`` random joint batches per (ring count, fidelity) are scored; the best
@@ -325,8 +355,9 @@ def propose(predictor: Predictor, q: int, fidelities: Sequence[str] = ("rig",),
 
     arms, pool_u, pool_dev, pool_cost, pool_arm = [], [], [], [], []
     n_arr = jnp.asarray(n_rings)
-    for f, k in zip(tqdm(fidelities, desc="acquisition (fidelities)", disable=not progress),
-                    jax.random.split(key, len(fidelities))):
+    for f, k in zip(
+        tqdm(fidelities, desc="acquisition (fidelities)", disable=not progress), jax.random.split(key, len(fidelities))
+    ):
         u0 = jax.random.uniform(k, (len(n_rings), n_restarts, q, 6), minval=0.0, maxval=1.0)
         ta = time.perf_counter()
         top = min(int(n_refine), n_restarts)
@@ -335,8 +366,7 @@ def propose(predictor: Predictor, q: int, fidelities: Sequence[str] = ("rig",),
             util0 = np.nan_to_num(dev0.max(axis=2).sum(axis=2), nan=-np.inf)  # [A, R]
             order = np.argsort(-util0, axis=1, kind="stable")[:, :top]
             u0 = jnp.take_along_axis(u0, jnp.asarray(order)[:, :, None, None], axis=1)
-        u_all, dev_all = _optimise_fidelity(predictor, jnp.arcsin(2.0 * u0 - 1.0), n_arr, f, grid, space,
-                                            int(n_steps))
+        u_all, dev_all = _optimise_fidelity(predictor, jnp.arcsin(2.0 * u0 - 1.0), n_arr, f, grid, space, int(n_steps))
         u_all, dev_all = np.asarray(u_all), np.asarray(dev_all)  # [A, top, q, 6], [A, top, q, M]
         wall = time.perf_counter() - ta
         for i, n in enumerate(n_rings):
@@ -344,10 +374,20 @@ def propose(predictor: Predictor, q: int, fidelities: Sequence[str] = ("rig",),
             util = dev.max(axis=1).sum(axis=1)  # [top]
             util = np.where(np.isfinite(util), util, -np.inf)
             r = int(np.argmax(util))
-            arms.append({"n_rings": n, "fidelity": f, "best_utility_n": float(util[r]),
-                         "best_score": float(util[r] / (q * costs[f])), "wall_s": wall / len(n_rings),
-                         "screened": n_restarts, "refined": top,
-                         "u": u[r], "dev": dev[r], "restart_utility": util})
+            arms.append(
+                {
+                    "n_rings": n,
+                    "fidelity": f,
+                    "best_utility_n": float(util[r]),
+                    "best_score": float(util[r] / (q * costs[f])),
+                    "wall_s": wall / len(n_rings),
+                    "screened": n_restarts,
+                    "refined": top,
+                    "u": u[r],
+                    "dev": dev[r],
+                    "restart_utility": util,
+                }
+            )
             pool_u += [(n, x) for x in u.reshape(-1, u.shape[-1])]
             pool_dev.append(dev.reshape(-1, dev.shape[-1]))
             pool_cost.append(np.full(top * q, costs[f]))
@@ -371,5 +411,6 @@ def propose(predictor: Predictor, q: int, fidelities: Sequence[str] = ("rig",),
     utility = float(dev.max(axis=0).sum())
     cost = float(sum(costs[f] for f in fids))
     scores = tuple(float(dev[j].sum() / costs[fids[j]]) for j in range(q))
-    return Proposal(designs, tuple(fids), scores, utility, cost, utility / cost, dev,
-                    tuple(arms), time.perf_counter() - t0)
+    return Proposal(
+        designs, tuple(fids), scores, utility, cost, utility / cost, dev, tuple(arms), time.perf_counter() - t0
+    )

@@ -93,9 +93,7 @@ class Membrane(eqx.Module):
     def _validate(self) -> None:
         c, out = self.contact_radius_mm, self.outer_radius_mm
         if c >= out:
-            raise DesignError(
-                f"contact radius {c} mm must be smaller than the outer radius {out} mm"
-            )
+            raise DesignError(f"contact radius {c} mm must be smaller than the outer radius {out} mm")
         edges = [("the contact disk", c)]
         for k, ring in enumerate(self.rings, start=1):
             lo_name, lo = edges[-1]
@@ -133,9 +131,7 @@ class Membrane(eqx.Module):
         """Inverse of :meth:`to_array`; NaN pairs mean "no ring"."""
         values = list(values)
         if len(values) != 2 + 2 * MAX_RINGS:
-            raise DesignError(
-                f"a design has {2 + 2 * MAX_RINGS} numbers [t, c, r1, w1, r2, w2], got {len(values)}"
-            )
+            raise DesignError(f"a design has {2 + 2 * MAX_RINGS} numbers [t, c, r1, w1, r2, w2], got {len(values)}")
         try:
             values = [float(v) for v in values]
         except (TypeError, ValueError):
@@ -163,9 +159,7 @@ class Membrane(eqx.Module):
             raise DesignError(f"a design key is a string, got {type(key).__name__}")
         text = key.strip()
         if not (text.startswith("[") and text.endswith("]")):
-            raise DesignError(
-                f"a design key looks like \"[2.0, 25.4, nan, nan, nan, nan]\", got {key!r}"
-            )
+            raise DesignError(f'a design key looks like "[2.0, 25.4, nan, nan, nan, nan]", got {key!r}')
         parts = [p.strip() for p in text[1:-1].split(",")]
         try:
             values = [float(p) for p in parts]
@@ -297,8 +291,10 @@ class DesignSpace(eqx.Module):
     def describe(self) -> str:
         """The bounds in words (for error messages)."""
         (t0, t1), (c0, c1), (w0, w1) = self.thickness_mm, self.contact_radius_mm, self.half_width_mm
-        return (f"thickness {t0:g}-{t1:g} mm, contact radius {c0:g}-{c1:g} mm, ring half-width {w0:g}-{w1:g} mm, "
-                f"0-{MAX_RINGS} rings with gaps >= {self.gap_mm:g} mm inside {self.outer_radius_mm:g} mm")
+        return (
+            f"thickness {t0:g}-{t1:g} mm, contact radius {c0:g}-{c1:g} mm, ring half-width {w0:g}-{w1:g} mm, "
+            f"0-{MAX_RINGS} rings with gaps >= {self.gap_mm:g} mm inside {self.outer_radius_mm:g} mm"
+        )
 
     def check(self, design: Membrane, what: str = "design") -> Membrane:
         """``design`` if it lies in this space, else :class:`DesignError` naming the
@@ -313,8 +309,9 @@ class DesignSpace(eqx.Module):
         for k, ring in enumerate(design.rings, start=1):
             if not self.half_width_mm[0] - _TOL <= ring.half_width_mm <= self.half_width_mm[1] + _TOL:
                 bad.append(f"ring {k} half-width {ring.half_width_mm:g} mm")
-        raise DesignError(f"{what} {design.key()}: {', '.join(bad)} outside the design space; allowed: "
-                          f"{self.describe()}")
+        raise DesignError(
+            f"{what} {design.key()}: {', '.join(bad)} outside the design space; allowed: {self.describe()}"
+        )
 
     def sample(self, rng: np.random.Generator, n: int, n_rings: int) -> list[Membrane]:
         """``n`` designs drawn uniformly in the unit cube (seeded by ``rng``)."""

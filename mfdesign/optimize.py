@@ -71,11 +71,29 @@ from mfdesign.models.trajectory import P_MAX_PA
 from mfdesign.units import G_M_S2
 
 __all__ = [
-    "MASSES_N", "TARGET_SETS", "Weights", "PAPER_WEIGHTS", "HeightTargets", "Waypoints",
-    "Predictor", "EnsembleMembers", "as_predictor", "smooth_min", "first_crossing",
-    "lift_heights", "model_pressures", "HeightLoss", "height_loss", "TrajectoryLoss",
-    "trajectory_loss", "multistart",
-    "Result", "optimize", "lift_curves", "pressure_curves", "check_with_simulator",
+    "MASSES_N",
+    "TARGET_SETS",
+    "Weights",
+    "PAPER_WEIGHTS",
+    "HeightTargets",
+    "Waypoints",
+    "Predictor",
+    "EnsembleMembers",
+    "as_predictor",
+    "smooth_min",
+    "first_crossing",
+    "lift_heights",
+    "model_pressures",
+    "HeightLoss",
+    "height_loss",
+    "TrajectoryLoss",
+    "trajectory_loss",
+    "multistart",
+    "Result",
+    "optimize",
+    "lift_curves",
+    "pressure_curves",
+    "check_with_simulator",
 ]
 
 MASSES_N = (1.5 * G_M_S2, 2.5 * G_M_S2, 4.0 * G_M_S2)  # the paper's three masses: 14.715, 24.525, 39.24 N
@@ -104,8 +122,13 @@ class Weights:
             v = getattr(self, f.name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"Weights.{f.name} must be a finite number >= 0, got {v!r}")
-        for name in ("force_scale_n", "trajectory_force_scale_n", "height_scale_mm",
-                     "pressure_scale_pa", "temperature_mm"):
+        for name in (
+            "force_scale_n",
+            "trajectory_force_scale_n",
+            "height_scale_mm",
+            "pressure_scale_pa",
+            "temperature_mm",
+        ):
             if getattr(self, name) <= 0:
                 raise ValueError(f"Weights.{name} must be > 0, got {getattr(self, name)!r}")
 
@@ -248,7 +271,8 @@ def lift_heights(predictor, design, force_n, p_pa, h_grid, members: bool = False
     """
     predictor, h_grid = as_predictor(predictor), jnp.asarray(h_grid)
     f = jax.vmap(jax.vmap(lambda h, p: _members_at(predictor, design, h, p), (0, None)), (None, 0))(
-        h_grid, jnp.asarray(p_pa))  # [K, G, M]
+        h_grid, jnp.asarray(p_pa)
+    )  # [K, G, M]
     f = jnp.moveaxis(f, -1, 0)  # [M, K, G]
     if not members:
         f = f.mean(0)
@@ -262,7 +286,8 @@ def model_pressures(predictor, design, force_n, h_mm, p_grid, members: bool = Fa
     p_grid[-1])``; per member with ``members=True``."""
     predictor, p_grid = as_predictor(predictor), jnp.asarray(p_grid)
     f = jax.vmap(jax.vmap(lambda h, p: _members_at(predictor, design, h, p), (None, 0)), (0, None))(
-        jnp.asarray(h_mm), p_grid)  # [K, G, M]
+        jnp.asarray(h_mm), p_grid
+    )  # [K, G, M]
     f = jnp.moveaxis(f, -1, 0)
     if not members:
         f = f.mean(0)
@@ -284,7 +309,9 @@ def _invert(force_of, x, level, decreasing: bool):
     of G). Returns ``(x*, force at the lower bracket)``: the force at ``x[0]`` when the
     level is already crossed there, at ``x[-1]`` when it is never reached.
     """
-    fg = jax.lax.stop_gradient(jax.vmap(force_of, out_axes=-1)(jnp.broadcast_to(x[:, None], (x.shape[0],) + level.shape)))
+    fg = jax.lax.stop_gradient(
+        jax.vmap(force_of, out_axes=-1)(jnp.broadcast_to(x[:, None], (x.shape[0],) + level.shape))
+    )
     sign = -1.0 if decreasing else 1.0
     above = sign * fg >= sign * level[:, None]
     reached = above.any(-1)
@@ -312,8 +339,11 @@ def _decode(space: DesignSpace, u, n_rings):
         raise ValueError(f"a design point has 2, 4 or 6 unit-cube coordinates, got {u.shape[-1]}")
     n = (u.shape[-1] - 2) // 2
     # n_rings is traced (not static), so the mismatch can only be caught at run time.
-    return eqx.error_if(space.decode_unit(u, n), jnp.asarray(n_rings) != n,
-                        f"this loss is for another ring count than {n} ({u.shape[-1]} cube coordinates)")
+    return eqx.error_if(
+        space.decode_unit(u, n),
+        jnp.asarray(n_rings) != n,
+        f"this loss is for another ring count than {n} ({u.shape[-1]} cube coordinates)",
+    )
 
 
 class HeightLoss(eqx.Module):
@@ -332,22 +362,30 @@ class HeightLoss(eqx.Module):
     def __call__(self, u):
         w = self.weights
         design = _decode(self.space, u, self.n_rings)
-        h, f0 = _invert(lambda hh: _mean_force(self.predictor, design, hh, self.p_pa), self.h_grid,
-                        self.force_n, decreasing=True)
+        h, f0 = _invert(
+            lambda hh: _mean_force(self.predictor, design, hh, self.p_pa), self.h_grid, self.force_n, decreasing=True
+        )
         f0 = jnp.where(h <= self.h_grid[0], f0, jnp.inf)  # the deficit counts only where not lifted
         score = smooth_min(h, w.temperature_mm)
         penalty = w.k_force * jnp.mean((jnp.maximum(self.force_n - f0, 0.0) / w.force_scale_n) ** 2)
-        return -w.k_height * score / w.height_scale_mm + penalty, dict(heights_mm=h, score_mm=score,
-                                                                        penalty=penalty)
+        return -w.k_height * score / w.height_scale_mm + penalty, dict(heights_mm=h, score_mm=score, penalty=penalty)
 
 
-def height_loss(predictor, targets: HeightTargets, space: DesignSpace, n_rings: int,
-                weights: Weights = PAPER_WEIGHTS, h_grid=None) -> HeightLoss:
+def height_loss(
+    predictor, targets: HeightTargets, space: DesignSpace, n_rings: int, weights: Weights = PAPER_WEIGHTS, h_grid=None
+) -> HeightLoss:
     """The height-maximisation loss; ``h_grid`` default 0-80 mm in 5 mm steps."""
     h_grid = jnp.linspace(0.0, 80.0, 17) if h_grid is None else jnp.asarray(h_grid, float)
     space.dim(n_rings)
-    return HeightLoss(as_predictor(predictor), jnp.asarray(targets.force_n), jnp.asarray(targets.p_pa),
-                      h_grid, jnp.asarray(int(n_rings)), space, weights)
+    return HeightLoss(
+        as_predictor(predictor),
+        jnp.asarray(targets.force_n),
+        jnp.asarray(targets.p_pa),
+        h_grid,
+        jnp.asarray(int(n_rings)),
+        space,
+        weights,
+    )
 
 
 class TrajectoryLoss(eqx.Module):
@@ -367,22 +405,31 @@ class TrajectoryLoss(eqx.Module):
     def __call__(self, u):
         w = self.weights
         design = _decode(self.space, u, self.n_rings)
-        p_hat, f_lo = _invert(lambda pp: _mean_force(self.predictor, design, self.h_mm, pp), self.p_grid,
-                              self.force_n, decreasing=False)
+        p_hat, f_lo = _invert(
+            lambda pp: _mean_force(self.predictor, design, self.h_mm, pp), self.p_grid, self.force_n, decreasing=False
+        )
         f_hi = jnp.where(p_hat >= self.p_grid[-1], f_lo, jnp.inf)  # the deficit counts only where unreached
         e2 = jnp.sum(self.weight * ((p_hat - self.p_pa) / w.pressure_scale_pa) ** 2)
         penalty = w.k_force * jnp.mean((jnp.maximum(self.force_n - f_hi, 0.0) / w.trajectory_force_scale_n) ** 2)
         return w.k_pressure * e2 + penalty, dict(pressures_pa=p_hat, traj_rmse=jnp.sqrt(e2), penalty=penalty)
 
 
-def trajectory_loss(predictor, waypoints: Waypoints, space: DesignSpace, n_rings: int,
-                    weights: Weights = PAPER_WEIGHTS, p_grid=None) -> TrajectoryLoss:
+def trajectory_loss(
+    predictor, waypoints: Waypoints, space: DesignSpace, n_rings: int, weights: Weights = PAPER_WEIGHTS, p_grid=None
+) -> TrajectoryLoss:
     """The trajectory-targeting loss; ``p_grid`` default 0-20 kPa in 250 Pa steps."""
     p_grid = jnp.linspace(0.0, 2.0 * P_MAX_PA, 81) if p_grid is None else jnp.asarray(p_grid, float)
     space.dim(n_rings)
     wt = np.asarray(waypoints.weight) / sum(waypoints.weight)
-    return TrajectoryLoss(as_predictor(predictor), *(jnp.asarray(getattr(waypoints, k)) for k in ("force_n", "p_pa", "h_mm")),
-                          jnp.asarray(wt), p_grid, jnp.asarray(int(n_rings)), space, weights)
+    return TrajectoryLoss(
+        as_predictor(predictor),
+        *(jnp.asarray(getattr(waypoints, k)) for k in ("force_n", "p_pa", "h_mm")),
+        jnp.asarray(wt),
+        p_grid,
+        jnp.asarray(int(n_rings)),
+        space,
+        weights,
+    )
 
 
 # --------------------------------------------------------------------------- multi-start
@@ -416,15 +463,28 @@ def _refine(loss, u0, steps: int, lr: float, batch_size: int):
     return jax.lax.map(one, u0, batch_size=batch_size)
 
 
-def multistart(loss: Callable, dim: int, n_starts: int = 2500, steps: int = 100, lr: float = 0.03,
-               n_refine: int | None = None, seed: int = 0, batch_size: int = 250) -> dict:
+def multistart(
+    loss: Callable,
+    dim: int,
+    n_starts: int = 2500,
+    steps: int = 100,
+    lr: float = 0.03,
+    n_refine: int | None = None,
+    seed: int = 0,
+    batch_size: int = 250,
+) -> dict:
     """Minimise ``loss(u)[0]`` over ``[0, 1]^dim`` from ``n_starts`` random starts.
 
     All starts are scored; the best ``n_refine`` (all if None) run ``steps`` projected Adam
     steps. Returns u (best), loss, per-refined-start final losses and wall times (s; the
     first call of a shape includes compilation).
     """
-    for name, v, low in (("n_starts", n_starts, 1), ("steps", steps, 0), ("batch_size", batch_size, 1), ("dim", dim, 1)):
+    for name, v, low in (
+        ("n_starts", n_starts, 1),
+        ("steps", steps, 0),
+        ("batch_size", batch_size, 1),
+        ("dim", dim, 1),
+    ):
         if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
     n_refine = n_starts if n_refine is None else int(n_refine)
@@ -478,8 +538,12 @@ def lift_curves(predictor, design, forces, p_grid, h_grid) -> dict:
     out = {}
     for F in forces:
         h = np.asarray(fn(F, jnp.asarray(p_grid)))  # [M, P]
-        out[f"{F:.3f}"] = dict(p_pa=np.asarray(p_grid).tolist(), h_mean_mm=h.mean(0).tolist(),
-                               h_lo_mm=np.percentile(h, 5, 0).tolist(), h_hi_mm=np.percentile(h, 95, 0).tolist())
+        out[f"{F:.3f}"] = dict(
+            p_pa=np.asarray(p_grid).tolist(),
+            h_mean_mm=h.mean(0).tolist(),
+            h_lo_mm=np.percentile(h, 5, 0).tolist(),
+            h_hi_mm=np.percentile(h, 95, 0).tolist(),
+        )
     return out
 
 
@@ -490,13 +554,18 @@ def pressure_curves(predictor, design, forces, h_grid, p_grid) -> dict:
     out = {}
     for F in forces:
         p = np.asarray(fn(F, jnp.asarray(h_grid)))
-        out[f"{F:.3f}"] = dict(h_mm=np.asarray(h_grid).tolist(), p_mean_pa=p.mean(0).tolist(),
-                               p_lo_pa=np.percentile(p, 5, 0).tolist(), p_hi_pa=np.percentile(p, 95, 0).tolist())
+        out[f"{F:.3f}"] = dict(
+            h_mm=np.asarray(h_grid).tolist(),
+            p_mean_pa=p.mean(0).tolist(),
+            p_lo_pa=np.percentile(p, 5, 0).tolist(),
+            p_hi_pa=np.percentile(p, 95, 0).tolist(),
+        )
     return out
 
 
-def check_with_simulator(design: Membrane, force_n, p_pa, predicted_h_mm, params=None,
-                         h_max_mm: float = 80.0, n_heights: int = 17) -> dict:
+def check_with_simulator(
+    design: Membrane, force_n, p_pa, predicted_h_mm, params=None, h_max_mm: float = 80.0, n_heights: int = 17
+) -> dict:
     """Simulated lift heights (``mfdesign.physics.solve.height_at``) at the targets vs the
     model's; ``params``: calibrated :class:`SimParams` or the paper's defaults."""
     from mfdesign.physics.params import SimParams
@@ -505,17 +574,22 @@ def check_with_simulator(design: Membrane, force_n, p_pa, predicted_h_mm, params
 
     params = SimParams() if params is None else params
     t0 = time.perf_counter()
-    h, status = height_at(design, np.asarray(force_n, float), np.asarray(p_pa, float), params,
-                          h_max_mm=h_max_mm, n_heights=n_heights)
+    h, status = height_at(
+        design, np.asarray(force_n, float), np.asarray(p_pa, float), params, h_max_mm=h_max_mm, n_heights=n_heights
+    )
     h = np.asarray(h, float)
     diff = h - np.asarray(predicted_h_mm, float)
-    return dict(force_n=list(map(float, force_n)), p_pa=list(map(float, p_pa)),
-                h_sim_mm=[None if not np.isfinite(v) else float(v) for v in h],
-                status=[Status(int(s)).name for s in np.asarray(status)],
-                h_model_mm=list(map(float, predicted_h_mm)),
-                diff_mm=[None if not np.isfinite(v) else float(v) for v in diff],
-                mae_mm=float(np.nanmean(np.abs(diff))) if np.isfinite(diff).any() else None,
-                params=_param_dict(params), seconds=time.perf_counter() - t0)
+    return dict(
+        force_n=list(map(float, force_n)),
+        p_pa=list(map(float, p_pa)),
+        h_sim_mm=[None if not np.isfinite(v) else float(v) for v in h],
+        status=[Status(int(s)).name for s in np.asarray(status)],
+        h_model_mm=list(map(float, predicted_h_mm)),
+        diff_mm=[None if not np.isfinite(v) else float(v) for v in diff],
+        mae_mm=float(np.nanmean(np.abs(diff))) if np.isfinite(diff).any() else None,
+        params=_param_dict(params),
+        seconds=time.perf_counter() - t0,
+    )
 
 
 def _param_dict(params) -> dict:
@@ -528,10 +602,22 @@ def _param_dict(params) -> dict:
     return out
 
 
-def optimize(model, problem: HeightTargets | Waypoints, rings: Sequence[int] = (0, 1, 2),
-             space: DesignSpace = DesignSpace(), weights: Weights = PAPER_WEIGHTS, n_starts: int = 2500,
-             steps: int = 100, lr: float = 0.03, n_refine: int | None = None, seed: int = 0,
-             batch_size: int = 250, check: bool = False, sim_params=None, progress: bool = True) -> Result:
+def optimize(
+    model,
+    problem: HeightTargets | Waypoints,
+    rings: Sequence[int] = (0, 1, 2),
+    space: DesignSpace = DesignSpace(),
+    weights: Weights = PAPER_WEIGHTS,
+    n_starts: int = 2500,
+    steps: int = 100,
+    lr: float = 0.03,
+    n_refine: int | None = None,
+    seed: int = 0,
+    batch_size: int = 250,
+    check: bool = False,
+    sim_params=None,
+    progress: bool = True,
+) -> Result:
     """Optimise a design for ``problem`` with ``model`` (a :class:`Predictor` or an ensemble).
 
     One :func:`multistart` per ring count in ``rings``; the lowest loss wins. The winner's
@@ -553,9 +639,14 @@ def optimize(model, problem: HeightTargets | Waypoints, rings: Sequence[int] = (
         loss = make(predictor, problem, space, r, weights)
         res = multistart(loss, 6, n_starts, steps, lr, n_refine, seed, batch_size)  # padded cube
         design = Membrane.from_array(np.asarray(space.decode_any(jnp.asarray(res["u"]), r)))
-        per[str(r)] = dict(loss=res["loss"], design_key=design.key(), u=space.cube_of(res["u"], r).tolist(),
-                           screen_s=res["screen_s"], refine_s=res["refine_s"],
-                           n_finite=int(np.isfinite(res["losses"]).sum()))
+        per[str(r)] = dict(
+            loss=res["loss"],
+            design_key=design.key(),
+            u=space.cube_of(res["u"], r).tolist(),
+            screen_s=res["screen_s"],
+            refine_s=res["refine_s"],
+            n_finite=int(np.isfinite(res["losses"]).sum()),
+        )
         if best is None or res["loss"] < best[0]:
             best = (res["loss"], r, design, res["u"])
     loss_val, r, design, u = best
@@ -568,26 +659,43 @@ def optimize(model, problem: HeightTargets | Waypoints, rings: Sequence[int] = (
         hg = jnp.linspace(0.0, 80.0, 17)
         hm, _ = lift_heights(predictor, d, jnp.asarray(F), jnp.asarray(p), hg, members=True)
         hm = np.asarray(hm)
-        pred.update(h_mean_force_mm=np.asarray(aux["heights_mm"]).tolist(), score_mm=float(aux["score_mm"]),
-                    min_h_mm=float(np.min(aux["heights_mm"])), h_member_mean_mm=hm.mean(0).tolist(),
-                    h_member_std_mm=hm.std(0).tolist(), penalty=float(aux["penalty"]))
+        pred.update(
+            h_mean_force_mm=np.asarray(aux["heights_mm"]).tolist(),
+            score_mm=float(aux["score_mm"]),
+            min_h_mm=float(np.min(aux["heights_mm"])),
+            h_member_mean_mm=hm.mean(0).tolist(),
+            h_member_std_mm=hm.std(0).tolist(),
+            penalty=float(aux["penalty"]),
+        )
         curves = lift_curves(predictor, d, sorted(set(F.tolist())), np.linspace(0, 1.2e4, 49), hg)
     else:
         pg = jnp.linspace(0.0, 2.0 * P_MAX_PA, 81)
         pm, _ = model_pressures(predictor, d, jnp.asarray(F), jnp.asarray(problem.h_mm), pg, members=True)
         pm = np.asarray(pm)
-        pred.update(h_mm=list(problem.h_mm), p_model_pa=np.asarray(aux["pressures_pa"]).tolist(),
-                    p_member_std_pa=pm.std(0).tolist(), traj_rmse=float(aux["traj_rmse"]),
-                    penalty=float(aux["penalty"]))
+        pred.update(
+            h_mm=list(problem.h_mm),
+            p_model_pa=np.asarray(aux["pressures_pa"]).tolist(),
+            p_member_std_pa=pm.std(0).tolist(),
+            traj_rmse=float(aux["traj_rmse"]),
+            penalty=float(aux["penalty"]),
+        )
         curves = pressure_curves(predictor, d, sorted(set(F.tolist())), np.linspace(0, 60, 31), pg)
     sim = None
     if check:
         model_h = pred["h_mean_force_mm"] if height else list(problem.h_mm)
         sim = check_with_simulator(design, F, p, model_h, sim_params)
-    settings = dict(n_starts=n_starts, steps=steps, lr=lr, n_refine=n_refine, seed=seed,
-                    weights=dataclasses.asdict(weights), rings=list(rings))
-    return Result("height" if height else "trajectory", design.key(), r, float(loss_val), per, pred,
-                  curves, sim, settings)
+    settings = dict(
+        n_starts=n_starts,
+        steps=steps,
+        lr=lr,
+        n_refine=n_refine,
+        seed=seed,
+        weights=dataclasses.asdict(weights),
+        rings=list(rings),
+    )
+    return Result(
+        "height" if height else "trajectory", design.key(), r, float(loss_val), per, pred, curves, sim, settings
+    )
 
 
 def plot(result: Result, path, title: str = "") -> None:

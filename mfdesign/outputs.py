@@ -23,8 +23,17 @@ from typing import Any, Iterator
 
 from mfdesign.errors import InputError
 
-__all__ = ["LOCK_NAME", "OutputLock", "atomic_path", "prepare_out_dir", "prepare_out_file", "savefig",
-           "write_bytes", "write_json", "write_text"]
+__all__ = [
+    "LOCK_NAME",
+    "OutputLock",
+    "atomic_path",
+    "prepare_out_dir",
+    "prepare_out_file",
+    "savefig",
+    "write_bytes",
+    "write_json",
+    "write_text",
+]
 
 LOCK_NAME = ".mfdesign.lock"
 
@@ -38,7 +47,9 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     removed and ``path`` is untouched.
     """
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix if suffix is None else suffix)
+    fd, tmp = tempfile.mkstemp(
+        dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix if suffix is None else suffix
+    )
     os.close(fd)
     try:
         yield Path(tmp)
@@ -85,8 +96,9 @@ def prepare_out_dir(out: str | os.PathLike, option: str = "--out") -> Path:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise InputError(f"{option} {out}: cannot create the folder ({err.strerror or err}); "
-                         "allowed: a folder you can write") from None
+        raise InputError(
+            f"{option} {out}: cannot create the folder ({err.strerror or err}); allowed: a folder you can write"
+        ) from None
     if not os.access(out, os.W_OK | os.X_OK):
         raise InputError(f"{option} {out} is not writable; allowed: a folder you can write")
     return out
@@ -114,16 +126,20 @@ class OutputLock:
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as err:
-            raise InputError(f"{self.option} {self.out}: cannot create the lock file {LOCK_NAME} "
-                             f"({err.strerror or err}); allowed: a folder you can write") from None
+            raise InputError(
+                f"{self.option} {self.out}: cannot create the lock file {LOCK_NAME} "
+                f"({err.strerror or err}); allowed: a folder you can write"
+            ) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
             os.close(fd)
-            raise InputError(f"{self.option} {self.out} is in use by another mfdesign run (pid {holder}); "
-                             "allowed: one run per output folder at a time (wait for it, or choose another "
-                             f"{self.option})") from None
+            raise InputError(
+                f"{self.option} {self.out} is in use by another mfdesign run (pid {holder}); "
+                "allowed: one run per output folder at a time (wait for it, or choose another "
+                f"{self.option})"
+            ) from None
         os.ftruncate(fd, 0)
         os.write(fd, str(os.getpid()).encode())
         self._fd = fd

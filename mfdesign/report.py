@@ -67,12 +67,16 @@ class Section:
         if self.table:
             cols = list(self.table[0])
             parts.append("<table><tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in cols) + "</tr>")
-            parts += ["<tr>" + "".join(f"<td>{_cell(row.get(c, ''))}</td>" for c in cols) + "</tr>" for row in self.table]
+            parts += [
+                "<tr>" + "".join(f"<td>{_cell(row.get(c, ''))}</td>" for c in cols) + "</tr>" for row in self.table
+            ]
             parts.append("</table>")
         for path, caption in self.images:
             rel = os.path.relpath(path, root)
-            parts.append(f'<figure><img src="{html.escape(rel)}" alt="{html.escape(caption)}">'
-                         f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+            parts.append(
+                f'<figure><img src="{html.escape(rel)}" alt="{html.escape(caption)}">'
+                f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+            )
         return "\n".join(parts)
 
 
@@ -85,8 +89,14 @@ class Report:
     sections: list[Section] = field(default_factory=list)
     meta: dict = field(default_factory=dict)
 
-    def add(self, title: str, paragraphs: Sequence[str] = (), table: list[dict] | None = None,
-            images: Sequence[tuple[str | Path, str]] = (), data: dict | None = None) -> Section:
+    def add(
+        self,
+        title: str,
+        paragraphs: Sequence[str] = (),
+        table: list[dict] | None = None,
+        images: Sequence[tuple[str | Path, str]] = (),
+        data: dict | None = None,
+    ) -> Section:
         missing = [str(p) for p, _ in images if not Path(p).is_file()]
         if missing:
             raise FileNotFoundError(f"report section {title!r}: picture(s) not found: {', '.join(missing)}")
@@ -103,14 +113,28 @@ class Report:
         if self.summary:
             body.append('<div class="note">' + "".join(f"<p>{html.escape(s)}</p>" for s in self.summary) + "</div>")
         body += [s.html(out) for s in self.sections]
-        page = (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(self.title)}</title>"
-                f"<style>{_STYLE}</style>{_CHECK_IMAGES}</head><body>" + "\n".join(body) + "</body></html>")
+        page = (
+            f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(self.title)}</title>"
+            f"<style>{_STYLE}</style>{_CHECK_IMAGES}</head><body>" + "\n".join(body) + "</body></html>"
+        )
         html_path = out / "index.html"
         outputs.write_text(html_path, page)
-        data = {"title": self.title, "written": stamp, "summary": self.summary, "meta": self.meta,
-                "sections": [{"title": s.title, "paragraphs": s.paragraphs, "table": s.table,
-                              "images": [os.path.relpath(p, out) for p, _ in s.images], "data": s.data}
-                             for s in self.sections]}
+        data = {
+            "title": self.title,
+            "written": stamp,
+            "summary": self.summary,
+            "meta": self.meta,
+            "sections": [
+                {
+                    "title": s.title,
+                    "paragraphs": s.paragraphs,
+                    "table": s.table,
+                    "images": [os.path.relpath(p, out) for p, _ in s.images],
+                    "data": s.data,
+                }
+                for s in self.sections
+            ],
+        }
         json_path = out / "report.json"
         outputs.write_text(json_path, json.dumps(data, indent=2, default=_json_default))
         return {"html": html_path, "json": json_path}

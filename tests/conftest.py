@@ -17,4 +17,3 @@ def ctrl_c():
         yield
     finally:
         signal.signal(signal.SIGINT, old)
-

@@ -86,8 +86,7 @@ def hencky_profile(nu: float, rho=None):
     b = -1.0 / (64.0 * n0 * n0)
     y0 = [n0 * _RHO0 + b * _RHO0**3, n0 + 3 * b * _RHO0**2, _RHO0**3 / (6.0 * n0)]
     rho = np.linspace(_RHO0, 1.0, 201) if rho is None else np.asarray(rho)
-    sol = solve_ivp(_rhs, (_RHO0, 1.0), y0, method="DOP853", rtol=1e-12, atol=1e-14,
-                    dense_output=True)
+    sol = solve_ivp(_rhs, (_RHO0, 1.0), y0, method="DOP853", rtol=1e-12, atol=1e-14, dense_output=True)
     k_end = sol.y[2, -1]
     return rho, k_end - sol.sol(np.clip(rho, _RHO0, 1.0))[2]
 
@@ -95,5 +94,7 @@ def hencky_profile(nu: float, rho=None):
 if __name__ == "__main__":
     for nu in (0.3, 0.5):
         sol = hencky(nu)
-        print(f"nu={nu}: w0 = {sol.deflection_coefficient:.5f} a (qa/Eh)^1/3, "
-              f"sigma0 = {sol.stress_coefficient:.5f} (E q^2 a^2/h^2)^1/3")
+        print(
+            f"nu={nu}: w0 = {sol.deflection_coefficient:.5f} a (qa/Eh)^1/3, "
+            f"sigma0 = {sol.stress_coefficient:.5f} (E q^2 a^2/h^2)^1/3"
+        )

@@ -11,8 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 import mfdesign  # noqa: F401  (float64)
-from mfdesign.acquire import (EnsemblePredictor, FunctionPredictor, Grid, SplitPredictor, evaluate,
-                              propose)
+from mfdesign.acquire import EnsemblePredictor, FunctionPredictor, Grid, SplitPredictor, evaluate, propose
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.ensemble import EnsembleConfig, Normaliser, fit_ensemble, init_ensemble
 
@@ -110,7 +109,7 @@ def test_ensemble_grid_members_match_predict():
     got = np.asarray(EnsemblePredictor(ens).grid_members("rig", jnp.asarray(d), GRID))  # [M, 2, G]
     h, p = GRID.points()
     for b in range(2):
-        want = np.asarray(ens.predict(np.repeat(d[b:b + 1], len(h), 0), h, p))
+        want = np.asarray(ens.predict(np.repeat(d[b : b + 1], len(h), 0), h, p))
         np.testing.assert_allclose(got[:, b], want, rtol=1e-6, atol=1e-9)
 
 
@@ -127,8 +126,9 @@ def test_far_design_scores_higher_than_a_design_on_the_data():
         rows.append(np.repeat(m.to_array()[None], 150, 0))
         hs.append(h), ps.append(p), fs.append(f)
     cfg = EnsembleConfig(n_members=6, steps=300, chunk=300, latent_width=16, latent_depth=2, monotone=True)
-    ens = fit_ensemble(cfg, np.concatenate(rows), np.concatenate(hs), np.concatenate(ps), np.concatenate(fs),
-                       key=0, progress=False)
+    ens = fit_ensemble(
+        cfg, np.concatenate(rows), np.concatenate(hs), np.concatenate(ps), np.concatenate(fs), key=0, progress=False
+    )
     pred = EnsemblePredictor(ens)
     grid = Grid(h_mm=(0.0, 20.0, 40.0), p_pa=(2000.0, 5000.0, 8000.0))
     on = evaluate(pred, [train[0]], ["rig"], grid)["utility"]
@@ -243,8 +243,24 @@ def test_cli_writes_json_and_png(tmp_path):
     from mfdesign.cli import app
 
     tiny_ensemble().save(tmp_path / "m")
-    r = runner.invoke(app, ["propose", "--model", str(tmp_path / "m"), "--q", "2", "--rings", "1",
-                            "--restarts", "4", "--opt-steps", "2", "--out", str(tmp_path / "o")])
+    r = runner.invoke(
+        app,
+        [
+            "propose",
+            "--model",
+            str(tmp_path / "m"),
+            "--q",
+            "2",
+            "--rings",
+            "1",
+            "--restarts",
+            "4",
+            "--opt-steps",
+            "2",
+            "--out",
+            str(tmp_path / "o"),
+        ],
+    )
     assert r.exit_code == 0, _text(r)
     out = json.loads((tmp_path / "o" / "proposal.json").read_text())
     assert len(out["designs"]) == 2 and out["fidelities"] == ["rig", "rig"]
@@ -265,8 +281,7 @@ def test_screening_scores_random_batches_exactly_and_refines_the_best():
     for a, n in enumerate((0, 2)):
         for r in (0, 17, 39):
             rows = np.asarray(SPACE.decode_any(u0[a, r], n))
-            np.testing.assert_allclose(dev[a, r], evaluate(PRED, rows, ["rig", "rig"], GRID)["deviation"],
-                                       rtol=1e-10)
+            np.testing.assert_allclose(dev[a, r], evaluate(PRED, rows, ["rig", "rig"], GRID)["deviation"], rtol=1e-10)
     kw = dict(n_rings=(2,), grid=GRID, costs=COSTS, key=3, n_restarts=200)
     util = [propose(PRED, 2, n_refine=r, n_steps=0, **kw).arms[0]["best_utility_n"] for r in (200, 4, 1)]
     assert util[0] == pytest.approx(util[1]) == pytest.approx(util[2])  # the screen keeps the best start

@@ -63,10 +63,13 @@ def test_netcdf_roundtrip_gives_constrained_values_and_groups(fitted, tmp_path):
     ll = idata.log_likelihood["force_n"]
     n_rows = int((np.asarray(data.weight) > 0).sum())
     assert ll.dims == ("chain", "draw", "row") and ll.shape[2] == n_rows
-    x0 = np.array([float(idata.posterior[n][0, 0]) for n in model.names if not n.startswith("thickness[")]
-                  + list(idata.posterior["thickness"][0, 0].values))
-    order = ([n for n in model.names if not n.startswith("thickness[")]
-             + [n for n in model.names if n.startswith("thickness[")])
+    x0 = np.array(
+        [float(idata.posterior[n][0, 0]) for n in model.names if not n.startswith("thickness[")]
+        + list(idata.posterior["thickness"][0, 0].values)
+    )
+    order = [n for n in model.names if not n.startswith("thickness[")] + [
+        n for n in model.names if n.startswith("thickness[")
+    ]
     x0 = x0[[order.index(n) for n in model.names]]
     np.testing.assert_allclose(float(ll[0, 0].sum()), float(model.log_lik(x0, data)), rtol=1e-8)
     assert idata.posterior_predictive["force_n"].shape == ll.shape
@@ -107,8 +110,23 @@ def test_calibrate_command_writes_posterior_nc(tmp_path):
     data = tmp_path / "two.parquet"
     write_parquet(meas.subset(meas.design_keys[:2]), data)
     out = tmp_path / "cal"
-    r = CliRunner().invoke(app, ["calibrate", str(data), "--out", str(out), "--physics", "standin",
-                                 "--mcmc-steps", "40", "--walkers", "16", "--max-rows", "60"])
+    r = CliRunner().invoke(
+        app,
+        [
+            "calibrate",
+            str(data),
+            "--out",
+            str(out),
+            "--physics",
+            "standin",
+            "--mcmc-steps",
+            "40",
+            "--walkers",
+            "16",
+            "--max-rows",
+            "60",
+        ],
+    )
     assert r.exit_code == 0, r.output
     idata = az.from_netcdf(out / "posterior.nc")
     assert GROUPS <= set(idata.groups())

@@ -14,9 +14,13 @@ from mfdesign.models.cv import ForceModel, ForceModelSpec, cross_validate, metri
 from mfdesign.models.trajectory import first_crossing, model_pressure, trajectory_errors
 
 NAN = np.nan
-DESIGNS = [[2.0, 25.4, NAN, NAN, NAN, NAN], [1.5, 38.1, NAN, NAN, NAN, NAN],
-           [2.0, 30.0, 40.0, 5.0, NAN, NAN], [1.5, 28.0, 38.0, 5.0, 55.0, 6.0],
-           [2.5, 26.0, 40.0, 6.0, 56.0, 5.0]]
+DESIGNS = [
+    [2.0, 25.4, NAN, NAN, NAN, NAN],
+    [1.5, 38.1, NAN, NAN, NAN, NAN],
+    [2.0, 30.0, 40.0, 5.0, NAN, NAN],
+    [1.5, 28.0, 38.0, 5.0, 55.0, 6.0],
+    [2.5, 26.0, 40.0, 6.0, 56.0, 5.0],
+]
 
 
 def truth(d, h, p):
@@ -32,9 +36,23 @@ def table(n_per=40, seed=0):
         key = Membrane.from_array(d).key()
         h, p = rng.uniform(0, 50, n_per), rng.uniform(0, 10_000, n_per)
         arr = np.tile(d, (n_per, 1))
-        frames.append(pd.DataFrame(dict(design_key=key, trial=0, experiment="force", phase="inflate",
-                                        time_s=np.arange(n_per, dtype=float), height_set_mm=h, height_mm=h,
-                                        pressure_pa=p, force_n=truth(arr, h, p), weight=1.0, source="virtual")))
+        frames.append(
+            pd.DataFrame(
+                dict(
+                    design_key=key,
+                    trial=0,
+                    experiment="force",
+                    phase="inflate",
+                    time_s=np.arange(n_per, dtype=float),
+                    height_set_mm=h,
+                    height_mm=h,
+                    pressure_pa=p,
+                    force_n=truth(arr, h, p),
+                    weight=1.0,
+                    source="virtual",
+                )
+            )
+        )
     return Measurements(pd.concat(frames, ignore_index=True))
 
 
@@ -104,7 +122,9 @@ def test_cv_splits_by_membrane_and_metrics_are_correct():
         assert fold["median_abs_n"] == pytest.approx(np.median(np.abs(err)))
         assert fold["coverage95_epistemic"] == pytest.approx(np.mean(np.abs(err) <= 1.959963985 * 2.0))
     assert res.overall["n"] == len(data)
-    assert res.overall["rmse_n"] == pytest.approx(np.sqrt(np.mean((res.predictions["force"] - res.predictions["mean"]) ** 2)))
+    assert res.overall["rmse_n"] == pytest.approx(
+        np.sqrt(np.mean((res.predictions["force"] - res.predictions["mean"]) ** 2))
+    )
 
 
 def test_metrics_coverage_with_noise_term():
@@ -134,8 +154,7 @@ def test_first_crossing_and_model_pressure_invert_a_known_model():
 def test_trajectory_error_is_zero_for_an_exact_model():
     key = Membrane.from_array(DESIGNS[0]).key()
     h = np.array([5.0, 40.0, 50.0])
-    wp = pd.DataFrame(dict(design_key=key, trial=0, force_n=14.715, h_mm=h,
-                           p_pa=1000 + 100 * (14.715 - 0.1 * h)))
+    wp = pd.DataFrame(dict(design_key=key, trial=0, force_n=14.715, h_mm=h, p_pa=1000 + 100 * (14.715 - 0.1 * h)))
     table_, summary = trajectory_errors(LinearForce(), wp)
     assert summary[key]["traj_rmse_p"] < 1e-9
     assert summary[key]["traj_rmse_dist"] < 1e-9

@@ -35,12 +35,23 @@ def virtual_data(seed: int = 1, rows: int = 240):
     from mfdesign.physics.params import SimParams
     from mfdesign.rig.virtual import Protocol, VirtualRig
 
-    designs = [Membrane.from_key(k) for k in ("[2.0, 25.4, nan, nan, nan, nan]",
-                                              "[2.0, 31.92, 46.0, 5.0, 59.0, 5.0]",
-                                              "[2.33, 29.63, 37.63, 5.0, 62.0, 5.0]")]
+    designs = [
+        Membrane.from_key(k)
+        for k in (
+            "[2.0, 25.4, nan, nan, nan, nan]",
+            "[2.0, 31.92, 46.0, 5.0, 59.0, 5.0]",
+            "[2.33, 29.63, 37.63, 5.0, 62.0, 5.0]",
+        )
+    ]
     proto = Protocol(sample_hz=0.2, trials_per_height=1, heights_mm=(0.0, 20.0, 40.0, 60.0))
-    rig = VirtualRig(effects=["pressure_sensor"], theta={"pressure_sensor.offset_pa": 150.0}, seed=seed,
-                     protocol=proto, simulator=standin_plane, base_params=SimParams(mu_pa=34e3, jm=45.0))
+    rig = VirtualRig(
+        effects=["pressure_sensor"],
+        theta={"pressure_sensor.offset_pa": 150.0},
+        seed=seed,
+        protocol=proto,
+        simulator=standin_plane,
+        base_params=SimParams(mu_pa=34e3, jm=45.0),
+    )
     table = rig.run(designs, progress=False)
     return table, CalibrationData.from_measurements(table, max_rows=rows - 20, seed=seed).padded(rows)
 
@@ -104,7 +115,9 @@ def test_short_chain_warns(setup):
 
 def test_pool_gives_same_log_posterior(setup):
     _, data, model = setup
-    u = model.to_unconstrained(model.initial_physical()) + 0.01 * np.random.default_rng(0).standard_normal((8, model.dim))
+    u = model.to_unconstrained(model.initial_physical()) + 0.01 * np.random.default_rng(0).standard_normal(
+        (8, model.dim)
+    )
     plain = LogPosterior(model, data)(u)
     with ThreadPool(2) as pool:
         pooled = LogPosterior(model, data, pool=pool)(u)
@@ -139,8 +152,9 @@ calibrate(data, model, n_steps=200, chain_path={path!r}, progress=False, callbac
 
 def test_resume_after_kill(tmp_path):
     path = str(tmp_path / "chain.h5")
-    script = KILL_SCRIPT.format(tests=os.path.dirname(__file__), path=path,
-                                source=textwrap.dedent(inspect.getsource(virtual_data)))
+    script = KILL_SCRIPT.format(
+        tests=os.path.dirname(__file__), path=path, source=textwrap.dedent(inspect.getsource(virtual_data))
+    )
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]

@@ -31,8 +31,14 @@ def _setup(kind: str, deflate: bool):
 
 def _rows(h, p, kind, phase):
     n = len(h)
-    return fx.Rows(jnp.asarray(h), jnp.asarray(p), jnp.full(n, kind == "force"), jnp.asarray(phase == "deflate"),
-                   jnp.zeros(n, bool), jnp.zeros(n, jnp.int32))
+    return fx.Rows(
+        jnp.asarray(h),
+        jnp.asarray(p),
+        jnp.full(n, kind == "force"),
+        jnp.asarray(phase == "deflate"),
+        jnp.zeros(n, bool),
+        jnp.zeros(n, jnp.int32),
+    )
 
 
 @pytest.mark.parametrize("kind", ["force", "lift"])
@@ -53,7 +59,11 @@ def test_expected_force_inverts_observe(name, kind):
     rows = _rows(obs.height_mm, obs.pressure_pa, kind, phase)
     got = np.asarray(e.expected_force(theta, true_force, rows))
     # exact for offsets/gains; first order in the effect for compliance and lift hysteresis
-    tol = 0.02 * np.abs(obs.force_n).max() if name in ("rig_compliance", "hysteresis") else 1e-9 * np.abs(obs.force_n).max()
+    tol = (
+        0.02 * np.abs(obs.force_n).max()
+        if name in ("rig_compliance", "hysteresis")
+        else 1e-9 * np.abs(obs.force_n).max()
+    )
     np.testing.assert_allclose(got, obs.force_n, atol=tol)
     # and the effect does something at its typical value
     neutral = np.asarray(e.expected_force(e.neutral(), true_force, rows))
@@ -82,8 +92,14 @@ def test_every_effect_traceable_with_traced_theta(name):
 
 def test_stress_softening_rows_match_trial_context():
     e = fx.effect("stress_softening")
-    rows = fx.Rows(jnp.zeros(3), jnp.zeros(3), jnp.ones(3, bool), jnp.zeros(3, bool),
-                   jnp.asarray([True, False, True]), jnp.zeros(3, jnp.int32))
+    rows = fx.Rows(
+        jnp.zeros(3),
+        jnp.zeros(3),
+        jnp.ones(3, bool),
+        jnp.zeros(3, bool),
+        jnp.asarray([True, False, True]),
+        jnp.zeros(3, jnp.int32),
+    )
     got = np.asarray(e.row_sim_params(SimParams(), {"stiffening": 0.2}, rows).mu_pa)
     first = e.sim_params(SimParams(), {"stiffening": 0.2}, fx.Context(trial_index=0)).mu_pa
     later = e.sim_params(SimParams(), {"stiffening": 0.2}, fx.Context(trial_index=3)).mu_pa
@@ -104,8 +120,16 @@ def test_measurement_effect_without_likelihood_is_refused():
         fx.apply_expected_force([Bare()], {"bare_test_effect.a": 1.0}, true_force, rows)
 
 
-@pytest.mark.parametrize("prior", [fx.Uniform(-1.0, 2.0), fx.Normal(0.5, 0.3, 0.0, 1.5), fx.Normal(1.0, 2.0),
-                                   fx.LogNormal(0.5, 1.0, 0.01, 1.0), fx.LogNormal(3.0, 0.4)])
+@pytest.mark.parametrize(
+    "prior",
+    [
+        fx.Uniform(-1.0, 2.0),
+        fx.Normal(0.5, 0.3, 0.0, 1.5),
+        fx.Normal(1.0, 2.0),
+        fx.LogNormal(0.5, 1.0, 0.01, 1.0),
+        fx.LogNormal(3.0, 0.4),
+    ],
+)
 def test_jax_logpdf_matches_numpy(prior):
     x = np.linspace(-1.5, 4.0, 57)
     np.testing.assert_allclose(np.asarray(prior.logpdf_jax(jnp.asarray(x))), prior.logpdf(x), rtol=1e-10)

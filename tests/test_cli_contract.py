@@ -51,10 +51,16 @@ def test_a_held_lock_refuses_a_second_run_at_once(tmp_path):
 
 def _holder(out: Path) -> subprocess.Popen:
     """A real second process that holds the lock on ``out`` the way a running command does."""
-    code = ("import sys, time; from mfdesign.outputs import OutputLock; "
-            "lock = OutputLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(60)")
-    proc = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+    code = (
+        "import sys, time; from mfdesign.outputs import OutputLock; "
+        "lock = OutputLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(60)"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(out)],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
     assert proc.stdout.readline().strip() == "locked"
     return proc
 
@@ -65,7 +71,8 @@ def test_two_runs_at_once_and_a_killed_runs_lock(tmp_path):
 
     data = tmp_path / "m.parquet"
     VirtualRig(seed=1, simulator=analytic_plane, protocol=Protocol(sample_hz=0.5)).run(
-        [Membrane.from_key("[2.0, 25.4, nan, nan, nan, nan]")], progress=False).to_parquet(data)
+        [Membrane.from_key("[2.0, 25.4, nan, nan, nan, nan]")], progress=False
+    ).to_parquet(data)
     out = tmp_path / "rep"
     out.mkdir()
     args = ["diagnose", str(data), "--physics", "standin", "--no-search", "--out", str(out)]
@@ -86,9 +93,22 @@ def test_two_runs_at_once_and_a_killed_runs_lock(tmp_path):
 def test_two_real_processes_on_one_out(tmp_path):
     """Both processes run the command; exactly the ones that got the lock write."""
     out = tmp_path / "sim"
-    cmd = [sys.executable, "-m", "mfdesign.cli", "simulate", "--out", str(out), "--n-heights", "2", "--n-pressures", "2"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "mfdesign.cli",
+        "simulate",
+        "--out",
+        str(out),
+        "--n-heights",
+        "2",
+        "--n-pressures",
+        "2",
+    ]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    procs = [subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    procs = [
+        subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)
+    ]
     results = [p.communicate(timeout=300) + (p.returncode,) for p in procs]
     codes = sorted(rc for *_, rc in results)
     assert codes in ([0, 0], [0, 2]), results  # sequential by chance, or one refused at once

@@ -106,7 +106,8 @@ def test_decode_any_reads_the_ring_count_as_data():
     space = DesignSpace()
     u = np.random.default_rng(3).uniform(-0.1, 1.1, size=(30, 6))
     for n in (0, 1, 2):
-        np.testing.assert_array_equal(np.asarray(space.decode_any(u, n)),
-                                      np.asarray(space.decode_unit(space.cube_of(u, n), n)))
+        np.testing.assert_array_equal(
+            np.asarray(space.decode_any(u, n)), np.asarray(space.decode_unit(space.cube_of(u, n), n))
+        )
     rows = jax.vmap(space.decode_any, in_axes=(None, 0))(jnp.asarray(u[0]), jnp.arange(3))
     assert [Membrane.from_array(np.asarray(r)).n_rings for r in rows] == [0, 1, 2]

@@ -22,16 +22,25 @@ from mfdesign.diagnose.pipeline import diagnose
 from mfdesign.physics import effects as fx
 from mfdesign.rig.virtual import Protocol, VirtualRig, analytic_plane
 
-KEYS = ("[2.0, 25.4, nan, nan, nan, nan]", "[1.0, 38.1, nan, nan, nan, nan]",
-        "[1.5, 30.0, 45.0, 6.0, nan, nan]", "[2.0, 38.1, 47.55, 6.45, 62.0, 5.0]")
+KEYS = (
+    "[2.0, 25.4, nan, nan, nan, nan]",
+    "[1.0, 38.1, nan, nan, nan, nan]",
+    "[1.5, 30.0, 45.0, 6.0, nan, nan]",
+    "[2.0, 38.1, 47.55, 6.45, 62.0, 5.0]",
+)
 _CACHE: dict = {}
 
 
 def virtual(hidden=(), seed=3, theta=None):
     key = (tuple(hidden), seed, json.dumps(theta, sort_keys=True))
     if key not in _CACHE:
-        rig = VirtualRig(effects=list(hidden), theta=theta if theta is not None else fx.typical_theta(hidden),
-                         seed=seed, simulator=analytic_plane, protocol=Protocol(deflate=True, sample_hz=1.0))
+        rig = VirtualRig(
+            effects=list(hidden),
+            theta=theta if theta is not None else fx.typical_theta(hidden),
+            seed=seed,
+            simulator=analytic_plane,
+            protocol=Protocol(deflate=True, sample_hz=1.0),
+        )
         _CACHE[key] = rig.run([Membrane.from_key(k) for k in KEYS], progress=False)
     return _CACHE[key]
 
@@ -60,9 +69,13 @@ def _random_emulator_data():
 
     if "emu" not in _SIM:
         emu = init_emulator(EmulatorConfig(n_members=2, width=16, depth=2), np.zeros(14), np.ones(14), default_ranges())
-        rig = VirtualRig(effects=["pressure_sensor"], theta={"pressure_sensor.offset_pa": 150.0}, seed=5,
-                         simulator=emulator_plane(emu), protocol=Protocol(sample_hz=0.5, height_step_mm=2.0,
-                                                                          pressure_step_pa=50.0))
+        rig = VirtualRig(
+            effects=["pressure_sensor"],
+            theta={"pressure_sensor.offset_pa": 150.0},
+            seed=5,
+            simulator=emulator_plane(emu),
+            protocol=Protocol(sample_hz=0.5, height_step_mm=2.0, pressure_step_pa=50.0),
+        )
         _SIM["emu"] = (EmulatorModel(emu), rig.run([Membrane.from_key(k) for k in KEYS[:3]], progress=False))
     return _SIM["emu"]
 
@@ -84,8 +97,9 @@ def test_emulator_backend_screen_ranks_a_hidden_pressure_offset_first():
 def test_emulator_backend_finds_a_hidden_pressure_offset():
     """The whole search on the emulator back end (nonlinear refit: one slow compile)."""
     model, m = _random_emulator_data()
-    d = diagnose(m, model, candidates=["pressure_sensor", "load_cell_offset", "contact_offset"],
-                 check_top=2, max_steps=1)
+    d = diagnose(
+        m, model, candidates=["pressure_sensor", "load_cell_offset", "contact_offset"], check_top=2, max_steps=1
+    )
     assert d.found == ["pressure_sensor"], d.steps[0]["verdict"]["words"]
     se = d.steps[0]["verdict"]["stderr"]["pressure_sensor.offset_pa"]
     assert d.theta["pressure_sensor.offset_pa"] == pytest.approx(150.0, abs=max(15.0, 3 * se))
@@ -113,8 +127,14 @@ def test_noise_floor_recovers_white_noise_under_a_smooth_trend():
     rng = np.random.default_rng(0)
     n, sd = 4000, 0.37
     t = np.arange(n) * 0.1
-    frame = pd.DataFrame({"design_key": "a", "trial": np.repeat(np.arange(4), n // 4), "time_s": t,
-                          "residual_n": 3.0 * np.sin(t / 20.0) + sd * rng.standard_normal(n)})
+    frame = pd.DataFrame(
+        {
+            "design_key": "a",
+            "trial": np.repeat(np.arange(4), n // 4),
+            "time_s": t,
+            "residual_n": 3.0 * np.sin(t / 20.0) + sd * rng.standard_normal(n),
+        }
+    )
     assert noise_floor(frame) == pytest.approx(sd, rel=0.06)
     assert noise_floor(frame, robust=False) == pytest.approx(sd, rel=0.06)
 
@@ -127,9 +147,15 @@ def test_noise_floor_is_right_for_rare_large_jumps():
     n = 20000
     jumps = 3.0 * rng.choice([-1.0, 0.0, 1.0], size=n, p=[0.02, 0.96, 0.02])
     noise = 0.2 * rng.standard_normal(n) + jumps
-    frame = pd.DataFrame({"design_key": "a", "trial": np.repeat(np.arange(10), n // 10),
-                          "phase": np.tile(np.repeat(["inflate", "deflate"], n // 20), 10),
-                          "time_s": np.arange(n) * 0.1, "residual_n": noise + np.repeat(rng.normal(0, 5, 20), n // 20)})
+    frame = pd.DataFrame(
+        {
+            "design_key": "a",
+            "trial": np.repeat(np.arange(10), n // 10),
+            "phase": np.tile(np.repeat(["inflate", "deflate"], n // 20), 10),
+            "time_s": np.arange(n) * 0.1,
+            "residual_n": noise + np.repeat(rng.normal(0, 5, 20), n // 20),
+        }
+    )
     rms = float(np.sqrt(np.mean(noise**2)))
     assert noise_floor(frame) == pytest.approx(rms, rel=0.05)
     assert noise_floor(frame, robust=True) < 0.6 * rms
@@ -151,8 +177,14 @@ def test_breakdowns_and_words_locate_an_injected_error():
     assert "over-predicts" in top["words"] and "ringless 1 mm" in top["words"]
 
 
-@pytest.mark.parametrize("hidden", ["pressure_sensor", pytest.param("load_cell_offset", marks=pytest.mark.slow),
-                                    pytest.param("hysteresis", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "hidden",
+    [
+        "pressure_sensor",
+        pytest.param("load_cell_offset", marks=pytest.mark.slow),
+        pytest.param("hysteresis", marks=pytest.mark.slow),
+    ],
+)
 def test_hidden_effect_found_first_and_error_falls_to_noise(hidden):
     m = virtual([hidden])
     d = diagnose(m, sim(), check_top=2, max_steps=1)

@@ -15,7 +15,7 @@ from mfdesign.rig.virtual import Protocol, VirtualRig, analytic_plane
 runner = CliRunner()
 KEYS = ("[2.0, 25.4, nan, nan, nan, nan]", "[1.5, 30.0, 45.0, 6.0, nan, nan]")
 
-USER_EFFECT = '''
+USER_EFFECT = """
 from dataclasses import dataclass
 import jax.numpy as jnp
 from mfdesign.physics.effects import Effect, Normal, Parameter, register_effect
@@ -35,24 +35,44 @@ class ForceGainTest(Effect):
 
     def observed_force_fn(self, theta, force_fn, rows):
         return lambda h, p: jnp.where(rows.is_force, theta["gain"], 1.0) * force_fn(h, p)
-'''
-NO_HOOK_EFFECT = USER_EFFECT.split("    def observed_force_fn")[0].replace("force_gain_test", "force_gain_nohook").replace(
-    "class ForceGainTest", "class ForceGainNoHook")
+"""
+NO_HOOK_EFFECT = (
+    USER_EFFECT.split("    def observed_force_fn")[0]
+    .replace("force_gain_test", "force_gain_nohook")
+    .replace("class ForceGainTest", "class ForceGainNoHook")
+)
 
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     path = tmp_path_factory.mktemp("diag") / "m.parquet"
-    rig = VirtualRig(effects=["load_cell_offset"], theta={"load_cell_offset.offset_n": 0.8}, seed=2,
-                     simulator=analytic_plane, protocol=Protocol(sample_hz=1.0))
+    rig = VirtualRig(
+        effects=["load_cell_offset"],
+        theta={"load_cell_offset.offset_n": 0.8},
+        seed=2,
+        simulator=analytic_plane,
+        protocol=Protocol(sample_hz=1.0),
+    )
     rig.run([Membrane.from_key(k) for k in KEYS], progress=False).to_parquet(path)
     return path
 
 
 def test_effects_give_a_before_after_report(data, tmp_path):
     out = tmp_path / "rep"
-    r = runner.invoke(app, ["diagnose", str(data), "--physics", "standin", "--effects", "load_cell_offset",
-                            "--no-search", "--out", str(out)])
+    r = runner.invoke(
+        app,
+        [
+            "diagnose",
+            str(data),
+            "--physics",
+            "standin",
+            "--effects",
+            "load_cell_offset",
+            "--no-search",
+            "--out",
+            str(out),
+        ],
+    )
     assert r.exit_code == 0, r.output
     js = json.loads((out / "diagnosis.json").read_text())
     assert js["effects_added"] == ["load_cell_offset"]
@@ -67,8 +87,10 @@ def test_config_file_and_user_effect_module(data, tmp_path):
     mod = tmp_path / "my_effects.py"
     mod.write_text(USER_EFFECT)
     cfg = tmp_path / "diag.toml"
-    cfg.write_text(f'effects = ["force_gain_test"]\neffects_module = ["{mod}"]\nphysics = "standin"\n'
-                   '[theta]\n"force_gain_test.gain" = 1.0\n')
+    cfg.write_text(
+        f'effects = ["force_gain_test"]\neffects_module = ["{mod}"]\nphysics = "standin"\n'
+        '[theta]\n"force_gain_test.gain" = 1.0\n'
+    )
     out = tmp_path / "rep"
     r = runner.invoke(app, ["diagnose", str(data), "--config", str(cfg), "--no-search", "--out", str(out)])
     assert r.exit_code == 0, r.output
@@ -80,18 +102,35 @@ def test_config_file_and_user_effect_module(data, tmp_path):
 def test_effect_without_likelihood_hook_is_refused_by_the_exact_backend(data, tmp_path):
     mod = tmp_path / "nohook.py"
     mod.write_text(NO_HOOK_EFFECT)
-    r = runner.invoke(app, ["diagnose", str(data), "--physics", "standin", "--effects-module", str(mod),
-                            "--effects", "force_gain_nohook", "--no-search", "--out", str(tmp_path / "x")])
+    r = runner.invoke(
+        app,
+        [
+            "diagnose",
+            str(data),
+            "--physics",
+            "standin",
+            "--effects-module",
+            str(mod),
+            "--effects",
+            "force_gain_nohook",
+            "--no-search",
+            "--out",
+            str(tmp_path / "x"),
+        ],
+    )
     assert r.exit_code == 2
     assert "no likelihood hook" in r.output and len(r.output.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("args, words", [
-    (["--effects", "no_such_effect"], "unknown effect 'no_such_effect'"),
-    (["--theta", "{not json"], "--theta is not valid JSON"),
-    (["--physics", "quantum"], "--physics must be one of"),
-    (["--effects-module", "nothere.py"], "not a Python file"),
-])
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--effects", "no_such_effect"], "unknown effect 'no_such_effect'"),
+        (["--theta", "{not json"], "--theta is not valid JSON"),
+        (["--physics", "quantum"], "--physics must be one of"),
+        (["--effects-module", "nothere.py"], "not a Python file"),
+    ],
+)
 def test_bad_input_is_one_line_exit_2(data, tmp_path, args, words):
     r = runner.invoke(app, ["diagnose", str(data), "--out", str(tmp_path / "x"), *args])
     assert r.exit_code == 2

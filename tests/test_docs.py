@@ -62,8 +62,11 @@ def test_docs_have_commands():
     assert any(c.startswith("pytest") or "pytest" in c for p in DOCS for c in _BLOCK.findall(p.read_text()))
 
 
-@pytest.mark.parametrize("path,command", [a for a in ALL if a[1].startswith("mfdesign")],
-                         ids=[f"{a[0].name}:{a[1][:60]}" for a in ALL if a[1].startswith("mfdesign")])
+@pytest.mark.parametrize(
+    "path,command",
+    [a for a in ALL if a[1].startswith("mfdesign")],
+    ids=[f"{a[0].name}:{a[1][:60]}" for a in ALL if a[1].startswith("mfdesign")],
+)
 def test_cli_lines_parse(path, command):
     from mfdesign.cli import app
 
@@ -99,5 +102,6 @@ def test_every_doc_command_runs(tmp_path):
 def test_cli_reference_is_in_sync():
     from tools.cli_reference import render
 
-    assert (ROOT / "docs" / "cli.md").read_text() == render(), \
+    assert (ROOT / "docs" / "cli.md").read_text() == render(), (
         "docs/cli.md is stale: run `python -m tools.cli_reference > docs/cli.md`"
+    )

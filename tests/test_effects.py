@@ -10,15 +10,34 @@ import pytest
 
 from mfdesign.physics import effects as fx
 from mfdesign.physics.effects import (
-    EFFECTS, Context, Effect, Normal, Parameter, Sample, Uniform, LogNormal,
-    apply_observe, apply_sim_params, neutral_theta, register_effect, split_theta, typical_theta,
+    EFFECTS,
+    Context,
+    Effect,
+    Normal,
+    Parameter,
+    Sample,
+    Uniform,
+    LogNormal,
+    apply_observe,
+    apply_sim_params,
+    neutral_theta,
+    register_effect,
+    split_theta,
+    typical_theta,
 )
 from mfdesign.physics.params import SimParams
 
 EXPECTED = {
-    "thickness_deviation", "thickness_gradient", "clamp_prestretch", "ring_softening",
-    "contact_offset", "stress_softening", "pressure_sensor", "load_cell_offset",
-    "rig_compliance", "hysteresis",
+    "thickness_deviation",
+    "thickness_gradient",
+    "clamp_prestretch",
+    "ring_softening",
+    "contact_offset",
+    "stress_softening",
+    "pressure_sensor",
+    "load_cell_offset",
+    "rig_compliance",
+    "hysteresis",
 }
 
 
@@ -27,8 +46,13 @@ def _sample(n=5):
 
 
 def _ctx(n=5, **kw):
-    base = dict(experiment="force", trial_index=np.zeros(n, int), phase=np.array(["inflate"] * n),
-                time_s=np.arange(n) * 0.1, dF_dh=np.full(n, -1.5))
+    base = dict(
+        experiment="force",
+        trial_index=np.zeros(n, int),
+        phase=np.array(["inflate"] * n),
+        time_s=np.arange(n) * 0.1,
+        dF_dh=np.full(n, -1.5),
+    )
     base.update(kw)
     return Context(**base)
 
@@ -71,11 +95,16 @@ def test_typical_does_something(name):
 
 
 def test_mechanics_go_through_simparams():
-    theta = {"thickness_deviation.relative": 0.1, "ring_softening.factor": 0.5,
-             "contact_offset.offset_mm": 2.0, "clamp_prestretch.strain": 0.02,
-             "thickness_gradient.gradient": -0.2}
-    p = apply_sim_params(["thickness_deviation", "ring_softening", "contact_offset", "clamp_prestretch",
-                          "thickness_gradient"], theta)
+    theta = {
+        "thickness_deviation.relative": 0.1,
+        "ring_softening.factor": 0.5,
+        "contact_offset.offset_mm": 2.0,
+        "clamp_prestretch.strain": 0.02,
+        "thickness_gradient.gradient": -0.2,
+    }
+    p = apply_sim_params(
+        ["thickness_deviation", "ring_softening", "contact_offset", "clamp_prestretch", "thickness_gradient"], theta
+    )
     assert p.thickness_factor == pytest.approx(1.1)
     assert p.ring_mu_pa == pytest.approx(0.5e6)
     assert p.contact_offset_mm == pytest.approx(2.0)
@@ -94,9 +123,12 @@ def test_stress_softening_only_first_trial():
 
 def test_pressure_sensor_and_load_cell():
     s = _sample()
-    out = apply_observe(["pressure_sensor", "load_cell_offset"],
-                        {"pressure_sensor.offset_pa": 100.0, "pressure_sensor.gain": 1.02,
-                         "load_cell_offset.offset_n": 0.5}, s, _ctx())
+    out = apply_observe(
+        ["pressure_sensor", "load_cell_offset"],
+        {"pressure_sensor.offset_pa": 100.0, "pressure_sensor.gain": 1.02, "load_cell_offset.offset_n": 0.5},
+        s,
+        _ctx(),
+    )
     np.testing.assert_allclose(out.pressure_pa, 1.02 * s.pressure_pa + 100.0)
     np.testing.assert_allclose(out.force_n, s.force_n + 0.5)
     lift = apply_observe(["load_cell_offset"], {"load_cell_offset.offset_n": 0.5}, s, _ctx(experiment="lift"))
@@ -107,14 +139,17 @@ def test_rig_compliance_sign_and_self_consistency():
     """Linear F(h) = F0 + s h: the exact fixed point F = F(h_set + F c) is F(h_set) / (1 - s c)."""
     c, slope = 0.05, -2.0
     f_stiff = np.array([10.0, 40.0])
-    out = apply_observe(["rig_compliance"], {"rig_compliance.compliance_mm_per_n": c},
-                        Sample(np.full(2, 20.0), np.full(2, 3000.0), f_stiff), _ctx(2, dF_dh=np.full(2, slope)))
+    out = apply_observe(
+        ["rig_compliance"],
+        {"rig_compliance.compliance_mm_per_n": c},
+        Sample(np.full(2, 20.0), np.full(2, 3000.0), f_stiff),
+        _ctx(2, dF_dh=np.full(2, slope)),
+    )
     assert np.all(out.force_n < f_stiff)  # the plate yields upwards: less force
     # self-consistency with a linear force law
     np.testing.assert_allclose(out.force_n, f_stiff + slope * out.force_n * c)
     with pytest.raises(ValueError, match="dF_dh"):
-        apply_observe(["rig_compliance"], {"rig_compliance.compliance_mm_per_n": c},
-                      _sample(), _ctx(dF_dh=None))
+        apply_observe(["rig_compliance"], {"rig_compliance.compliance_mm_per_n": c}, _sample(), _ctx(dF_dh=None))
 
 
 def test_hysteresis_force_and_lift():
@@ -123,8 +158,9 @@ def test_hysteresis_force_and_lift():
     s = Sample(np.full(n, 30.0), np.full(n, 3000.0), np.full(n, 20.0))
     out = apply_observe(["hysteresis"], {"hysteresis.loss": 0.1}, s, _ctx(n, phase=phase))
     np.testing.assert_allclose(out.force_n, [20, 20, 18, 18])
-    lift = apply_observe(["hysteresis"], {"hysteresis.loss": 0.1}, s,
-                         _ctx(n, phase=phase, experiment="lift", dF_dh=np.full(n, -2.0)))
+    lift = apply_observe(
+        ["hysteresis"], {"hysteresis.loss": 0.1}, s, _ctx(n, phase=phase, experiment="lift", dF_dh=np.full(n, -2.0))
+    )
     np.testing.assert_allclose(lift.height_mm, [30, 30, 29, 29])  # 0.1 * 20 N / -2 N/mm = -1 mm
     np.testing.assert_array_equal(lift.force_n, s.force_n)
 
@@ -194,6 +230,7 @@ def test_user_defined_effect_in_a_few_lines():
         s = apply_observe(effects, theta, _sample(), _ctx(experiment="lift"))
         np.testing.assert_allclose(s.height_mm, 31.5)
         with pytest.raises(ValueError, match="already registered"):
+
             @register_effect
             @dataclass(frozen=True)
             class Clash(Effect):

@@ -20,11 +20,13 @@ from mfdesign.models.emulator import (
 )
 from mfdesign.physics.params import SimParams
 
-DESIGNS = np.array([
-    [2.0, 30.0, np.nan, np.nan, np.nan, np.nan],
-    [1.5, 27.0, 45.0, 6.0, np.nan, np.nan],
-    [2.5, 26.0, 40.0, 5.5, 56.0, 6.0],
-])
+DESIGNS = np.array(
+    [
+        [2.0, 30.0, np.nan, np.nan, np.nan, np.nan],
+        [1.5, 27.0, 45.0, 6.0, np.nan, np.nan],
+        [2.5, 26.0, 40.0, 5.5, 56.0, 6.0],
+    ]
+)
 
 
 def _random_emulator(seed=0):
@@ -82,8 +84,14 @@ def test_gradients_match_finite_differences(emu):
     """grad in h, p and every SimParams field (one jitted call) against central differences."""
     d, h, p = _queries(n=1, seed=3)
     x0 = {"h": float(h[0]), "p": float(p[0])}
-    x0.update({f: float(getattr(SimParams(mu_pa=25e3, thickness_gradient=0.1, clamp_prestretch=1.03,
-                                          contact_offset_mm=1.0), f)) for f in PARAM_FIELDS})
+    x0.update(
+        {
+            f: float(
+                getattr(SimParams(mu_pa=25e3, thickness_gradient=0.1, clamp_prestretch=1.03, contact_offset_mm=1.0), f)
+            )
+            for f in PARAM_FIELDS
+        }
+    )
 
     @jax.jit
     def f(x):
@@ -117,12 +125,20 @@ def test_in_range_flags(emu):
     p = np.full(10, 5000.0)
     base = SimParams()
     assert np.all(emu.in_range(d, h, p, base))
-    h2 = h.copy(); h2[0] = 90.0; h2[1] = np.nan
-    p2 = p.copy(); p2[2] = -10.0; p2[3] = 12_000.0
-    mu = np.full(10, 31.7e3); mu[4] = 80e3
-    jm = np.full(10, 39.6); jm[5] = 5.0
-    off = np.zeros(10); off[6] = 15.0  # effective disk runs into the ring
-    d2 = d.copy(); d2[7, 0] = 4.0  # too thick
+    h2 = h.copy()
+    h2[0] = 90.0
+    h2[1] = np.nan
+    p2 = p.copy()
+    p2[2] = -10.0
+    p2[3] = 12_000.0
+    mu = np.full(10, 31.7e3)
+    mu[4] = 80e3
+    jm = np.full(10, 39.6)
+    jm[5] = 5.0
+    off = np.zeros(10)
+    off[6] = 15.0  # effective disk runs into the ring
+    d2 = d.copy()
+    d2[7, 0] = 4.0  # too thick
     d2[8, 3] = np.nan  # radius without width
     d2[9, 3] = 20.0  # ring far too wide
     flags = np.asarray(emu.in_range(d2, h2, p2, SimParams(mu_pa=mu, jm=jm, contact_offset_mm=off)))

@@ -10,15 +10,16 @@ import mfdesign  # noqa: F401
 from mfdesign.models.ensemble import Ensemble, EnsembleConfig, fit_ensemble
 
 NAN = np.nan
-SMALL = dict(n_members=3, steps=40, batch=16, ring_embed_dim=3, latent_depth=1, latent_width=8,
-             chunk=20, monotone=True)  # one config throughout: the training step compiles once
+SMALL = dict(
+    n_members=3, steps=40, batch=16, ring_embed_dim=3, latent_depth=1, latent_width=8, chunk=20, monotone=True
+)  # one config throughout: the training step compiles once
 
 
 def toy_data(n=90, seed=0):
     rng = np.random.default_rng(seed)
-    designs = np.array([[2.0, 25.4, NAN, NAN, NAN, NAN],
-                        [2.0, 30.0, 40.0, 5.0, NAN, NAN],
-                        [1.5, 28.0, 38.0, 5.0, 55.0, 6.0]])
+    designs = np.array(
+        [[2.0, 25.4, NAN, NAN, NAN, NAN], [2.0, 30.0, 40.0, 5.0, NAN, NAN], [1.5, 28.0, 38.0, 5.0, 55.0, 6.0]]
+    )
     d = designs[rng.integers(0, 3, n)]
     h = rng.uniform(0, 50, n)
     p = rng.uniform(0, 10_000, n)
@@ -96,7 +97,7 @@ def test_save_load_predicts_identical_bits(fitted, tmp_path):
 
 def test_load_rejects_wrong_format(fitted, tmp_path):
     fitted.save(tmp_path / "m")
-    meta = (tmp_path / "m" / "ensemble.json")
+    meta = tmp_path / "m" / "ensemble.json"
     meta.write_text(meta.read_text().replace('"format_version": 1', '"format_version": 99'))
     with pytest.raises(ValueError, match="format_version"):
         Ensemble.load(tmp_path / "m")
@@ -110,20 +111,25 @@ def test_seeded_fit_is_reproducible():
     np.testing.assert_array_equal(a.predict(d, h, p), b.predict(d, h, p))
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(design=np.ones((3, 5))), r"\[n, 6\]"),
-    (dict(h=np.ones(2)), "h_mm must have 3"),
-    (dict(design=np.array([[2.0, 25.4, 40.0, NAN, NAN, NAN]] * 3)), "both radius and half-width"),
-    (dict(w=-np.ones(3)), "weight must be >= 0"),
-    (dict(p=-np.ones(3)), "monotone head needs"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(design=np.ones((3, 5))), r"\[n, 6\]"),
+        (dict(h=np.ones(2)), "h_mm must have 3"),
+        (dict(design=np.array([[2.0, 25.4, 40.0, NAN, NAN, NAN]] * 3)), "both radius and half-width"),
+        (dict(w=-np.ones(3)), "weight must be >= 0"),
+        (dict(p=-np.ones(3)), "monotone head needs"),
+    ],
+)
 def test_invalid_inputs_raise_clear_errors(kwargs, match):
-    args = dict(design=np.array([[2.0, 25.4, NAN, NAN, NAN, NAN]] * 3), h=np.ones(3),
-                p=np.ones(3), f=np.ones(3), w=np.ones(3))
+    args = dict(
+        design=np.array([[2.0, 25.4, NAN, NAN, NAN, NAN]] * 3), h=np.ones(3), p=np.ones(3), f=np.ones(3), w=np.ones(3)
+    )
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
-        fit_ensemble(EnsembleConfig(**SMALL), args["design"], args["h"], args["p"],
-                     args["f"], args["w"], progress=False)
+        fit_ensemble(
+            EnsembleConfig(**SMALL), args["design"], args["h"], args["p"], args["f"], args["w"], progress=False
+        )
 
 
 def test_config_validation():

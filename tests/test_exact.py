@@ -21,8 +21,9 @@ H_MAX, P_MAX = 40.0, 6000.0
 @pytest.fixture(scope="module")
 def exact(tmp_path_factory):
     cache = tmp_path_factory.mktemp("planes")
-    return build_exact(KEYS, h_max_mm=H_MAX, p_max_pa=P_MAX, tensor={"jm": (-0.1, 0.1), "ring": (-0.1, 0.1)},
-                       cache=cache)
+    return build_exact(
+        KEYS, h_max_mm=H_MAX, p_max_pa=P_MAX, tensor={"jm": (-0.1, 0.1), "ring": (-0.1, 0.1)}, cache=cache
+    )
 
 
 def _rows(key, n, rng):
@@ -38,8 +39,11 @@ def test_exact_model_matches_direct_simulator_calls_at_random_rows_and_parameter
     fm = exact
     for trial in range(4):
         key = KEYS[trial % 2]
-        params = SimParams(mu_pa=31.7e3 * np.exp(rng.uniform(-0.08, 0.08)), jm=39.6 * np.exp(rng.uniform(-0.08, 0.08)),
-                           thickness_factor=float(np.exp(rng.uniform(-0.1, 0.1))))
+        params = SimParams(
+            mu_pa=31.7e3 * np.exp(rng.uniform(-0.08, 0.08)),
+            jm=39.6 * np.exp(rng.uniform(-0.08, 0.08)),
+            thickness_factor=float(np.exp(rng.uniform(-0.1, 0.1))),
+        )
         if trial >= 2:  # a mechanical effect: the lattice grows a new axis for it
             params = dataclasses.replace(params, contact_offset_mm=float(rng.uniform(0.2, 1.3)))
         fm = fm.covering(params)
@@ -64,7 +68,9 @@ def test_exact_model_is_nan_outside_what_it_holds(exact):
     assert np.all(np.isnan(np.asarray(exact(jnp.asarray(other), jnp.asarray(h), jnp.asarray(p), SimParams()))))
     far = SimParams(jm=39.6 * 2.0)  # beyond the J_m lattice: strict model says NaN, clamped one holds the edge
     assert np.all(np.isnan(np.asarray(exact(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), far))))
-    assert np.all(np.isfinite(np.asarray(exact.strict(False)(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), far))))
+    assert np.all(
+        np.isfinite(np.asarray(exact.strict(False)(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), far)))
+    )
     moved = SimParams(clamp_prestretch=1.02)  # a constant the lattice does not vary
     assert np.all(np.isnan(np.asarray(exact(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), moved))))
     top = np.asarray(exact(jnp.asarray(design), jnp.asarray(h), jnp.full(4, 3.0 * P_MAX), SimParams()))

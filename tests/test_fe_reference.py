@@ -77,9 +77,7 @@ def _foppl_displacement_form(nu: float) -> float:
 
 @pytest.mark.parametrize("nu", [0.3, 0.5])
 def test_hencky_two_formulations_agree(nu):
-    assert _foppl_displacement_form(nu) == pytest.approx(
-        hencky(nu).deflection_coefficient, rel=1e-4
-    )
+    assert _foppl_displacement_form(nu) == pytest.approx(hencky(nu).deflection_coefficient, rel=1e-4)
 
 
 # ------------------------------------------------------------ FE free inflation vs Hencky
@@ -138,7 +136,6 @@ def test_fe_force_mesh_convergence(key):
 @pytest.mark.slow
 def test_fe_unconverged_is_nan():
     """A minimisation that runs out of steps reports converged=False and NaN, not a number."""
-    res = fe_force(Membrane.from_key(RINGLESS), 40.0, 8000.0, n_elements=100, n_steps=1,
-                   max_steps=3)
+    res = fe_force(Membrane.from_key(RINGLESS), 40.0, 8000.0, n_elements=100, n_steps=1, max_steps=3)
     assert not bool(res.converged)
     assert np.isnan(float(res.force_n)) and np.isnan(float(res.force_disk_n))

@@ -48,9 +48,11 @@ class Tally:
     messages: list = field(default_factory=list)  # the clean errors, shown with -s -v
 
     def line(self) -> str:
-        return (f"fuzz: {self.tried} inputs tried, {self.ok} succeeded, {self.clean} clean errors, "
-                f"{len(self.tracebacks)} tracebacks/unexpected, {len(self.hangs)} hangs, "
-                f"{len(self.silent_wrong)} silent wrong results, {len(self.data_lost)} data lost")
+        return (
+            f"fuzz: {self.tried} inputs tried, {self.ok} succeeded, {self.clean} clean errors, "
+            f"{len(self.tracebacks)} tracebacks/unexpected, {len(self.hangs)} hangs, "
+            f"{len(self.silent_wrong)} silent wrong results, {len(self.data_lost)} data lost"
+        )
 
 
 # -- fixtures: one valid file of each kind ----------------------------------------------
@@ -60,10 +62,37 @@ def valid(tmp_path_factory):
     rig = VirtualRig(effects=[], seed=2, simulator=analytic_plane, protocol=Protocol(sample_hz=0.5))
     m = rig.run([Membrane.from_key(k) for k in KEYS], progress=False)
     m.to_parquet(d / "m.parquet")
-    for args in (["fit", d / "m.parquet", "--out", d / "ens", "--members", 2, "--train-steps", 10, "--batch", 16,
-                  "--no-monotone"],
-                 ["fit-mf", d / "m.parquet", "--out", d / "mf", "--physics", "standin", "--mcmc-steps", 12,
-                  "--members", 2, "--delta-steps", 5, "--max-rows", 40]):
+    for args in (
+        [
+            "fit",
+            d / "m.parquet",
+            "--out",
+            d / "ens",
+            "--members",
+            2,
+            "--train-steps",
+            10,
+            "--batch",
+            16,
+            "--no-monotone",
+        ],
+        [
+            "fit-mf",
+            d / "m.parquet",
+            "--out",
+            d / "mf",
+            "--physics",
+            "standin",
+            "--mcmc-steps",
+            12,
+            "--members",
+            2,
+            "--delta-steps",
+            5,
+            "--max-rows",
+            40,
+        ],
+    ):
         r = runner.invoke(app, [str(a) for a in args])
         assert r.exit_code == 0, r.output
     # a mass-lift pickle like the authors' (one membrane, three masses), in a shared-data folder
@@ -75,7 +104,9 @@ def valid(tmp_path_factory):
     ys = (2000 + 100 * fs + 50 * (40 - h[:, None])).astype(np.float32)
     ws = np.full((n, 1), 1000 / n, np.float32)
     (d / "shared").mkdir()
-    (d / "shared" / "mass_lift_data_dictionary_N_Pa.pkl").write_bytes(pickle.dumps({key: ((us, ys), fs, ws)}, protocol=4))
+    (d / "shared" / "mass_lift_data_dictionary_N_Pa.pkl").write_bytes(
+        pickle.dumps({key: ((us, ys), fs, ws)}, protocol=4)
+    )
     return d
 
 
@@ -84,7 +115,7 @@ def _digest(paths) -> dict:
     out = {}
     for p in paths:
         p = Path(p)
-        for f in ([p] if p.is_file() else sorted(p.rglob("*")) if p.is_dir() else []):
+        for f in [p] if p.is_file() else sorted(p.rglob("*")) if p.is_dir() else []:
             if f.is_file() and f.name != ".mfdesign.lock":
                 out[str(f)] = hashlib.sha256(f.read_bytes()).hexdigest()
     return out
@@ -151,8 +182,10 @@ def run_case(tally: Tally, name: str, args: list, inputs=(), env=None, out: Path
         tally.clean += 1
         tally.messages.append(f"{name}: {errors[0][:160]}")
         return "clean"
-    tally.tracebacks.append(f"{name}: rc {r.exit_code} {lines[-1][:300] if lines else ''} "
-                            f"{type(r.exception).__name__ if r.exception else ''} ({time.perf_counter() - t0:.1f} s)")
+    tally.tracebacks.append(
+        f"{name}: rc {r.exit_code} {lines[-1][:300] if lines else ''} "
+        f"{type(r.exception).__name__ if r.exception else ''} ({time.perf_counter() - t0:.1f} s)"
+    )
     return "bad"
 
 
@@ -169,7 +202,7 @@ def mutations(data: bytes, rng: np.random.Generator, n: int) -> list[tuple[str, 
             b = b[: int(rng.integers(0, len(b)))]
         else:
             i = int(rng.integers(0, len(b)))
-            b[i:i + 64] = bytes(len(b[i:i + 64]))
+            b[i : i + 64] = bytes(len(b[i : i + 64]))
         out.append((f"{kind}{k}", bytes(b)))
     return out
 
@@ -191,8 +224,13 @@ def category_cases(v: Path, w: Path):
     # unsafe / crafted pickles as the shared data
     evil = {
         "malicious": b"\x80\x02cos\nsystem\nX\x04\x00\x00\x00trueq\x85R.",
-        "shared-lists": b"\x80\x02]q\x00" + b"0" + b"".join(b"]q" + bytes([i]) + b"(" + (b"h" + bytes([i - 1])) * 4
-                                                           + b"e" + (b"0" if i < 24 else b"") for i in range(1, 25)) + b".",
+        "shared-lists": b"\x80\x02]q\x00"
+        + b"0"
+        + b"".join(
+            b"]q" + bytes([i]) + b"(" + (b"h" + bytes([i - 1])) * 4 + b"e" + (b"0" if i < 24 else b"")
+            for i in range(1, 25)
+        )
+        + b".",
         "huge-array": b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\nJ\x80\xc3\xc9\x01K\x07\x86U\x01f\x87R.",
         "set": pickle.dumps({"a": {1, 2}}, protocol=4),
         "list-not-dict": pickle.dumps([1, 2], protocol=4),
@@ -201,29 +239,87 @@ def category_cases(v: Path, w: Path):
         sd = w / f"shared_{name}"
         sd.mkdir()
         (sd / "mass_lift_data_dictionary_N_Pa.pkl").write_bytes(payload)
-        cases.append((f"pickle {name} -> diagnose", diag("mass-lift", w / f"o_{name}"), [sd], {"MFDESIGN_SHARED_DATA": str(sd)}, w / f"o_{name}"))
-    cases.append(("missing shared data -> diagnose", diag("mass-lift", w / "o_ms"), [], {"MFDESIGN_SHARED_DATA": str(w / "nowhere")}, None))
-    cases.append(("missing shared data -> fit", ["fit", "mass-lift", "--out", w / "o_msf"], [], {"MFDESIGN_SHARED_DATA": str(w / "nowhere")}, None))
+        cases.append(
+            (
+                f"pickle {name} -> diagnose",
+                diag("mass-lift", w / f"o_{name}"),
+                [sd],
+                {"MFDESIGN_SHARED_DATA": str(sd)},
+                w / f"o_{name}",
+            )
+        )
+    cases.append(
+        (
+            "missing shared data -> diagnose",
+            diag("mass-lift", w / "o_ms"),
+            [],
+            {"MFDESIGN_SHARED_DATA": str(w / "nowhere")},
+            None,
+        )
+    )
+    cases.append(
+        (
+            "missing shared data -> fit",
+            ["fit", "mass-lift", "--out", w / "o_msf"],
+            [],
+            {"MFDESIGN_SHARED_DATA": str(w / "nowhere")},
+            None,
+        )
+    )
     # bad data tables
     (w / "x.parquet").mkdir()
     cases.append(("folder named x.parquet", diag(w / "x.parquet", w / "o_xp"), [], None, None))
     df = pd.read_parquet(v / "m.parquet")
     from mfdesign.data.measurements import Measurements
 
-    tables = {"zero-rows": df.iloc[:0], "one-row": df.iloc[:1], "duplicated": pd.concat([df, df], ignore_index=True),
-              "zero-weights": df.assign(weight=0.0)}
+    tables = {
+        "zero-rows": df.iloc[:0],
+        "one-row": df.iloc[:1],
+        "duplicated": pd.concat([df, df], ignore_index=True),
+        "zero-weights": df.assign(weight=0.0),
+    }
     for name, t in tables.items():
         Measurements(t).to_parquet(w / f"{name}.parquet")
-        cases.append((f"{name} -> diagnose", diag(w / f"{name}.parquet", w / f"o_{name}"), [w / f"{name}.parquet"], None, w / f"o_{name}"))
-        cases.append((f"{name} -> calibrate", ["calibrate", w / f"{name}.parquet", "--out", w / f"oc_{name}", "--physics",
-                                               "standin", "--mcmc-steps", 3], [w / f"{name}.parquet"], None, w / f"oc_{name}"))
+        cases.append(
+            (
+                f"{name} -> diagnose",
+                diag(w / f"{name}.parquet", w / f"o_{name}"),
+                [w / f"{name}.parquet"],
+                None,
+                w / f"o_{name}",
+            )
+        )
+        cases.append(
+            (
+                f"{name} -> calibrate",
+                [
+                    "calibrate",
+                    w / f"{name}.parquet",
+                    "--out",
+                    w / f"oc_{name}",
+                    "--physics",
+                    "standin",
+                    "--mcmc-steps",
+                    3,
+                ],
+                [w / f"{name}.parquet"],
+                None,
+                w / f"oc_{name}",
+            )
+        )
     # outputs that cannot be written: refused before computing
     (w / "afile").write_text("keep me")
     cases.append(("simulate --out <a file>", ["simulate", "--out", w / "afile"], [w / "afile"], None, None))
-    cases.append(("diagnose --out <a file>", diag(v / "m.parquet", w / "afile"), [w / "afile", v / "m.parquet"], None, None))
+    cases.append(
+        ("diagnose --out <a file>", diag(v / "m.parquet", w / "afile"), [w / "afile", v / "m.parquet"], None, None)
+    )
     # designs outside the product's space
-    for key in ("[100.0, 25.4, nan, nan, nan, nan]", "[1e-06, 25.4, nan, nan, nan, nan]",
-                "[1e308, 25.4, nan, nan, nan, nan]", "[2.0, 1e-06, nan, nan, nan, nan]"):
+    for key in (
+        "[100.0, 25.4, nan, nan, nan, nan]",
+        "[1e-06, 25.4, nan, nan, nan, nan]",
+        "[1e308, 25.4, nan, nan, nan, nan]",
+        "[2.0, 1e-06, nan, nan, nan, nan]",
+    ):
         cases.append((f"simulate {key}", ["simulate", "--design", key, "--out", w / "o_sim"], [], None, None))
     # model folders: NaN weights, JSON list, missing keys, truncated leaves, empty posterior
     nan_ens = _copy(v / "ens", w / "ens_nan")
@@ -244,12 +340,64 @@ def category_cases(v: Path, w: Path):
     trunc_ens = _copy(v / "ens", w / "ens_trunc")
     (trunc_ens / "ensemble.eqx").write_bytes((v / "ens" / "ensemble.eqx").read_bytes()[:100])
     for ens in (nan_ens, list_ens, nokey_ens, trunc_ens):
-        cases.append((f"{ens.name} -> diagnose", diag(v / "m.parquet", w / f"od_{ens.name}", "--model", ens), [ens], None, w / f"od_{ens.name}"))
-        cases.append((f"{ens.name} -> propose", ["propose", "--model", ens, "--q", 1, "--restarts", 2, "--refine", 1, "--opt-steps", 0,
-                                                 "--out", w / f"op_{ens.name}"], [ens], None, w / f"op_{ens.name}"))
-        cases.append((f"{ens.name} -> optimize", ["optimize", "--model", ens, "--target-set", "A", "--starts", 2, "--refine", 1,
-                                                  "--opt-steps", 0, "--no-check", "--rings", "0", "--out", w / f"oo_{ens.name}"],
-                      [ens], None, w / f"oo_{ens.name}"))
+        cases.append(
+            (
+                f"{ens.name} -> diagnose",
+                diag(v / "m.parquet", w / f"od_{ens.name}", "--model", ens),
+                [ens],
+                None,
+                w / f"od_{ens.name}",
+            )
+        )
+        cases.append(
+            (
+                f"{ens.name} -> propose",
+                [
+                    "propose",
+                    "--model",
+                    ens,
+                    "--q",
+                    1,
+                    "--restarts",
+                    2,
+                    "--refine",
+                    1,
+                    "--opt-steps",
+                    0,
+                    "--out",
+                    w / f"op_{ens.name}",
+                ],
+                [ens],
+                None,
+                w / f"op_{ens.name}",
+            )
+        )
+        cases.append(
+            (
+                f"{ens.name} -> optimize",
+                [
+                    "optimize",
+                    "--model",
+                    ens,
+                    "--target-set",
+                    "A",
+                    "--starts",
+                    2,
+                    "--refine",
+                    1,
+                    "--opt-steps",
+                    0,
+                    "--no-check",
+                    "--rings",
+                    "0",
+                    "--out",
+                    w / f"oo_{ens.name}",
+                ],
+                [ens],
+                None,
+                w / f"oo_{ens.name}",
+            )
+        )
     nan_mf = _copy(v / "mf", w / "mf_nan")
     z = dict(np.load(nan_mf / "posterior.npz"))
     z["samples"] = z["samples"] * np.nan
@@ -257,12 +405,51 @@ def category_cases(v: Path, w: Path):
     list_mf = _copy(v / "mf", w / "mf_list")
     (list_mf / "posterior.json").write_text("[]")
     for mf in (nan_mf, list_mf):
-        cases.append((f"{mf.name} -> propose", ["propose", "--model", mf, "--q", 1, "--restarts", 2, "--refine", 1, "--opt-steps", 0,
-                                                "--out", w / f"op_{mf.name}"], [mf], None, w / f"op_{mf.name}"))
+        cases.append(
+            (
+                f"{mf.name} -> propose",
+                [
+                    "propose",
+                    "--model",
+                    mf,
+                    "--q",
+                    1,
+                    "--restarts",
+                    2,
+                    "--refine",
+                    1,
+                    "--opt-steps",
+                    0,
+                    "--out",
+                    w / f"op_{mf.name}",
+                ],
+                [mf],
+                None,
+                w / f"op_{mf.name}",
+            )
+        )
     bad_chain = _copy(v / "mf", w / "chain_bad")
     (bad_chain / "chain.h5").write_bytes((v / "mf" / "chain.h5").read_bytes()[:2000])
-    cases.append(("truncated chain.h5 -> calibrate", ["calibrate", v / "m.parquet", "--out", bad_chain, "--physics", "standin",
-                                                      "--mcmc-steps", 3, "--max-rows", 40], [v / "m.parquet"], None, None))
+    cases.append(
+        (
+            "truncated chain.h5 -> calibrate",
+            [
+                "calibrate",
+                v / "m.parquet",
+                "--out",
+                bad_chain,
+                "--physics",
+                "standin",
+                "--mcmc-steps",
+                3,
+                "--max-rows",
+                40,
+            ],
+            [v / "m.parquet"],
+            None,
+            None,
+        )
+    )
     return cases
 
 
@@ -274,34 +461,93 @@ def mutation_cases(v: Path, w: Path, n: int, seed: int = 0):
     for name, b in mutations((v / "m.parquet").read_bytes(), rng, n):
         p = w / f"m_{name}.parquet"
         p.write_bytes(b)
-        cmd = diag(p, w / f"om_{name}") if rng.uniform() < 0.7 else ["cv", p, "--model-type", "curve-fit", "--out", w / f"cv_{name}.json"]
+        cmd = (
+            diag(p, w / f"om_{name}")
+            if rng.uniform() < 0.7
+            else ["cv", p, "--model-type", "curve-fit", "--out", w / f"cv_{name}.json"]
+        )
         cases.append((f"parquet {name} -> {cmd[0]}", cmd, [p], None, w / f"om_{name}"))
     for fname in ("ensemble.eqx", "ensemble.json"):
         for name, b in mutations((v / "ens" / fname).read_bytes(), rng, n):
             ens = _copy(v / "ens", w / f"ens_{fname}_{name}")
             (ens / fname).write_bytes(b)
-            cases.append((f"{fname} {name} -> diagnose --model", diag(v / "m.parquet", w / f"oe_{fname}_{name}", "--model", ens),
-                          [ens], None, w / f"oe_{fname}_{name}"))
+            cases.append(
+                (
+                    f"{fname} {name} -> diagnose --model",
+                    diag(v / "m.parquet", w / f"oe_{fname}_{name}", "--model", ens),
+                    [ens],
+                    None,
+                    w / f"oe_{fname}_{name}",
+                )
+            )
     for fname in ("posterior.npz", "posterior.json", "mf.json"):
         for name, b in mutations((v / "mf" / fname).read_bytes(), rng, max(1, n // 2)):
             mf = _copy(v / "mf", w / f"mf_{fname}_{name}")
             (mf / fname).write_bytes(b)
-            cases.append((f"{fname} {name} -> propose", ["propose", "--model", mf, "--q", 1, "--restarts", 2, "--refine", 1,
-                                                         "--opt-steps", 0, "--out", w / f"opm_{fname}_{name}"],
-                          [mf], None, w / f"opm_{fname}_{name}"))
+            cases.append(
+                (
+                    f"{fname} {name} -> propose",
+                    [
+                        "propose",
+                        "--model",
+                        mf,
+                        "--q",
+                        1,
+                        "--restarts",
+                        2,
+                        "--refine",
+                        1,
+                        "--opt-steps",
+                        0,
+                        "--out",
+                        w / f"opm_{fname}_{name}",
+                    ],
+                    [mf],
+                    None,
+                    w / f"opm_{fname}_{name}",
+                )
+            )
     for name, b in mutations((v / "mf" / "chain.h5").read_bytes(), rng, n):
         out = _copy(v / "mf", w / f"ch_{name}")
         (out / "chain.h5").write_bytes(b)
-        cases.append((f"chain.h5 {name} -> fit-mf", ["fit-mf", v / "m.parquet", "--out", out, "--physics", "standin", "--mcmc-steps",
-                                                      12, "--members", 2, "--delta-steps", 5, "--max-rows", 40],
-                      [v / "m.parquet"], None, None))
+        cases.append(
+            (
+                f"chain.h5 {name} -> fit-mf",
+                [
+                    "fit-mf",
+                    v / "m.parquet",
+                    "--out",
+                    out,
+                    "--physics",
+                    "standin",
+                    "--mcmc-steps",
+                    12,
+                    "--members",
+                    2,
+                    "--delta-steps",
+                    5,
+                    "--max-rows",
+                    40,
+                ],
+                [v / "m.parquet"],
+                None,
+                None,
+            )
+        )
     pkl = (v / "shared" / "mass_lift_data_dictionary_N_Pa.pkl").read_bytes()
     for name, b in mutations(pkl, rng, n):
         sd = w / f"sh_{name}"
         sd.mkdir()
         (sd / "mass_lift_data_dictionary_N_Pa.pkl").write_bytes(b)
-        cases.append((f"pickle {name} -> diagnose", diag("mass-lift", w / f"osh_{name}"), [sd],
-                      {"MFDESIGN_SHARED_DATA": str(sd)}, w / f"osh_{name}"))
+        cases.append(
+            (
+                f"pickle {name} -> diagnose",
+                diag("mass-lift", w / f"osh_{name}"),
+                [sd],
+                {"MFDESIGN_SHARED_DATA": str(sd)},
+                w / f"osh_{name}",
+            )
+        )
     return cases
 
 

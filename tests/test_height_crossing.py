@@ -31,7 +31,7 @@ def _reference(F, p, Fh):
         if below.size == 0 and row_ok[start:].all():
             status[i] = Status.BEYOND_GRID  # above the load up to the top of the grid
             continue
-        if below.size == 0 or not row_ok[start: start + below[0] + 1].all():
+        if below.size == 0 or not row_ok[start : start + below[0] + 1].all():
             continue
         lo[i], refine[i], status[i] = start + below[0] - 1, True, Status.OK
     return height, status, lo, refine
@@ -53,8 +53,13 @@ def test_first_crossing_matches_reference_on_random_tables():
     np.testing.assert_array_equal(got[2][want[3]], want[2][want[3]])
     np.testing.assert_array_equal(np.isnan(got[0]), np.isnan(want[0]))
     # Every outcome occurs, so the comparison covers every branch.
-    assert set(np.unique(want[1])) == {Status.OK, Status.NOT_LIFTED, Status.NOT_CONVERGED, Status.INVALID_INPUT,
-                                       Status.BEYOND_GRID}
+    assert set(np.unique(want[1])) == {
+        Status.OK,
+        Status.NOT_LIFTED,
+        Status.NOT_CONVERGED,
+        Status.INVALID_INPUT,
+        Status.BEYOND_GRID,
+    }
 
 
 def test_lift_curve_flags_a_jump_over_a_dip(monkeypatch):
@@ -68,7 +73,7 @@ def test_lift_curve_flags_a_jump_over_a_dip(monkeypatch):
     hg = np.linspace(0.0, 100.0, 41)
     p = np.linspace(1000.0, 5000.0, 9)
     # F(h, p) = p/100 * (1 - h/100) + a bump centred at 60 mm (the far branch).
-    F = p[None, :] / 100.0 * (1.0 - hg[:, None] / 100.0) + 25.0 * np.exp(-((hg[:, None] - 60.0) / 10.0) ** 2)
+    F = p[None, :] / 100.0 * (1.0 - hg[:, None] / 100.0) + 25.0 * np.exp(-(((hg[:, None] - 60.0) / 10.0) ** 2))
 
     def fake_plane(design, h, pp, params):
         return SimpleNamespace(force_n=F)

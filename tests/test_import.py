@@ -35,8 +35,10 @@ def _shared_mass_lift():
 def _characterisation_dict() -> dict:
     """A tiny characterisation data dictionary: 2 membranes x 2 set heights x 5 pressures."""
     out = {}
-    for key, design in ((RINGLESS, [2.0, 25.4, np.nan, np.nan, np.nan, np.nan]),
-                        (RINGED, [2.0, 31.92, 46.0, 5.0, 59.0, 5.0])):
+    for key, design in (
+        (RINGLESS, [2.0, 25.4, np.nan, np.nan, np.nan, np.nan]),
+        (RINGED, [2.0, 31.92, 46.0, 5.0, 59.0, 5.0]),
+    ):
         rows = [[h] + design for h in (10.0, 30.0) for _ in range(5)]
         us = np.asarray(rows, dtype=np.float32)
         ys = np.tile(np.linspace(0.0, 8000.0, 5), 2)[:, None].astype(np.float32)
@@ -88,11 +90,14 @@ def test_csv_round_trip_and_missing_columns(tmp_path):
     assert len(r.output.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("name, content, words", [
-    ("notes.txt", b"hello", "unknown format"),
-    ("evil.pkl", pickle.dumps({"x": 1}, protocol=2).replace(b"}", b"}"), "not ((us, ys), Fs, ws)"),
-    ("set.pkl", pickle.dumps({1, 2}), "builds a set"),
-])
+@pytest.mark.parametrize(
+    "name, content, words",
+    [
+        ("notes.txt", b"hello", "unknown format"),
+        ("evil.pkl", pickle.dumps({"x": 1}, protocol=2).replace(b"}", b"}"), "not ((us, ys), Fs, ws)"),
+        ("set.pkl", pickle.dumps({1, 2}), "builds a set"),
+    ],
+)
 def test_unknown_or_unsafe_input_is_refused_in_one_line(tmp_path, name, content, words):
     (tmp_path / name).write_bytes(content)
     r = runner.invoke(app, ["import", str(tmp_path / name), "--out", str(tmp_path / "x.parquet")])
@@ -114,8 +119,9 @@ def test_data_takes_several_sources_and_rig_job_folders(tmp_path):
     per = both.df.groupby("design_key")["trial"].unique()
     assert all(sorted(t) == [0, 1, 2, 3] for t in per)  # ids renumbered per membrane, unique
     assert load_data([a]).df.equals(m.df) and load_data(a).df.equals(m.df)  # one source: as it was
-    r = runner.invoke(app, ["cv", str(a), str(job), "--model-type", "curve-fit", "--folds", "2",
-                            "--out", str(tmp_path / "cv.json")])
+    r = runner.invoke(
+        app, ["cv", str(a), str(job), "--model-type", "curve-fit", "--folds", "2", "--out", str(tmp_path / "cv.json")]
+    )
     assert r.exit_code == 0, r.output
     r = runner.invoke(app, ["cv", str(a), str(tmp_path), "--model-type", "curve-fit"])
     assert r.exit_code == 2 and "not a rig job" in r.output

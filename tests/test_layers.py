@@ -54,7 +54,9 @@ def _imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
         if isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+                base = ".".join(
+                    package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else [])
+                )
             for alias in node.names:
                 full = f"{base}.{alias.name}"
                 found.add(full if full in modules else base)
@@ -69,8 +71,12 @@ def _graph():
 
 
 def test_every_import_points_upstream_or_sideways():
-    bad = [f"{a} (layer {_layer(a)}) imports {b} (layer {_layer(b)})"
-           for a, targets in _graph().items() for b in targets if _layer(b) > _layer(a)]
+    bad = [
+        f"{a} (layer {_layer(a)}) imports {b} (layer {_layer(b)})"
+        for a, targets in _graph().items()
+        for b in targets
+        if _layer(b) > _layer(a)
+    ]
     assert not bad, "imports that run upstream:\n" + "\n".join(sorted(bad))
 
 
@@ -86,7 +92,7 @@ def test_no_import_cycles():
         stack.append(node)
         for nxt in sorted(graph[node]):
             if state.get(nxt) == 1:
-                cycles.append(" -> ".join(stack[stack.index(nxt):] + [nxt]))
+                cycles.append(" -> ".join(stack[stack.index(nxt) :] + [nxt]))
             elif nxt not in state:
                 visit(nxt)
         stack.pop()

@@ -29,11 +29,21 @@ def table(n_membranes: int = 3, rows_per_trial: int = 4, trials: int = 2) -> pd.
     for key in KEYS[:n_membranes]:
         for trial in range(trials):
             for i in range(rows_per_trial):
-                rows.append({
-                    "design_key": key, "trial": trial, "experiment": "force", "phase": "inflate",
-                    "time_s": 0.1 * i, "height_set_mm": 10.0 * trial, "height_mm": 10.0 * trial + 0.1,
-                    "pressure_pa": 500.0 * i, "force_n": 2.0 * i, "weight": 1.0, "source": "virtual",
-                })
+                rows.append(
+                    {
+                        "design_key": key,
+                        "trial": trial,
+                        "experiment": "force",
+                        "phase": "inflate",
+                        "time_s": 0.1 * i,
+                        "height_set_mm": 10.0 * trial,
+                        "height_mm": 10.0 * trial + 0.1,
+                        "pressure_pa": 500.0 * i,
+                        "force_n": 2.0 * i,
+                        "weight": 1.0,
+                        "source": "virtual",
+                    }
+                )
     return pd.DataFrame(rows, columns=list(COLUMNS))
 
 

@@ -28,9 +28,29 @@ def folder(tmp_path_factory):
     data = tmp / "two.parquet"
     write_parquet(meas.subset(meas.design_keys[:2]), data)
     out = tmp / "fit"
-    r = runner.invoke(app, ["fit-mf", str(data), "--out", str(out), "--physics", "standin", "--mcmc-steps", "30",
-                            "--walkers", "16", "--max-rows", "60", "--members", "2", "--delta-steps", "20",
-                            "--effects", "pressure_sensor"])
+    r = runner.invoke(
+        app,
+        [
+            "fit-mf",
+            str(data),
+            "--out",
+            str(out),
+            "--physics",
+            "standin",
+            "--mcmc-steps",
+            "30",
+            "--walkers",
+            "16",
+            "--max-rows",
+            "60",
+            "--members",
+            "2",
+            "--delta-steps",
+            "20",
+            "--effects",
+            "pressure_sensor",
+        ],
+    )
     assert r.exit_code == 0, r.output
     return out
 
@@ -40,7 +60,9 @@ def test_loaded_fit_members_equal_its_predictions_and_are_differentiable(folder)
     assert fit.model.effects == ("pressure_sensor",) and len(fit.design_keys) == 2
     design = np.array([[1.7, 31.0, np.nan, np.nan, np.nan, np.nan]] * 3)
     h, p = np.array([0.0, 20.0, 40.0]), np.array([3000.0, 5000.0, 7000.0])
-    traced = np.asarray(jax.jit(lambda d, hh, pp: fit.mf.members(d, hh, pp))(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p)))
+    traced = np.asarray(
+        jax.jit(lambda d, hh, pp: fit.mf.members(d, hh, pp))(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p))
+    )
     np.testing.assert_allclose(traced, np.asarray(fit.mf.predict(design, h, p)), rtol=1e-10)
     g = jax.grad(lambda d: fit.mf.members(d, jnp.asarray(h), jnp.asarray(p)).mean())(jnp.asarray(design))
     assert np.all(np.isfinite(np.asarray(g)[:, :2])) and float(jnp.abs(g[:, 1]).sum()) > 0
@@ -65,5 +87,7 @@ def test_a_folder_without_the_discrepancy_is_refused(folder, tmp_path):
     shutil.rmtree(broken / "delta")
     with pytest.raises(ValueError, match="missing"):
         load_multi_fidelity(broken)
-    r = runner.invoke(app, ["propose", "--model", str(broken), "--q", "1", "--restarts", "2", "--out", str(tmp_path / "p")])
+    r = runner.invoke(
+        app, ["propose", "--model", str(broken), "--q", "1", "--restarts", "2", "--out", str(tmp_path / "p")]
+    )
     assert r.exit_code == 2 and "delta" in r.output

@@ -78,8 +78,10 @@ def test_losses_finite_and_differentiable(n_rings):
     toy = Toy()
     u = jnp.asarray(np.random.default_rng(1).uniform(size=(8, SPACE.dim(n_rings))))
     wp = opt.Waypoints([14.7, 24.5], [3000.0, 5000.0], [5.0, 40.0])
-    for loss in (opt.height_loss(toy, opt.TARGET_SETS["A"], SPACE, n_rings),
-                 opt.trajectory_loss(toy, wp, SPACE, n_rings)):
+    for loss in (
+        opt.height_loss(toy, opt.TARGET_SETS["A"], SPACE, n_rings),
+        opt.trajectory_loss(toy, wp, SPACE, n_rings),
+    ):
         f = jax.jit(lambda x: loss(x)[0])
         val, g = jax.jit(jax.vmap(jax.value_and_grad(f)))(u)
         assert np.all(np.isfinite(val)) and np.all(np.isfinite(g))
@@ -125,8 +127,7 @@ def test_height_loss_multistart_finds_thin_wide_membrane():
 
 @pytest.mark.slow
 def test_height_maximisation_on_toy_picks_thin_wide_ringless():
-    res = opt.optimize(Toy(), opt.TARGET_SETS["A"], rings=(0, 1), n_starts=64, steps=40, n_refine=8,
-                       progress=False)
+    res = opt.optimize(Toy(), opt.TARGET_SETS["A"], rings=(0, 1), n_starts=64, steps=40, n_refine=8, progress=False)
     m = Membrane.from_key(res.design_key)
     assert m.n_rings == 0 and m.thickness_mm < 1.05 and m.contact_radius_mm > 38.0
     assert res.prediction["score_mm"] <= res.prediction["min_h_mm"]
@@ -139,10 +140,12 @@ def test_trajectory_targeting_recovers_the_generating_design():
     truth = Membrane.from_key("[1.8, 31.0, nan, nan, nan, nan]")
     F = np.repeat(opt.MASSES_N, 3)
     h = np.tile([5.0, 40.0, 50.0], 3)
-    p, _ = opt.model_pressures(toy, jnp.asarray(truth.to_array()), jnp.asarray(F), jnp.asarray(h),
-                               jnp.linspace(0, 2e4, 801))
-    res = opt.optimize(toy, opt.Waypoints(F, np.asarray(p), h), rings=(0,), n_starts=64, steps=80,
-                       n_refine=16, progress=False)
+    p, _ = opt.model_pressures(
+        toy, jnp.asarray(truth.to_array()), jnp.asarray(F), jnp.asarray(h), jnp.linspace(0, 2e4, 801)
+    )
+    res = opt.optimize(
+        toy, opt.Waypoints(F, np.asarray(p), h), rings=(0,), n_starts=64, steps=80, n_refine=16, progress=False
+    )
     assert res.prediction["traj_rmse"] < 0.01
     m = Membrane.from_key(res.design_key)
     # the toy's force depends on t and c only through c / 25 and 2 t: both identifiable
@@ -166,10 +169,19 @@ def test_cli_bad_input_fails_with_one_line(tmp_path):
     bad.write_text("force,pressure\n1,2\n")
     cases = [
         (["optimize", "--model", str(tmp_path), "--out", str(tmp_path)], "exactly one of"),
-        (["optimize", "--model", str(tmp_path), "--out", str(tmp_path), "--target-set", "C"], "--target-set must be one of"),
-        (["optimize", "--model", str(tmp_path), "--out", str(tmp_path), "--target-set", "A", "--rings", "3"], "--rings"),
+        (
+            ["optimize", "--model", str(tmp_path), "--out", str(tmp_path), "--target-set", "C"],
+            "--target-set must be one of",
+        ),
+        (
+            ["optimize", "--model", str(tmp_path), "--out", str(tmp_path), "--target-set", "A", "--rings", "3"],
+            "--rings",
+        ),
         (["optimize", "--model", str(tmp_path), "--out", str(tmp_path), "--targets", str(bad)], "need columns force_n"),
-        (["optimize", "--model", str(tmp_path / "none"), "--out", str(tmp_path), "--target-set", "A"], "does not exist"),
+        (
+            ["optimize", "--model", str(tmp_path / "none"), "--out", str(tmp_path), "--target-set", "A"],
+            "does not exist",
+        ),
     ]
     for args, msg in cases:
         r = runner.invoke(app, args)

@@ -25,8 +25,20 @@ def setup():
     rng = np.random.default_rng(0)
     x0 = model.initial_physical()
     draws = x0 + 0.01 * np.abs(x0) * rng.standard_normal((12, x0.size))
-    post = Posterior(model.names, tuple(s.unit for s in model.specs), draws, np.zeros(12), x0, 0.0,
-                     float(len(data)), 0.0, 0.0, {}, tuple(data.design_keys), ())
+    post = Posterior(
+        model.names,
+        tuple(s.unit for s in model.specs),
+        draws,
+        np.zeros(12),
+        x0,
+        0.0,
+        float(len(data)),
+        0.0,
+        0.0,
+        {},
+        tuple(data.design_keys),
+        (),
+    )
     return meas, data, model, post
 
 

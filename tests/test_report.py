@@ -22,7 +22,9 @@ def _png(path):
 
 def test_report_writes_html_and_json(tmp_path):
     rep = Report("demo", summary=["one line"])
-    rep.add("plane", ["text <b>escaped</b>"], table=[{"a": 1.23456, "b": "x"}], images=[(_png(tmp_path / "a.png"), "cap")])
+    rep.add(
+        "plane", ["text <b>escaped</b>"], table=[{"a": 1.23456, "b": "x"}], images=[(_png(tmp_path / "a.png"), "cap")]
+    )
     paths = rep.write(tmp_path)
     page = paths["html"].read_text()
     assert 'src="a.png"' in page and "&lt;b&gt;" in page and "1.235" in page

@@ -12,12 +12,24 @@ import pytest
 from mfdesign.design import Membrane
 from mfdesign.rig.emulator import Fault
 from mfdesign.rig.procedures import (
-    Journal, SensorDropout, iter_trial_events, membrane_plan, read_samples, run_job, to_measurements,
+    Journal,
+    SensorDropout,
+    iter_trial_events,
+    membrane_plan,
+    read_samples,
+    run_job,
+    to_measurements,
 )
 from mfdesign.rig.protocol import OverPressure, RigDisconnected, TelemetrySilence
 
 from test_rig_support import (
-    RINGED, RINGLESS, assert_no_lost_samples, assert_safe_after, emulator, fast_config, log_text,
+    RINGED,
+    RINGLESS,
+    assert_no_lost_samples,
+    assert_safe_after,
+    emulator,
+    fast_config,
+    log_text,
 )
 
 
@@ -42,8 +54,10 @@ def ends(job_dir):
 
 def test_garbled_and_partial_lines(tmp_path):
     cfg = fast_config()
-    faults = [Fault("garble", after_pressure_pa=300, duration_s=3.0, every=3),
-              Fault("partial", after_pressure_pa=300, duration_s=3.0, every=4)]
+    faults = [
+        Fault("garble", after_pressure_pa=300, duration_s=3.0, every=3),
+        Fault("partial", after_pressure_pa=300, duration_s=3.0, every=4),
+    ]
     with emulator(faults=faults, config=cfg) as em:
         res = run_job(em.port, tmp_path, plan(heights=(10, 0)), cfg, progress=False)
     assert res.status == "complete"
@@ -66,8 +80,10 @@ def test_garbled_and_partial_lines(tmp_path):
 
 def test_sensor_dropout(tmp_path):
     cfg = fast_config()
-    faults = [Fault("dropout", after_pressure_pa=300, duration_s=1.0, side="left"),
-              Fault("dropout", after_pressure_pa=1200, duration_s=0.5, side="both")]
+    faults = [
+        Fault("dropout", after_pressure_pa=300, duration_s=1.0, side="left"),
+        Fault("dropout", after_pressure_pa=1200, duration_s=0.5, side="both"),
+    ]
     with emulator(faults=faults, config=cfg) as em:
         res = run_job(em.port, tmp_path, plan(), cfg, progress=False)
     assert res.status == "complete"

@@ -1,6 +1,5 @@
 """Shortened characterisation and mass-lift jobs end to end through the pseudo-terminal."""
 
-
 import numpy as np
 import pytest
 
@@ -8,12 +7,23 @@ from mfdesign.units import G_M_S2
 from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
 from mfdesign.rig.procedures import (
-    JobError, iter_trial_events, lift_plan, membrane_plan, run_job, set_height, to_measurements,
+    JobError,
+    iter_trial_events,
+    lift_plan,
+    membrane_plan,
+    run_job,
+    set_height,
+    to_measurements,
 )
 from mfdesign.rig.protocol import RigConnection
 
 from test_rig_support import (
-    RINGED, RINGLESS, assert_no_lost_samples, emulator, fast_config, log_text,
+    RINGED,
+    RINGLESS,
+    assert_no_lost_samples,
+    emulator,
+    fast_config,
+    log_text,
 )
 
 
@@ -90,8 +100,7 @@ def test_job_dir_with_another_plan_is_refused(tmp_path):
     cfg = fast_config()
     d = Membrane.from_key(RINGLESS)
     with emulator(config=cfg) as em:
-        run_job(em.port, tmp_path, membrane_plan(d, heights_mm=(20,), trials=1, source="virtual"), cfg,
-                progress=False)
+        run_job(em.port, tmp_path, membrane_plan(d, heights_mm=(20,), trials=1, source="virtual"), cfg, progress=False)
     with pytest.raises(JobError, match="different job"):
         run_job(em.port, tmp_path, membrane_plan(d, heights_mm=(30,), trials=1), cfg, progress=False)
     with pytest.raises(JobError, match="hard limit"):

@@ -28,18 +28,21 @@ def test_dropout_gives_nan_and_other_sensor_is_used():
     assert math.isnan(s.height_mm)
 
 
-@pytest.mark.parametrize("line, why", [
-    ("1,2,3,4,5,6", "7 comma-separated"),
-    ("1,2,3,4,5,6,1,8", "7 comma-separated"),
-    ("1,2,x,4,5,6,1", "pressure_psi"),
-    ("1,2,nan,4,5,6,1", "pressure_psi"),
-    ("1,2,3,4,5,6,2", "limit_switch"),
-    ("1,2,3,4,5,6,", "empty field"),
-    ("1, 2,3,4,5,6,1", "whitespace"),
-    ("-1,2,3,4,5,6,1", "time"),
-    ("1,2,3,-4,5,6,1", "left_tof"),
-    (b"1,2,3,4,\xff,6,1", "ASCII"),
-])
+@pytest.mark.parametrize(
+    "line, why",
+    [
+        ("1,2,3,4,5,6", "7 comma-separated"),
+        ("1,2,3,4,5,6,1,8", "7 comma-separated"),
+        ("1,2,x,4,5,6,1", "pressure_psi"),
+        ("1,2,nan,4,5,6,1", "pressure_psi"),
+        ("1,2,3,4,5,6,2", "limit_switch"),
+        ("1,2,3,4,5,6,", "empty field"),
+        ("1, 2,3,4,5,6,1", "whitespace"),
+        ("-1,2,3,4,5,6,1", "time"),
+        ("1,2,3,-4,5,6,1", "left_tof"),
+        (b"1,2,3,4,\xff,6,1", "ASCII"),
+    ],
+)
 def test_strict_parsing_rejects_with_reason(line, why):
     with pytest.raises(TelemetryError, match=why):
         parse_telemetry(line, CFG)
@@ -62,7 +65,7 @@ def test_affine_inverse():
 
 def test_config_toml_and_json(tmp_path):
     p = tmp_path / "rig.toml"
-    p.write_text('telemetry_timeout_s = 0.5\npush_lowers_plate = false\n[tof_left]\nscale = -1.02\noffset_mm = 118\n')
+    p.write_text("telemetry_timeout_s = 0.5\npush_lowers_plate = false\n[tof_left]\nscale = -1.02\noffset_mm = 118\n")
     c = RigConfig.load(p)
     assert c.telemetry_timeout_s == 0.5 and c.tof_left == Affine(-1.02, 118.0) and not c.push_lowers_plate
     j = tmp_path / "rig.json"
@@ -70,17 +73,20 @@ def test_config_toml_and_json(tmp_path):
     assert RigConfig.load(j) == c
 
 
-@pytest.mark.parametrize("text, msg", [
-    ("telemetry_timout_s = 1", "unknown key"),
-    ("telemetry_timeout_s = -1", "positive"),
-    ('telemetry_timeout_s = "1"', "must be a number"),
-    ("[tof_left]\nscale = 0\noffset_mm = 1", "non-zero"),
-    ("[tof_left]\nslope = 1", "scale and offset_mm"),
-    ("height_min_mm = 80", "below height_max_mm"),
-    ("port_baudrate = 115201", "standard rate"),
-    ("push_lowers_plate = 1", "true or false"),
-    ("telemetry_timeout_s = ", "not valid TOML"),
-])
+@pytest.mark.parametrize(
+    "text, msg",
+    [
+        ("telemetry_timout_s = 1", "unknown key"),
+        ("telemetry_timeout_s = -1", "positive"),
+        ('telemetry_timeout_s = "1"', "must be a number"),
+        ("[tof_left]\nscale = 0\noffset_mm = 1", "non-zero"),
+        ("[tof_left]\nslope = 1", "scale and offset_mm"),
+        ("height_min_mm = 80", "below height_max_mm"),
+        ("port_baudrate = 115201", "standard rate"),
+        ("push_lowers_plate = 1", "true or false"),
+        ("telemetry_timeout_s = ", "not valid TOML"),
+    ],
+)
 def test_config_errors_name_the_key(tmp_path, text, msg):
     p = tmp_path / "rig.toml"
     p.write_text(text)

@@ -38,11 +38,30 @@ def test_killed_job_resumes_without_loss_or_duplicates(tmp_path):
     cfg_path.write_text(json.dumps(cfg.to_dict()))
     job = tmp_path / "job"
     samples = job / "samples.csv"
-    args = ["--design", RINGLESS, "--out", str(job), "--config", str(cfg_path), "--heights", "10", "--heights", "20",
-            "--trials", "2", "--source", "virtual", "--no-progress"]
+    args = [
+        "--design",
+        RINGLESS,
+        "--out",
+        str(job),
+        "--config",
+        str(cfg_path),
+        "--heights",
+        "10",
+        "--heights",
+        "20",
+        "--trials",
+        "2",
+        "--source",
+        "virtual",
+        "--no-progress",
+    ]
     with emulator(config=cfg) as em:
-        proc = subprocess.Popen([sys.executable, "-m", "mfdesign.cli", "rig", "characterize", "--port", em.port,
-                                 *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mfdesign.cli", "rig", "characterize", "--port", em.port, *args],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+        )
         try:
             deadline = time.monotonic() + 60
             while _count_lines(samples) < 100 or not _in_trial(job):  # mid-trial, past the first

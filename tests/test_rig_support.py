@@ -28,8 +28,7 @@ def fast_config(**kw) -> RigConfig:
 @contextlib.contextmanager
 def emulator(key: str = RINGLESS, faults=(), config: RigConfig | None = None, burst_pa=None, **kw):
     plant = AnalyticPlant.from_design(Membrane.from_key(key), burst_pressure_pa=burst_pa)
-    em = RigEmulator(plant, config or fast_config(), time_scale=kw.pop("time_scale", SCALE),
-                     faults=list(faults), **kw)
+    em = RigEmulator(plant, config or fast_config(), time_scale=kw.pop("time_scale", SCALE), faults=list(faults), **kw)
     em.start()
     try:
         yield em
@@ -76,4 +75,3 @@ def assert_no_lost_samples(em: RigEmulator, job_dir) -> int:
         assert not missing, f"samples sent but not recorded: {missing[:5]}"
         n += len(times)
     return n
-

@@ -17,7 +17,13 @@ from mfdesign.rig.config import RigConfig
 from mfdesign.rig.emulator import WORKING_PRESSURE_PA, RigEmulator, pump_time_s
 from mfdesign.rig.procedures import RINGLESS_LIMIT_PA, iter_trial_events, lift_plan, membrane_plan, run_job
 from mfdesign.rig.protocol import (
-    DEFAULT_WATCHDOG_S, PSI_TO_PA, Command, RigConnection, TelemetryError, WatchdogStatus, WatchdogTripped,
+    DEFAULT_WATCHDOG_S,
+    PSI_TO_PA,
+    Command,
+    RigConnection,
+    TelemetryError,
+    WatchdogStatus,
+    WatchdogTripped,
     parse_watchdog_status,
 )
 
@@ -69,8 +75,14 @@ def test_default_watchdog_is_well_inside_the_pump_budget():
 def test_status_lines_parse_strictly():
     assert parse_watchdog_status(b"#watchdog,armed,1.000") == WatchdogStatus("armed", 1.0)
     assert parse_watchdog_status(b"#watchdog,tripped,1.25\r") == WatchdogStatus("tripped", 1.25)
-    for bad in (b"#watchdog,armed", b"#watchdog,asleep,1", b"#watchdog,armed,x", b"#watchdog,armed,1,2",
-                b"#watchdog,tripped,-1", b"#watchdog,armed,nan"):
+    for bad in (
+        b"#watchdog,armed",
+        b"#watchdog,asleep,1",
+        b"#watchdog,armed,x",
+        b"#watchdog,armed,1,2",
+        b"#watchdog,tripped,-1",
+        b"#watchdog,armed,nan",
+    ):
         with pytest.raises(TelemetryError):
             parse_watchdog_status(bad)
     assert Command.HEARTBEAT == "p"
@@ -138,7 +150,10 @@ def _kill_pumping_host(watchdog_s: float) -> dict:
     with emulator(config=RigConfig(), time_scale=SCALE, watchdog_s=watchdog_s) as em:
         host = subprocess.Popen(
             [sys.executable, "-c", HOST, em.port, str(RigConfig().heartbeat_interval_s / SCALE)],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+        )
         try:
             deadline = time.monotonic() + 30
             while em.pressure < WORKING_PRESSURE_PA:
@@ -160,8 +175,16 @@ def _kill_pumping_host(watchdog_s: float) -> dict:
         # the emulator's exact pressure when its pump stopped, and every line it sent after the kill
         sent_pa = [float(line.split(",")[2]) * PSI_TO_PA for w, _, _, line in em.sent if w >= killed]
         peak_pa = max(sent_pa + [t[3] for t in em.watchdog_trips] + [em.pressure])
-        return dict(p_kill_pa=p_kill_pa, killed=killed, peak_pa=peak_pa, hard_pa=hard_pa, trips=_trips(em),
-                    pump=em.pump, valve_open=em.valve_open, motion=dict(em.motion))
+        return dict(
+            p_kill_pa=p_kill_pa,
+            killed=killed,
+            peak_pa=peak_pa,
+            hard_pa=hard_pa,
+            trips=_trips(em),
+            pump=em.pump,
+            valve_open=em.valve_open,
+            motion=dict(em.motion),
+        )
 
 
 def test_killed_host_leaves_the_pressure_under_the_hard_limit():
@@ -172,9 +195,11 @@ def test_killed_host_leaves_the_pressure_under_the_hard_limit():
     the default watchdog and heartbeat also divided by 4 (0.25 s and 0.05 s of wall clock), so
     the pump gets the same 1 rig second as on the real rig with the defaults."""
     r = _kill_pumping_host(DEFAULT_WATCHDOG_S / SCALE)
-    (trip_wall, what), = r["trips"]
-    print(f"killed at {r['p_kill_pa']:.0f} Pa; watchdog {trip_wall - r['killed']:.3f} s later; "
-          f"peak {r['peak_pa']:.0f} Pa (hard limit {r['hard_pa']:.0f} Pa); {what}")
+    ((trip_wall, what),) = r["trips"]
+    print(
+        f"killed at {r['p_kill_pa']:.0f} Pa; watchdog {trip_wall - r['killed']:.3f} s later; "
+        f"peak {r['peak_pa']:.0f} Pa (hard limit {r['hard_pa']:.0f} Pa); {what}"
+    )
     assert r["peak_pa"] < r["hard_pa"]
     assert not r["pump"] and r["valve_open"] and r["motion"] == {"left": 0, "right": 0}
     assert trip_wall - r["killed"] < 2 * DEFAULT_WATCHDOG_S / SCALE + 0.5  # + slack for a loaded machine

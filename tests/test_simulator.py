@@ -42,7 +42,11 @@ def test_shooting_agrees_with_finite_elements(design):
 @pytest.mark.parametrize("design", [RINGLESS, TWO_RINGS], ids=["ringless", "two-rings"])
 @pytest.mark.parametrize(
     "h, p",
-    [(20.0, 5000.0), pytest.param(5.0, 7000.0, marks=pytest.mark.slow), pytest.param(50.0, 4000.0, marks=pytest.mark.slow)],
+    [
+        (20.0, 5000.0),
+        pytest.param(5.0, 7000.0, marks=pytest.mark.slow),
+        pytest.param(50.0, 4000.0, marks=pytest.mark.slow),
+    ],
 )
 def test_first_integral_holds_along_the_solution(design, h, p):
     """2 pi r t W1 sin(phi) + p pi R^2 = F at every r (phi above the horizontal)."""
@@ -80,9 +84,7 @@ def test_free_inflation_matches_hencky():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "design, p_pa", [(RINGLESS, 3000.0), (TWO_RINGS, 5000.0)], ids=["ringless", "two-rings"]
-)
+@pytest.mark.parametrize("design, p_pa", [(RINGLESS, 3000.0), (TWO_RINGS, 5000.0)], ids=["ringless", "two-rings"])
 def test_height_at_inverts_force_at(design, p_pa):
     """On the stable branch (force falling with height). At 5 kPa the ringless 2 mm
     membrane's force *rises* with height, so a load lifted there snaps through: no

@@ -61,12 +61,15 @@ def test_malicious_pickle_is_refused(tmp_path):
     assert isinstance(err.value, pickle.UnpicklingError)
 
 
-@pytest.mark.parametrize("payload", [
-    pickle.dumps(eval),
-    pickle.dumps(getattr),
-    pickle.dumps(np.asarray([1, "a"], dtype=object)),
-    pickle.dumps(np.load),
-])
+@pytest.mark.parametrize(
+    "payload",
+    [
+        pickle.dumps(eval),
+        pickle.dumps(getattr),
+        pickle.dumps(np.asarray([1, "a"], dtype=object)),
+        pickle.dumps(np.load),
+    ],
+)
 def test_other_globals_and_object_arrays_are_refused(payload):
     with pytest.raises(UnsafePickleError):
         restricted_loads(payload)

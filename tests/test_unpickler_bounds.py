@@ -30,8 +30,12 @@ def huge_array(shape: tuple[int, ...]) -> bytes:
     """``numpy.core.multiarray._reconstruct(ndarray, shape, 'f')``: NumPy would allocate
     the whole shape on the REDUCE, before any data is read."""
     sizes = b"".join(b"J" + struct.pack("<i", n) for n in shape)  # BININT each size
-    return (b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\n" + sizes
-            + {1: b"\x85", 2: b"\x86", 3: b"\x87"}[len(shape)] + b"U\x01f\x87R.")  # TUPLEn; 'f'; TUPLE3; REDUCE
+    return (
+        b"\x80\x02cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\n"
+        + sizes
+        + {1: b"\x85", 2: b"\x86", 3: b"\x87"}[len(shape)]
+        + b"U\x01f\x87R."
+    )  # TUPLEn; 'f'; TUPLE3; REDUCE
 
 
 def refused_quickly(data: bytes, match: str) -> None:

@@ -68,7 +68,11 @@ def test_ringless_stops_at_contact_ringed_at_limits():
     e0 = ev[(RINGLESS.key(), 0)]
     # analytic rise = p / 250 - h / 2 reaches 20 mm at p = 250 * (20 + 15) = 8750 Pa
     assert e0["end_reason"] == "contact" and e0["peak_pa"] == pytest.approx(8750, abs=15)
-    peaks = [ev[(RINGED.key(), k)]["peak_pa"] for k in (0, 1) if (RINGED.key(), k) in ev and ev[(RINGED.key(), k)]["status"] == "complete"]
+    peaks = [
+        ev[(RINGED.key(), k)]["peak_pa"]
+        for k in (0, 1)
+        if (RINGED.key(), k) in ev and ev[(RINGED.key(), k)]["status"] == "complete"
+    ]
     assert peaks[0] == pytest.approx(4300)
 
 
@@ -86,22 +90,38 @@ def test_noise_and_quantisation():
 def test_hidden_effects_act():
     clean = dict(noise=Noise.none())
     plain = _rig(**clean).characterise(RINGLESS).df
-    off = _rig(effects=["pressure_sensor"], theta={"pressure_sensor.offset_pa": 150.0}, **clean).characterise(RINGLESS).df
+    off = (
+        _rig(effects=["pressure_sensor"], theta={"pressure_sensor.offset_pa": 150.0}, **clean).characterise(RINGLESS).df
+    )
     np.testing.assert_allclose(off["pressure_pa"], plain["pressure_pa"] + 150.0)
-    thick = _rig(effects=["thickness_deviation"], theta={"thickness_deviation.relative": 0.2}, **clean).characterise(RINGLESS).df
+    thick = (
+        _rig(effects=["thickness_deviation"], theta={"thickness_deviation.relative": 0.2}, **clean)
+        .characterise(RINGLESS)
+        .df
+    )
     assert len(thick) == len(plain)
     hi = plain["force_n"] > 1
     assert np.all(thick["force_n"][hi] <= plain["force_n"][hi] + 1e-9)  # stiffer: contacts later
     assert np.any(thick["force_n"][hi] < plain["force_n"][hi] - 0.1)
     # per-membrane override
-    per = _rig(effects=["thickness_deviation"], membrane_theta={RINGLESS.key(): {"thickness_deviation.relative": 0.2}},
-               **clean).characterise(RINGLESS).df
+    per = (
+        _rig(
+            effects=["thickness_deviation"],
+            membrane_theta={RINGLESS.key(): {"thickness_deviation.relative": 0.2}},
+            **clean,
+        )
+        .characterise(RINGLESS)
+        .df
+    )
     np.testing.assert_array_equal(per["force_n"], thick["force_n"])
     # Mullins: only trial 0 differs
     at30 = Protocol(heights_mm=(30.0, 0.0), trials_per_height=2, lift_trials=1, sample_hz=2.0)
     plain30 = _rig(protocol=at30, **clean).characterise(RINGLESS).df
-    soft = _rig(effects=["stress_softening"], theta={"stress_softening.stiffening": 0.3}, protocol=at30,
-                **clean).characterise(RINGLESS).df
+    soft = (
+        _rig(effects=["stress_softening"], theta={"stress_softening.stiffening": 0.3}, protocol=at30, **clean)
+        .characterise(RINGLESS)
+        .df
+    )
     diff = soft["force_n"].to_numpy() != plain30["force_n"].to_numpy()
     assert set(plain30["trial"][diff]) == {0}
 
@@ -130,10 +150,12 @@ def test_lift_trajectory_follows_the_plane():
 def test_same_seed_same_bytes(tmp_path):
     paths = []
     for k, seed in enumerate((11, 11, 12)):
-        m = _rig(seed=seed, effects=["pressure_sensor", "hysteresis"],
-                 theta={"pressure_sensor.offset_pa": 150.0, "hysteresis.loss": 0.05},
-                 protocol=Protocol(heights_mm=(0.0, 30.0), trials_per_height=2, deflate=True,
-                                   sample_hz=2.0, lift_trials=1)).run([RINGLESS, RINGED], progress=False)
+        m = _rig(
+            seed=seed,
+            effects=["pressure_sensor", "hysteresis"],
+            theta={"pressure_sensor.offset_pa": 150.0, "hysteresis.loss": 0.05},
+            protocol=Protocol(heights_mm=(0.0, 30.0), trials_per_height=2, deflate=True, sample_hz=2.0, lift_trials=1),
+        ).run([RINGLESS, RINGED], progress=False)
         p = tmp_path / f"run{k}.parquet"
         m.to_parquet(p)
         paths.append(p)
@@ -142,10 +164,16 @@ def test_same_seed_same_bytes(tmp_path):
     back = Measurements.from_parquet(paths[0])
     assert (back.df["phase"] == "deflate").any()
     # a membrane's data do not depend on which other membranes run
-    alone = _rig(seed=11, effects=["pressure_sensor", "hysteresis"],
-                 theta={"pressure_sensor.offset_pa": 150.0, "hysteresis.loss": 0.05},
-                 protocol=Protocol(heights_mm=(0.0, 30.0), trials_per_height=2, deflate=True, sample_hz=2.0,
-                                   lift_trials=1)).run([RINGED], progress=False).df
+    alone = (
+        _rig(
+            seed=11,
+            effects=["pressure_sensor", "hysteresis"],
+            theta={"pressure_sensor.offset_pa": 150.0, "hysteresis.loss": 0.05},
+            protocol=Protocol(heights_mm=(0.0, 30.0), trials_per_height=2, deflate=True, sample_hz=2.0, lift_trials=1),
+        )
+        .run([RINGED], progress=False)
+        .df
+    )
     both = back.df[back.df["design_key"] == RINGED.key()].reset_index(drop=True)
     assert alone.equals(both)
 
@@ -162,7 +190,9 @@ def test_plane_cache(tmp_path):
 
 
 def _load_script():
-    spec = importlib.util.spec_from_file_location("make_bundled_dataset", ROOT / "experiments" / "make_bundled_dataset.py")
+    spec = importlib.util.spec_from_file_location(
+        "make_bundled_dataset", ROOT / "experiments" / "make_bundled_dataset.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -196,8 +226,16 @@ def test_bundled_dataset_is_valid():
 @pytest.mark.slow
 def test_real_simulator_small_plane():
     """The rig on the real simulator: a small plane of a ringless membrane (compiles: ~1-2 min)."""
-    proto = Protocol(heights_mm=(30.0,), trials_per_height=1, ringless_limit_pa=2000.0, lift_masses_kg=(),
-                     lift_limit_pa=2000.0, lift_height_max_mm=0.0, height_step_mm=40.0, pressure_step_pa=500.0)
+    proto = Protocol(
+        heights_mm=(30.0,),
+        trials_per_height=1,
+        ringless_limit_pa=2000.0,
+        lift_masses_kg=(),
+        lift_limit_pa=2000.0,
+        lift_height_max_mm=0.0,
+        height_step_mm=40.0,
+        pressure_step_pa=500.0,
+    )
     rig = VirtualRig(seed=0, protocol=proto)
     plane = rig.truth_plane(RINGLESS)
     assert plane.force_n.shape == (len(plane.h_grid), 5)  # pressures {0 (added), 500, .., 2000}

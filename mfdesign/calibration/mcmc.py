@@ -44,8 +44,15 @@ import numpy as np
 from mfdesign.calibration.posterior import Posterior
 from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
 
-__all__ = ["ConvergenceWarning", "LogPosterior", "MapResult", "build_model", "calibrate",
-           "convergence_report", "find_map"]
+__all__ = [
+    "ConvergenceWarning",
+    "LogPosterior",
+    "MapResult",
+    "build_model",
+    "calibrate",
+    "convergence_report",
+    "find_map",
+]
 
 MIN_TAU_RATIO = 50.0
 # Independence proposals fitted to the posterior are accepted most of the time (that is
@@ -59,8 +66,9 @@ class ConvergenceWarning(UserWarning):
 
 def build_model(force_model, data: CalibrationData, effects: Sequence[str] = (), **kwargs) -> HierarchicalModel:
     """A :class:`HierarchicalModel` with one thickness latent per membrane of ``data``."""
-    return HierarchicalModel(force_model=force_model, effects=tuple(effects),
-                             n_membranes=len(data.design_keys), **kwargs)
+    return HierarchicalModel(
+        force_model=force_model, effects=tuple(effects), n_membranes=len(data.design_keys), **kwargs
+    )
 
 
 @eqx.filter_jit
@@ -135,8 +143,9 @@ def _map_kernel(model: HierarchicalModel, inits, data: CalibrationData, max_step
     return jax.vmap(one)(inits)
 
 
-def find_map(model: HierarchicalModel, data: CalibrationData, starts: int = 4, seed: int = 0,
-             max_steps: int = 1000, u0=None) -> MapResult:
+def find_map(
+    model: HierarchicalModel, data: CalibrationData, starts: int = 4, seed: int = 0, max_steps: int = 1000, u0=None
+) -> MapResult:
     """MAP by ``optimistix.BFGS`` from ``starts`` points at once (``jax.vmap``): ``u0``
     (default: the prior-median start) and Gaussian perturbations of it (sd 0.3 in u); the
     best is kept."""
@@ -175,8 +184,15 @@ def _params_at(model: HierarchicalModel, data: CalibrationData, u: np.ndarray):
     return jax.vmap(lambda xx: model.sim_params(xx, data))(x)
 
 
-def fit_force_model(model: HierarchicalModel, data: CalibrationData, res: MapResult, *, starts: int = 4,
-                    seed: int = 0, progress: bool = False) -> tuple[HierarchicalModel, MapResult]:
+def fit_force_model(
+    model: HierarchicalModel,
+    data: CalibrationData,
+    res: MapResult,
+    *,
+    starts: int = 4,
+    seed: int = 0,
+    progress: bool = False,
+) -> tuple[HierarchicalModel, MapResult]:
     """Grow the force model until it holds the MAP +- ``LATTICE_SD`` Laplace sd.
 
     The exact force model holds simulator planes only where fits need them. The MAP is
@@ -241,8 +257,10 @@ def _reaches_edge(model: HierarchicalModel, data: CalibrationData, u_s: np.ndarr
     pick = np.linspace(0, len(u_s) - 1, min(len(u_s), 256)).astype(int)
     if fm.covers(_params_at(model, data, u_s[pick])):
         return ""
-    return ("posterior samples reach the edge of the exact force model's lattice of simulator planes: the "
-            "posterior is truncated there; rerun (the lattice grows around the new MAP) or widen the priors' support")
+    return (
+        "posterior samples reach the edge of the exact force model's lattice of simulator planes: the "
+        "posterior is truncated there; rerun (the lattice grows around the new MAP) or widen the priors' support"
+    )
 
 
 def _ball(result: MapResult, n_walkers: int, scale: float, rng: np.random.Generator) -> np.ndarray:
@@ -303,8 +321,9 @@ def default_moves(result: MapResult, laplace_share: float | None = None) -> list
     return _mixture(np.asarray(result.u), cov, share, inflate=1.3)
 
 
-def convergence_report(sampler, names: Sequence[str], min_ratio: float = MIN_TAU_RATIO,
-                       warn: bool = True, discard: int = 0) -> dict[str, Any]:
+def convergence_report(
+    sampler, names: Sequence[str], min_ratio: float = MIN_TAU_RATIO, warn: bool = True, discard: int = 0
+) -> dict[str, Any]:
     """Integrated autocorrelation times, chain length / tau, mean acceptance, over the
     chain after its first ``discard`` steps (the adaptation stage); warns when that chain
     is shorter than ``min_ratio`` tau or the acceptance is outside ``ACCEPTANCE_RANGE``."""
@@ -316,15 +335,25 @@ def convergence_report(sampler, names: Sequence[str], min_ratio: float = MIN_TAU
     tau = np.asarray(emcee.autocorr.integrated_time(chain, tol=0, quiet=True), float)
     acc = float(np.mean(sampler.acceptance_fraction))
     ratio = float(n_after / np.max(tau)) if np.all(np.isfinite(tau)) else 0.0
-    report = {"n_steps": n_steps, "n_steps_after_adapt": n_after, "n_walkers": int(chain.shape[1]),
-              "tau": {n: float(t) for n, t in zip(names, tau)}, "tau_max": float(np.max(tau)),
-              "steps_over_tau": ratio, "min_steps_over_tau": min_ratio, "acceptance": acc,
-              "acceptance_range": list(ACCEPTANCE_RANGE), "adapt_steps": int(discard)}
+    report = {
+        "n_steps": n_steps,
+        "n_steps_after_adapt": n_after,
+        "n_walkers": int(chain.shape[1]),
+        "tau": {n: float(t) for n, t in zip(names, tau)},
+        "tau_max": float(np.max(tau)),
+        "steps_over_tau": ratio,
+        "min_steps_over_tau": min_ratio,
+        "acceptance": acc,
+        "acceptance_range": list(ACCEPTANCE_RANGE),
+        "adapt_steps": int(discard),
+    }
     problems = []
     if ratio < min_ratio:
         worst = names[int(np.argmax(tau))]
-        problems.append(f"chain of {n_after} steps (after {discard} adaptation steps) is {ratio:.1f} tau long (tau_max {np.max(tau):.1f} for "
-                        f"{worst}); want >= {min_ratio:g} tau, i.e. >= {math.ceil(min_ratio * np.max(tau))} steps")
+        problems.append(
+            f"chain of {n_after} steps (after {discard} adaptation steps) is {ratio:.1f} tau long (tau_max {np.max(tau):.1f} for "
+            f"{worst}); want >= {min_ratio:g} tau, i.e. >= {math.ceil(min_ratio * np.max(tau))} steps"
+        )
     if not ACCEPTANCE_RANGE[0] <= acc <= ACCEPTANCE_RANGE[1]:
         problems.append(f"mean acceptance fraction {acc:.2f} outside {list(ACCEPTANCE_RANGE)}")
     report["converged"] = not problems
@@ -354,9 +383,12 @@ def _stored_map(path: Path, fingerprint: str):
         if g.attrs.get("fingerprint") != fingerprint:
             raise ValueError(
                 f"{path} holds a chain of another model or data set (fingerprint {g.attrs.get('fingerprint')} "
-                f"!= {fingerprint}); use a new file or resume=False to overwrite it")
-        return {k: np.asarray(g[k]) for k in ("u", "x", "hessian")} | {"log_post": float(g.attrs["log_post"]),
-                                                                     "converged": bool(g.attrs["converged"])}
+                f"!= {fingerprint}); use a new file or resume=False to overwrite it"
+            )
+        return {k: np.asarray(g[k]) for k in ("u", "x", "hessian")} | {
+            "log_post": float(g.attrs["log_post"]),
+            "converged": bool(g.attrs["converged"]),
+        }
 
 
 def _store_map(path: Path, fingerprint: str, res: MapResult, names) -> None:
@@ -374,11 +406,26 @@ def _store_map(path: Path, fingerprint: str, res: MapResult, names) -> None:
             g.create_dataset(k, data=np.asarray(getattr(res, k)))
 
 
-def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n_steps: int = 3000,
-              chain_path: str | os.PathLike | None = None, resume: bool = True, pool=None, seed: int = 0,
-              progress: bool = True, max_rows: int | None = 3000, map_starts: int = 4, ball: float = 0.1,
-              callback: Callable[[int], None] | None = None, warn: bool = True, moves=None,
-              stop_when_converged: bool = False, check_every: int = 50) -> Posterior:
+def calibrate(
+    data,
+    model: HierarchicalModel,
+    *,
+    n_walkers: int | None = None,
+    n_steps: int = 3000,
+    chain_path: str | os.PathLike | None = None,
+    resume: bool = True,
+    pool=None,
+    seed: int = 0,
+    progress: bool = True,
+    max_rows: int | None = 3000,
+    map_starts: int = 4,
+    ball: float = 0.1,
+    callback: Callable[[int], None] | None = None,
+    warn: bool = True,
+    moves=None,
+    stop_when_converged: bool = False,
+    check_every: int = 50,
+) -> Posterior:
     """Sample the posterior of ``model`` given ``data`` (Measurements or CalibrationData).
 
     ``n_steps``: total chain length (a resumed run samples only the missing steps);
@@ -398,8 +445,10 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
     if not isinstance(data, CalibrationData):
         data = CalibrationData.from_measurements(data, max_rows=max_rows, seed=seed)
     if model.uses_latents and model.n_membranes != len(data.design_keys):
-        raise ValueError(f"model has {model.n_membranes} membrane latents but the data hold "
-                         f"{len(data.design_keys)} membranes; build it with build_model(force_model, data)")
+        raise ValueError(
+            f"model has {model.n_membranes} membrane latents but the data hold "
+            f"{len(data.design_keys)} membranes; build it with build_model(force_model, data)"
+        )
     dim = model.dim
     n_walkers = int(n_walkers or max(32, 2 * dim + 2))
     if n_walkers < 2 * dim:
@@ -428,8 +477,11 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
             backend.reset(n_walkers, dim)
             _store_map(chain_path, fp, res, model.names)
     if not bool(res.converged):
-        warnings.warn("the MAP search (BFGS) did not report convergence; walkers start at its best point",
-                      ConvergenceWarning, stacklevel=2)
+        warnings.warn(
+            "the MAP search (BFGS) did not report convergence; walkers start at its best point",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
 
     # Two stages when the moves are ours: ADAPT_STEPS with the Laplace approximation at the
     # MAP, then the independence proposal refitted to the second half of those draws (the
@@ -458,8 +510,11 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
                 callback(it)
             if stop_when_converged and it > adapt and (it - adapt) % max(int(check_every), 1) == 0:
                 tau = np.asarray(sampler.get_autocorr_time(discard=adapt, tol=0, quiet=True), float)
-                if (np.all(np.isfinite(tau)) and it - adapt >= MIN_TAU_RATIO * np.max(tau)
-                        and np.all(np.abs(old_tau - tau) < 0.05 * tau)):
+                if (
+                    np.all(np.isfinite(tau))
+                    and it - adapt >= MIN_TAU_RATIO * np.max(tau)
+                    and np.all(np.abs(old_tau - tau) < 0.05 * tau)
+                ):
                     return True
                 old_tau = tau
         return False
@@ -474,8 +529,9 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
         run(sampler, adapt, start)
         start = sampler.get_last_sample()
     if adapt:
-        sampler = sampler_with(adapted_moves(backend.get_chain(discard=adapt // 2, flat=True)[: (adapt - adapt // 2)
-                                                                                            * n_walkers]))
+        sampler = sampler_with(
+            adapted_moves(backend.get_chain(discard=adapt // 2, flat=True)[: (adapt - adapt // 2) * n_walkers])
+        )
         start = sampler.get_last_sample()
     run(sampler, n_steps, start)
 
@@ -509,6 +565,20 @@ def calibrate(data, model: HierarchicalModel, *, n_walkers: int | None = None, n
     laplace = float(res.log_post) + 0.5 * dim * math.log(2 * math.pi) - 0.5 * logdet if sign > 0 else float("nan")
     bic = dim * math.log(n_rows) - 2.0 * ll_map
     units = tuple(s.unit for s in model.specs)
-    return Posterior(model.names, units, x_s, lp_s, x_map, ll_map, n_rows, bic, laplace, report,
-                     tuple(data.design_keys), tuple(model.effects), x_chain, lp_chain,
-                     force_model=model.force_model)
+    return Posterior(
+        model.names,
+        units,
+        x_s,
+        lp_s,
+        x_map,
+        ll_map,
+        n_rows,
+        bic,
+        laplace,
+        report,
+        tuple(data.design_keys),
+        tuple(model.effects),
+        x_chain,
+        lp_chain,
+        force_model=model.force_model,
+    )

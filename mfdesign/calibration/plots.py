@@ -17,8 +17,9 @@ import numpy as np
 __all__ = ["corner_plot", "pair_plot"]
 
 
-def corner_plot(samples, names: Sequence[str], path, truths: Sequence[float] | None = None,
-                bins: int = 30, title: str | None = None) -> Path:
+def corner_plot(
+    samples, names: Sequence[str], path, truths: Sequence[float] | None = None, bins: int = 30, title: str | None = None
+) -> Path:
     """Write a pairwise plot of ``samples`` [S, d] to ``path`` (PNG) and return the path."""
     import matplotlib
 
@@ -70,8 +71,14 @@ def corner_plot(samples, names: Sequence[str], path, truths: Sequence[float] | N
     return path
 
 
-def pair_plot(posterior, path, truths=None, names: Sequence[str] | None = None, title: str | None = None,
-              quantiles: Sequence[float] = (0.05, 0.5, 0.95)) -> Path:
+def pair_plot(
+    posterior,
+    path,
+    truths=None,
+    names: Sequence[str] | None = None,
+    title: str | None = None,
+    quantiles: Sequence[float] = (0.05, 0.5, 0.95),
+) -> Path:
     """A ``corner.corner`` pair plot (PNG) of a Posterior (or samples [S, d] with ``names``).
 
     ``truths``: a dict ``{name: value}`` (parameters not in it get no line) or a sequence
@@ -105,9 +112,17 @@ def pair_plot(posterior, path, truths=None, names: Sequence[str] | None = None, 
         truths = [truths.get(n) for n in names]
     elif truths is not None and len(truths) != len(names):
         raise ValueError(f"{len(truths)} truths for {len(names)} parameters {names}")
-    fig = corner.corner(samples, labels=labels, truths=truths, truth_color="C3", quantiles=list(quantiles),
-                        show_titles=True, title_fmt=".3g", title_kwargs={"fontsize": 8},
-                        label_kwargs={"fontsize": 8})
+    fig = corner.corner(
+        samples,
+        labels=labels,
+        truths=truths,
+        truth_color="C3",
+        quantiles=list(quantiles),
+        show_titles=True,
+        title_fmt=".3g",
+        title_kwargs={"fontsize": 8},
+        label_kwargs={"fontsize": 8},
+    )
     if title:
         fig.suptitle(title, fontsize=9)
     path = Path(path)

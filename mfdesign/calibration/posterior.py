@@ -72,7 +72,7 @@ class Posterior:
             return [], [], np.zeros((len(self.samples), 0))
         k = self.names.index(f"{LATENT}0]")
         names = [f"thickness_rel {key}" for key in self.design_keys]
-        return names, ["1"] * len(names), self.samples[:, k:k + len(names)]
+        return names, ["1"] * len(names), self.samples[:, k : k + len(names)]
 
     def summary(self) -> pd.DataFrame:
         """One row per parameter (and derived per-membrane thickness): unit, median, 5 / 95 %
@@ -85,10 +85,20 @@ class Posterior:
         x_map = list(self.x_map[keep])
         if d_names:
             k = self.names.index(f"{LATENT}0]")
-            x_map += list(self.x_map[k:k + len(d_names)])
+            x_map += list(self.x_map[k : k + len(d_names)])
         q = np.quantile(samples, [0.5, 0.05, 0.95, 0.025, 0.975], axis=0)
-        return pd.DataFrame({"parameter": names, "unit": units, "median": q[0], "q05": q[1], "q95": q[2],
-                             "q025": q[3], "q975": q[4], "map": x_map})
+        return pd.DataFrame(
+            {
+                "parameter": names,
+                "unit": units,
+                "median": q[0],
+                "q05": q[1],
+                "q95": q[2],
+                "q025": q[3],
+                "q975": q[4],
+                "map": x_map,
+            }
+        )
 
     def interval(self, name: str, level: float = 0.95) -> tuple[float, float]:
         """Central ``level`` credible interval of one parameter."""
@@ -104,15 +114,26 @@ class Posterior:
         t = self.summary()
         lines = [f"{'parameter':<44} {'unit':>5} {'median':>11} {'5 %':>11} {'95 %':>11} {'MAP':>11}"]
         for r in t.itertuples():
-            lines.append(f"{r.parameter:<44} {r.unit:>5} {r.median:>11.4g} {r.q05:>11.4g} {r.q95:>11.4g} {r.map:>11.4g}")
+            lines.append(
+                f"{r.parameter:<44} {r.unit:>5} {r.median:>11.4g} {r.q05:>11.4g} {r.q95:>11.4g} {r.map:>11.4g}"
+            )
         return "\n".join(lines)
 
     def to_json(self) -> dict[str, Any]:
-        return {"parameters": self.summary().to_dict(orient="records"), "names": list(self.names),
-                "units": list(self.units), "x_map": self.x_map.tolist(), "log_lik_map": self.log_lik_map,
-                "n_rows": self.n_rows, "bic": self.bic, "log_evidence_laplace": self.log_evidence_laplace,
-                "convergence": self.convergence, "design_keys": list(self.design_keys),
-                "effects": list(self.effects), "n_samples": int(len(self.samples))}
+        return {
+            "parameters": self.summary().to_dict(orient="records"),
+            "names": list(self.names),
+            "units": list(self.units),
+            "x_map": self.x_map.tolist(),
+            "log_lik_map": self.log_lik_map,
+            "n_rows": self.n_rows,
+            "bic": self.bic,
+            "log_evidence_laplace": self.log_evidence_laplace,
+            "convergence": self.convergence,
+            "design_keys": list(self.design_keys),
+            "effects": list(self.effects),
+            "n_samples": int(len(self.samples)),
+        }
 
     # -- ArviZ ------------------------------------------------------------------------------
     def chains(self) -> tuple[np.ndarray, np.ndarray]:
@@ -122,8 +143,9 @@ class Posterior:
             return np.swapaxes(self.chain, 0, 1), np.swapaxes(self.log_prob_chain, 0, 1)
         return self.samples[None], self.log_prob[None]
 
-    def to_inference_data(self, model=None, data=None, *, max_draws: int | None = 1000, seed: int = 0,
-                          max_rows: int | None = 3000):
+    def to_inference_data(
+        self, model=None, data=None, *, max_draws: int | None = 1000, seed: int = 0, max_rows: int | None = 3000
+    ):
         """An ``arviz.InferenceData`` in physical units, dims ``chain x draw`` (walkers as chains).
 
         Groups: ``posterior`` (one variable per parameter, ``thickness`` (the per-membrane latents) as one variable
@@ -165,10 +187,26 @@ class Posterior:
             coords["membrane"] = list(self.design_keys) if len(self.design_keys) == len(z) else list(range(len(z)))
         groups: dict[str, Any] = {"posterior": posterior, "sample_stats": {"lp": lp}}
         if model is not None and data is not None:
-            groups.update(_pointwise_groups(model, data, x.reshape(n_chain * n_draw, -1), (n_chain, n_draw),
-                                            seed=seed, max_rows=max_rows, design_keys=self.design_keys))
-            dims.update({"force_n": ["row"], "height_mm": ["row"], "pressure_pa": ["row"], "weight": ["row"],
-                         "membrane_index": ["row"]})
+            groups.update(
+                _pointwise_groups(
+                    model,
+                    data,
+                    x.reshape(n_chain * n_draw, -1),
+                    (n_chain, n_draw),
+                    seed=seed,
+                    max_rows=max_rows,
+                    design_keys=self.design_keys,
+                )
+            )
+            dims.update(
+                {
+                    "force_n": ["row"],
+                    "height_mm": ["row"],
+                    "pressure_pa": ["row"],
+                    "weight": ["row"],
+                    "membrane_index": ["row"],
+                }
+            )
         import warnings
 
         with warnings.catch_warnings():  # "more chains than draws": many walkers, short thinned chains
@@ -179,9 +217,14 @@ class Posterior:
         for group in ("observed_data", "posterior_predictive"):
             if hasattr(idata, group):
                 getattr(idata, group)["force_n"].attrs["units"] = "N"
-        idata.posterior.attrs.update({"effects": ",".join(self.effects), "design_keys": json.dumps(list(self.design_keys)),
-                                      "chains_are": "emcee walkers (not independent chains)",
-                                      "n_samples_in_npz": int(len(self.samples))})
+        idata.posterior.attrs.update(
+            {
+                "effects": ",".join(self.effects),
+                "design_keys": json.dumps(list(self.design_keys)),
+                "chains_are": "emcee walkers (not independent chains)",
+                "n_samples_in_npz": int(len(self.samples)),
+            }
+        )
         return idata
 
     def save(self, path) -> Path:
@@ -206,40 +249,76 @@ class Posterior:
         js, npz = path.with_suffix(".json"), path.with_suffix(".npz")
         for f in (js, npz):
             if not f.is_file():
-                raise InputError(f"posterior file {f} is missing; allowed: posterior.json + posterior.npz "
-                                 "as `mfdesign calibrate` writes them")
+                raise InputError(
+                    f"posterior file {f} is missing; allowed: posterior.json + posterior.npz "
+                    "as `mfdesign calibrate` writes them"
+                )
         try:
             meta = json.loads(js.read_text())
             if not isinstance(meta, dict):
                 raise InputError(f"{js}: expected a JSON object, got {type(meta).__name__}")
             arrays = _read_npz_bounded(npz, ("samples", "log_prob", "x_map"), optional=("chain", "log_prob_chain"))
-            samples, log_prob, x_map = (np.asarray(arrays[k], dtype=np.float64) for k in ("samples", "log_prob", "x_map"))
-            chain, lp_chain = (np.asarray(arrays[k], dtype=np.float64) if k in arrays else None
-                               for k in ("chain", "log_prob_chain"))
-            post = cls(tuple(map(str, meta["names"])), tuple(map(str, meta["units"])), samples, log_prob, x_map,
-                       float(meta["log_lik_map"]), float(meta["n_rows"]), float(meta["bic"]),
-                       float(meta["log_evidence_laplace"]), dict(meta["convergence"]),
-                       tuple(map(str, meta["design_keys"])), tuple(map(str, meta["effects"])), chain, lp_chain)
+            samples, log_prob, x_map = (
+                np.asarray(arrays[k], dtype=np.float64) for k in ("samples", "log_prob", "x_map")
+            )
+            chain, lp_chain = (
+                np.asarray(arrays[k], dtype=np.float64) if k in arrays else None for k in ("chain", "log_prob_chain")
+            )
+            post = cls(
+                tuple(map(str, meta["names"])),
+                tuple(map(str, meta["units"])),
+                samples,
+                log_prob,
+                x_map,
+                float(meta["log_lik_map"]),
+                float(meta["n_rows"]),
+                float(meta["bic"]),
+                float(meta["log_evidence_laplace"]),
+                dict(meta["convergence"]),
+                tuple(map(str, meta["design_keys"])),
+                tuple(map(str, meta["effects"])),
+                chain,
+                lp_chain,
+            )
         except InputError:
             raise
         except Exception as err:  # noqa: BLE001 -- corrupt JSON / zip / npy fail in many ways
-            raise InputError(f"{path}.json/.npz: not a readable posterior ({type(err).__name__}: "
-                             f"{one_line(err, 200)}); allowed: the files `mfdesign calibrate` writes") from None
+            raise InputError(
+                f"{path}.json/.npz: not a readable posterior ({type(err).__name__}: "
+                f"{one_line(err, 200)}); allowed: the files `mfdesign calibrate` writes"
+            ) from None
         dim = len(post.names)
-        if (samples.ndim != 2 or samples.shape[1] != dim or len(samples) < 1 or log_prob.shape != (len(samples),)
-                or x_map.shape != (dim,) or len(post.units) != dim):
-            raise InputError(f"{path}: samples {samples.shape}, log_prob {log_prob.shape}, x_map {x_map.shape} and "
-                             f"{dim} names / {len(post.units)} units do not fit; allowed: samples [S, dim], "
-                             "log_prob [S], x_map [dim]")
-        if chain is not None and (chain.ndim != 3 or chain.shape[2] != dim or lp_chain is None
-                                  or lp_chain.shape != chain.shape[:2] or not np.isfinite(chain).all()):
-            raise InputError(f"{npz}: chain {chain.shape} / log_prob_chain "
-                             f"{None if lp_chain is None else lp_chain.shape} do not fit {dim} parameters; "
-                             "allowed: finite chain [draw, walker, dim] and log_prob_chain [draw, walker]")
+        if (
+            samples.ndim != 2
+            or samples.shape[1] != dim
+            or len(samples) < 1
+            or log_prob.shape != (len(samples),)
+            or x_map.shape != (dim,)
+            or len(post.units) != dim
+        ):
+            raise InputError(
+                f"{path}: samples {samples.shape}, log_prob {log_prob.shape}, x_map {x_map.shape} and "
+                f"{dim} names / {len(post.units)} units do not fit; allowed: samples [S, dim], "
+                "log_prob [S], x_map [dim]"
+            )
+        if chain is not None and (
+            chain.ndim != 3
+            or chain.shape[2] != dim
+            or lp_chain is None
+            or lp_chain.shape != chain.shape[:2]
+            or not np.isfinite(chain).all()
+        ):
+            raise InputError(
+                f"{npz}: chain {chain.shape} / log_prob_chain "
+                f"{None if lp_chain is None else lp_chain.shape} do not fit {dim} parameters; "
+                "allowed: finite chain [draw, walker, dim] and log_prob_chain [draw, walker]"
+            )
         for name, a in (("samples", samples), ("x_map", x_map)):
             if not np.isfinite(a).all():
-                raise InputError(f"{npz}: {int((~np.isfinite(a)).sum())} {name} values are NaN or infinite; "
-                                 "allowed: finite parameters (rerun the calibration)")
+                raise InputError(
+                    f"{npz}: {int((~np.isfinite(a)).sum())} {name} values are NaN or infinite; "
+                    "allowed: finite parameters (rerun the calibration)"
+                )
         return post
 
 
@@ -258,19 +337,24 @@ def _read_npz_bounded(path: Path, names: tuple[str, ...], optional: tuple[str, .
         for name in names:
             with z.open(f"{name}.npy") as fh:
                 version = np.lib.format.read_magic(fh)
-                read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                read_header = (
+                    np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                )
                 shape, _, dtype = read_header(fh)
                 if dtype.hasobject or int(np.prod(shape, dtype=object)) * dtype.itemsize > limit:
-                    raise InputError(f"{path}: array {name!r} declares shape {shape} {dtype}, more than the "
-                                     f"file holds ({limit} bytes); allowed: the file as np.savez wrote it")
+                    raise InputError(
+                        f"{path}: array {name!r} declares shape {shape} {dtype}, more than the "
+                        f"file holds ({limit} bytes); allowed: the file as np.savez wrote it"
+                    )
         with np.load(path, allow_pickle=False) as z:
             for name in names:
                 out[name] = z[name]
     return out
 
 
-def _pointwise_groups(model, data, x_flat: np.ndarray, shape: tuple[int, int], *, seed: int, max_rows: int | None,
-                      design_keys) -> dict[str, dict[str, np.ndarray]]:
+def _pointwise_groups(
+    model, data, x_flat: np.ndarray, shape: tuple[int, int], *, seed: int, max_rows: int | None, design_keys
+) -> dict[str, dict[str, np.ndarray]]:
     """``log_likelihood``, ``posterior_predictive``, ``observed_data``, ``constant_data``
     (see :meth:`Posterior.to_inference_data`); calls the model's own ``pointwise_log_lik``
     and ``sample_force``."""
@@ -280,8 +364,9 @@ def _pointwise_groups(model, data, x_flat: np.ndarray, shape: tuple[int, int], *
     from mfdesign.models.hierarchical import CalibrationData
 
     if not isinstance(data, CalibrationData):
-        data = CalibrationData.from_measurements(data, max_rows=max_rows, seed=seed,
-                                                 design_keys=tuple(design_keys) or None)
+        data = CalibrationData.from_measurements(
+            data, max_rows=max_rows, seed=seed, design_keys=tuple(design_keys) or None
+        )
     w = np.asarray(data.weight, float)
     keep = np.flatnonzero(w > 0)
     xs = jnp.asarray(x_flat)
@@ -289,8 +374,11 @@ def _pointwise_groups(model, data, x_flat: np.ndarray, shape: tuple[int, int], *
     mean_force = np.asarray(model.sample_force(xs, data, jax.random.PRNGKey(seed)))
     rng = np.random.default_rng(seed)
     sigma = np.asarray(xs[:, model.names.index("noise_n")])[:, None]
-    eps = (rng.standard_normal(mean_force.shape) if model.likelihood == "gaussian"
-           else rng.standard_t(model.nu, mean_force.shape))
+    eps = (
+        rng.standard_normal(mean_force.shape)
+        if model.likelihood == "gaussian"
+        else rng.standard_t(model.nu, mean_force.shape)
+    )
     replicated = mean_force + sigma * eps
 
     def shaped(a):
@@ -300,9 +388,12 @@ def _pointwise_groups(model, data, x_flat: np.ndarray, shape: tuple[int, int], *
         "log_likelihood": {"force_n": shaped(w[None, :] * ll)},
         "posterior_predictive": {"force_n": shaped(replicated)},
         "observed_data": {"force_n": np.asarray(data.force_n, float)[keep]},
-        "constant_data": {"height_mm": np.asarray(data.rows.h_mm, float)[keep],
-                          "pressure_pa": np.asarray(data.rows.p_pa, float)[keep], "weight": w[keep],
-                          "membrane_index": np.asarray(data.rows.membrane)[keep]},
+        "constant_data": {
+            "height_mm": np.asarray(data.rows.h_mm, float)[keep],
+            "pressure_pa": np.asarray(data.rows.p_pa, float)[keep],
+            "weight": w[keep],
+            "membrane_index": np.asarray(data.rows.membrane)[keep],
+        },
     }
 
 

@@ -22,8 +22,16 @@ import numpy as np
 from mfdesign.physics.effects import LogNormal
 from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
-__all__ = ["MFFit", "for_search", "fit_multi_fidelity", "force_model_named", "lifted_rows", "load_multi_fidelity",
-           "model_for"]
+__all__ = [
+    "MFFit",
+    "for_search",
+    "fit_multi_fidelity",
+    "force_model_named",
+    "lifted_rows",
+    "load_multi_fidelity",
+    "model_for",
+]
+
 
 def force_model_named(name: str, table=None, progress: bool = False):
     """The force model ``name`` (:data:`~mfdesign.models.force.FORCE_MODELS`) for the rows of
@@ -34,10 +42,18 @@ def force_model_named(name: str, table=None, progress: bool = False):
         if table is None:
             raise ValueError("the exact force model needs the data's designs")
         df = table.df
-        return force_model_for("exact", tuple(dict.fromkeys(df["design_key"])),
-                               h_max_mm=float(max(df["height_mm"].max(), df["height_set_mm"].max(skipna=True)
-                                                  if df["height_set_mm"].notna().any() else 0.0)),
-                               p_max_pa=float(df["pressure_pa"].max()), progress=progress)
+        return force_model_for(
+            "exact",
+            tuple(dict.fromkeys(df["design_key"])),
+            h_max_mm=float(
+                max(
+                    df["height_mm"].max(),
+                    df["height_set_mm"].max(skipna=True) if df["height_set_mm"].notna().any() else 0.0,
+                )
+            ),
+            p_max_pa=float(df["pressure_pa"].max()),
+            progress=progress,
+        )
     return force_model_for(name)
 
 
@@ -73,10 +89,22 @@ class MFFit:
     design_keys: tuple[str, ...]
 
 
-def fit_multi_fidelity(table, force_model, effects=(), *, n_steps: int = 2000, n_walkers: int | None = None,
-                       max_rows: int = 1500, chain_path=None, ensemble_config=None, seed: int = 0,
-                       progress: bool = True, likelihood: str = "student_t", pool=None,
-                       stop_when_converged: bool = True) -> MFFit:
+def fit_multi_fidelity(
+    table,
+    force_model,
+    effects=(),
+    *,
+    n_steps: int = 2000,
+    n_walkers: int | None = None,
+    max_rows: int = 1500,
+    chain_path=None,
+    ensemble_config=None,
+    seed: int = 0,
+    progress: bool = True,
+    likelihood: str = "student_t",
+    pool=None,
+    stop_when_converged: bool = True,
+) -> MFFit:
     """Calibrate on ``table`` (Measurements), fit delta on the residuals, build the predictive
     (``n_steps``: the most emcee steps; see :func:`~mfdesign.calibration.mcmc.calibrate` for
     ``stop_when_converged``)."""
@@ -91,8 +119,17 @@ def fit_multi_fidelity(table, force_model, effects=(), *, n_steps: int = 2000, n
     n_trials = table.df.groupby(["design_key", "trial"]).ngroups
     data = data.padded(max(len(data), max_rows + n_trials))  # equal shapes across folds: one compile
     model = model_for(force_model, data, effects, likelihood=likelihood)
-    post = calibrate(data, model, n_steps=n_steps, n_walkers=n_walkers, chain_path=chain_path, seed=seed,
-                     progress=progress, pool=pool, stop_when_converged=stop_when_converged)
+    post = calibrate(
+        data,
+        model,
+        n_steps=n_steps,
+        n_walkers=n_walkers,
+        chain_path=chain_path,
+        seed=seed,
+        progress=progress,
+        pool=pool,
+        stop_when_converged=stop_when_converged,
+    )
     if post.force_model is not None:  # the exact model's lattice grew to hold the posterior
         model = eqx.tree_at(lambda m: m.force_model, model, post.force_model)
     cfg = ensemble_config or EnsembleConfig(n_members=8, steps=3000, monotone=False)
@@ -152,14 +189,22 @@ def load_multi_fidelity(folder) -> MFFit:
         raise InputError(f"{folder / 'mf.json'}: noise_n = {noise}; allowed: a positive finite number of newtons")
     post = Posterior.load(folder / "posterior")  # InputError when corrupt or non-finite
     try:
-        model = model_for(force_model_named(simulator), SimpleNamespace(design_keys=post.design_keys), effects,
-                          likelihood=meta.get("likelihood", "gaussian"))
+        model = model_for(
+            force_model_named(simulator),
+            SimpleNamespace(design_keys=post.design_keys),
+            effects,
+            likelihood=meta.get("likelihood", "gaussian"),
+        )
     except Exception as err:  # noqa: BLE001 -- unknown simulator / effect / likelihood named in the file
-        raise InputError(f"{folder / 'mf.json'}: cannot rebuild the model ({type(err).__name__}: "
-                         f"{one_line(err, 200)}); rerun mfdesign fit-mf") from None
+        raise InputError(
+            f"{folder / 'mf.json'}: cannot rebuild the model ({type(err).__name__}: "
+            f"{one_line(err, 200)}); rerun mfdesign fit-mf"
+        ) from None
     if tuple(model.names) != tuple(post.names):
-        raise InputError(f"{folder}: the posterior's parameters {list(post.names)} do not match the model "
-                         f"({list(model.names)}) of effects {effects} on {simulator!r}")
+        raise InputError(
+            f"{folder}: the posterior's parameters {list(post.names)} do not match the model "
+            f"({list(model.names)}) of effects {effects} on {simulator!r}"
+        )
     try:
         delta = Ensemble.load(folder / "delta")
     except FileNotFoundError as err:

@@ -50,9 +50,12 @@ def enable_compilation_cache() -> Path:
 
 
 # Declared once; the data commands and simulate take it.
-ALLOW_OUTSIDE = typer.Option(False, "--allow-outside-design-space",
-                             help="Research: accept designs outside the product's space (thickness 1-3 mm, ...) "
-                                  "up to a wider physical range; the output says so.")
+ALLOW_OUTSIDE = typer.Option(
+    False,
+    "--allow-outside-design-space",
+    help="Research: accept designs outside the product's space (thickness 1-3 mm, ...) "
+    "up to a wider physical range; the output says so.",
+)
 
 
 def fail(message: str) -> None:
@@ -71,7 +74,8 @@ def _print_version(value: bool) -> None:
 
 @app.callback()
 def _main(
-    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
-                                 help="Print the version and exit."),
+    version: bool = typer.Option(
+        False, "--version", callback=_print_version, is_eager=True, help="Print the version and exit."
+    ),
 ) -> None:
     enable_compilation_cache()

@@ -92,8 +92,11 @@ class ContractGroup(TyperGroup):
                 raise typer.Exit(code=2) from None
             folder = ctx.meta.get(_LOG_DIR_KEY)
             log = _write_log(err, folder, ctx.invoked_subcommand or ctx.info_name)
-            typer.echo(f"error: unexpected {type(err).__name__} (a bug, not your input): "
-                       f"{one_line(err, 200)}; traceback in {log}", err=True)
+            typer.echo(
+                f"error: unexpected {type(err).__name__} (a bug, not your input): "
+                f"{one_line(err, 200)}; traceback in {log}",
+                err=True,
+            )
             raise typer.Exit(code=1) from None
 
 
@@ -106,7 +109,11 @@ def item_parser(convert, what: str):
         try:
             return convert(text)
         except (TypeError, ValueError):
-            hint = " (a comma-separated list is not accepted: repeat the option, one value each)" if "," in str(text) else ""
+            hint = (
+                " (a comma-separated list is not accepted: repeat the option, one value each)"
+                if "," in str(text)
+                else ""
+            )
             raise typer.BadParameter(f"{text!r} is not {what}{hint}") from None
 
     parse.__name__ = what.replace(" ", "_")

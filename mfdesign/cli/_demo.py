@@ -70,9 +70,20 @@ class DemoSettings:
     @classmethod
     def quick(cls, force_model: str = "exact") -> "DemoSettings":
         search = "standin" if force_model == "standin" else "emulator"
-        return cls(mcmc_steps=300, walkers=32, max_rows=300, delta_members=4, delta_steps=300, propose_restarts=2,
-                   propose_steps=5, optimise_starts=128, optimise_refine=4, optimise_steps=10, force_model=force_model,
-                   search_model=search)
+        return cls(
+            mcmc_steps=300,
+            walkers=32,
+            max_rows=300,
+            delta_members=4,
+            delta_steps=300,
+            propose_restarts=2,
+            propose_steps=5,
+            optimise_starts=128,
+            optimise_refine=4,
+            optimise_steps=10,
+            force_model=force_model,
+            search_model=search,
+        )
 
 
 def _short(key: str) -> str:
@@ -146,8 +157,14 @@ def _proposal_figure(meas, proposal, path: Path) -> None:
         d = Membrane.from_key(key)
         ax.plot(d.contact_radius_mm, d.thickness_mm, "ko", ms=5)
     for m, fid in zip(proposal.designs, proposal.fidelities):
-        ax.plot(m.contact_radius_mm, m.thickness_mm, "*", ms=14, color="tab:red" if fid == "rig" else "tab:blue",
-                label=f"{fid}: {_short(m.key())}")
+        ax.plot(
+            m.contact_radius_mm,
+            m.thickness_mm,
+            "*",
+            ms=14,
+            color="tab:red" if fid == "rig" else "tab:blue",
+            label=f"{fid}: {_short(m.key())}",
+        )
     ax.set_xlabel("contact radius c [mm]")
     ax.set_ylabel("thickness t [mm]")
     ax.set_title("black: membranes measured; stars: proposed next", fontsize=9)
@@ -171,8 +188,13 @@ def _truth_check(post, card: dict) -> dict:
     return out
 
 
-def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path: str | Path = BUNDLED,
-             echo=print, progress: bool = True) -> dict:
+def run_demo(
+    out: str | Path,
+    settings: DemoSettings = DemoSettings(),
+    data_path: str | Path = BUNDLED,
+    echo=print,
+    progress: bool = True,
+) -> dict:
     """Run the whole loop (module doc) into ``out``; returns the summary written to
     ``out/summary.json`` (paths of the report, timings, headline numbers)."""
     import dataclasses
@@ -200,14 +222,23 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
         meas = read_parquet(data_path)
         force_model = force_model_named(s.force_model, meas, progress=progress)
     summary["rows"], summary["membranes"] = len(meas), len(meas.design_keys)
-    ens_cfg = EnsembleConfig(n_members=s.delta_members, steps=s.delta_steps, monotone=False,
-                             chunk=min(1000, s.delta_steps))
+    ens_cfg = EnsembleConfig(
+        n_members=s.delta_members, steps=s.delta_steps, monotone=False, chunk=min(1000, s.delta_steps)
+    )
 
     def fit(effects, tag, max_rows):
-        return fit_multi_fidelity(meas, force_model, effects, n_steps=s.mcmc_steps, n_walkers=s.walkers,
-                                  max_rows=max_rows,
-                                  chain_path=out / tag / "chain.h5", ensemble_config=ens_cfg, seed=s.seed,
-                                  progress=progress)
+        return fit_multi_fidelity(
+            meas,
+            force_model,
+            effects,
+            n_steps=s.mcmc_steps,
+            n_walkers=s.walkers,
+            max_rows=max_rows,
+            chain_path=out / tag / "chain.h5",
+            ensemble_config=ens_cfg,
+            seed=s.seed,
+            progress=progress,
+        )
 
     def write_posterior(fit_, tag):
         d = out / tag
@@ -222,8 +253,10 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
         keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
         corner_plot(post.samples[:, keep], [post.names[i] for i in keep], d / "corner.png")
         rows = table  # with the per-membrane thickness rows: spurious latents show there
-        return [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
-                for r in rows[["parameter", "unit", "median", "q05", "q95"]].to_dict("records")]
+        return [
+            {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
+            for r in rows[["parameter", "unit", "median", "q05", "q95"]].to_dict("records")
+        ]
 
     # 2. calibrate + multi-fidelity fit of the plain model
     with log.stage("calibrate mu, J_m (emcee) and fit the discrepancy: plain model"):
@@ -236,17 +269,24 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
     # leftover looks like a thickness deviation (seen on the bundled data).
     with log.stage("diagnose: where the model fails, which effect is missing"):
         sim = forward_model("standin" if s.force_model == "standin" else s.force_model, meas, progress=progress)
-        diag = diagnose(meas, sim=sim, model_name=f"plain simulator ({s.force_model} physics, authors' constants)",
-                        check_top=s.check_top, progress=progress)
+        diag = diagnose(
+            meas,
+            sim=sim,
+            model_name=f"plain simulator ({s.force_model} physics, authors' constants)",
+            check_top=s.check_top,
+            progress=progress,
+        )
         dpaths = write_report(diag, out / "diagnose")
     found = list(diag.found)
     floor = diag.before.noise_floor_n
-    summary["diagnosis"] = {"found": found, "rmse_before_n": diag.before.rmse_n,
-                            "rmse_after_n": None if diag.after is None else diag.after.rmse_n,
-                            "noise_floor_n": floor,
-                            "after_over_floor": (None if diag.after is None or not floor > 0
-                                                 else diag.after.rmse_n / floor),
-                            "physics": s.force_model}
+    summary["diagnosis"] = {
+        "found": found,
+        "rmse_before_n": diag.before.rmse_n,
+        "rmse_after_n": None if diag.after is None else diag.after.rmse_n,
+        "noise_floor_n": floor,
+        "after_over_floor": (None if diag.after is None or not floor > 0 else diag.after.rmse_n / floor),
+        "physics": s.force_model,
+    }
 
     # 4. add the effect(s) and refit
     if found:
@@ -256,9 +296,13 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
     else:
         fit1, post1 = fit0, post0
 
-    summary["convergence"] = {tag: {k: f.posterior.convergence.get(k) for k in
-                                    ("converged", "steps_over_tau", "tau_max", "acceptance", "problems")}
-                              for tag, f in (("plain", fit0), ("with_effects", fit1))}
+    summary["convergence"] = {
+        tag: {
+            k: f.posterior.convergence.get(k)
+            for k in ("converged", "steps_over_tau", "tau_max", "acceptance", "problems")
+        }
+        for tag, f in (("plain", fit0), ("with_effects", fit1))
+    }
     if card is not None:
         summary["truth_check"] = _truth_check(fit1.posterior, card)
     search_mf = for_search(fit1, s.search_model) if s.force_model == "exact" else fit1.mf
@@ -267,16 +311,32 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
     DEMO_GRID = Grid(h_mm=(0.0, 20.0, 40.0, 60.0), p_pa=(2000.0, 4000.0, 6000.0, 8000.0))
     with log.stage("propose the next 2 membranes (rig or simulator)"):
         predictor = search_mf.predictor(s.design_draws)
-        proposal = propose(predictor, 2, fidelities=("rig", "sim"), n_restarts=s.propose_restarts,
-                           n_steps=s.propose_steps, grid=DEMO_GRID, key=s.seed, progress=progress)
+        proposal = propose(
+            predictor,
+            2,
+            fidelities=("rig", "sim"),
+            n_restarts=s.propose_restarts,
+            n_steps=s.propose_steps,
+            grid=DEMO_GRID,
+            key=s.seed,
+            progress=progress,
+        )
         (out / "propose").mkdir(exist_ok=True)
         outputs.write_text(out / "propose" / "proposal.json", json.dumps(proposal.to_json(), indent=1, default=str))
         _proposal_figure(meas, proposal, out / "propose" / "proposals.png")
 
     # 6. optimise a membrane for a lift task
     with log.stage("optimise a membrane for lift task A (height maximisation)"):
-        result = optimize(search_mf.thinned(s.design_draws), TARGET_SETS["A"], n_starts=s.optimise_starts, n_refine=s.optimise_refine,
-                          steps=s.optimise_steps, seed=s.seed, progress=progress, batch_size=50)
+        result = optimize(
+            search_mf.thinned(s.design_draws),
+            TARGET_SETS["A"],
+            n_starts=s.optimise_starts,
+            n_refine=s.optimise_refine,
+            steps=s.optimise_steps,
+            seed=s.seed,
+            progress=progress,
+            batch_size=50,
+        )
         (out / "optimize").mkdir(exist_ok=True)
         plot_optimum(result, out / "optimize" / "optimum.png", title="lift task A")
         outputs.write_text(out / "optimize" / "optimum.json", json.dumps(result.to_json(), indent=1, default=str))
@@ -285,43 +345,77 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), data_path
     with log.stage("report"):
         fig_dir = out / "figures"
         fig_dir.mkdir(exist_ok=True)
-        _plane_figure(meas, {"plain": fit0.mf.thinned(16).members, "with effects": fit1.mf.thinned(16).members},
-                      fig_dir / "planes.png")
+        _plane_figure(
+            meas,
+            {"plain": fit0.mf.thinned(16).members, "with effects": fit1.mf.thinned(16).members},
+            fig_dir / "planes.png",
+        )
         rep = Report("mfdesign demo: calibrate, diagnose, add the missing effect, propose, optimise")
         rep.summary = [
             f"{len(meas)} rows of {len(meas.design_keys)} membranes from {Path(data_path).name}.",
             f"Diagnosis found: {', '.join(found) if found else 'nothing beyond the noise'}"
-            + (f" (hidden truth: {card['hidden_effect']['name']})" if card else "") + ".",
+            + (f" (hidden truth: {card['hidden_effect']['name']})" if card else "")
+            + ".",
             f"Residual RMSE {diag.before.rmse_n:.2f} N before, "
             + (f"{diag.after.rmse_n:.2f} N after adding it" if diag.after is not None else "unchanged")
             + f"; noise floor {diag.before.noise_floor_n:.2f} N.",
-            "Proposed next: " + "; ".join(f"{_short(m.key())} ({f})" for m, f in zip(proposal.designs, proposal.fidelities)) + ".",
+            "Proposed next: "
+            + "; ".join(f"{_short(m.key())} ({f})" for m, f in zip(proposal.designs, proposal.fidelities))
+            + ".",
             f"Optimised for lift task A: {_short(result.design_key)}.",
         ]
-        rep.add("Data and model", ["Measured force against pressure, with the plain and the corrected model's means."],
-                images=[(fig_dir / "planes.png", "data vs model planes")])
-        rep.add("Calibration (plain model)", ["Posterior of the global parameters (emcee)."], table=post0,
-                images=[(out / "plain" / "corner.png", "posterior, plain model")])
-        imgs = [(dpaths[k], k.replace("_", " ")) for k in ("maps_before", "parity", "breakdown", "screen_1") if k in dpaths]
-        screen = [{"effect": r.effect, "explained fraction": float(r.explained_fraction)} for r in diag.steps[0]["screen"]][:6] \
-            if diag.steps else None
-        rep.add("Diagnosis: where it fails, which effect is missing",
-                [w["words"] for w in diag.to_json()["before"]["worst_regions"]][:4]
-                + ([diag.steps[-1]["verdict"].get("words", "")] if diag.steps else []),
-                table=screen, images=imgs)
+        rep.add(
+            "Data and model",
+            ["Measured force against pressure, with the plain and the corrected model's means."],
+            images=[(fig_dir / "planes.png", "data vs model planes")],
+        )
+        rep.add(
+            "Calibration (plain model)",
+            ["Posterior of the global parameters (emcee)."],
+            table=post0,
+            images=[(out / "plain" / "corner.png", "posterior, plain model")],
+        )
+        imgs = [
+            (dpaths[k], k.replace("_", " ")) for k in ("maps_before", "parity", "breakdown", "screen_1") if k in dpaths
+        ]
+        screen = (
+            [{"effect": r.effect, "explained fraction": float(r.explained_fraction)} for r in diag.steps[0]["screen"]][
+                :6
+            ]
+            if diag.steps
+            else None
+        )
+        rep.add(
+            "Diagnosis: where it fails, which effect is missing",
+            [w["words"] for w in diag.to_json()["before"]["worst_regions"]][:4]
+            + ([diag.steps[-1]["verdict"].get("words", "")] if diag.steps else []),
+            table=screen,
+            images=imgs,
+        )
         after_imgs = [(dpaths["maps_after"], "residual maps after")] if "maps_after" in dpaths else []
-        rep.add(f"After adding {', '.join(found) if found else 'nothing'}", ["Posterior with the effect(s)."],
-                table=post1, images=after_imgs + ([(out / "with_effects" / "corner.png", "posterior with effects")]
-                                                  if found else []))
-        rep.add("Next membranes", [f"{_short(m.key())}: {f}" for m, f in zip(proposal.designs, proposal.fidelities)],
-                images=[(out / "propose" / "proposals.png", "proposals in the design space")])
+        rep.add(
+            f"After adding {', '.join(found) if found else 'nothing'}",
+            ["Posterior with the effect(s)."],
+            table=post1,
+            images=after_imgs + ([(out / "with_effects" / "corner.png", "posterior with effects")] if found else []),
+        )
+        rep.add(
+            "Next membranes",
+            [f"{_short(m.key())}: {f}" for m, f in zip(proposal.designs, proposal.fidelities)],
+            images=[(out / "propose" / "proposals.png", "proposals in the design space")],
+        )
         rep.add("Optimised membrane for lift task A", [], images=[(out / "optimize" / "optimum.png", "predicted lift")])
         rep.meta = {"timings_s": log.times}
         paths = rep.write(out)
-    summary.update(report=str(paths["html"]), json=str(paths["json"]), timings_s=log.times,
-                   total_s=round(time.perf_counter() - log.t0, 1),
-                   posterior_plain=post0, posterior_with_effects=post1,
-                   proposals=[{"design": m.key(), "fidelity": f} for m, f in zip(proposal.designs, proposal.fidelities)])
+    summary.update(
+        report=str(paths["html"]),
+        json=str(paths["json"]),
+        timings_s=log.times,
+        total_s=round(time.perf_counter() - log.t0, 1),
+        posterior_plain=post0,
+        posterior_with_effects=post1,
+        proposals=[{"design": m.key(), "fidelity": f} for m, f in zip(proposal.designs, proposal.fidelities)],
+    )
     outputs.write_text(out / "summary.json", json.dumps(summary, indent=1, default=str))
     echo(f"report: {paths['html']} ({summary['total_s']} s)")
     return summary

@@ -39,7 +39,7 @@ def simulate_plane(
     padded = np.concatenate([h_grid, np.full(n_chunks * HEIGHTS_PER_CHUNK - n_heights, h_grid[-1])])
     parts = []
     for k in tqdm(range(n_chunks), desc=f"simulate {design.key()}", unit="chunk", disable=not progress):
-        chunk = padded[k * HEIGHTS_PER_CHUNK:(k + 1) * HEIGHTS_PER_CHUNK]
+        chunk = padded[k * HEIGHTS_PER_CHUNK : (k + 1) * HEIGHTS_PER_CHUNK]
         parts.append(force_plane(design, chunk, p_grid, params))
     cat = {f: np.concatenate([getattr(r, f) for r in parts])[:n_heights] for f in ("force_n", "status", "max_locking")}
     H, P = np.meshgrid(h_grid, p_grid, indexing="ij")

@@ -30,13 +30,28 @@ def _check_chain(chain: Path) -> None:
         with h5py.File(chain, "r") as f:
             f.visit(lambda name: None)
     except Exception as err:  # noqa: BLE001 -- h5py raises OSError, KeyError, RuntimeError on junk
-        raise InputError(f"{chain} is not a readable chain ({type(err).__name__}: {str(err)[:120]}); allowed: a "
-                         "chain.h5 written by mfdesign calibrate / fit-mf, or --no-resume to start a new one") from None
+        raise InputError(
+            f"{chain} is not a readable chain ({type(err).__name__}: {str(err)[:120]}); allowed: a "
+            "chain.h5 written by mfdesign calibrate / fit-mf, or --no-resume to start a new one"
+        ) from None
 
 
-def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, max_rows: int, physics: str,
-         likelihood: str, seed: int, resume: bool, multi_fidelity: bool, members: int, delta_steps: int,
-         allow_outside_design_space: bool = False) -> None:
+def _run(
+    data: Path,
+    effects: list[str],
+    out: Path,
+    steps: int,
+    walkers: int,
+    max_rows: int,
+    physics: str,
+    likelihood: str,
+    seed: int,
+    resume: bool,
+    multi_fidelity: bool,
+    members: int,
+    delta_steps: int,
+    allow_outside_design_space: bool = False,
+) -> None:
     from mfdesign import outputs
     from mfdesign.cli._app import fail
 
@@ -45,7 +60,6 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
     if walkers and walkers < 2:
         fail(f"--walkers must be >= 2 (0 = automatic), got {walkers}")
     import warnings
-
 
     from mfdesign.calibration.plots import corner_plot
     from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named, model_for
@@ -76,62 +90,119 @@ def _run(data: Path, effects: list[str], out: Path, steps: int, walkers: int, ma
                 from mfdesign.models.ensemble import EnsembleConfig
 
                 cfg = EnsembleConfig(n_members=members, steps=delta_steps, monotone=False)
-                fit = fit_multi_fidelity(table, force_model, effects, n_steps=steps, n_walkers=walkers or None,
-                                         max_rows=max_rows, chain_path=chain, ensemble_config=cfg, seed=seed,
-                                         likelihood=likelihood)
+                fit = fit_multi_fidelity(
+                    table,
+                    force_model,
+                    effects,
+                    n_steps=steps,
+                    n_walkers=walkers or None,
+                    max_rows=max_rows,
+                    chain_path=chain,
+                    ensemble_config=cfg,
+                    seed=seed,
+                    likelihood=likelihood,
+                )
                 post = fit.posterior
             else:
                 cdata = CalibrationData.from_measurements(table, max_rows=max_rows, seed=seed)
                 model = model_for(force_model, cdata, effects, likelihood=likelihood)
-                post = calibrate(cdata, model, n_steps=steps, n_walkers=walkers or None, chain_path=chain, seed=seed,
-                                 stop_when_converged=True)
+                post = calibrate(
+                    cdata,
+                    model,
+                    n_steps=steps,
+                    n_walkers=walkers or None,
+                    chain_path=chain,
+                    seed=seed,
+                    stop_when_converged=True,
+                )
         except ValueError as err:
             fail(str(err))
     typer.echo(post.format_table())
     c = post.convergence
-    typer.echo(f"chain {c['n_steps']} steps x {c['n_walkers']} walkers (resumed from {c['resumed_from']}); "
-               f"tau_max {c['tau_max']:.1f} -> {c['steps_over_tau']:.1f} tau; acceptance {c['acceptance']:.2f}; "
-               f"BIC {post.bic:.1f}; Laplace log evidence {post.log_evidence_laplace:.1f}")
+    typer.echo(
+        f"chain {c['n_steps']} steps x {c['n_walkers']} walkers (resumed from {c['resumed_from']}); "
+        f"tau_max {c['tau_max']:.1f} -> {c['steps_over_tau']:.1f} tau; acceptance {c['acceptance']:.2f}; "
+        f"BIC {post.bic:.1f}; Laplace log evidence {post.log_evidence_laplace:.1f}"
+    )
     for w in caught:
         typer.echo(f"warning: {w.message}", err=True)
     post.save(out / "posterior")
     from mfdesign.calibration.posterior import save_inference_data  # ArviZ: az.from_netcdf(OUT/posterior.nc)
 
-    save_inference_data(post, out / "posterior.nc", fit.model if multi_fidelity else model, table, max_draws=500,
-                        seed=seed, max_rows=max_rows)
+    save_inference_data(
+        post,
+        out / "posterior.nc",
+        fit.model if multi_fidelity else model,
+        table,
+        max_draws=500,
+        seed=seed,
+        max_rows=max_rows,
+    )
     keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
-    corner_plot(post.samples[:, keep], [post.names[i] for i in keep], out / "corner.png",
-                title=f"{data}: effects {effects or 'none'}")
-    written = {"chain": str(chain), "posterior": str(out / "posterior.json"), "inference_data": str(out / "posterior.nc"),
-               "corner": str(out / "corner.png")}
+    corner_plot(
+        post.samples[:, keep],
+        [post.names[i] for i in keep],
+        out / "corner.png",
+        title=f"{data}: effects {effects or 'none'}",
+    )
+    written = {
+        "chain": str(chain),
+        "posterior": str(out / "posterior.json"),
+        "inference_data": str(out / "posterior.nc"),
+        "corner": str(out / "corner.png"),
+    }
     if multi_fidelity:
         from mfdesign.models.predictive import coverage
 
         fit.delta.save(out / "delta")
         cov = coverage(fit.mf, table.subset(list(fit.design_keys)), level=0.9, key=seed)
-        outputs.write_text(out / "mf.json", json.dumps({"noise_n": fit.noise_n, "effects": list(effects),
-                                                 "physics": physics,
-                                                 "search_physics": "emulator" if physics == "exact" else physics,
-                                                 "likelihood": likelihood, "train_rmse_n": cov["rmse_n"],
-                                                 "train_coverage90": cov["coverage"]}, indent=2))
-        typer.echo(f"multi-fidelity: residual noise {fit.noise_n:.3f} N; training RMSE {cov['rmse_n']:.3f} N, "
-                   f"90 % coverage {cov['coverage']:.2f}")
+        outputs.write_text(
+            out / "mf.json",
+            json.dumps(
+                {
+                    "noise_n": fit.noise_n,
+                    "effects": list(effects),
+                    "physics": physics,
+                    "search_physics": "emulator" if physics == "exact" else physics,
+                    "likelihood": likelihood,
+                    "train_rmse_n": cov["rmse_n"],
+                    "train_coverage90": cov["coverage"],
+                },
+                indent=2,
+            ),
+        )
+        typer.echo(
+            f"multi-fidelity: residual noise {fit.noise_n:.3f} N; training RMSE {cov['rmse_n']:.3f} N, "
+            f"90 % coverage {cov['coverage']:.2f}"
+        )
         written.update(delta=str(out / "delta"), mf=str(out / "mf.json"))
     typer.echo(json.dumps(written))
 
 
 # Options both commands take, declared once (typer reads them as parameter defaults).
-DATA = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).")
+DATA = typer.Argument(
+    ...,
+    help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).",
+)
 EFFECTS = typer.Option(None, "--effects", help="Active effect (repeat for several).")
-PHYSICS = typer.Option("exact", help="Force model where the model meets the data: exact (simulator planes of "
-                       "the measured membranes, at simulator accuracy) | emulator (neural emulator, ~1 N error) | "
-                       "standin (no physics; tests).")
-LIKELIHOOD = typer.Option("student_t", help="student_t (nu = 4: robust to rows the model cannot hold, e.g. a "
-                                              "lifted plate mid snap-through or at the rig's top stop) | gaussian")
+PHYSICS = typer.Option(
+    "exact",
+    help="Force model where the model meets the data: exact (simulator planes of "
+    "the measured membranes, at simulator accuracy) | emulator (neural emulator, ~1 N error) | "
+    "standin (no physics; tests).",
+)
+LIKELIHOOD = typer.Option(
+    "student_t",
+    help="student_t (nu = 4: robust to rows the model cannot hold, e.g. a "
+    "lifted plate mid snap-through or at the rig's top stop) | gaussian",
+)
 SEED = typer.Option(0, help="Random seed.")
 RESUME = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists.")
-ALLOW_OUTSIDE = typer.Option(False, "--allow-outside-design-space",
-                             help="Research: accept membranes outside the product's design space (wider physical range).")
+ALLOW_OUTSIDE = typer.Option(
+    False,
+    "--allow-outside-design-space",
+    help="Research: accept membranes outside the product's design space (wider physical range).",
+)
 
 
 def register(app: typer.Typer) -> None:
@@ -140,7 +211,12 @@ def register(app: typer.Typer) -> None:
         data: List[Path] = DATA,
         out: Path = typer.Option(..., help="Output folder (chain.h5, posterior.json/.npz, corner.png)."),
         effects: Optional[List[str]] = EFFECTS,
-        steps: int = typer.Option(3000, "--mcmc-steps", min=1, help="Most emcee steps (total; a rerun resumes); sampling stops earlier once the chain is >= 50 autocorrelation times long."),
+        steps: int = typer.Option(
+            3000,
+            "--mcmc-steps",
+            min=1,
+            help="Most emcee steps (total; a rerun resumes); sampling stops earlier once the chain is >= 50 autocorrelation times long.",
+        ),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: max(32, 2 dim + 2))."),
         max_rows: int = typer.Option(3000, min=10, help="Rows used by the likelihood (evenly within trials)."),
         physics: str = PHYSICS,
@@ -150,15 +226,34 @@ def register(app: typer.Typer) -> None:
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
         """Calibrate mu [Pa], J_m and the effects' parameters with emcee (posterior table, corner plot, chain)."""
-        _run(data, list(effects or []), out, steps, walkers, max_rows, physics, likelihood, seed, resume,
-             False, 0, 0, allow_outside_design_space)
+        _run(
+            data,
+            list(effects or []),
+            out,
+            steps,
+            walkers,
+            max_rows,
+            physics,
+            likelihood,
+            seed,
+            resume,
+            False,
+            0,
+            0,
+            allow_outside_design_space,
+        )
 
     @app.command("fit-mf")
     def fit_mf(
         data: List[Path] = DATA,
         out: Path = typer.Option(..., help="Output folder."),
         effects: Optional[List[str]] = EFFECTS,
-        steps: int = typer.Option(2000, "--mcmc-steps", min=1, help="Most emcee steps (total; a rerun resumes); sampling stops earlier once the chain is >= 50 autocorrelation times long."),
+        steps: int = typer.Option(
+            2000,
+            "--mcmc-steps",
+            min=1,
+            help="Most emcee steps (total; a rerun resumes); sampling stops earlier once the chain is >= 50 autocorrelation times long.",
+        ),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: automatic)."),
         max_rows: int = typer.Option(1500, min=10, help="Rows used by the likelihood."),
         physics: str = PHYSICS,
@@ -170,5 +265,19 @@ def register(app: typer.Typer) -> None:
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
         """Multi-fidelity fit: calibrated simulator + RPN discrepancy ensemble + noise."""
-        _run(data, list(effects or []), out, steps, walkers, max_rows, physics, likelihood, seed, resume,
-             True, members, delta_steps, allow_outside_design_space)
+        _run(
+            data,
+            list(effects or []),
+            out,
+            steps,
+            walkers,
+            max_rows,
+            physics,
+            likelihood,
+            seed,
+            resume,
+            True,
+            members,
+            delta_steps,
+            allow_outside_design_space,
+        )

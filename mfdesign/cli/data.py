@@ -52,7 +52,6 @@ def check_table(table, command: str, where: str, allow_outside_design_space: boo
     all weights 0, mostly duplicated rows, designs outside the product's design space."""
     import sys
 
-
     from mfdesign.design import check_design_space
     from mfdesign.errors import InputError
 
@@ -64,20 +63,27 @@ def check_table(table, command: str, where: str, allow_outside_design_space: boo
     need = MIN_ROWS[command]
     if len(used) < need:
         dropped = f" ({len(table) - len(used)} mass-lift rows below 2 mm dropped)" if len(used) < len(table) else ""
-        raise InputError(f"{where}: {len(used)} usable rows{dropped}; allowed: at least {need} rows for "
-                         f"`mfdesign {command}`")
+        raise InputError(
+            f"{where}: {len(used)} usable rows{dropped}; allowed: at least {need} rows for `mfdesign {command}`"
+        )
     weight = used.df["weight"].to_numpy(float)
     if not weight.sum() > 0:
         raise InputError(f"{where}: all {len(weight)} sample weights are 0; allowed: weights >= 0 with a positive sum")
     dup = int(used.df.duplicated().sum())
     if dup >= MAX_DUPLICATE_FRACTION * len(used):
-        raise InputError(f"{where}: {dup} of {len(used)} rows ({dup / len(used):.0%}) repeat an earlier row exactly; "
-                         f"allowed: under {MAX_DUPLICATE_FRACTION:.0%} (a copied table counts its evidence twice)")
-    outside = [d.key() for d in table.designs()
-               if check_design_space(d, allow_outside_design_space, what=f"{where}: membrane")]
+        raise InputError(
+            f"{where}: {dup} of {len(used)} rows ({dup / len(used):.0%}) repeat an earlier row exactly; "
+            f"allowed: under {MAX_DUPLICATE_FRACTION:.0%} (a copied table counts its evidence twice)"
+        )
+    outside = [
+        d.key() for d in table.designs() if check_design_space(d, allow_outside_design_space, what=f"{where}: membrane")
+    ]
     if outside:
-        print(f"warning: design space widened ({len(outside)} membrane(s) outside the product's: "
-              f"{', '.join(outside[:3])}{' ...' if len(outside) > 3 else ''})", file=sys.stderr)
+        print(
+            f"warning: design space widened ({len(outside)} membrane(s) outside the product's: "
+            f"{', '.join(outside[:3])}{' ...' if len(outside) > 3 else ''})",
+            file=sys.stderr,
+        )
 
 
 def make_spec(model: str, members: int, steps: int, batch: int, degree: int, monotone: bool):
@@ -91,25 +97,45 @@ def make_spec(model: str, members: int, steps: int, batch: int, degree: int, mon
     raise ValueError(f"model must be one of {MODELS}, got {model!r}")
 
 
-def fit(data: Path, out: Path, members: int = 32, steps: int = 10_000, batch: int = 100,
-        degree: int = 2, monotone: bool = True, seed: int = 0, allow_outside_design_space: bool = False) -> Path:
+def fit(
+    data: Path,
+    out: Path,
+    members: int = 32,
+    steps: int = 10_000,
+    batch: int = 100,
+    degree: int = 2,
+    monotone: bool = True,
+    seed: int = 0,
+    allow_outside_design_space: bool = False,
+) -> Path:
     """Fit an RPN ensemble to all of ``data`` and save it to ``out`` (``Ensemble.load``-able)."""
     table = load_data(data, "fit", allow_outside_design_space)
     a = table.arrays()
     cfg = make_spec("ensemble", members, steps, batch, degree, monotone)
-    model = cfg.fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"],
-                    key=seed, progress=True)
+    model = cfg.fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=seed, progress=True)
     model.save(out)
     mu, _ = model.mean_std(a["design"], a["height_mm"], a["pressure_pa"])
     rmse = float(((mu - a["force_n"]) ** 2).mean() ** 0.5)
-    print(f"fitted {members} members on {len(table)} rows of {len(table.design_keys)} membranes; "
-          f"training RMSE {rmse:.3f} N; saved to {out}")
+    print(
+        f"fitted {members} members on {len(table)} rows of {len(table.design_keys)} membranes; "
+        f"training RMSE {rmse:.3f} N; saved to {out}"
+    )
     return Path(out)
 
 
-def cv(data: Path, model: str = "ensemble", folds: int = 0, members: int = 32, steps: int = 10_000,
-       batch: int = 100, degree: int = 2, monotone: bool = True, seed: int = 0,
-       out: Path | None = None, allow_outside_design_space: bool = False) -> dict:
+def cv(
+    data: Path,
+    model: str = "ensemble",
+    folds: int = 0,
+    members: int = 32,
+    steps: int = 10_000,
+    batch: int = 100,
+    degree: int = 2,
+    monotone: bool = True,
+    seed: int = 0,
+    out: Path | None = None,
+    allow_outside_design_space: bool = False,
+) -> dict:
     """Leave-membranes-out CV (``folds`` = 0: leave-one-membrane-out); prints and returns metrics."""
     from mfdesign.models.cv import cross_validate
 
@@ -118,12 +144,16 @@ def cv(data: Path, model: str = "ensemble", folds: int = 0, members: int = 32, s
     spec = make_spec(model, members, steps, batch, degree, monotone)
     result = cross_validate(spec, splits, seed=seed, progress=True)
     for f in result.folds:
-        print(f"fold {f['fold']}: RMSE {f['rmse_n']:.3f} N  median |e| {f['median_abs_n']:.3f} N  "
-              f"cov68 {f['coverage68_total']:.2f}  cov95 {f['coverage95_total']:.2f}  {f['test_membranes']}")
+        print(
+            f"fold {f['fold']}: RMSE {f['rmse_n']:.3f} N  median |e| {f['median_abs_n']:.3f} N  "
+            f"cov68 {f['coverage68_total']:.2f}  cov95 {f['coverage95_total']:.2f}  {f['test_membranes']}"
+        )
     o = result.overall
-    print(f"overall: RMSE {o['rmse_n']:.3f} N (fold mean {o['fold_rmse_mean_n']:.3f})  median |e| "
-          f"{o['median_abs_n']:.3f} N  coverage 68/95 %: {o['coverage68_total']:.2f}/{o['coverage95_total']:.2f}"
-          f" (epistemic only {o['coverage68_epistemic']:.2f}/{o['coverage95_epistemic']:.2f})")
+    print(
+        f"overall: RMSE {o['rmse_n']:.3f} N (fold mean {o['fold_rmse_mean_n']:.3f})  median |e| "
+        f"{o['median_abs_n']:.3f} N  coverage 68/95 %: {o['coverage68_total']:.2f}/{o['coverage95_total']:.2f}"
+        f" (epistemic only {o['coverage68_epistemic']:.2f}/{o['coverage95_epistemic']:.2f})"
+    )
     if out is not None:
         from mfdesign import outputs
 
@@ -135,7 +165,10 @@ def cv(data: Path, model: str = "ensemble", folds: int = 0, members: int = 32, s
 def register(app: typer.Typer) -> None:
     @app.command("fit")
     def fit_command(
-        data: List[Path] = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md)."),
+        data: List[Path] = typer.Argument(
+            ...,
+            help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).",
+        ),
         out: Path = typer.Option(..., help="Folder for the fitted model."),
         members: int = typer.Option(32, min=1, help="Ensemble members."),
         steps: int = typer.Option(10_000, "--train-steps", min=1, help="Training steps (Adam) of every member."),
@@ -151,10 +184,12 @@ def register(app: typer.Typer) -> None:
         except ValueError as err:
             fail(str(err))
 
-
     @app.command("cv")
     def cv_command(
-        data: List[Path] = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md)."),
+        data: List[Path] = typer.Argument(
+            ...,
+            help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).",
+        ),
         model: str = typer.Option("ensemble", "--model-type", help="Model type: ensemble | curve-fit."),
         folds: int = typer.Option(0, min=0, help="k of k-fold by membrane; 0 = leave one membrane out."),
         members: int = typer.Option(32, min=1),
@@ -174,10 +209,15 @@ def register(app: typer.Typer) -> None:
 
     @app.command("import")
     def import_(
-        sources: List[Path] = typer.Argument(..., help="Files or rig job folders to read, or 'mass-lift' (several: concatenated)."),
+        sources: List[Path] = typer.Argument(
+            ..., help="Files or rig job folders to read, or 'mass-lift' (several: concatenated)."
+        ),
         out: Path = typer.Option(..., help="Measurements Parquet file to write."),
-        fmt: str = typer.Option("auto", "--format",
-                                help="auto (from the name and content) | parquet | csv | mass-lift | characterisation | sim-planes | rig-job."),
+        fmt: str = typer.Option(
+            "auto",
+            "--format",
+            help="auto (from the name and content) | parquet | csv | mass-lift | characterisation | sim-planes | rig-job.",
+        ),
     ) -> None:
         """Convert measurements into one Measurements Parquet file (schema: docs/data.md).
 

@@ -14,7 +14,9 @@ def register(app: typer.Typer) -> None:
     def demo(
         out: Path = typer.Option(Path("out/demo"), help="Output folder (report: OUT/index.html)."),
         quick: bool = typer.Option(False, help="Shrink every stage (a smoke test of the whole loop)."),
-        physics: str = typer.Option("exact", help="Where the model meets the data: exact (simulator planes) | emulator | standin (tests)."),
+        physics: str = typer.Option(
+            "exact", help="Where the model meets the data: exact (simulator planes) | emulator | standin (tests)."
+        ),
         seed: int = typer.Option(0, help="Random seed."),
     ) -> None:
         """The main job on the embedded default (no hardware, no external data).
@@ -30,8 +32,11 @@ def register(app: typer.Typer) -> None:
 
         if physics not in ("exact", "emulator", "standin"):
             fail(f"--physics must be one of ['exact', 'emulator', 'standin'], got {physics!r}")
-        settings = DemoSettings.quick(physics) if quick else DemoSettings(
-            force_model=physics, search_model="standin" if physics == "standin" else "emulator")
+        settings = (
+            DemoSettings.quick(physics)
+            if quick
+            else DemoSettings(force_model=physics, search_model="standin" if physics == "standin" else "emulator")
+        )
         settings = dataclasses.replace(settings, seed=seed)
         try:
             run_demo(out, settings, echo=typer.echo)

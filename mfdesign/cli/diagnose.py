@@ -76,23 +76,39 @@ def _split(values) -> list[str]:
 def register(app: typer.Typer) -> None:
     @app.command()
     def diagnose(
-        data: List[Path] = typer.Argument(..., help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md)."),
+        data: List[Path] = typer.Argument(
+            ...,
+            help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).",
+        ),
         out: Path = typer.Option(..., help="Folder for report.html, diagnosis.json and the PNGs."),
         model: Optional[Path] = typer.Option(None, help="Saved ensemble folder (default: the plain simulator)."),
-        effects: Optional[List[str]] = typer.Option(None, "--effects", help="Effects to add (repeat or comma-separate)."),
-        theta: Optional[str] = typer.Option(None, help='Effect parameters as JSON, e.g. \'{"pressure_sensor.offset_pa": 150}\'.'),
+        effects: Optional[List[str]] = typer.Option(
+            None, "--effects", help="Effects to add (repeat or comma-separate)."
+        ),
+        theta: Optional[str] = typer.Option(
+            None, help="Effect parameters as JSON, e.g. '{\"pressure_sensor.offset_pa\": 150}'."
+        ),
         config: Optional[Path] = typer.Option(None, help="TOML/JSON file with effects, theta, effects_module, ..."),
-        effects_module: Optional[List[Path]] = typer.Option(None, "--effects-module", help="Python file(s) registering new effects."),
-        candidates: Optional[List[str]] = typer.Option(None, "--candidates", help="Effects the search may try (default: all)."),
-        physics: str = typer.Option("exact", help="exact (simulator planes of the measured membranes, cached) | emulator (neural emulator, ~1 N RMS error) | standin (no physics; trials)."),
+        effects_module: Optional[List[Path]] = typer.Option(
+            None, "--effects-module", help="Python file(s) registering new effects."
+        ),
+        candidates: Optional[List[str]] = typer.Option(
+            None, "--candidates", help="Effects the search may try (default: all)."
+        ),
+        physics: str = typer.Option(
+            "exact",
+            help="exact (simulator planes of the measured membranes, cached) | emulator (neural emulator, ~1 N RMS error) | standin (no physics; trials).",
+        ),
         search: bool = typer.Option(True, help="Search for the missing effect."),
         check_top: int = typer.Option(3, min=1, help="Candidates given the full check."),
         max_steps: int = typer.Option(2, min=1, help="Rounds of forward selection."),
         shapes: bool = typer.Option(True, help="Plot the simulated shape at the worst points (exact physics only)."),
         cache_dir: Optional[Path] = typer.Option(None, help="Plane cache (default ~/.cache/mfdesign/planes)."),
         allow_outside_design_space: bool = typer.Option(
-            False, "--allow-outside-design-space",
-            help="Research: accept membranes outside the product's design space (wider physical range)."),
+            False,
+            "--allow-outside-design-space",
+            help="Research: accept membranes outside the product's design space (wider physical range).",
+        ),
     ) -> None:
         """Residuals by height, pressure, design, trial and phase; worst regions in words; which
         effect is missing (screen + full check); before/after with --effects. Writes HTML + JSON."""
@@ -115,7 +131,7 @@ def register(app: typer.Typer) -> None:
                 except json.JSONDecodeError as err:
                     raise ValueError(f"--theta is not valid JSON: {err}") from None
             if not isinstance(th, dict):
-                raise ValueError("theta must be an object {\"effect.parameter\": value}")
+                raise ValueError('theta must be an object {"effect.parameter": value}')
             fx.split_theta(names, th) if names else (th and fx.split_theta([], th))
             sim_name = cfg.get("physics", physics) if physics == "exact" else physics
             if sim_name not in PHYSICS:
@@ -152,16 +168,28 @@ def register(app: typer.Typer) -> None:
             sim = forward_model(sim_name, meas, cache=cache_dir, progress=True)
         except (ValueError, FileNotFoundError) as err:
             fail(str(err))
-        diag = run(meas, sim, model=predict, model_name=model_name, effects=names, theta=th,
-                   candidates=_split(candidates) or _split(cfg.get("candidates", [])) or None, search=search,
-                   check_top=check_top, max_steps=max_steps, progress=True)
+        diag = run(
+            meas,
+            sim,
+            model=predict,
+            model_name=model_name,
+            effects=names,
+            theta=th,
+            candidates=_split(candidates) or _split(cfg.get("candidates", [])) or None,
+            search=search,
+            check_top=check_top,
+            max_steps=max_steps,
+            progress=True,
+        )
         paths = write_report(diag, out, shapes=shapes and sim_name == "exact")
         b = diag.before
         typer.echo(f"before: RMSE {b.rmse_n:.3f} N, noise floor {b.noise_floor_n:.3f} N")
-        for w in (diag.to_json()["before"]["worst_regions"]):
+        for w in diag.to_json()["before"]["worst_regions"]:
             typer.echo(f"  {w['words']}")
         for i, s in enumerate(diag.steps):
-            typer.echo(f"round {i + 1}: screen " + ", ".join(f"{r.effect} {r.explained_fraction:.2f}" for r in s["screen"][:5]))
+            typer.echo(
+                f"round {i + 1}: screen " + ", ".join(f"{r.effect} {r.explained_fraction:.2f}" for r in s["screen"][:5])
+            )
             typer.echo(f"  {s['verdict']['words']}")
         if diag.after is not None:
             typer.echo(f"after ({', '.join(diag.effects)}): RMSE {diag.after.rmse_n:.3f} N")

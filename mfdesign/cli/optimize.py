@@ -37,8 +37,10 @@ def read_targets(path: Path):
         raise ValueError(f"cannot read targets from {path}: {err}") from None
     need = {"force_n", "pressure_pa"}
     if not need <= set(table.columns):
-        raise ValueError(f"targets need columns force_n and pressure_pa (optional height_mm, weight); "
-                         f"got {sorted(map(str, table.columns))}")
+        raise ValueError(
+            f"targets need columns force_n and pressure_pa (optional height_mm, weight); "
+            f"got {sorted(map(str, table.columns))}"
+        )
     cols = {c: table[c].to_numpy() for c in table.columns}
     try:
         if "height_mm" in cols:
@@ -69,12 +71,15 @@ def load_model(path: Path):
 def register(app: typer.Typer) -> None:
     @app.command()
     def optimize(
-        model: Path = typer.Option(..., help="Folder of a fitted model (`mfdesign fit` or `mfdesign fit-mf ... --out DIR`)."),
+        model: Path = typer.Option(
+            ..., help="Folder of a fitted model (`mfdesign fit` or `mfdesign fit-mf ... --out DIR`)."
+        ),
         out: Path = typer.Option(..., help="Output folder: optimize.json and optimize.png."),
         targets: Path = typer.Option(None, help="CSV/JSON: force_n, pressure_pa[, height_mm, weight]."),
         target_set: str = typer.Option(None, help="The paper's height-maximisation set: A or B."),
-        rings: list[int] = typer.Option([0, 1, 2], parser=item_parser(int, "a ring count"),
-                                        help="Ring counts to try (repeat): 0, 1, 2."),
+        rings: list[int] = typer.Option(
+            [0, 1, 2], parser=item_parser(int, "a ring count"), help="Ring counts to try (repeat): 0, 1, 2."
+        ),
         starts: int = typer.Option(2500, min=1, help="Random starts per ring count."),
         refine: int = typer.Option(64, min=0, help="Starts refined by gradient steps (0 = all)."),
         steps: int = typer.Option(100, "--opt-steps", min=0, help="Projected Adam steps per refined start."),
@@ -89,7 +94,9 @@ def register(app: typer.Typer) -> None:
         ring_list = tuple(dict.fromkeys(rings))
         bad_rings = [n for n in ring_list if n not in (0, 1, 2)]
         if not ring_list or bad_rings:
-            fail(f"--rings must be 0, 1 or 2 (repeat the option for several), got {bad_rings[0] if bad_rings else 'none'}")
+            fail(
+                f"--rings must be 0, 1 or 2 (repeat the option for several), got {bad_rings[0] if bad_rings else 'none'}"
+            )
         if refine > starts:
             fail(f"--refine ({refine}) cannot exceed --starts ({starts})")
         from mfdesign import optimize as opt
@@ -107,14 +114,25 @@ def register(app: typer.Typer) -> None:
             predictor = load_model(model)
         except ValueError as err:
             fail(str(err))
-        result = opt.optimize(predictor, problem, rings=ring_list, n_starts=starts, steps=steps,
-                              n_refine=refine or None, seed=seed, check=check)
+        result = opt.optimize(
+            predictor,
+            problem,
+            rings=ring_list,
+            n_starts=starts,
+            steps=steps,
+            n_refine=refine or None,
+            seed=seed,
+            check=check,
+        )
         out.mkdir(parents=True, exist_ok=True)
         from mfdesign import outputs
 
         outputs.write_json(out / "optimize.json", result.to_json())
         opt.plot(result, out / "optimize.png")
         p = result.prediction
-        what = (f"smooth-min height {p['score_mm']:.1f} mm (min {p['min_h_mm']:.1f} mm)" if result.problem == "height"
-                else f"scaled trajectory RMSE {p['traj_rmse']:.3f}")
+        what = (
+            f"smooth-min height {p['score_mm']:.1f} mm (min {p['min_h_mm']:.1f} mm)"
+            if result.problem == "height"
+            else f"scaled trajectory RMSE {p['traj_rmse']:.3f}"
+        )
         typer.echo(f"{result.design_key}: {what}; wrote {out / 'optimize.json'} and {out / 'optimize.png'}")

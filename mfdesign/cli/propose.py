@@ -41,7 +41,9 @@ def load_predictor(model: Path):
     if (model / "sim" / "ensemble.json").is_file() and (model / "discrepancy" / "ensemble.json").is_file():
         return SplitPredictor(Ensemble.load(model / "sim"), Ensemble.load(model / "discrepancy"))
     found = sorted(p.name for p in model.iterdir() if p.name != ".mfdesign.lock")[:8]
-    raise ValueError(f"--model {model} holds no ensemble.json, mf.json, nor sim/ and discrepancy/ ensembles; found {found}")
+    raise ValueError(
+        f"--model {model} holds no ensemble.json, mf.json, nor sim/ and discrepancy/ ensembles; found {found}"
+    )
 
 
 def plot_proposal(proposal, path: Path, space=None) -> Path:
@@ -60,15 +62,26 @@ def plot_proposal(proposal, path: Path, space=None) -> Path:
     ax0.add_patch(plt.Rectangle((t0, c0), t1 - t0, c1 - c0, fill=False, ls="--", color="gray"))
     markers = {"rig": "s", "sim": "o"}
     for j, (d, f) in enumerate(zip(proposal.designs, proposal.fidelities)):
-        ax0.scatter(d.thickness_mm, d.contact_radius_mm, marker=markers.get(f, "^"), s=80, zorder=3,
-                    label=f"{j + 1}: {f}, {d.n_rings} ring(s)")
+        ax0.scatter(
+            d.thickness_mm,
+            d.contact_radius_mm,
+            marker=markers.get(f, "^"),
+            s=80,
+            zorder=3,
+            label=f"{j + 1}: {f}, {d.n_rings} ring(s)",
+        )
         ax0.annotate(str(j + 1), (d.thickness_mm, d.contact_radius_mm), textcoords="offset points", xytext=(6, 4))
         y = len(proposal.designs) - j
         ax1.barh(y, d.contact_radius_mm, color="dimgray", height=0.5)
         for r in d.rings:
             ax1.barh(y, 2 * r.half_width_mm, left=r.inner_mm, color="tab:orange", height=0.5)
-        ax1.text(d.outer_radius_mm + 1, y, f"{f}  t={d.thickness_mm:.2f} mm  score {proposal.scores[j]:.3g}",
-                 va="center", fontsize=8)
+        ax1.text(
+            d.outer_radius_mm + 1,
+            y,
+            f"{f}  t={d.thickness_mm:.2f} mm  score {proposal.scores[j]:.3g}",
+            va="center",
+            fontsize=8,
+        )
     ax0.set_xlim(t0 - 0.2, t1 + 0.2)
     ax0.set_ylim(c0 - 1.5, c1 + 1.5)
     ax0.set_xlabel("thickness t [mm]")
@@ -79,8 +92,9 @@ def plot_proposal(proposal, path: Path, space=None) -> Path:
     ax1.set_yticks(range(1, len(proposal.designs) + 1))
     ax1.set_yticklabels([str(len(proposal.designs) - k + 1) for k in range(1, len(proposal.designs) + 1)])
     ax1.set_xlabel("radius [mm] (gray: disk, orange: rings, black: clamp)")
-    fig.suptitle(f"proposal: utility {proposal.utility:.3g} N, cost {proposal.cost:g}, "
-                 f"score {proposal.score:.3g} N/cost")
+    fig.suptitle(
+        f"proposal: utility {proposal.utility:.3g} N, cost {proposal.cost:g}, score {proposal.score:.3g} N/cost"
+    )
     fig.tight_layout()
     path = Path(path)
     from mfdesign import outputs
@@ -98,8 +112,9 @@ def register(app: typer.Typer) -> None:
         fidelity: list[str] = typer.Option(["rig"], help="Fidelities to choose from (repeat): rig, sim."),
         cost_rig: float = typer.Option(1.0, help="Cost of one rig membrane (e.g. days)."),
         cost_sim: float = typer.Option(0.01, help="Cost of one simulator plane, same unit."),
-        rings: list[int] = typer.Option([0, 1, 2], parser=item_parser(int, "a ring count"),
-                                        help="Ring counts to search (repeat): 0, 1, 2."),
+        rings: list[int] = typer.Option(
+            [0, 1, 2], parser=item_parser(int, "a ring count"), help="Ring counts to search (repeat): 0, 1, 2."
+        ),
         restarts: int = typer.Option(1000, help="Random batches scored per ring count and fidelity."),
         refine: int = typer.Option(32, help="Best scored batches refined by L-BFGS."),
         steps: int = typer.Option(20, "--opt-steps", help="L-BFGS iterations per refined batch."),
@@ -135,12 +150,23 @@ def register(app: typer.Typer) -> None:
             fail(str(err))
         missing = [f for f in fidelity if f not in predictor.fidelities]
         if missing:
-            fail(f"the model in {model} offers fidelities {list(predictor.fidelities)}, not {missing[0]!r} "
-                 "(the sim fidelity needs a fit-mf folder or a sim/ + discrepancy/ model folder)")
+            fail(
+                f"the model in {model} offers fidelities {list(predictor.fidelities)}, not {missing[0]!r} "
+                "(the sim fidelity needs a fit-mf folder or a sim/ + discrepancy/ model folder)"
+            )
         try:
-            proposal = run_propose(predictor, q, fidelities=tuple(fidelity), costs={"rig": cost_rig, "sim": cost_sim},
-                                   n_restarts=restarts, n_refine=refine, n_rings=tuple(rings), n_steps=steps, key=seed,
-                                   progress=True)
+            proposal = run_propose(
+                predictor,
+                q,
+                fidelities=tuple(fidelity),
+                costs={"rig": cost_rig, "sim": cost_sim},
+                n_restarts=restarts,
+                n_refine=refine,
+                n_rings=tuple(rings),
+                n_steps=steps,
+                key=seed,
+                progress=True,
+            )
         except ValueError as err:
             fail(str(err))
         out.mkdir(parents=True, exist_ok=True)
@@ -148,5 +174,7 @@ def register(app: typer.Typer) -> None:
         plot_proposal(proposal, out / "proposal.png")
         for d, f, s in zip(proposal.designs, proposal.fidelities, proposal.scores):
             typer.echo(f"{f}: {d.key()}  score {s:.4g}")
-        typer.echo(f"utility {proposal.utility:.4g} N, cost {proposal.cost:g}, score {proposal.score:.4g}; "
-                   f"wrote {out / 'proposal.json'} and {out / 'proposal.png'}")
+        typer.echo(
+            f"utility {proposal.utility:.4g} N, cost {proposal.cost:g}, score {proposal.score:.4g}; "
+            f"wrote {out / 'proposal.json'} and {out / 'proposal.png'}"
+        )

@@ -20,8 +20,7 @@ from mfdesign.cli._contract import item_parser
 from mfdesign.rig.config import ConfigError, RigConfig
 from mfdesign.rig.protocol import DEFAULT_WATCHDOG_S, RigFault
 
-rig_app = typer.Typer(help="Drive the membrane test rig (or its emulator) over a serial port.",
-                      no_args_is_help=True)
+rig_app = typer.Typer(help="Drive the membrane test rig (or its emulator) over a serial port.", no_args_is_help=True)
 
 
 def _config(path: Optional[Path]) -> RigConfig:
@@ -51,6 +50,7 @@ def _signals_as_interrupt() -> None:
     """SIGTERM and SIGINT stop a rig command as Ctrl-C does (rig put safe, job resumable).
     SIGINT too, explicitly: a shell without job control starts background jobs with SIGINT
     ignored, and ``kill -INT`` (or a test) must still stop the emulator or a job."""
+
     def handler(signum, frame):
         raise KeyboardInterrupt(f"signal {signum}")
 
@@ -70,14 +70,17 @@ def _finish(job_dir: Path, run) -> None:
         result = run()
     except JobError as exc:
         typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
     except RigFault as exc:
-        typer.echo(f"rig fault ({exc.kind}): {exc}. The rig was put safe (pump off, valve open, "
-                   f"actuators stopped); see {job_dir / 'rig.log'}. Run the same command to resume.", err=True)
-        raise typer.Exit(3)
+        typer.echo(
+            f"rig fault ({exc.kind}): {exc}. The rig was put safe (pump off, valve open, "
+            f"actuators stopped); see {job_dir / 'rig.log'}. Run the same command to resume.",
+            err=True,
+        )
+        raise typer.Exit(3) from None
     except KeyboardInterrupt:
         typer.echo(f"interrupted: rig put safe; run the same command to resume ({job_dir}).", err=True)
-        raise typer.Exit(130)
+        raise typer.Exit(130) from None
     m = to_measurements(job_dir)
     out = job_dir / "measurements.parquet"
     m.to_parquet(out)
@@ -97,8 +100,10 @@ def emulate(
     config: Optional[Path] = typer.Option(None, help="rig config (.toml/.json) for the ToF maps"),
     seed: int = typer.Option(0, help="sensor-noise seed"),
     watchdog_s: float = typer.Option(
-        DEFAULT_WATCHDOG_S, help="wall-clock seconds without a command (heartbeat included) after which the "
-        "controller goes safe by itself; 0: off, like firmware without the watchdog"),
+        DEFAULT_WATCHDOG_S,
+        help="wall-clock seconds without a command (heartbeat included) after which the "
+        "controller goes safe by itself; 0: off, like firmware without the watchdog",
+    ),
 ) -> None:
     """Serve a virtual rig controller on a pseudo-terminal; prints its device path."""
     from mfdesign.rig.emulator import WORKING_PRESSURE_PA, AnalyticPlant, RigEmulator
@@ -108,16 +113,20 @@ def emulate(
         raise typer.Exit(2)
     cfg = _config(config)
     plant = AnalyticPlant.from_design(_design(design), burst_pressure_pa=burst_pa)
-    em = RigEmulator(plant, cfg, time_scale=time_scale, rate_hz=rate_hz, payload_kg=mass_kg, seed=seed,
-                     watchdog_s=watchdog_s)
+    em = RigEmulator(
+        plant, cfg, time_scale=time_scale, rate_hz=rate_hz, payload_kg=mass_kg, seed=seed, watchdog_s=watchdog_s
+    )
     budget_s = em.time_to_pressure_s(WORKING_PRESSURE_PA, cfg.hard_pressure_limit_pa)
     if watchdog_s == 0:
         typer.echo("note: watchdog off (firmware without it): a killed host leaves the pump running", err=True)
     elif watchdog_s * time_scale > budget_s:  # the watchdog is wall clock; the pump runs on rig time
-        typer.echo(f"note: at time scale {time_scale:g} the {watchdog_s:g} s watchdog lets the pump run "
-                   f"{watchdog_s * time_scale:g} rig s after the host's last command; from "
-                   f"{WORKING_PRESSURE_PA:g} Pa it reaches the {cfg.hard_pressure_limit_pa:g} Pa hard limit "
-                   f"in {budget_s:.2f} rig s", err=True)
+        typer.echo(
+            f"note: at time scale {time_scale:g} the {watchdog_s:g} s watchdog lets the pump run "
+            f"{watchdog_s * time_scale:g} rig s after the host's last command; from "
+            f"{WORKING_PRESSURE_PA:g} Pa it reaches the {cfg.hard_pressure_limit_pa:g} Pa hard limit "
+            f"in {budget_s:.2f} rig s",
+            err=True,
+        )
     port = em.start()
     typer.echo(port)
     sys.stdout.flush()
@@ -135,9 +144,11 @@ def characterize(
     design: str = typer.Option(..., help='design key, e.g. "[2.0, 25.4, nan, nan, nan, nan]"'),
     out: Path = typer.Option(..., help="job directory (created; reused to resume)"),
     config: Optional[Path] = typer.Option(None, help="rig config (.toml/.json)"),
-    heights: list[float] = typer.Option([0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0],
-                                        parser=item_parser(float, "a height in mm"),
-                                        help="plate height, mm (repeat for several)"),
+    heights: list[float] = typer.Option(
+        [0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0],
+        parser=item_parser(float, "a height in mm"),
+        help="plate height, mm (repeat for several)",
+    ),
     trials: int = typer.Option(3, min=1, max=100),
     source: str = typer.Option("rig", help="'rig' (real rig) or 'virtual' (emulator)"),
     progress: bool = typer.Option(True, help="progress bar"),
@@ -150,8 +161,9 @@ def characterize(
         raise typer.BadParameter("must be 'rig' or 'virtual'", param_hint="--source")
     bad = [h for h in hs if not (cfg.height_min_mm <= h <= cfg.height_max_mm)]
     if bad:
-        raise typer.BadParameter(f"heights {bad} outside the rig's [{cfg.height_min_mm:g}, "
-                                 f"{cfg.height_max_mm:g}] mm", param_hint="--heights")
+        raise typer.BadParameter(
+            f"heights {bad} outside the rig's [{cfg.height_min_mm:g}, {cfg.height_max_mm:g}] mm", param_hint="--heights"
+        )
     plan = membrane_plan(d, heights_mm=hs, trials=trials, source=source)
     _finish(out, lambda: run_job(port, out, plan, cfg, progress=progress))
 
@@ -175,8 +187,9 @@ def lift(
     if source not in ("rig", "virtual"):
         raise typer.BadParameter("must be 'rig' or 'virtual'", param_hint="--source")
     if pressure_limit_pa >= cfg.hard_pressure_limit_pa:
-        raise typer.BadParameter(f"must be below the hard limit {cfg.hard_pressure_limit_pa:g} Pa",
-                                 param_hint="--pressure-limit-pa")
+        raise typer.BadParameter(
+            f"must be below the hard limit {cfg.hard_pressure_limit_pa:g} Pa", param_hint="--pressure-limit-pa"
+        )
     plan = lift_plan(d, mass_kg, trials=trials, pressure_limit_pa=pressure_limit_pa, source=source)
     _finish(out, lambda: run_job(port, out, plan, cfg, progress=progress))
 

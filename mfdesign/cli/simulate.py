@@ -22,7 +22,9 @@ def register(app: typer.Typer) -> None:
         p_max_pa: float = typer.Option(10_000.0, help="Largest pressure [Pa]."),
         n_heights: int = typer.Option(50, min=2, max=400, help="Heights in the grid."),
         n_pressures: int = typer.Option(50, min=2, max=2000, help="Pressures in the grid."),
-        mu_pa: float = typer.Option(None, help="Gent shear modulus of the rubber [Pa] (default: the authors' 31.7 kPa)."),
+        mu_pa: float = typer.Option(
+            None, help="Gent shear modulus of the rubber [Pa] (default: the authors' 31.7 kPa)."
+        ),
         jm: float = typer.Option(None, help="Gent locking parameter J_m of the rubber (default: the authors' 39.6)."),
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
@@ -39,13 +41,24 @@ def register(app: typer.Typer) -> None:
             widened = check_design_space(membrane, allow_outside_design_space)
         except DesignError as err:
             fail(f"bad design {design!r}: {err}")
-        for name, value, lo in (("h-max-mm", h_max_mm, 0.0), ("p-max-pa", p_max_pa, 0.0), ("mu-pa", mu_pa, 0.0), ("jm", jm, 0.0)):
+        for name, value, lo in (
+            ("h-max-mm", h_max_mm, 0.0),
+            ("p-max-pa", p_max_pa, 0.0),
+            ("mu-pa", mu_pa, 0.0),
+            ("jm", jm, 0.0),
+        ):
             if not (value > lo and value < float("inf")):
                 fail(f"--{name} must be a positive finite number, got {value}")
         params = SimParams(mu_pa=mu_pa, jm=jm)
         table = simulate_plane(membrane, h_max_mm, p_max_pa, n_heights, n_pressures, params, progress=True)
-        note = {"design_space": "widened (--allow-outside-design-space): outside the product's membranes"} if widened else {}
+        note = (
+            {"design_space": "widened (--allow-outside-design-space): outside the product's membranes"}
+            if widened
+            else {}
+        )
         paths = write_plane(table, membrane, out, extra=note)
         if widened:
-            typer.echo(f"warning: {membrane.key()} is outside the product's design space (widened on request)", err=True)
+            typer.echo(
+                f"warning: {membrane.key()} is outside the product's design space (widened on request)", err=True
+            )
         typer.echo(json.dumps({k: str(v) for k, v in paths.items()}))

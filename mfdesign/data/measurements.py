@@ -113,9 +113,7 @@ def _check_float(column: str, series: pd.Series) -> np.ndarray:
             try:
                 float(v)
             except (TypeError, ValueError):
-                raise MeasurementError(
-                    f"column {column!r}: row {i} has value {v!r}; allowed: a number"
-                ) from None
+                raise MeasurementError(f"column {column!r}: row {i} has value {v!r}; allowed: a number") from None
         raise
     nan = np.isnan(values)
     rng = f"[{low:g}, {high:g}]" + (" or NaN" if nan_ok else ", finite (no NaN/inf)")
@@ -134,9 +132,7 @@ def _check_trial(series: pd.Series) -> np.ndarray:
             ok = isinstance(v, (int, np.integer)) and not isinstance(v, bool)
             ok = ok or (isinstance(v, (float, np.floating)) and math.isfinite(v) and float(v).is_integer())
             if not ok:
-                raise MeasurementError(
-                    f"column 'trial': row {i} has value {v!r}; allowed: an integer >= 0"
-                )
+                raise MeasurementError(f"column 'trial': row {i} has value {v!r}; allowed: an integer >= 0")
         values = np.asarray([int(v) for v in raw], dtype=np.int64)
     _first_bad("trial", values, values < 0, "an integer >= 0")
     return values
@@ -263,8 +259,10 @@ class Measurements:
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Float64 arrays ``height_mm, pressure_pa, force_n, weight`` and ``design`` ``[n, 6]``."""
-        out = {c: self._df[c].to_numpy(dtype=np.float64, copy=True) for c in
-               ("height_mm", "pressure_pa", "force_n", "weight")}
+        out = {
+            c: self._df[c].to_numpy(dtype=np.float64, copy=True)
+            for c in ("height_mm", "pressure_pa", "force_n", "weight")
+        }
         out["design"] = self.design_array()
         return out
 
@@ -346,9 +344,7 @@ class Measurements:
         """One fold per membrane, in the order of :attr:`design_keys` (deterministic)."""
         keys = self.design_keys
         if len(keys) < 2:
-            raise MeasurementError(
-                f"leave_one_out needs at least 2 membranes, this table has {len(keys)}"
-            )
+            raise MeasurementError(f"leave_one_out needs at least 2 membranes, this table has {len(keys)}")
         return self._folds([[key] for key in keys])
 
     def _folds(self, test_sets: list[list[str]]) -> list[tuple["Measurements", "Measurements"]]:
@@ -356,10 +352,12 @@ class Measurements:
         out = []
         for test_keys in test_sets:
             mask = key_col.isin(test_keys).to_numpy()
-            out.append((
-                self._from_clean(self._df.loc[~mask].reset_index(drop=True)),
-                self._from_clean(self._df.loc[mask].reset_index(drop=True)),
-            ))
+            out.append(
+                (
+                    self._from_clean(self._df.loc[~mask].reset_index(drop=True)),
+                    self._from_clean(self._df.loc[mask].reset_index(drop=True)),
+                )
+            )
         return out
 
     # -- storage -------------------------------------------------------------------------
@@ -401,8 +399,7 @@ class Measurements:
         meta = table.schema.metadata or {}
         if FORMAT_KEY not in meta:
             raise MeasurementError(
-                f"{path} has no {FORMAT_KEY.decode()!r} metadata: not written by "
-                "mfdesign.data.store.write_parquet"
+                f"{path} has no {FORMAT_KEY.decode()!r} metadata: not written by mfdesign.data.store.write_parquet"
             )
         version = meta[FORMAT_KEY].decode(errors="replace")
         if version not in SUPPORTED_VERSIONS:

@@ -42,14 +42,23 @@ from mfdesign.data.measurements import COLUMNS, MeasurementError, Measurements
 from mfdesign.data.shipped import BUNDLED_NAME, bundled_path
 from mfdesign.errors import InputError
 
-__all__ = ["FORMATS", "MASS_LIFT_NAME", "detect_format", "load_sources", "read_characterisation", "read_csv",
-           "read_source"]
+__all__ = [
+    "FORMATS",
+    "MASS_LIFT_NAME",
+    "detect_format",
+    "load_sources",
+    "read_characterisation",
+    "read_csv",
+    "read_source",
+]
 
 FORMATS = ("parquet", "csv", "mass-lift", "characterisation", "sim-planes", "rig-job")
 MASS_LIFT_NAME = "mass-lift"
 _PICKLE_SUFFIXES = (".pkl", ".pickle")
-_ALLOWED = (f"allowed: '{MASS_LIFT_NAME}', '{BUNDLED_NAME}', a Measurements .parquet or .csv file, an SPA_Design .pkl "
-            "(mass-lift or characterisation data dictionary, simulated planes) or a rig job folder")
+_ALLOWED = (
+    f"allowed: '{MASS_LIFT_NAME}', '{BUNDLED_NAME}', a Measurements .parquet or .csv file, an SPA_Design .pkl "
+    "(mass-lift or characterisation data dictionary, simulated planes) or a rig job folder"
+)
 
 
 def _is_rig_job(path: Path) -> bool:
@@ -72,11 +81,17 @@ def _pickle_kind(obj, where: str) -> str:
     membrane) while the plate height moves; a characterisation trial holds the plate at a
     few set heights while the force changes at nearly every sample. So: fewer distinct
     forces than distinct heights in every membrane means mass-lift."""
-    if isinstance(obj, list) and obj and all(isinstance(e, tuple) and len(e) == 2 and isinstance(e[0], str) for e in obj):
+    if (
+        isinstance(obj, list)
+        and obj
+        and all(isinstance(e, tuple) and len(e) == 2 and isinstance(e[0], str) for e in obj)
+    ):
         return "sim-planes"
     if not isinstance(obj, dict) or not obj:
-        raise InputError(f"{where}: a pickle, but not an SPA_Design data dictionary (a non-empty dict of "
-                         f"design key -> ((us, ys), Fs, ws)); got {type(obj).__name__}; {_ALLOWED}")
+        raise InputError(
+            f"{where}: a pickle, but not an SPA_Design data dictionary (a non-empty dict of "
+            f"design key -> ((us, ys), Fs, ws)); got {type(obj).__name__}; {_ALLOWED}"
+        )
     lift = []
     for key, value in obj.items():
         try:
@@ -90,8 +105,10 @@ def _pickle_kind(obj, where: str) -> str:
         return "mass-lift"
     if not any(lift):
         return "characterisation"
-    raise InputError(f"{where}: some membranes look like mass-lift trials, others like characterisation; "
-                     "give --format mass-lift or --format characterisation")
+    raise InputError(
+        f"{where}: some membranes look like mass-lift trials, others like characterisation; "
+        "give --format mass-lift or --format characterisation"
+    )
 
 
 def detect_format(path: str | os.PathLike) -> str:
@@ -121,8 +138,10 @@ def detect_format(path: str | os.PathLike) -> str:
 def _checked_frame(df: pd.DataFrame, where: str) -> Measurements:
     missing = [c for c in COLUMNS if c not in df.columns]
     if missing:
-        raise InputError(f"{where}: missing column(s) {missing}; allowed: a table with the Measurements columns "
-                         f"{list(COLUMNS)} (docs/data.md)")
+        raise InputError(
+            f"{where}: missing column(s) {missing}; allowed: a table with the Measurements columns "
+            f"{list(COLUMNS)} (docs/data.md)"
+        )
     try:
         return Measurements(df[list(COLUMNS)])
     except MeasurementError as err:
@@ -185,19 +204,23 @@ def read_characterisation(source, where: str | None = None) -> Measurements:
         first = {}
         for t in trial:  # number the set heights in order of first appearance
             first.setdefault(int(t), len(first))
-        frames.append(pd.DataFrame({
-            "design_key": design.key(),
-            "trial": np.array([first[int(t)] for t in trial], dtype=np.int64),
-            "experiment": "force",
-            "phase": "inflate",
-            "time_s": np.nan,
-            "height_set_mm": height,
-            "height_mm": height,
-            "pressure_pa": _column(ys, n, "ys"),
-            "force_n": _column(fs, n, "Fs"),
-            "weight": _column(ws, n, "ws"),
-            "source": "file",
-        }))
+        frames.append(
+            pd.DataFrame(
+                {
+                    "design_key": design.key(),
+                    "trial": np.array([first[int(t)] for t in trial], dtype=np.int64),
+                    "experiment": "force",
+                    "phase": "inflate",
+                    "time_s": np.nan,
+                    "height_set_mm": height,
+                    "height_mm": height,
+                    "pressure_pa": _column(ys, n, "ys"),
+                    "force_n": _column(fs, n, "Fs"),
+                    "weight": _column(ws, n, "ws"),
+                    "source": "file",
+                }
+            )
+        )
     try:
         return Measurements(pd.concat(frames, ignore_index=True))
     except MeasurementError as err:

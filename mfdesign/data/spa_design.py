@@ -81,9 +81,7 @@ def shared_data_dir(must_exist: bool = True) -> Path:
 def _data_file(path: str | os.PathLike | None, name: str) -> Path:
     p = Path(path) if path is not None else shared_data_dir() / name
     if not p.is_file():
-        raise SharedDataMissing(
-            f"{name}: no file at {p}. Pass the path, or point {ENV_VAR} at the SPA_Design folder."
-        )
+        raise SharedDataMissing(f"{name}: no file at {p}. Pass the path, or point {ENV_VAR} at the SPA_Design folder.")
     return p
 
 
@@ -105,14 +103,26 @@ MAX_DEPTH = 32
 # Opcodes that build things outside "numeric arrays in dict / list / tuple of str / bytes /
 # numbers": refused before anything is loaded, with what they would have built.
 _REFUSED_OPCODES = {
-    "EMPTY_SET": "a set", "ADDITEMS": "a set", "FROZENSET": "a frozenset", "BYTEARRAY8": "a bytearray",
-    "INST": "a class instance", "OBJ": "a class instance", "NEWOBJ": "a class instance",
-    "NEWOBJ_EX": "a class instance", "EXT1": "an extension-registry object", "EXT2": "an extension-registry object",
-    "EXT4": "an extension-registry object", "PERSID": "a persistent reference", "BINPERSID": "a persistent reference",
-    "NEXT_BUFFER": "an out-of-band buffer", "READONLY_BUFFER": "an out-of-band buffer",
+    "EMPTY_SET": "a set",
+    "ADDITEMS": "a set",
+    "FROZENSET": "a frozenset",
+    "BYTEARRAY8": "a bytearray",
+    "INST": "a class instance",
+    "OBJ": "a class instance",
+    "NEWOBJ": "a class instance",
+    "NEWOBJ_EX": "a class instance",
+    "EXT1": "an extension-registry object",
+    "EXT2": "an extension-registry object",
+    "EXT4": "an extension-registry object",
+    "PERSID": "a persistent reference",
+    "BINPERSID": "a persistent reference",
+    "NEXT_BUFFER": "an out-of-band buffer",
+    "READONLY_BUFFER": "an out-of-band buffer",
 }
-_ALLOWED_WORDS = ("allowed: dict, list, tuple, str, bytes, numbers, None and numeric NumPy arrays "
-                  "(numpy _reconstruct / ndarray / dtype, and JAX arrays mapped onto NumPy)")
+_ALLOWED_WORDS = (
+    "allowed: dict, list, tuple, str, bytes, numbers, None and numeric NumPy arrays "
+    "(numpy _reconstruct / ndarray / dtype, and JAX arrays mapped onto NumPy)"
+)
 _LEAVES = (str, bytes, int, float, complex, bool, type(None), np.number, np.bool_)
 
 
@@ -121,7 +131,7 @@ def _numpy_reconstructors() -> dict[tuple[str, str], object]:
     out = {}
     for mod in ("numpy._core.multiarray", "numpy.core.multiarray"):
         try:
-            out[(mod, "_reconstruct")] = getattr(importlib.import_module(mod), "_reconstruct")
+            out[(mod, "_reconstruct")] = importlib.import_module(mod)._reconstruct
         except (ImportError, AttributeError):
             pass
     # A file pickled under NumPy 2 names numpy._core, one pickled under NumPy 1 numpy.core:
@@ -162,8 +172,11 @@ class _ArrayBudget:
         self.limit_bytes, self.used_bytes = int(limit_bytes), 0
 
     def charge(self, shape, dtype) -> None:
-        if not (isinstance(shape, tuple) and len(shape) <= MAX_DEPTH
-                and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)):
+        if not (
+            isinstance(shape, tuple)
+            and len(shape) <= MAX_DEPTH
+            and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)
+        ):
             raise UnsafePickleError(f"array shape {shape!r} in the pickle is not a tuple of sizes >= 0")
         dtype = dtype if isinstance(dtype, np.dtype) else _safe_dtype(dtype)
         if dtype.hasobject:
@@ -174,7 +187,8 @@ class _ArrayBudget:
             raise UnsafePickleError(
                 f"array of shape {shape} ({dtype}, {nbytes / 2**20:.4g} MiB) takes the pickle's arrays "
                 f"past {self.limit_bytes / 2**20:g} MiB; allowed: at most {self.limit_bytes / 2**20:g} MiB "
-                "of arrays per file (refused before allocating)")
+                "of arrays per file (refused before allocating)"
+            )
 
     def reconstruct(self, subtype, shape, dtype):
         """``numpy._core.multiarray._reconstruct`` for plain ndarrays, shape checked first."""
@@ -231,8 +245,9 @@ def _prescan(data: bytes) -> None:
     try:
         for n, (op, _, _) in enumerate(pickletools.genops(data)):
             if op.name in _REFUSED_OPCODES:
-                raise UnsafePickleError(f"the pickle builds {_REFUSED_OPCODES[op.name]} (opcode {op.name}); "
-                                        + _ALLOWED_WORDS)
+                raise UnsafePickleError(
+                    f"the pickle builds {_REFUSED_OPCODES[op.name]} (opcode {op.name}); " + _ALLOWED_WORDS
+                )
             if n >= MAX_OPCODES:
                 raise UnsafePickleError(f"the pickle has more than {MAX_OPCODES:,} opcodes; allowed: fewer")
     except UnsafePickleError:
@@ -249,8 +264,9 @@ def _children(o) -> list:
     return []
 
 
-def _check_no_objects(obj, max_nodes: int = MAX_NODES, max_tree_nodes: int = MAX_TREE_NODES,
-                      max_depth: int = MAX_DEPTH) -> None:
+def _check_no_objects(
+    obj, max_nodes: int = MAX_NODES, max_tree_nodes: int = MAX_TREE_NODES, max_depth: int = MAX_DEPTH
+) -> None:
     """Check every object's type and bound the structure's size, visiting each distinct
     object once. The size that matters downstream (``np.asarray`` on nested lists, a tree
     walk) is that of the structure unfolded into a tree; it is computed bottom-up with one
@@ -270,7 +286,8 @@ def _check_no_objects(obj, max_nodes: int = MAX_NODES, max_tree_nodes: int = MAX
             if tree_size[k] > max_tree_nodes:
                 raise UnsafePickleError(
                     f"the pickle's shared references unfold to more than {max_tree_nodes:,} nodes "
-                    f"({tree_size[k]:.3g}); allowed: at most {max_tree_nodes:,}")
+                    f"({tree_size[k]:.3g}); allowed: at most {max_tree_nodes:,}"
+                )
             continue
         if k in tree_size:
             continue
@@ -304,8 +321,9 @@ def restricted_loads(data: bytes, max_array_bytes: int = MAX_ARRAY_BYTES):
     except pickle.UnpicklingError:
         raise
     except Exception as err:  # noqa: BLE001 -- a corrupt stream fails in many ways; all mean "bad file"
-        raise pickle.UnpicklingError(f"not a valid pickle (truncated or corrupt): "
-                                     f"{type(err).__name__}: {err}") from None
+        raise pickle.UnpicklingError(
+            f"not a valid pickle (truncated or corrupt): {type(err).__name__}: {err}"
+        ) from None
     _check_no_objects(obj)
     return obj
 
@@ -364,8 +382,10 @@ def load_mass_lift(path: str | os.PathLike | None = None) -> Measurements:
     p = _data_file(path, MASS_LIFT_FILE)
     data = restricted_load(p)
     if not isinstance(data, dict) or not data:
-        raise InputError(f"{p}: expected a non-empty dict of membranes, got {type(data).__name__} "
-                         f"of {len(data) if hasattr(data, '__len__') else '?'} entries")
+        raise InputError(
+            f"{p}: expected a non-empty dict of membranes, got {type(data).__name__} "
+            f"of {len(data) if hasattr(data, '__len__') else '?'} entries"
+        )
     frames = []
     for key, value in data.items():
         design = _design_of(key, str(p))
@@ -384,19 +404,23 @@ def load_mass_lift(path: str | os.PathLike | None = None) -> Measurements:
             raise InputError(f"{p}: entry {key}: the design columns us[:, 1:7] disagree with the key")
         height = us[:, 0]
         force = _column(fs, n, "Fs")
-        frames.append(pd.DataFrame({
-            "design_key": design.key(),
-            "trial": _trial_ids(force, height),
-            "experiment": "lift",
-            "phase": "inflate",
-            "time_s": np.nan,
-            "height_set_mm": np.nan,
-            "height_mm": height,
-            "pressure_pa": _column(ys, n, "ys"),
-            "force_n": force,
-            "weight": _column(ws, n, "ws"),
-            "source": "file",
-        }))
+        frames.append(
+            pd.DataFrame(
+                {
+                    "design_key": design.key(),
+                    "trial": _trial_ids(force, height),
+                    "experiment": "lift",
+                    "phase": "inflate",
+                    "time_s": np.nan,
+                    "height_set_mm": np.nan,
+                    "height_mm": height,
+                    "pressure_pa": _column(ys, n, "ys"),
+                    "force_n": force,
+                    "weight": _column(ws, n, "ws"),
+                    "source": "file",
+                }
+            )
+        )
     return Measurements(pd.concat(frames, ignore_index=True))
 
 
@@ -443,8 +467,10 @@ def load_sim_planes(path: str | os.PathLike | None = None) -> list[SimPlane]:
     p = _data_file(path, SIM_PLANES_FILE)
     data = restricted_load(p)
     if not isinstance(data, list) or len(data) < 7:
-        raise InputError(f"{p}: expected a list of at least 7 (name, (F, p, h)), got {type(data).__name__} "
-                         f"of {len(data) if hasattr(data, '__len__') else '?'} entries")
+        raise InputError(
+            f"{p}: expected a list of at least 7 (name, (F, p, h)), got {type(data).__name__} "
+            f"of {len(data) if hasattr(data, '__len__') else '?'} entries"
+        )
     names, arrays = [], []
     for i, entry in enumerate(data):
         try:
@@ -471,17 +497,21 @@ def sim_planes_as_measurements(path: str | os.PathLike | None = None) -> Measure
     """
     frames = []
     for i, plane in enumerate(load_sim_planes(path)):
-        frames.append(pd.DataFrame({
-            "design_key": plane.design.key(),
-            "trial": i,
-            "experiment": "force",
-            "phase": "inflate",
-            "time_s": np.nan,
-            "height_set_mm": plane.height_mm,
-            "height_mm": plane.height_mm,
-            "pressure_pa": plane.pressure_pa,
-            "force_n": plane.force_n,
-            "weight": 1.0,
-            "source": "simulated",
-        }))
+        frames.append(
+            pd.DataFrame(
+                {
+                    "design_key": plane.design.key(),
+                    "trial": i,
+                    "experiment": "force",
+                    "phase": "inflate",
+                    "time_s": np.nan,
+                    "height_set_mm": plane.height_mm,
+                    "height_mm": plane.height_mm,
+                    "pressure_pa": plane.pressure_pa,
+                    "force_n": plane.force_n,
+                    "weight": 1.0,
+                    "source": "simulated",
+                }
+            )
+        )
     return Measurements(pd.concat(frames, ignore_index=True))

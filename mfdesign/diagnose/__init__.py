@@ -21,7 +21,22 @@ from mfdesign.diagnose.residuals import Residuals, breakdowns, compute_residuals
 from mfdesign.diagnose.screen import ScreenResult, screen
 
 __all__ = [
-    "CheckResult", "EmulatorModel", "analytic_force", "emulator_plane", "forward_model", "Residuals", "ScreenResult",
-    "breakdowns", "calibrate_effects", "compute_residuals", "full_check", "noise_floor", "query_heights", "screen",
-    "trial_order", "usable_rows", "verdict", "worst_regions",
+    "CheckResult",
+    "EmulatorModel",
+    "analytic_force",
+    "emulator_plane",
+    "forward_model",
+    "Residuals",
+    "ScreenResult",
+    "breakdowns",
+    "calibrate_effects",
+    "compute_residuals",
+    "full_check",
+    "noise_floor",
+    "query_heights",
+    "screen",
+    "trial_order",
+    "usable_rows",
+    "verdict",
+    "worst_regions",
 ]

@@ -14,8 +14,10 @@ refitted on the exact model's lattice, which grows where the fits go.
 Verdict (:func:`verdict`): nothing is claimed when the residual is already at the noise
 floor (RMS <= ``floor_factor`` x noise floor) or when no candidate lowers both BIC (by
 more than 10) and the held-out RMSE (by more than ``min_gain``); otherwise the best
-candidate is "explains" if its held-out RMSE is within ``floor_factor`` x noise floor,
-else "explains part".
+candidate is "explains" if its held-out RMSE is within ``floor_factor`` x the noise floor
+under that candidate (its own residuals' floor, never below the tested model's: in a lift
+the force error is slope x height error, and the slope is the model's), else "explains
+part".
 """
 
 from __future__ import annotations
@@ -37,50 +39,99 @@ __all__ = ["CheckResult", "calibrate_effects", "full_check", "verdict"]
 FLOOR_FACTOR = 1.2
 
 
-def calibrate_effects(sim: EmulatorModel, meas: Measurements, res: Residuals, effects: Sequence[str | fx.Effect],
-                      theta0: Mapping[str, float] | None = None,
-                      base_offset: np.ndarray | None = None) -> tuple[dict, np.ndarray]:
+def calibrate_effects(
+    sim: EmulatorModel,
+    meas: Measurements,
+    res: Residuals,
+    effects: Sequence[str | fx.Effect],
+    theta0: Mapping[str, float] | None = None,
+    base_offset: np.ndarray | None = None,
+) -> tuple[dict, np.ndarray]:
     """Nonlinear least-squares ``theta`` of ``effects`` on the rows of ``res``; returns
     ``(theta, prediction per row of meas)``. ``base_offset``: ``base - E(theta0)`` per row
     of ``meas`` (0 for the plain simulator)."""
     return calibrate_exact(sim, meas, res, effects, theta0, base_offset)
 
 
-def full_check(sim: EmulatorModel, meas: Measurements, res: Residuals, candidates: Sequence[Sequence[str]],
-               theta0: Mapping[str, float] | None = None, base_pred: np.ndarray | None = None,
-               n_folds: int = 3, seed: int = 0, progress: bool = False) -> list[CheckResult]:
+def full_check(
+    sim: EmulatorModel,
+    meas: Measurements,
+    res: Residuals,
+    candidates: Sequence[Sequence[str]],
+    theta0: Mapping[str, float] | None = None,
+    base_pred: np.ndarray | None = None,
+    n_folds: int = 3,
+    seed: int = 0,
+    progress: bool = False,
+) -> list[CheckResult]:
     """Calibrate each candidate effect set (a list of names), held-out RMSE and delta BIC;
     sorted by held-out RMSE (best first). ``res``: residuals of the model without them;
     ``base_pred``: that model's prediction per row of ``meas`` (default: the plain
     simulator). See :func:`mfdesign.diagnose.refit.full_check_exact`."""
-    return full_check_exact(sim, meas, res, candidates, theta0=theta0, base_pred=base_pred,
-                            n_folds=n_folds, seed=seed, progress=progress)
+    return full_check_exact(
+        sim, meas, res, candidates, theta0=theta0, base_pred=base_pred, n_folds=n_folds, seed=seed, progress=progress
+    )
 
 
-def verdict(res: Residuals, checks: Sequence[CheckResult], floor_factor: float = FLOOR_FACTOR,
-            min_gain: float = 0.1, bic_margin: float = 10.0) -> dict:
+def verdict(
+    res: Residuals,
+    checks: Sequence[CheckResult],
+    floor_factor: float = FLOOR_FACTOR,
+    min_gain: float = 0.1,
+    bic_margin: float = 10.0,
+) -> dict:
     """What may be claimed (see the module doc): ``{"status", "effects", "words", ...}``."""
     floor = res.noise_floor_n
     rms = res.rmse_n
     base = {"rmse_n": rms, "noise_floor_n": floor, "rmse_over_noise": rms / floor if floor > 0 else None}
     if floor > 0 and rms <= floor_factor * floor:
-        return {**base, "status": "at_noise_floor", "effects": [],
-                "words": (f"nothing to explain: the residual RMS {rms:.3f} N is within {floor_factor:g} x the "
-                          f"noise floor {floor:.3f} N; no effect is claimed")}
-    good = [c for c in checks if c.delta_bic < -bic_margin and c.heldout_rmse_n < (1 - min_gain) * c.heldout_rmse_base_n]
+        return {
+            **base,
+            "status": "at_noise_floor",
+            "effects": [],
+            "words": (
+                f"nothing to explain: the residual RMS {rms:.3f} N is within {floor_factor:g} x the "
+                f"noise floor {floor:.3f} N; no effect is claimed"
+            ),
+        }
+    good = [
+        c for c in checks if c.delta_bic < -bic_margin and c.heldout_rmse_n < (1 - min_gain) * c.heldout_rmse_base_n
+    ]
     if not good:
         best = min(checks, key=lambda c: c.heldout_rmse_n) if checks else None
-        extra = (f"; the best candidate, {'+'.join(best.effects)}, leaves held-out RMSE {best.heldout_rmse_n:.3f} N "
-                 f"(was {best.heldout_rmse_base_n:.3f} N, delta BIC {best.delta_bic:+.1f})") if best else ""
-        return {**base, "status": "unexplained", "effects": [],
-                "words": (f"no candidate effect explains the residual structure: RMS {rms:.3f} N vs noise floor "
-                          f"{floor:.3f} N{extra}; see the worst regions for what remains")}
+        extra = (
+            (
+                f"; the best candidate, {'+'.join(best.effects)}, leaves held-out RMSE {best.heldout_rmse_n:.3f} N "
+                f"(was {best.heldout_rmse_base_n:.3f} N, delta BIC {best.delta_bic:+.1f})"
+            )
+            if best
+            else ""
+        )
+        return {
+            **base,
+            "status": "unexplained",
+            "effects": [],
+            "words": (
+                f"no candidate effect explains the residual structure: RMS {rms:.3f} N vs noise floor "
+                f"{floor:.3f} N{extra}; see the worst regions for what remains"
+            ),
+        }
     best = min(good, key=lambda c: (c.heldout_rmse_n, c.delta_bic))
+    floor = max(floor, best.noise_floor_n)  # the floor under the candidate (refit.full_check_exact)
     full = floor > 0 and best.heldout_rmse_n <= floor_factor * floor
     th = ", ".join(f"{k} = {v:.4g} +- {best.stderr.get(k, float('nan')):.2g}" for k, v in best.theta.items())
-    return {**base, "status": "explained" if full else "partly_explained", "effects": list(best.effects),
-            "theta": best.theta, "stderr": best.stderr, "heldout_rmse_n": best.heldout_rmse_n,
-            "heldout_rmse_base_n": best.heldout_rmse_base_n, "delta_bic": best.delta_bic,
-            "words": (f"{'+'.join(best.effects)} {'explains' if full else 'explains part of'} the residual: {th}; "
-                      f"held-out RMSE {best.heldout_rmse_base_n:.3f} -> {best.heldout_rmse_n:.3f} N "
-                      f"(noise floor {floor:.3f} N, ratio {best.heldout_over_noise:.2f}), delta BIC {best.delta_bic:+.1f}")}
+    return {
+        **base,
+        "status": "explained" if full else "partly_explained",
+        "effects": list(best.effects),
+        "theta": best.theta,
+        "stderr": best.stderr,
+        "heldout_rmse_n": best.heldout_rmse_n,
+        "heldout_rmse_base_n": best.heldout_rmse_base_n,
+        "delta_bic": best.delta_bic,
+        "words": (
+            f"{'+'.join(best.effects)} {'explains' if full else 'explains part of'} the residual: {th}; "
+            f"held-out RMSE {best.heldout_rmse_base_n:.3f} -> {best.heldout_rmse_n:.3f} N "
+            f"(noise floor {floor:.3f} N, ratio {best.heldout_over_noise:.2f}), delta BIC {best.delta_bic:+.1f}"
+        ),
+    }

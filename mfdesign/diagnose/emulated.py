@@ -82,10 +82,15 @@ class emulator_plane:  # noqa: N801 -- used like a function: VirtualRig(simulato
         H, P = np.meshgrid(np.asarray(h_grid, float), np.asarray(p_grid, float), indexing="ij")
         d = np.broadcast_to(np.asarray(design.to_array(), float), (H.size, 6))
         params = jax.tree.map(lambda a: jnp.asarray(a, float), params)
-        f = np.asarray(_plane_force(self.force_model, jnp.asarray(d), jnp.asarray(H.ravel()),
-                                    jnp.asarray(P.ravel()), params)).reshape(H.shape)
-        return SimpleNamespace(force_n=f, status=np.full(H.shape, int(Status.OK), np.int8),
-                               max_locking=np.zeros(H.shape), max_rise_mm=P / 250.0 - H / 2.0)
+        f = np.asarray(
+            _plane_force(self.force_model, jnp.asarray(d), jnp.asarray(H.ravel()), jnp.asarray(P.ravel()), params)
+        ).reshape(H.shape)
+        return SimpleNamespace(
+            force_n=f,
+            status=np.full(H.shape, int(Status.OK), np.int8),
+            max_locking=np.zeros(H.shape),
+            max_rise_mm=P / 250.0 - H / 2.0,
+        )
 
 
 @eqx.filter_jit
@@ -96,13 +101,15 @@ def _plane_force(force_model, d, h, p, params):
 def likelihood_effects(names: Sequence[str] | None = None) -> list[str]:
     """Registered effects (or ``names``) that have a JAX likelihood hook; raises for one that has not."""
     out = []
-    for n in (sorted(fx.EFFECTS) if names is None else names):
+    for n in sorted(fx.EFFECTS) if names is None else names:
         e = fx.effect(n)
         if e.has_likelihood:
             out.append(e.name)
         elif names is not None:
-            raise ValueError(f"effect {e.name!r} has no likelihood hook (observed_force_fn), so the emulator/analytic "
-                             "backend cannot evaluate it; add the hook (docs/effects.md) or use --simulator full")
+            raise ValueError(
+                f"effect {e.name!r} has no likelihood hook (observed_force_fn), so the emulator/analytic "
+                "backend cannot evaluate it; add the hook (docs/effects.md) or use --simulator full"
+            )
     return out
 
 
@@ -119,8 +126,19 @@ def canonical_order() -> tuple[str, ...]:
 
 # -- the compiled core ------------------------------------------------------------------------------
 @eqx.filter_jit
-def _forward(force_model, order: tuple, names: tuple, base: SimParams, t0, P, x, design, rows: fx.Rows,
-             h_max: float, p_max: float):
+def _forward(
+    force_model,
+    order: tuple,
+    names: tuple,
+    base: SimParams,
+    t0,
+    P,
+    x,
+    design,
+    rows: fx.Rows,
+    h_max: float,
+    p_max: float,
+):
     """Expected recorded force [N] of ``rows`` at ``theta = t0 + P @ x`` (all effects of ``order``)."""
     th = t0 + P @ x
     theta = {n: th[i] for i, n in enumerate(names)}
@@ -135,8 +153,9 @@ def _jacobian(force_model, order, names, base, t0, P, x, design, rows, h_max, p_
 
 
 @eqx.filter_jit
-def _fit_batch(force_model, order, names, base, h_max, p_max, design, rows, obs, sigma,
-               t0, P, w, tau, x0, max_steps: int):
+def _fit_batch(
+    force_model, order, names, base, h_max, p_max, design, rows, obs, sigma, t0, P, w, tau, x0, max_steps: int
+):
     """Levenberg-Marquardt (optimistix) for a batch of problems (leading axis of t0, P, w, tau, x0), in turn:
     residuals ``[sqrt(w) (obs - F(t0 + P x)) / sigma, x / tau]`` (Gaussian-prior MAP)."""
     import optimistix as optx
@@ -160,8 +179,9 @@ def _fit_batch(force_model, order, names, base, h_max, p_max, design, rows, obs,
 def _row_params(order, names, base: SimParams, rows: fx.Rows, thetas) -> SimParams:
     """Simulator constants of every row at each parameter vector of ``thetas`` [B, n]."""
     thetas = jnp.atleast_2d(jnp.asarray(thetas, float))
-    return jax.vmap(lambda th: fx.apply_row_sim_params(order, {n: th[i] for i, n in enumerate(names)},
-                                                        base, rows))(thetas)
+    return jax.vmap(lambda th: fx.apply_row_sim_params(order, {n: th[i] for i, n in enumerate(names)}, base, rows))(
+        thetas
+    )
 
 
 def _rows_of(meas: Measurements) -> tuple[jax.Array, fx.Rows]:
@@ -169,11 +189,14 @@ def _rows_of(meas: Measurements) -> tuple[jax.Array, fx.Rows]:
     keys = df["design_key"].to_numpy(object).astype(str)
     uniq, inv = np.unique(keys, return_inverse=True)
     design = np.stack([Membrane.from_key(k).to_array() for k in uniq])[inv]
-    rows = fx.Rows(h_mm=jnp.asarray(query_heights(meas)), p_pa=jnp.asarray(df["pressure_pa"].to_numpy(float)),
-                   is_force=jnp.asarray((df["experiment"] == "force").to_numpy()),
-                   is_deflate=jnp.asarray((df["phase"] == "deflate").to_numpy()),
-                   is_first_trial=jnp.asarray(trial_order(meas) == 0),
-                   membrane=jnp.asarray(inv.astype(np.int32)))
+    rows = fx.Rows(
+        h_mm=jnp.asarray(query_heights(meas)),
+        p_pa=jnp.asarray(df["pressure_pa"].to_numpy(float)),
+        is_force=jnp.asarray((df["experiment"] == "force").to_numpy()),
+        is_deflate=jnp.asarray((df["phase"] == "deflate").to_numpy()),
+        is_first_trial=jnp.asarray(trial_order(meas) == 0),
+        membrane=jnp.asarray(inv.astype(np.int32)),
+    )
     return jnp.asarray(design), rows
 
 
@@ -271,13 +294,27 @@ class EmulatorModel:
         args = (np.asarray(t0, float), np.asarray(P, float), np.asarray(x, float))
         for a, b, idx in self._chunks(n):
             d, r = (design, rows) if n == CHUNK else _take(design, rows, idx)
-            val = fn(self.force_model, order, names, self.base_params, *map(jnp.asarray, args), d, r,
-                     float(self.h_range_mm[1]), float(self.p_range_pa[1]))
+            val = fn(
+                self.force_model,
+                order,
+                names,
+                self.base_params,
+                *map(jnp.asarray, args),
+                d,
+                r,
+                float(self.h_range_mm[1]),
+                float(self.p_range_pa[1]),
+            )
             out.append(np.asarray(val)[: b - a])
         return np.concatenate(out, axis=0)
 
-    def expected_force(self, meas: Measurements, effects: Sequence[str | fx.Effect] = (),
-                       theta: Mapping[str, Any] | None = None, rows: np.ndarray | None = None) -> np.ndarray:
+    def expected_force(
+        self,
+        meas: Measurements,
+        effects: Sequence[str | fx.Effect] = (),
+        theta: Mapping[str, Any] | None = None,
+        rows: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Expected observed force [N] per row of ``meas`` (or of its rows ``rows``)."""
         order = self.order(effects)
         fx.split_theta([fx.effect(e) for e in effects], theta)  # a name outside ``effects`` is an error
@@ -292,9 +329,15 @@ class EmulatorModel:
         """The plain model (no effects): ``expected_force(meas)``."""
         return self.expected_force(meas)
 
-    def jacobian(self, meas: Measurements, free: Sequence[str], effects: Sequence[str | fx.Effect] = (),
-                 theta: Mapping[str, Any] | None = None, rows: np.ndarray | None = None,
-                 pad_cols: int = 0) -> np.ndarray:
+    def jacobian(
+        self,
+        meas: Measurements,
+        free: Sequence[str],
+        effects: Sequence[str | fx.Effect] = (),
+        theta: Mapping[str, Any] | None = None,
+        rows: np.ndarray | None = None,
+        pad_cols: int = 0,
+    ) -> np.ndarray:
         """Exact ``dF/dtheta`` [N per unit, rows x len(free)] (``jax.jacfwd``) of the expected force
         with respect to the parameters ``free`` (``"effect.param"``) at ``theta`` (others neutral).
         ``pad_cols``: compute at least this many columns (zeros beyond ``free``; equal shapes
@@ -314,16 +357,28 @@ class EmulatorModel:
         # came out 0 (a hidden clamp pre-stretch was ranked 7th by the screen). One side
         # suffices (a one-node axis differentiates as a forward difference) and halves the
         # planes a cold screen solves; a fit that goes the other way grows the axis there.
-        steps = JACOBIAN_COVER_STEP * P[:, :len(free)].T
+        steps = JACOBIAN_COVER_STEP * P[:, : len(free)].T
         self._cover(meas, order, np.vstack([t[None], t + steps]), rows)
         design, rws = self.data(meas)
         if rows is not None:
             design, rws = _take(design, rws, rows)
-        return self._eval(_jacobian, design, rws, order, t, P, np.zeros(k))[:, :len(free)]
+        return self._eval(_jacobian, design, rws, order, t, P, np.zeros(k))[:, : len(free)]
 
-    def fit(self, meas: Measurements, rows: np.ndarray, target: np.ndarray, order: tuple, t0: np.ndarray,
-            P: np.ndarray, w: np.ndarray, tau: np.ndarray, x0: np.ndarray, sigma: float,
-            max_steps: int = 60, pad_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def fit(
+        self,
+        meas: Measurements,
+        rows: np.ndarray,
+        target: np.ndarray,
+        order: tuple,
+        t0: np.ndarray,
+        P: np.ndarray,
+        w: np.ndarray,
+        tau: np.ndarray,
+        x0: np.ndarray,
+        sigma: float,
+        max_steps: int = 60,
+        pad_rows: int | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Batch of Gaussian-prior MAP fits ``x [B, k]`` (see :func:`_fit_batch`) on ``rows`` of ``meas``
         against ``target`` [len(rows)]; returns ``(x, converged [B])``. ``pad_rows``: pad the rows
         (weight 0) to this many, so that data sets of other sizes reuse the compiled fit."""
@@ -338,10 +393,20 @@ class EmulatorModel:
         x = np.asarray(x0, float)
         self._cover(meas, order, t0 + np.einsum("bij,bj->bi", P, x), rows)
         for _ in range(LATTICE_ROUNDS):
-            x, ok = _fit_batch(self.force_model, order, self.names(order), self.base_params,
-                               float(self.h_range_mm[1]), float(self.p_range_pa[1]), design, rws,
-                               jnp.asarray(target, float), float(sigma),
-                               *(jnp.asarray(a, float) for a in (t0, P, w, tau, x)), int(max_steps))
+            x, ok = _fit_batch(
+                self.force_model,
+                order,
+                self.names(order),
+                self.base_params,
+                float(self.h_range_mm[1]),
+                float(self.p_range_pa[1]),
+                design,
+                rws,
+                jnp.asarray(target, float),
+                float(sigma),
+                *(jnp.asarray(a, float) for a in (t0, P, w, tau, x)),
+                int(max_steps),
+            )
             x, ok = np.asarray(x), np.asarray(ok)
             before = self.force_model
             self._cover(meas, order, t0 + np.einsum("bij,bj->bi", P, x), rows)
@@ -384,9 +449,17 @@ def forward_model(physics: str, meas: Measurements, *, cache=None, progress: boo
         _, rows = _rows_of(meas)
         some = np.unique(np.linspace(0, len(df) - 1, min(len(df), 256)).astype(int))  # per-row effects vary
         also = _row_params(order, names, base, rows.take(jnp.asarray(some)), steps)
-        fm = build_exact(tuple(dict.fromkeys(df["design_key"])), h_max_mm=float(np.nanmax(h)),
-                         p_max_pa=float(df["pressure_pa"].max()), outside="clamp", grow="additive", cache=cache,
-                         progress=progress, base=base, also=also)
+        fm = build_exact(
+            tuple(dict.fromkeys(df["design_key"])),
+            h_max_mm=float(np.nanmax(h)),
+            p_max_pa=float(df["pressure_pa"].max()),
+            outside="clamp",
+            grow="additive",
+            cache=cache,
+            progress=progress,
+            base=base,
+            also=also,
+        )
         return EmulatorModel(fm, base_params=base, progress=progress)
     if physics == "emulator":
         return EmulatorModel(None, progress=progress)

@@ -29,8 +29,9 @@ def query_heights(meas: Measurements) -> np.ndarray:
     return np.where(force & np.isfinite(hs), hs, h)
 
 
-def usable_rows(meas: Measurements, resting_mm: float = RESTING_MM, top_mm: float | None = None,
-                jump_mm: float = JUMP_MM) -> np.ndarray:
+def usable_rows(
+    meas: Measurements, resting_mm: float = RESTING_MM, top_mm: float | None = None, jump_mm: float = JUMP_MM
+) -> np.ndarray:
     """Rows whose force column says something about the membrane's push (bool mask).
 
     Excludes lift rows with the plate on its stop (``h < resting_mm``), at the rig's top

@@ -47,23 +47,46 @@ class Diagnosis:
         def part(res: Residuals | None):
             if res is None:
                 return None
-            return {"summary": res.summary(), "breakdowns": breakdowns(res), "worst_regions": worst_regions(res),
-                    "trends": trend_words(res)}
+            return {
+                "summary": res.summary(),
+                "breakdowns": breakdowns(res),
+                "worst_regions": worst_regions(res),
+                "trends": trend_words(res),
+            }
 
-        return {"model": self.model, "effects_added": self.effects, "theta": self.theta,
-                "before": part(self.before), "after": part(self.after),
-                "search": [{"base_effects": s["base_effects"],
-                            "screen": [r.to_json() for r in s["screen"]],
-                            "checks": [c.to_json() for c in s["checks"]],
-                            "verdict": s["verdict"]} for s in self.steps],
-                "found": self.found}
+        return {
+            "model": self.model,
+            "effects_added": self.effects,
+            "theta": self.theta,
+            "before": part(self.before),
+            "after": part(self.after),
+            "search": [
+                {
+                    "base_effects": s["base_effects"],
+                    "screen": [r.to_json() for r in s["screen"]],
+                    "checks": [c.to_json() for c in s["checks"]],
+                    "verdict": s["verdict"],
+                }
+                for s in self.steps
+            ],
+            "found": self.found,
+        }
 
 
-def diagnose(meas: Measurements, sim=None,
-             model: Callable[[Measurements], np.ndarray] | None = None, model_name: str = "simulator",
-             effects: Sequence[str | fx.Effect] = (), theta: Mapping[str, Any] | None = None,
-             candidates: Sequence[str] | None = None, search: bool = True, check_top: int = 3,
-             max_steps: int = 2, n_folds: int = 3, progress: bool = False) -> Diagnosis:
+def diagnose(
+    meas: Measurements,
+    sim=None,
+    model: Callable[[Measurements], np.ndarray] | None = None,
+    model_name: str = "simulator",
+    effects: Sequence[str | fx.Effect] = (),
+    theta: Mapping[str, Any] | None = None,
+    candidates: Sequence[str] | None = None,
+    search: bool = True,
+    check_top: int = 3,
+    max_steps: int = 2,
+    n_folds: int = 3,
+    progress: bool = False,
+) -> Diagnosis:
     """Diagnose ``model`` (default: the plain simulator of ``sim``) on ``meas`` (module doc).
 
     ``sim``: the forward model, :class:`~mfdesign.diagnose.emulated.EmulatorModel` on a force
@@ -114,9 +137,16 @@ def diagnose(meas: Measurements, sim=None,
             break
         sets = [[*names, r.effect] for r in ranked[:check_top]]
         # base for the check: the current model (``offset`` carries a non-simulator base model)
-        checks = full_check(sim, meas, cur_res, sets, theta0={**cur_theta, **{k: v for r in ranked[:check_top] for k, v in r.theta.items()}},
-                            base_pred=None if offset is None else e0 + offset, n_folds=n_folds,
-                            progress=progress)
+        checks = full_check(
+            sim,
+            meas,
+            cur_res,
+            sets,
+            theta0={**cur_theta, **{k: v for r in ranked[:check_top] for k, v in r.theta.items()}},
+            base_pred=None if offset is None else e0 + offset,
+            n_folds=n_folds,
+            progress=progress,
+        )
         v = verdict(cur_res, checks)
         out.steps.append({"base_effects": names, "screen": ranked, "checks": checks, "verdict": v})
         if v["status"] not in ("explained", "partly_explained"):

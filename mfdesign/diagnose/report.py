@@ -58,7 +58,11 @@ def residual_maps(res: Residuals, path: Path, title: str, vmax: float | None = N
     rows = math.ceil(n / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
     he = np.arange(0.0, max(float(f["height_mm"].max()) + 5.0, 10.0), 5.0) if len(f) else np.arange(0, 10, 5.0)
-    pe = np.arange(0.0, max(float(f["pressure_pa"].max()) + 500.0, 1000.0), 500.0) if len(f) else np.arange(0, 1000, 500.0)
+    pe = (
+        np.arange(0.0, max(float(f["pressure_pa"].max()) + 500.0, 1000.0), 500.0)
+        if len(f)
+        else np.arange(0, 1000, 500.0)
+    )
     grids = []
     for k in keys:
         g = f[f["design_key"] == k]
@@ -93,8 +97,14 @@ def parity(res: Residuals, path: Path, after: Residuals | None = None) -> None:
         if r is None or not len(r.frame):
             continue
         idx = rng.choice(len(r.frame), size=min(len(r.frame), 8000), replace=False)
-        ax.scatter(r.frame["predicted_n"].to_numpy()[idx], r.frame["observed_n"].to_numpy()[idx], s=2, alpha=0.3,
-                   c=c, label=f"{label} (RMSE {r.rmse_n:.2f} N)")
+        ax.scatter(
+            r.frame["predicted_n"].to_numpy()[idx],
+            r.frame["observed_n"].to_numpy()[idx],
+            s=2,
+            alpha=0.3,
+            c=c,
+            label=f"{label} (RMSE {r.rmse_n:.2f} N)",
+        )
     top = float(res.frame[["observed_n", "predicted_n"]].max().max()) if len(res.frame) else 1.0
     ax.plot([0, top], [0, top], "k--", lw=1)
     ax.set_xlabel("model force [N]")
@@ -149,7 +159,9 @@ def screen_plot(step: dict, path: Path) -> None:
     ax.set_yticks(y, [r.effect for r in rows])
     ax.set_xlim(0, 1)
     ax.set_xlabel("fraction of residual mean square explained (first order)")
-    ax.set_title("effect screen" + (f" (model already has {', '.join(step['base_effects'])})" if step["base_effects"] else ""))
+    ax.set_title(
+        "effect screen" + (f" (model already has {', '.join(step['base_effects'])})" if step["base_effects"] else "")
+    )
     _save(fig, path)
 
 
@@ -173,10 +185,23 @@ def shapes_plot(res: Residuals, path: Path, params=None, n: int = 3) -> list[dic
     fig, ax = plt.subplots(figsize=(7, 4))
     out = []
     for row in picked:
-        s = shape(Membrane.from_key(row.design_key), float(row.height_mm), float(row.pressure_pa), params or SimParams())
-        ax.plot(s.R_mm, s.Z_mm - s.Z_mm[-1], label=f"{row.design_key} h={row.height_mm:g} mm p={row.pressure_pa/1e3:.2f} kPa r={row.residual_n:+.2f} N")
-        out.append({"design_key": row.design_key, "height_mm": float(row.height_mm), "pressure_pa": float(row.pressure_pa),
-                    "residual_n": float(row.residual_n), "status": int(s.status)})
+        s = shape(
+            Membrane.from_key(row.design_key), float(row.height_mm), float(row.pressure_pa), params or SimParams()
+        )
+        ax.plot(
+            s.R_mm,
+            s.Z_mm - s.Z_mm[-1],
+            label=f"{row.design_key} h={row.height_mm:g} mm p={row.pressure_pa / 1e3:.2f} kPa r={row.residual_n:+.2f} N",
+        )
+        out.append(
+            {
+                "design_key": row.design_key,
+                "height_mm": float(row.height_mm),
+                "pressure_pa": float(row.pressure_pa),
+                "residual_n": float(row.residual_n),
+                "status": int(s.status),
+            }
+        )
     ax.set_xlabel("R [mm]")
     ax.set_ylabel("Z above the clamp [mm]")
     ax.legend(fontsize=6, loc="upper right")
@@ -232,25 +257,56 @@ def write_report(diag, out_dir, shapes: bool = False, params=None) -> dict[str, 
 def _html(diag, data: dict, paths: dict) -> str:
     img = lambda k: f'<img src="{paths[k].name}" style="max-width:100%">' if k in paths else ""
     b = data["before"]["summary"]
-    parts = [f"<h1>Diagnosis of the {html.escape(diag.model)}</h1>",
-             f"<p>{b['n']} usable rows of {b['membranes']} membranes; RMSE {b['rmse_n']:.3f} N, bias "
-             f"{b['bias_n']:+.3f} N, noise floor {b['noise_floor_n']:.3f} N (ratio {_fmt(b['rmse_over_noise'])}); "
-             f"left out: {_fmt(b['dropped'])}.</p>",
-             "<h2>Where it fails</h2><ul>" + "".join(f"<li>{html.escape(w['words'])}</li>" for w in data["before"]["worst_regions"])
-             + "".join(f"<li>{html.escape(t)}</li>" for t in data["before"]["trends"]) + "</ul>",
-             img("maps_before"), img("breakdown"), img("parity"), img("trial_order"), img("shapes")]
-    for i, (step, js) in enumerate(zip(diag.steps, data["search"])):
+    parts = [
+        f"<h1>Diagnosis of the {html.escape(diag.model)}</h1>",
+        f"<p>{b['n']} usable rows of {b['membranes']} membranes; RMSE {b['rmse_n']:.3f} N, bias "
+        f"{b['bias_n']:+.3f} N, noise floor {b['noise_floor_n']:.3f} N (ratio {_fmt(b['rmse_over_noise'])}); "
+        f"left out: {_fmt(b['dropped'])}.</p>",
+        "<h2>Where it fails</h2><ul>"
+        + "".join(f"<li>{html.escape(w['words'])}</li>" for w in data["before"]["worst_regions"])
+        + "".join(f"<li>{html.escape(t)}</li>" for t in data["before"]["trends"])
+        + "</ul>",
+        img("maps_before"),
+        img("breakdown"),
+        img("parity"),
+        img("trial_order"),
+        img("shapes"),
+    ]
+    for i, js in enumerate(data["search"][: len(diag.steps)]):
         parts.append(f"<h2>Which effect is missing (round {i + 1})</h2>")
-        parts.append(_table(js["screen"], ["effect", "explained_fraction", "structure_explained_fraction", "theta", "stderr", "delta_bic"]))
+        parts.append(
+            _table(
+                js["screen"],
+                ["effect", "explained_fraction", "structure_explained_fraction", "theta", "stderr", "delta_bic"],
+            )
+        )
         parts.append(img(f"screen_{i + 1}"))
-        parts.append("<h3>Full check</h3>" + _table(js["checks"], ["effects", "theta", "stderr", "rmse_n", "heldout_rmse_base_n", "heldout_rmse_n", "heldout_over_noise", "delta_bic"]))
+        parts.append(
+            "<h3>Full check</h3>"
+            + _table(
+                js["checks"],
+                [
+                    "effects",
+                    "theta",
+                    "stderr",
+                    "rmse_n",
+                    "heldout_rmse_base_n",
+                    "heldout_rmse_n",
+                    "heldout_over_noise",
+                    "delta_bic",
+                ],
+            )
+        )
         parts.append(f"<p><b>{html.escape(js['verdict']['words'])}</b></p>")
     if diag.after is not None:
         a = data["after"]["summary"]
-        parts.append(f"<h2>After adding {html.escape(', '.join(diag.effects))}</h2>"
-                     f"<p>theta: {html.escape(_fmt(diag.theta))}; RMSE {b['rmse_n']:.3f} &rarr; {a['rmse_n']:.3f} N "
-                     f"(noise floor {a['noise_floor_n']:.3f} N)</p><ul>"
-                     + "".join(f"<li>{html.escape(w['words'])}</li>" for w in data["after"]["worst_regions"]) + "</ul>"
-                     + img("maps_after"))
+        parts.append(
+            f"<h2>After adding {html.escape(', '.join(diag.effects))}</h2>"
+            f"<p>theta: {html.escape(_fmt(diag.theta))}; RMSE {b['rmse_n']:.3f} &rarr; {a['rmse_n']:.3f} N "
+            f"(noise floor {a['noise_floor_n']:.3f} N)</p><ul>"
+            + "".join(f"<li>{html.escape(w['words'])}</li>" for w in data["after"]["worst_regions"])
+            + "</ul>"
+            + img("maps_after")
+        )
     style = "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #ccc;padding:3px}</style>"
     return f"<!doctype html><html><head><meta charset='utf-8'><title>mfdesign diagnosis</title>{style}</head><body>{''.join(parts)}</body></html>"

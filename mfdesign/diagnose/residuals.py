@@ -65,22 +65,30 @@ class Residuals:
 
     def take(self, positions) -> "Residuals":
         """The residuals of some rows (positions into ``frame``); same noise floor."""
-        return Residuals(self.frame.iloc[np.asarray(positions)].reset_index(drop=True), self.noise_floor_n,
-                         self.dropped)
+        return Residuals(
+            self.frame.iloc[np.asarray(positions)].reset_index(drop=True), self.noise_floor_n, self.dropped
+        )
 
     def summary(self) -> dict:
-        return {"n": int(len(self.frame)), "rmse_n": self.rmse_n, "bias_n": self.bias_n,
-                "noise_floor_n": self.noise_floor_n,
-                "rmse_over_noise": self.rmse_n / self.noise_floor_n if self.noise_floor_n > 0 else None,
-                "membranes": int(self.frame["design_key"].nunique()), "dropped": self.dropped}
+        return {
+            "n": int(len(self.frame)),
+            "rmse_n": self.rmse_n,
+            "bias_n": self.bias_n,
+            "noise_floor_n": self.noise_floor_n,
+            "rmse_over_noise": self.rmse_n / self.noise_floor_n if self.noise_floor_n > 0 else None,
+            "membranes": int(self.frame["design_key"].nunique()),
+            "dropped": self.dropped,
+        }
 
 
 def _design_attrs(keys: np.ndarray) -> dict[str, np.ndarray]:
     uniq, inv = np.unique(keys.astype(str), return_inverse=True)
     ms = [Membrane.from_key(k) for k in uniq]
-    return {"n_rings": np.array([m.n_rings for m in ms])[inv],
-            "thickness_mm": np.array([m.thickness_mm for m in ms], float)[inv],
-            "contact_mm": np.array([m.contact_radius_mm for m in ms], float)[inv]}
+    return {
+        "n_rings": np.array([m.n_rings for m in ms])[inv],
+        "thickness_mm": np.array([m.thickness_mm for m in ms], float)[inv],
+        "contact_mm": np.array([m.contact_radius_mm for m in ms], float)[inv],
+    }
 
 
 def compute_residuals(meas: Measurements, predicted: np.ndarray | Callable[[Measurements], np.ndarray]) -> Residuals:
@@ -95,14 +103,21 @@ def compute_residuals(meas: Measurements, predicted: np.ndarray | Callable[[Meas
     finite = np.isfinite(pred)
     keep = use & finite
     attrs = _design_attrs(df["design_key"].to_numpy(object))
-    frame = pd.DataFrame({
-        "design_key": df["design_key"].to_numpy(object), "trial": df["trial"].to_numpy(np.int64),
-        "trial_order": trial_order(meas), "experiment": df["experiment"].to_numpy(object),
-        "phase": df["phase"].to_numpy(object), "time_s": df["time_s"].to_numpy(float),
-        "height_mm": query_heights(meas), "pressure_pa": df["pressure_pa"].to_numpy(float),
-        "observed_n": df["force_n"].to_numpy(float), "predicted_n": pred,
-        **attrs,
-    })
+    frame = pd.DataFrame(
+        {
+            "design_key": df["design_key"].to_numpy(object),
+            "trial": df["trial"].to_numpy(np.int64),
+            "trial_order": trial_order(meas),
+            "experiment": df["experiment"].to_numpy(object),
+            "phase": df["phase"].to_numpy(object),
+            "time_s": df["time_s"].to_numpy(float),
+            "height_mm": query_heights(meas),
+            "pressure_pa": df["pressure_pa"].to_numpy(float),
+            "observed_n": df["force_n"].to_numpy(float),
+            "predicted_n": pred,
+            **attrs,
+        }
+    )
     frame["residual_n"] = frame["observed_n"] - frame["predicted_n"]
     frame["row"] = np.arange(len(df))
     frame = frame.loc[keep].reset_index(drop=True)
@@ -124,8 +139,7 @@ def noise_floor(frame: pd.DataFrame, robust: bool = False) -> float:
     if "phase" in frame:
         label = label + "|" + frame["phase"].astype(str)
     tid = pd.factorize(label)[0]
-    order = np.lexsort((t, tid)) if np.all(np.isfinite(t)) \
-        else np.argsort(tid, kind="stable")
+    order = np.lexsort((t, tid)) if np.all(np.isfinite(t)) else np.argsort(tid, kind="stable")
     r = frame["residual_n"].to_numpy(float)[order]
     g = tid[order]
     same = (g[2:] == g[1:-1]) & (g[1:-1] == g[:-2])
@@ -156,8 +170,12 @@ def subsample(frame, max_rows: int, seed: int = 0) -> np.ndarray:
 
 
 def _stats(r: np.ndarray) -> dict:
-    return {"n": int(r.size), "mean_n": float(np.mean(r)), "rms_n": float(np.sqrt(np.mean(r**2))),
-            "abs_max_n": float(np.max(np.abs(r)))}
+    return {
+        "n": int(r.size),
+        "mean_n": float(np.mean(r)),
+        "rms_n": float(np.sqrt(np.mean(r**2))),
+        "abs_max_n": float(np.max(np.abs(r))),
+    }
 
 
 def _binned(values: np.ndarray, r: np.ndarray, edges, fmt: Callable[[float, float], str]) -> list[dict]:
@@ -167,7 +185,14 @@ def _binned(values: np.ndarray, r: np.ndarray, edges, fmt: Callable[[float, floa
     for b in range(len(edges) - 1):
         m = idx == b
         if m.any():
-            out.append({"bin": fmt(edges[b], edges[b + 1]), "low": float(edges[b]), "high": float(edges[b + 1]), **_stats(r[m])})
+            out.append(
+                {
+                    "bin": fmt(edges[b], edges[b + 1]),
+                    "low": float(edges[b]),
+                    "high": float(edges[b + 1]),
+                    **_stats(r[m]),
+                }
+            )
     return out
 
 
@@ -194,14 +219,19 @@ def breakdowns(res: Residuals) -> dict[str, list[dict]]:
     order_edges = np.unique(np.concatenate([[0, 1, 3], np.arange(6, ko.max() + 7, 6)])).astype(float)
     return {
         "height": _binned(h, r, _edges(h.min(), h.max(), 10.0), lambda a, b: f"{a:g}-{b:g} mm"),
-        "pressure": _binned(p, r, _edges(p.min(), p.max(), 1000.0), lambda a, b: f"{a/1e3:g}-{b/1e3:g} kPa"),
-        "force_level": _binned(f["observed_n"].to_numpy(float), r, (-math.inf, *FORCE_LEVELS_N[1:]),
-                               lambda a, b: f"< {b:g} N" if a == -math.inf else (f">= {a:g} N" if b == math.inf else f"{a:g}-{b:g} N")),
+        "pressure": _binned(p, r, _edges(p.min(), p.max(), 1000.0), lambda a, b: f"{a / 1e3:g}-{b / 1e3:g} kPa"),
+        "force_level": _binned(
+            f["observed_n"].to_numpy(float),
+            r,
+            (-math.inf, *FORCE_LEVELS_N[1:]),
+            lambda a, b: f"< {b:g} N" if a == -math.inf else (f">= {a:g} N" if b == math.inf else f"{a:g}-{b:g} N"),
+        ),
         "ring_count": _categorical(f["n_rings"].to_numpy(int), r, lambda v: f"{v} ring(s)"),
         "thickness": _categorical(f["thickness_mm"].to_numpy(float), r, lambda v: f"{v:g} mm"),
         "contact_radius": _categorical(f["contact_mm"].to_numpy(float), r, lambda v: f"{v:g} mm"),
-        "trial_order": _binned(ko.astype(float), r, order_edges,
-                               lambda a, b: f"trial {a:g}" if b - a == 1 else f"trials {a:g}-{b - 1:g}"),
+        "trial_order": _binned(
+            ko.astype(float), r, order_edges, lambda a, b: f"trial {a:g}" if b - a == 1 else f"trials {a:g}-{b - 1:g}"
+        ),
         "phase": _categorical(f["phase"].to_numpy(object), r),
         "experiment": _categorical(f["experiment"].to_numpy(object), r),
         "membrane": _categorical(f["design_key"].to_numpy(object), r),
@@ -243,8 +273,12 @@ def worst_regions(res: Residuals, top: int = 3, min_rows: int = 30) -> list[dict
             continue
         same = stats[(stats["g"] == row.g) & (stats["hb"] == row.hb)].set_index("pb")
         lo = hi = int(row.pb)
-        ok = lambda b: (b in same.index and (row.g, b, row.hb) not in used
-                        and np.sign(same.loc[b, "mean"]) == np.sign(row["mean"]) and same.loc[b, "abs"] >= 0.5 * row["abs"])
+        ok = lambda b, same=same, row=row: (
+            b in same.index
+            and (row.g, b, row.hb) not in used
+            and np.sign(same.loc[b, "mean"]) == np.sign(row["mean"])
+            and same.loc[b, "abs"] >= 0.5 * row["abs"]
+        )
         while ok(lo - 1):
             lo -= 1
         while ok(hi + 1):
@@ -255,16 +289,30 @@ def worst_regions(res: Residuals, top: int = 3, min_rows: int = 30) -> list[dict
         r = f["residual_n"].to_numpy(float)[m]
         n_rings, t = row.g.split("|")
         p_lo, p_hi = lo * PRESSURE_BAND_PA / 1e3, (hi + 1) * PRESSURE_BAND_PA / 1e3
-        where_p = f"above {p_lo:g} kPa" if hi >= p_top and lo > 0 else (
-            f"below {p_hi:g} kPa" if lo <= 0 else f"at {p_lo:g}-{p_hi:g} kPa")
+        where_p = (
+            f"above {p_lo:g} kPa"
+            if hi >= p_top and lo > 0
+            else (f"below {p_hi:g} kPa" if lo <= 0 else f"at {p_lo:g}-{p_hi:g} kPa")
+        )
         h_lo, h_hi = row.hb * HEIGHT_BAND_MM, (row.hb + 1) * HEIGHT_BAND_MM
         mean = float(np.mean(r))
         verb = "over-predicts" if mean < 0 else "under-predicts"
-        words = (f"{where_p} and {h_lo:g}-{h_hi:g} mm on {_group_label(int(n_rings), float(t))} the model "
-                 f"{verb} force by {abs(mean):.2f} N (mean of {r.size} samples, RMS {np.sqrt(np.mean(r**2)):.2f} N)")
-        out.append({"words": words, "n_rings": int(n_rings), "thickness_mm": float(t),
-                    "pressure_kpa": [p_lo, p_hi], "height_mm": [float(h_lo), float(h_hi)],
-                    "mean_n": mean, "rms_n": float(np.sqrt(np.mean(r**2))), "n": int(r.size)})
+        words = (
+            f"{where_p} and {h_lo:g}-{h_hi:g} mm on {_group_label(int(n_rings), float(t))} the model "
+            f"{verb} force by {abs(mean):.2f} N (mean of {r.size} samples, RMS {np.sqrt(np.mean(r**2)):.2f} N)"
+        )
+        out.append(
+            {
+                "words": words,
+                "n_rings": int(n_rings),
+                "thickness_mm": float(t),
+                "pressure_kpa": [p_lo, p_hi],
+                "height_mm": [float(h_lo), float(h_hi)],
+                "mean_n": mean,
+                "rms_n": float(np.sqrt(np.mean(r**2))),
+                "n": int(r.size),
+            }
+        )
     return out
 
 
@@ -277,6 +325,8 @@ def trend_words(res: Residuals) -> list[str]:
         big = max(bins, key=lambda b: b["rms_n"])
         small = min(bins, key=lambda b: b["rms_n"])
         if big["rms_n"] > 2.0 * max(small["rms_n"], res.noise_floor_n if res.noise_floor_n > 0 else 0.0):
-            out.append(f"by {name.replace('_', ' ')}: RMS {big['rms_n']:.2f} N at {big['bin']} "
-                       f"(mean {big['mean_n']:+.2f} N) vs {small['rms_n']:.2f} N at {small['bin']}")
+            out.append(
+                f"by {name.replace('_', ' ')}: RMS {big['rms_n']:.2f} N at {big['bin']} "
+                f"(mean {big['mean_n']:+.2f} N) vs {small['rms_n']:.2f} N at {small['bin']}"
+            )
     return out

@@ -114,22 +114,32 @@ def _fit_one(res: Residuals, J: np.ndarray, e: fx.Effect) -> ScreenResult:
     excess = ss0 / n - sigma**2
     struct = (ss0 - ss1) / n / excess if excess > 0 else 0.0
     return ScreenResult(
-        effect=e.name, story=e.story,
+        effect=e.name,
+        story=e.story,
         theta={e.qualified(p.name): float(p.neutral + d[j]) for j, p in enumerate(e.parameters)},
         stderr={e.qualified(p.name): float(se[j]) for j, p in enumerate(e.parameters)},
         explained_fraction=float(1.0 - ss1 / ss0) if ss0 > 0 else 0.0,
         structure_explained_fraction=float(min(struct, 1.5)),
-        rms_before_n=float(math.sqrt(ss0 / n)), rms_after_n=float(math.sqrt(ss1 / n)),
-        delta_bic=float(dbic), n_eff=float(n_eff),
-        sensitivity_rms_n={e.qualified(p.name): float(np.sqrt(np.mean(Jo[:, j] ** 2)))
-                           for j, p in enumerate(e.parameters)},
+        rms_before_n=float(math.sqrt(ss0 / n)),
+        rms_after_n=float(math.sqrt(ss1 / n)),
+        delta_bic=float(dbic),
+        n_eff=float(n_eff),
+        sensitivity_rms_n={
+            e.qualified(p.name): float(np.sqrt(np.mean(Jo[:, j] ** 2))) for j, p in enumerate(e.parameters)
+        },
     )
 
 
-def screen(res: Residuals, meas: Measurements, sim: EmulatorModel,
-           candidates: Sequence[str | fx.Effect] | None = None,
-           base_effects: Sequence[str | fx.Effect] = (), base_theta: Mapping[str, Any] | None = None,
-           progress: bool = False, max_rows: int = SCREEN_ROWS) -> list[ScreenResult]:
+def screen(
+    res: Residuals,
+    meas: Measurements,
+    sim: EmulatorModel,
+    candidates: Sequence[str | fx.Effect] | None = None,
+    base_effects: Sequence[str | fx.Effect] = (),
+    base_theta: Mapping[str, Any] | None = None,
+    progress: bool = False,
+    max_rows: int = SCREEN_ROWS,
+) -> list[ScreenResult]:
     """Rank ``candidates`` (default: every registered effect not in ``base_effects``) by the
     fraction of the residual ``res`` each explains to first order; best first. At most
     ``max_rows`` rows, evenly spaced within each trial (neighbouring samples of a 10 Hz
@@ -146,7 +156,7 @@ def screen(res: Residuals, meas: Measurements, sim: EmulatorModel,
     out, j = [], 0
     for c in cands:
         k = len(c.parameters)
-        out.append(_fit_one(res, J_all[:, j:j + k], c))
+        out.append(_fit_one(res, J_all[:, j : j + k], c))
         j += k
     out.sort(key=lambda s: -s.explained_fraction)
     return out

@@ -9,8 +9,16 @@ from mfdesign.physics.params import SimParams
 __all__ = ["force_model_for"]
 
 
-def force_model_for(name: str, design_keys=(), *, h_max_mm: float = 80.0, p_max_pa: float = 10_000.0,
-                    base: SimParams = SimParams(), progress: bool = False, cache=None) -> ForceModel:
+def force_model_for(
+    name: str,
+    design_keys=(),
+    *,
+    h_max_mm: float = 80.0,
+    p_max_pa: float = 10_000.0,
+    base: SimParams = SimParams(),
+    progress: bool = False,
+    cache=None,
+) -> ForceModel:
     """The force model called ``name`` (one of :data:`FORCE_MODELS`).
 
     Arguments:
@@ -27,8 +35,15 @@ def force_model_for(name: str, design_keys=(), *, h_max_mm: float = 80.0, p_max_
 
         if not len(design_keys):
             raise ValueError("the exact force model needs the measured designs")
-        return build_exact(design_keys, h_max_mm=h_max_mm, p_max_pa=p_max_pa, base=base, outside="clamp",
-                           cache=cache, progress=progress)
+        return build_exact(
+            design_keys,
+            h_max_mm=h_max_mm,
+            p_max_pa=p_max_pa,
+            base=base,
+            outside="clamp",
+            cache=cache,
+            progress=progress,
+        )
     if name == "emulator":
         from mfdesign.models.emulator import load_default
 

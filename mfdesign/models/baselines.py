@@ -119,8 +119,9 @@ def fit_curve(config: CurveFitConfig, design, h_mm, p_pa, force_n, weight=None) 
     pooled = None
     for ringed, mask in ((False, ~has_ring), (True, has_ring)):
         if mask.sum() > 0:
-            fits[ringed] = fit_poly(design[mask], h[mask], p[mask], f[mask], w[mask],
-                                    config.degree, config.ridge, ringed)
+            fits[ringed] = fit_poly(
+                design[mask], h[mask], p[mask], f[mask], w[mask], config.degree, config.ridge, ringed
+            )
         else:
             if pooled is None:
                 pooled = fit_poly(design, h, p, f, w, config.degree, config.ridge, True)

@@ -44,7 +44,7 @@ def predict_mean_std(model: ForceModel, design, h, p, batch: int = 20_000):
     """Mean and member std [n] of ``model.predict``, in batches of rows (bounded memory)."""
     mus, sds = [], []
     for s in range(0, len(h), batch):
-        f = np.asarray(model.predict(design[s:s + batch], h[s:s + batch], p[s:s + batch]))
+        f = np.asarray(model.predict(design[s : s + batch], h[s : s + batch], p[s : s + batch]))
         mus.append(f.mean(0))
         sds.append(f.std(0))
     return (np.concatenate(mus), np.concatenate(sds)) if mus else (np.zeros(0), np.zeros(0))
@@ -56,8 +56,11 @@ def metrics(force, mean, std, noise_sd: float = 0.0) -> dict[str, float]:
     if not (force.shape == mean.shape == std.shape) or force.ndim != 1:
         raise ValueError(f"force, mean, std must be equal 1-d shapes, got {force.shape}, {mean.shape}, {std.shape}")
     err = force - mean
-    out = {"n": int(len(err)), "rmse_n": float(np.sqrt(np.mean(err**2))) if len(err) else float("nan"),
-           "median_abs_n": float(np.median(np.abs(err))) if len(err) else float("nan")}
+    out = {
+        "n": int(len(err)),
+        "rmse_n": float(np.sqrt(np.mean(err**2))) if len(err) else float("nan"),
+        "median_abs_n": float(np.median(np.abs(err))) if len(err) else float("nan"),
+    }
     total = np.sqrt(std**2 + noise_sd**2)
     for q, z in Z.items():
         tag = int(round(q * 100))
@@ -79,8 +82,15 @@ class CVResult:
         return {"folds": self.folds, "overall": self.overall}
 
 
-def cross_validate(spec: ForceModelSpec, folds, *, seed: int = 0, progress: bool = True,
-                   inner_progress: bool = False, keep_models: bool = False) -> CVResult:
+def cross_validate(
+    spec: ForceModelSpec,
+    folds,
+    *,
+    seed: int = 0,
+    progress: bool = True,
+    inner_progress: bool = False,
+    keep_models: bool = False,
+) -> CVResult:
     """Fit ``spec`` on each fold's training Measurements and score its test Measurements.
 
     ``folds``: ``[(train, test), ...]`` as made by ``Measurements.kfold`` or
@@ -96,25 +106,44 @@ def cross_validate(spec: ForceModelSpec, folds, *, seed: int = 0, progress: bool
         if overlap:
             raise ValueError(f"fold {i}: membranes in both train and test: {sorted(overlap)}")
         a, b = train.arrays(), test.arrays()
-        model = spec.fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"],
-                         key=seed + i, progress=inner_progress)
+        model = spec.fit(
+            a["design"],
+            a["height_mm"],
+            a["pressure_pa"],
+            a["force_n"],
+            a["weight"],
+            key=seed + i,
+            progress=inner_progress,
+        )
         mu_tr, _ = predict_mean_std(model, a["design"], a["height_mm"], a["pressure_pa"])
         noise = float(np.sqrt(np.average((a["force_n"] - mu_tr) ** 2, weights=a["weight"])))
         mu, sd = predict_mean_std(model, b["design"], b["height_mm"], b["pressure_pa"])
         m = metrics(b["force_n"], mu, sd, noise)
-        m.update(fold=i, test_membranes=list(test.design_keys), train_rmse_n=float(
-            np.sqrt(np.mean((a["force_n"] - mu_tr) ** 2))), noise_sd_n=noise)
+        m.update(
+            fold=i,
+            test_membranes=list(test.design_keys),
+            train_rmse_n=float(np.sqrt(np.mean((a["force_n"] - mu_tr) ** 2))),
+            noise_sd_n=noise,
+        )
         rows.append(m)
         if keep_models:
             models.append(model)
-        for k, v in (("force", b["force_n"]), ("mean", mu), ("std", sd), ("fold", np.full(len(mu), i)),
-                     ("total_sd", np.sqrt(sd**2 + noise**2)), ("design", b["design"]),
-                     ("h", b["height_mm"]), ("p", b["pressure_pa"])):
+        for k, v in (
+            ("force", b["force_n"]),
+            ("mean", mu),
+            ("std", sd),
+            ("fold", np.full(len(mu), i)),
+            ("total_sd", np.sqrt(sd**2 + noise**2)),
+            ("design", b["design"]),
+            ("h", b["height_mm"]),
+            ("p", b["pressure_pa"]),
+        ):
             keep[k].append(v)
     pred = {k: np.concatenate(v) for k, v in keep.items()}
     overall = metrics(pred["force"], pred["mean"], pred["std"])
     for q, z in Z.items():
         overall[f"coverage{int(round(q * 100))}_total"] = float(
-            np.mean(np.abs(pred["force"] - pred["mean"]) <= z * pred["total_sd"]))
+            np.mean(np.abs(pred["force"] - pred["mean"]) <= z * pred["total_sd"])
+        )
     overall["fold_rmse_mean_n"] = float(np.mean([r["rmse_n"] for r in rows]))
     return CVResult(rows, overall, pred, models)

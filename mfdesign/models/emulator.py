@@ -54,8 +54,16 @@ FORMAT_VERSION = 1
 DEFAULT_DIR = emulator_dir()  # shipped in the package (mfdesign.data.shipped)
 N_FEATURES = 14
 Q_SCALE = 1.0  # 1/mm: q = p / (mu t_eff) is at most ~1 in the training ranges
-PARAM_FIELDS = ("mu_pa", "jm", "ring_mu_pa", "ring_jm", "thickness_factor",
-                "thickness_gradient", "clamp_prestretch", "contact_offset_mm")
+PARAM_FIELDS = (
+    "mu_pa",
+    "jm",
+    "ring_mu_pa",
+    "ring_jm",
+    "thickness_factor",
+    "thickness_gradient",
+    "clamp_prestretch",
+    "contact_offset_mm",
+)
 MIN_RUBBER_MM = 0.5  # the effective disk edge must stay this far inside the first ring
 
 
@@ -66,9 +74,13 @@ def default_ranges() -> dict[str, tuple[float, float]]:
     space = DesignSpace()
     rng = {k: (lo, hi) for k, (lo, hi, _) in ed.PARAM_RANGES.items()}
     rng["ring_jm"] = (ed.RING_JM, ed.RING_JM)
-    rng.update(height_mm=ed.H_RANGE_MM, pressure_pa=ed.P_RANGE_PA,
-               thickness_mm=space.thickness_mm, contact_radius_mm=space.contact_radius_mm,
-               half_width_mm=space.half_width_mm)
+    rng.update(
+        height_mm=ed.H_RANGE_MM,
+        pressure_pa=ed.P_RANGE_PA,
+        thickness_mm=space.thickness_mm,
+        contact_radius_mm=space.contact_radius_mm,
+        half_width_mm=space.half_width_mm,
+    )
     return rng
 
 
@@ -107,8 +119,7 @@ def _broadcast_inputs(design, h_mm, p_pa, params: SimParams):
     d = jnp.asarray(design, dtype=float)
     if d.shape[-1:] != (6,):
         raise ValueError(f"design must be [N, 6] = [t, c, r1, w1, r2, w2] mm, got shape {d.shape}")
-    shape = jnp.broadcast_shapes(h.shape, p.shape, d.shape[:-1],
-                                 *(jnp.shape(getattr(params, f)) for f in PARAM_FIELDS))
+    shape = jnp.broadcast_shapes(h.shape, p.shape, d.shape[:-1], *(jnp.shape(getattr(params, f)) for f in PARAM_FIELDS))
     h, p = jnp.broadcast_to(h, shape), jnp.broadcast_to(p, shape)
     d = jnp.broadcast_to(d, shape + (6,))
     par = {f: jnp.broadcast_to(jnp.asarray(getattr(params, f), dtype=float), shape) for f in PARAM_FIELDS}
@@ -137,9 +148,17 @@ def features(design, h_mm, p_pa, params: SimParams) -> tuple[jax.Array, jax.Arra
         outer = jnp.where(present, (r_s + w_s - r0) / span, 0.0)
         ring += [present.astype(float), inner, outer]
     feats = jnp.stack(
-        [cube, h / 80.0, r0 / 40.0, jnp.log(par["jm"]), par["thickness_gradient"],
-         (par["clamp_prestretch"] - 1.0) * 10.0, jnp.log(par["ring_mu_pa"] / par["mu_pa"]),
-         jnp.log(par["ring_jm"])] + ring,
+        [
+            cube,
+            h / 80.0,
+            r0 / 40.0,
+            jnp.log(par["jm"]),
+            par["thickness_gradient"],
+            (par["clamp_prestretch"] - 1.0) * 10.0,
+            jnp.log(par["ring_mu_pa"] / par["mu_pa"]),
+            jnp.log(par["ring_jm"]),
+        ]
+        + ring,
         axis=-1,
     )
     scale = jnp.maximum(p, 0.0) * 1e-6 * jnp.pi * r0**2  # MPa mm^2 = N
@@ -194,8 +213,10 @@ class Emulator(ForceModel):
 
     def input_ranges(self) -> dict[str, tuple[float, float]]:
         rg = self.range_dict
-        return {"height_mm": tuple(rg.get("height_mm", (0.0, 80.0))),
-                "pressure_pa": tuple(rg.get("pressure_pa", (0.0, 1.0e4)))}
+        return {
+            "height_mm": tuple(rg.get("height_mm", (0.0, 80.0))),
+            "pressure_pa": tuple(rg.get("pressure_pa", (0.0, 1.0e4))),
+        }
 
     def in_range(self, design, h_mm, p_pa, params: SimParams = SimParams()) -> jax.Array:
         """True where the query lies inside the training ranges (bool [N]).
@@ -220,7 +241,7 @@ class Emulator(ForceModel):
         r1, w1, r2, w2 = (d[..., k] for k in range(2, 6))
         has1 = ~jnp.isnan(r1) & ~jnp.isnan(w1)
         has2 = ~jnp.isnan(r2) & ~jnp.isnan(w2)
-        half = (lambda w, has: jnp.where(has, within(w, "half_width_mm"), True))
+        half = lambda w, has: jnp.where(has, within(w, "half_width_mm"), True)
         ok &= half(w1, has1) & half(w2, has2)
         ok &= ~(jnp.isnan(r1) ^ jnp.isnan(w1)) & ~(jnp.isnan(r2) ^ jnp.isnan(w2))
         ok &= ~(has2 & ~has1)  # slot 2 without slot 1 is not the encoding
@@ -261,8 +282,9 @@ class Emulator(ForceModel):
             raise FileNotFoundError(f"no emulator.json in {path}: not a saved Emulator")
         meta = json.loads(meta_file.read_text())
         if meta.get("format_version") != FORMAT_VERSION:
-            raise ValueError(f"{path}: emulator format_version {meta.get('format_version')}, "
-                             f"this code reads {FORMAT_VERSION}")
+            raise ValueError(
+                f"{path}: emulator format_version {meta.get('format_version')}, this code reads {FORMAT_VERSION}"
+            )
         cfg = EmulatorConfig.from_dict(meta["config"])
         ranges = {k: tuple(v) for k, v in meta["ranges"].items()}
         skeleton = init_emulator(cfg, np.asarray(meta["feat_mean"]), np.asarray(meta["feat_std"]), ranges)
@@ -297,9 +319,12 @@ def table_arrays(df) -> dict[str, np.ndarray]:
     """Simulator table (see :mod:`emulator_data`) -> design [N,6], h, p, F, params fields."""
     from mfdesign.models.emulator_data import DESIGN_COLS
 
-    out = {"design": df[list(DESIGN_COLS)].to_numpy(float),
-           "h": df["height_mm"].to_numpy(float), "p": df["pressure_pa"].to_numpy(float),
-           "F": df["force_n"].to_numpy(float)}
+    out = {
+        "design": df[list(DESIGN_COLS)].to_numpy(float),
+        "h": df["height_mm"].to_numpy(float),
+        "p": df["pressure_pa"].to_numpy(float),
+        "F": df["force_n"].to_numpy(float),
+    }
     for f in PARAM_FIELDS:
         out[f] = df[f].to_numpy(float)
     return out
@@ -310,8 +335,12 @@ def params_of(arrays: dict[str, np.ndarray]) -> SimParams:
 
 
 # --------------------------------------------------------------------------- training
-def fit_emulator(arrays: dict[str, np.ndarray], config: EmulatorConfig = EmulatorConfig(),
-                 ranges: dict | None = None, progress: bool = True) -> tuple[Emulator, dict]:
+def fit_emulator(
+    arrays: dict[str, np.ndarray],
+    config: EmulatorConfig = EmulatorConfig(),
+    ranges: dict | None = None,
+    progress: bool = True,
+) -> tuple[Emulator, dict]:
     """Train on simulator points (``table_arrays`` output). Points with ``p = 0`` carry no
     information (F = 0 by construction) and are skipped.
 
@@ -366,8 +395,7 @@ def fit_emulator(arrays: dict[str, np.ndarray], config: EmulatorConfig = Emulato
 
     key = jax.random.PRNGKey(config.seed + 1)
     history = []
-    bar = tqdm(range(0, config.steps, chunk), desc="emulator training", disable=not progress,
-               mininterval=10)
+    bar = tqdm(range(0, config.steps, chunk), desc="emulator training", disable=not progress, mininterval=10)
     for _ in bar:
         key, sub = jax.random.split(key)
         params, opt_state, loss = run(params, opt_state, sub)
@@ -390,9 +418,14 @@ def evaluate(emu: Emulator, arrays: dict[str, np.ndarray], f_range_n: float | No
         if e.size == 0:
             return {"n": 0}
         rmse = float(np.sqrt(np.mean(e**2)))
-        return {"n": int(e.size), "rmse_n": rmse, "rmse_over_range": rmse / rng,
-                "max_abs_err_n": float(np.max(np.abs(e))), "mae_n": float(np.mean(np.abs(e))),
-                "p99_abs_err_n": float(np.quantile(np.abs(e), 0.99))}
+        return {
+            "n": int(e.size),
+            "rmse_n": rmse,
+            "rmse_over_range": rmse / rng,
+            "max_abs_err_n": float(np.max(np.abs(e))),
+            "mae_n": float(np.mean(np.abs(e))),
+            "p99_abs_err_n": float(np.quantile(np.abs(e), 0.99)),
+        }
 
     out = {"force_range_n": rng, "all": stats(np.ones_like(err, bool))}
     for k in range(3):

@@ -46,8 +46,16 @@ PARAM_RANGES: dict[str, tuple[float, float, str]] = {
 }
 RING_JM = 25.0  # fixed (the authors' fabric)
 OFFSET_GAP_MM = 1.0  # rubber kept between the effective disk edge and the first ring
-PARAM_FIELDS = ("mu_pa", "jm", "ring_mu_pa", "ring_jm", "thickness_factor",
-                "thickness_gradient", "clamp_prestretch", "contact_offset_mm")
+PARAM_FIELDS = (
+    "mu_pa",
+    "jm",
+    "ring_mu_pa",
+    "ring_jm",
+    "thickness_factor",
+    "thickness_gradient",
+    "clamp_prestretch",
+    "contact_offset_mm",
+)
 DESIGN_COLS = ("t_mm", "c_mm", "r1_mm", "w1_mm", "r2_mm", "w2_mm")
 
 

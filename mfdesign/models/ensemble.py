@@ -82,8 +82,18 @@ class EnsembleConfig:
     dtype: str = "float32"
 
     def __post_init__(self):
-        ints = dict(n_members=1, steps=0, batch=1, ring_embed_dim=1, ring_depth=0,
-                    ring_width=1, latent_depth=0, latent_width=1, chunk=1, lr_decay_steps=1)
+        ints = dict(
+            n_members=1,
+            steps=0,
+            batch=1,
+            ring_embed_dim=1,
+            ring_depth=0,
+            ring_width=1,
+            latent_depth=0,
+            latent_width=1,
+            chunk=1,
+            lr_decay_steps=1,
+        )
         for name, low in ints.items():
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < low:
@@ -136,7 +146,11 @@ def check_inputs(design, h_mm, p_pa, force_n=None, weight=None):
         if arr is None:
             out.append(None)
             continue
-        arr = np.broadcast_to(np.asarray(arr, dtype=np.float64), (n,)) if np.ndim(arr) == 0 else np.asarray(arr, dtype=np.float64).reshape(-1)
+        arr = (
+            np.broadcast_to(np.asarray(arr, dtype=np.float64), (n,))
+            if np.ndim(arr) == 0
+            else np.asarray(arr, dtype=np.float64).reshape(-1)
+        )
         if arr.shape != (n,):
             raise ValueError(f"{name} must have {n} entries (one per design row), got {arr.shape}")
         if not np.all(np.isfinite(arr)):
@@ -167,8 +181,14 @@ class Normaliser(eqx.Module):
         pos = lambda s: np.where(s > 1e-12, s, 1.0)  # noqa: E731
         p_scale = float(np.max(np.abs(p))) or 1.0
         f_scale = float(np.std(force)) or 1.0
-        return cls(jnp.asarray(tch.mean(0)), jnp.asarray(pos(tch.std(0))), jnp.asarray(mu_r),
-                   jnp.asarray(pos(sd_r)), jnp.asarray(p_scale), jnp.asarray(f_scale))
+        return cls(
+            jnp.asarray(tch.mean(0)),
+            jnp.asarray(pos(tch.std(0))),
+            jnp.asarray(mu_r),
+            jnp.asarray(pos(sd_r)),
+            jnp.asarray(p_scale),
+            jnp.asarray(f_scale),
+        )
 
 
 # --------------------------------------------------------------------------- network
@@ -185,12 +205,20 @@ class ForceNet(eqx.Module):
         k1, k2, k3, k4 = jax.random.split(key, 4)
         dt = jnp.dtype(cfg.dtype)
         e = cfg.ring_embed_dim
-        self.ring_mlp = eqx.nn.MLP(2, e, cfg.ring_width, cfg.ring_depth, activation=jnp.tanh,
-                                   final_activation=jnp.tanh, key=k1, dtype=dt)
+        self.ring_mlp = eqx.nn.MLP(
+            2, e, cfg.ring_width, cfg.ring_depth, activation=jnp.tanh, final_activation=jnp.tanh, key=k1, dtype=dt
+        )
         self.no_ring = 0.5 * jax.random.normal(k2, (e,), dt)
-        self.latent = eqx.nn.MLP(e + MAX_RINGS + 1 + 3, cfg.latent_width, cfg.latent_width,
-                                 cfg.latent_depth, activation=jax.nn.gelu,
-                                 final_activation=jax.nn.gelu, key=k3, dtype=dt)
+        self.latent = eqx.nn.MLP(
+            e + MAX_RINGS + 1 + 3,
+            cfg.latent_width,
+            cfg.latent_width,
+            cfg.latent_depth,
+            activation=jax.nn.gelu,
+            final_activation=jax.nn.gelu,
+            key=k3,
+            dtype=dt,
+        )
         self.head = eqx.nn.Linear(cfg.latent_width, cfg.degree + 1, key=k4, dtype=dt)
         self.monotone = cfg.monotone
 
@@ -259,10 +287,16 @@ class Ensemble(eqx.Module):
         path.mkdir(parents=True, exist_ok=True)
         with outputs.atomic_path(path / "ensemble.eqx") as tmp:
             eqx.tree_serialise_leaves(tmp, self)
-        meta = {"format_version": FORMAT_VERSION, "kind": "rpn_ensemble", "beta": self.beta,
-                "config": self.config.to_dict(),
-                "normalisation": {k: np.asarray(getattr(self.norm, k)).tolist()
-                                  for k in ("mu_tch", "sd_tch", "mu_ring", "sd_ring", "p_scale", "f_scale")}}
+        meta = {
+            "format_version": FORMAT_VERSION,
+            "kind": "rpn_ensemble",
+            "beta": self.beta,
+            "config": self.config.to_dict(),
+            "normalisation": {
+                k: np.asarray(getattr(self.norm, k)).tolist()
+                for k in ("mu_tch", "sd_tch", "mu_ring", "sd_ring", "p_scale", "f_scale")
+            },
+        }
         outputs.write_json(path / "ensemble.json", meta)
         return path
 
@@ -283,13 +317,17 @@ class Ensemble(eqx.Module):
         except InputError:
             raise
         except Exception as err:  # noqa: BLE001 -- a corrupt file fails in many ways (equinox TreePathError, ...)
-            raise InputError(f"{path}: not a loadable ensemble ({type(err).__name__}: {one_line(err, 200)}); "
-                             "allowed: a folder written by `mfdesign fit` (refit it)") from None
+            raise InputError(
+                f"{path}: not a loadable ensemble ({type(err).__name__}: {one_line(err, 200)}); "
+                "allowed: a folder written by `mfdesign fit` (refit it)"
+            ) from None
         leaves = [np.asarray(a) for a in jax.tree.leaves(eqx.filter(model, eqx.is_inexact_array))]
         bad = sum(int((~np.isfinite(a)).sum()) for a in leaves)
         if bad:
-            raise InputError(f"{path / 'ensemble.eqx'}: {bad} of {sum(a.size for a in leaves)} weights are NaN or "
-                             "infinite; allowed: finite weights (refit the model)")
+            raise InputError(
+                f"{path / 'ensemble.eqx'}: {bad} of {sum(a.size for a in leaves)} weights are NaN or "
+                "infinite; allowed: finite weights (refit the model)"
+            )
         return model
 
     @classmethod
@@ -304,24 +342,38 @@ class Ensemble(eqx.Module):
         cfg = EnsembleConfig.from_dict(meta["config"])
         too_big = {k: getattr(cfg, k) for k, top in LOAD_LIMITS.items() if getattr(cfg, k) > top}
         if too_big:
-            raise InputError(f"{meta_file}: config sizes {too_big} exceed what a saved ensemble may declare "
-                             f"({ {k: LOAD_LIMITS[k] for k in too_big} })")
+            raise InputError(
+                f"{meta_file}: config sizes {too_big} exceed what a saved ensemble may declare "
+                f"({ {k: LOAD_LIMITS[k] for k in too_big} })"
+            )
         beta = float(meta["beta"])
         n = meta["normalisation"]
-        norm = Normaliser(*(jnp.asarray(n[k], dtype=jnp.float64) for k in
-                            ("mu_tch", "sd_tch", "mu_ring", "sd_ring", "p_scale", "f_scale")))
+        norm = Normaliser(
+            *(
+                jnp.asarray(n[k], dtype=jnp.float64)
+                for k in ("mu_tch", "sd_tch", "mu_ring", "sd_ring", "p_scale", "f_scale")
+            )
+        )
         if not (math.isfinite(beta) and all(np.isfinite(np.asarray(a)).all() for a in jax.tree.leaves(norm))):
             raise InputError(f"{meta_file}: beta or the normalisation holds NaN or infinity; allowed: finite numbers")
         if not (path / "ensemble.eqx").is_file():
-            raise InputError(f"{path}: ensemble.json without ensemble.eqx; allowed: both, as `mfdesign fit` writes them")
+            raise InputError(
+                f"{path}: ensemble.json without ensemble.eqx; allowed: both, as `mfdesign fit` writes them"
+            )
         skeleton = init_ensemble(cfg, norm, jax.random.PRNGKey(0), beta=beta)
         return eqx.tree_deserialise_leaves(path / "ensemble.eqx", skeleton)
 
 
 # Largest sizes a saved ensemble may declare: checked before the skeleton is allocated, so
 # a corrupt ensemble.json cannot ask for gigabytes (the paper's model: 32 members, width 32).
-LOAD_LIMITS = {"n_members": 1024, "ring_embed_dim": 512, "ring_depth": 16, "ring_width": 4096,
-               "latent_depth": 16, "latent_width": 4096}
+LOAD_LIMITS = {
+    "n_members": 1024,
+    "ring_embed_dim": 512,
+    "ring_depth": 16,
+    "ring_width": 4096,
+    "latent_depth": 16,
+    "latent_width": 4096,
+}
 
 
 @eqx.filter_jit
@@ -346,8 +398,9 @@ def init_ensemble(cfg: EnsembleConfig, norm: Normaliser, key, beta: float | None
 @functools.lru_cache(maxsize=32)
 def _optimiser(cfg: EnsembleConfig):
     """Adam on the authors' exponentially decaying learning rate (cached: one compile per config)."""
-    schedule = optax.exponential_decay(cfg.lr, transition_steps=cfg.lr_decay_steps,
-                                       decay_rate=cfg.lr_decay, end_value=cfg.lr_min)
+    schedule = optax.exponential_decay(
+        cfg.lr, transition_steps=cfg.lr_decay_steps, decay_rate=cfg.lr_decay, end_value=cfg.lr_min
+    )
     return optax.adam(schedule)
 
 
@@ -390,8 +443,7 @@ def _train_chunk(trainable, opt_state, static_model, data, key, n_steps: int, op
     def step(carry, k):
         params, opt_state = carry
         idx = jax.random.randint(k, (m, b), 0, n)
-        grads, losses = jax.grad(lambda q: _loss(eqx.combine(q, static), static_model, data, idx),
-                                 has_aux=True)(params)
+        grads, losses = jax.grad(lambda q: _loss(eqx.combine(q, static), static_model, data, idx), has_aux=True)(params)
         updates, opt_state = optimiser.update(grads, opt_state, params)
         return (optax.apply_updates(params, updates), opt_state), losses
 
@@ -399,8 +451,9 @@ def _train_chunk(trainable, opt_state, static_model, data, key, n_steps: int, op
     return eqx.combine(params, static), opt_state, losses[-1]
 
 
-def fit_ensemble(config: EnsembleConfig, design, h_mm, p_pa, force_n, weight=None, *,
-                 key=None, progress: bool = True) -> Ensemble:
+def fit_ensemble(
+    config: EnsembleConfig, design, h_mm, p_pa, force_n, weight=None, *, key=None, progress: bool = True
+) -> Ensemble:
     """Fit an RPN ensemble (Osband et al. 2018) to points ``(design, h, p) -> F``.
 
     ``design`` [n, 6] mm (NaN = no ring), ``h_mm`` [n], ``p_pa`` [n] (>= 0 for the
@@ -430,8 +483,7 @@ def fit_ensemble(config: EnsembleConfig, design, h_mm, p_pa, force_n, weight=Non
             n_steps = min(config.chunk, config.steps - done)
             if n_steps <= 0:
                 break
-            trainable, opt_state, losses = _train_chunk(trainable, opt_state, model, data, k,
-                                                        n_steps, optimiser)
+            trainable, opt_state, losses = _train_chunk(trainable, opt_state, model, data, k, n_steps, optimiser)
             done += n_steps
             bar.update(n_steps)
             bar.set_postfix(loss=f"{float(losses.mean()):.4g}")

@@ -72,8 +72,9 @@ class LatticeAxis(eqx.Module):
 def _keys_weights(t):
     """Cubic convolution weights (Keys 1981, a = -1/2) of nodes -1, 0, 1, 2 at ``t`` in [0, 1]."""
     t2, t3 = t * t, t * t * t
-    return jnp.stack([0.5 * (-t3 + 2 * t2 - t), 0.5 * (3 * t3 - 5 * t2 + 2),
-                      0.5 * (-3 * t3 + 4 * t2 + t), 0.5 * (t3 - t2)], axis=-1)
+    return jnp.stack(
+        [0.5 * (-t3 + 2 * t2 - t), 0.5 * (3 * t3 - 5 * t2 + 2), 0.5 * (-3 * t3 + 4 * t2 + t), 0.5 * (t3 - t2)], axis=-1
+    )
 
 
 def _contract(v, t, axis: int):
@@ -186,8 +187,9 @@ class ExactForceModel(ForceModel):
                 g0, _ = self._contract_planes(arr, (a,), [zero])
                 grid_part = grid_part + (g1 - g0)
             else:
-                row_parts = row_parts + (self._rows_lattice(arr, (a,), [c], m, h, P)
-                                         - self._rows_lattice(arr, (a,), [zero], m, h, P))
+                row_parts = row_parts + (
+                    self._rows_lattice(arr, (a,), [c], m, h, P) - self._rows_lattice(arr, (a,), [zero], m, h, P)
+                )
             ok = ok & self._valid_rows((a,), [c * jnp.ones(n)], ringed)
         g_rows = self._rows_plane(grid_part, m, h, P)
         # Beyond the grid's top there is no plane: NaN whatever ``outside`` says.
@@ -201,9 +203,11 @@ class ExactForceModel(ForceModel):
         pressure (a softer or thinner membrane needs planes to higher ``p / s``)."""
         a = pl.AXES["jm"]
         s_min = 1.0 / pl.PlaneGrid.P_MARGIN
-        return {"jm": (float(self.base.jm * math.exp(a.lo)), float(self.base.jm * math.exp(a.hi))),
-                "mu_pa": (float(self.base.mu_pa * s_min / 0.85), float(self.base.mu_pa * 2.0)),
-                "thickness_factor": (0.85, 1.15)}
+        return {
+            "jm": (float(self.base.jm * math.exp(a.lo)), float(self.base.jm * math.exp(a.hi))),
+            "mu_pa": (float(self.base.mu_pa * s_min / 0.85), float(self.base.mu_pa * 2.0)),
+            "thickness_factor": (0.85, 1.15),
+        }
 
     def _box(self, params: SimParams) -> dict[str, tuple[float, float]]:
         return _box_of(params, self.base, bool(np.any(np.asarray(self.ringed))), self._axis_names())
@@ -234,12 +238,19 @@ class ExactForceModel(ForceModel):
         already solved come from memory or disk. Returns ``self`` when nothing is missing."""
         if self.covers(params, margin):
             return self
-        box = {k: (lo - margin * pl.AXES[k].step, hi + margin * pl.AXES[k].step)
-               for k, (lo, hi) in self._box(params).items()}
-        t_nodes, a_nodes = _widen({a.name: (a.k0, a.k0 + a.n - 1) for a in self.tensor_axes},
-                                  {a.name: (a.k0, a.k0 + a.n - 1) for a in self.additive_axes}, box, self.grow)
-        return _assemble(self.design_keys, self.base, t_nodes, a_nodes, self.grid, self.outside, self.cache,
-                         progress, self.grow)
+        box = {
+            k: (lo - margin * pl.AXES[k].step, hi + margin * pl.AXES[k].step)
+            for k, (lo, hi) in self._box(params).items()
+        }
+        t_nodes, a_nodes = _widen(
+            {a.name: (a.k0, a.k0 + a.n - 1) for a in self.tensor_axes},
+            {a.name: (a.k0, a.k0 + a.n - 1) for a in self.additive_axes},
+            box,
+            self.grow,
+        )
+        return _assemble(
+            self.design_keys, self.base, t_nodes, a_nodes, self.grid, self.outside, self.cache, progress, self.grow
+        )
 
     def input_ranges(self) -> dict[str, tuple[float, float]]:
         return {"height_mm": (0.0, self.grid.h_top_mm), "pressure_pa": (0.0, float("inf"))}
@@ -336,8 +347,9 @@ def _widen(t_nodes: dict, a_nodes: dict, box: dict, grow: str) -> tuple[dict, di
     coordinate range); an axis in neither becomes a new one where ``grow`` says."""
     t_nodes, a_nodes = dict(t_nodes), dict(a_nodes)
     for name, (lo, hi) in box.items():
-        nodes = t_nodes if name in t_nodes else a_nodes if name in a_nodes else (
-            t_nodes if grow == "tensor" else a_nodes)
+        nodes = (
+            t_nodes if name in t_nodes else a_nodes if name in a_nodes else (t_nodes if grow == "tensor" else a_nodes)
+        )
         k0, k1 = pl.node_range(pl.AXES[name], lo, hi)
         old = nodes.get(name, (k0, k1))
         nodes[name] = (min(old[0], k0), max(old[1], k1))
@@ -359,12 +371,13 @@ def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progres
     # An additive axis is a difference from its reference node, which it must hold.
     a_nodes = {k: _ensure_two(pl.AXES[k], min(v[0], 0), max(v[1], 0)) for k, v in a_nodes.items()}
     # Every plane the lattice lacks in one solve (one pool over all cores, no tail per axis).
-    parts = [pl.lattice_jobs(designs, base, t_nodes)] + [pl.lattice_jobs(designs, base, {name: rng})
-                                                         for name, rng in a_nodes.items()]
+    parts = [pl.lattice_jobs(designs, base, t_nodes)] + [
+        pl.lattice_jobs(designs, base, {name: rng}) for name, rng in a_nodes.items()
+    ]
     planes = pl.solve_planes([j for jobs, _ in parts for j in jobs], grid, cache=cache, progress=progress)
     stacked, at = [], 0
     for jobs, stack in parts:
-        stacked.append(stack(planes[at:at + len(jobs)]))
+        stacked.append(stack(planes[at : at + len(jobs)]))
         at += len(jobs)
     lat = len(t_nodes)
     tensor = _pad_ghosts(stacked[0], range(1, lat + 3))
@@ -377,15 +390,28 @@ def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progres
         base=jax.tree.map(float, base),
         tensor_axes=tuple(LatticeAxis(k, v[0], v[1] - v[0] + 1) for k, v in t_nodes.items()),
         additive_axes=tuple(LatticeAxis(k, v[0], v[1] - v[0] + 1) for k, v in a_nodes.items()),
-        grid=grid, design_keys=tuple(design_keys), outside=outside, cache=cache, grow=grow,
+        grid=grid,
+        design_keys=tuple(design_keys),
+        outside=outside,
+        cache=cache,
+        grow=grow,
     )
 
 
-def build_exact(design_keys: Sequence[str], *, h_max_mm: float = 80.0, p_max_pa: float = 10_000.0,
-                tensor: Mapping[str, tuple[float, float]] | None = None,
-                additive: Mapping[str, tuple[float, float]] | None = None, base: SimParams = SimParams(),
-                outside: str = "nan", cache=None, progress: bool = False, grow: str = "tensor",
-                also: SimParams | None = None) -> ExactForceModel:
+def build_exact(
+    design_keys: Sequence[str],
+    *,
+    h_max_mm: float = 80.0,
+    p_max_pa: float = 10_000.0,
+    tensor: Mapping[str, tuple[float, float]] | None = None,
+    additive: Mapping[str, tuple[float, float]] | None = None,
+    base: SimParams = SimParams(),
+    outside: str = "nan",
+    cache=None,
+    progress: bool = False,
+    grow: str = "tensor",
+    also: SimParams | None = None,
+) -> ExactForceModel:
     """An :class:`ExactForceModel` of the membranes ``design_keys``.
 
     Arguments:

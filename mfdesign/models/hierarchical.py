@@ -108,9 +108,14 @@ class CalibrationData(eqx.Module):
     design_keys: tuple[str, ...] = eqx.field(static=True)
 
     @classmethod
-    def from_measurements(cls, table, max_rows: int | None = 3000, seed: int = 0,
-                          design_keys: Sequence[str] | None = None,
-                          min_lift_height_mm: float = 2.0) -> "CalibrationData":
+    def from_measurements(
+        cls,
+        table,
+        max_rows: int | None = 3000,
+        seed: int = 0,
+        design_keys: Sequence[str] | None = None,
+        min_lift_height_mm: float = 2.0,
+    ) -> "CalibrationData":
         """From a Measurements table; at most ``max_rows`` rows, drawn evenly within each
         trial (the ramps are densely sampled: neighbouring rows carry little new information).
 
@@ -142,8 +147,13 @@ class CalibrationData(eqx.Module):
         if not w.sum() > 0:  # was silently replaced by ones: refuse, the data say "ignore every row"
             raise ValueError(f"all {len(w)} sample weights are 0; allowed: weights >= 0 with a positive sum")
         w = w / w.mean()
-        return cls(jnp.asarray(design), Rows.from_measurements(df, keys),
-                   jnp.asarray(df["force_n"].to_numpy(float)), jnp.asarray(w), keys)
+        return cls(
+            jnp.asarray(design),
+            Rows.from_measurements(df, keys),
+            jnp.asarray(df["force_n"].to_numpy(float)),
+            jnp.asarray(w),
+            keys,
+        )
 
     def __len__(self) -> int:
         return int(self.force_n.shape[0])
@@ -205,20 +215,34 @@ class HierarchicalModel(eqx.Module):
 
     @property
     def specs(self) -> tuple[ParamSpec, ...]:
-        out = [ParamSpec("mu_pa", "Pa", self.mu_prior, "Gent shear modulus of the rubber"),
-               ParamSpec("jm", "1", self.jm_prior, "Gent locking parameter J_m")]
+        out = [
+            ParamSpec("mu_pa", "Pa", self.mu_prior, "Gent shear modulus of the rubber"),
+            ParamSpec("jm", "1", self.jm_prior, "Gent locking parameter J_m"),
+        ]
         for name in self.effects:
             e = fx.effect(name)
             out += [ParamSpec(e.qualified(p.name), p.unit, p.prior, p.doc) for p in e.parameters]
         out.append(ParamSpec("noise_n", "N", self.noise_prior, "noise scale of a recorded force"))
         if self.uses_latents:
-            out.append(ParamSpec("thickness_sd", "1", self.thickness_sd_prior,
-                                 "population spread of the membranes' relative thickness"))
+            out.append(
+                ParamSpec(
+                    "thickness_sd",
+                    "1",
+                    self.thickness_sd_prior,
+                    "population spread of the membranes' relative thickness",
+                )
+            )
             # The prior N(0, thickness_sd) depends on another parameter: log_prior_u
             # replaces this spec's placeholder prior by it.
-            out += [ParamSpec(f"{LATENT}{m}]", "1", Normal(0.0, 1.0),
-                              "relative thickness latent t_m of membrane m, prior N(0, thickness_sd)")
-                    for m in range(self.n_membranes)]
+            out += [
+                ParamSpec(
+                    f"{LATENT}{m}]",
+                    "1",
+                    Normal(0.0, 1.0),
+                    "relative thickness latent t_m of membrane m, prior N(0, thickness_sd)",
+                )
+                for m in range(self.n_membranes)
+            ]
         return tuple(out)
 
     @property
@@ -240,10 +264,12 @@ class HierarchicalModel(eqx.Module):
 
     def initial_physical(self) -> np.ndarray:
         """A sensible starting point: prior medians (mu, J_m, noise, sigma_t), effects neutral, z = 0."""
-        start = {"mu_pa": self.mu_prior.median if hasattr(self.mu_prior, "median") else ECOFLEX_MU_PA,
-                 "jm": self.jm_prior.median if hasattr(self.jm_prior, "median") else ECOFLEX_JM,
-                 "noise_n": getattr(self.noise_prior, "median", 1.0),
-                 "thickness_sd": getattr(self.thickness_sd_prior, "median", 0.05)}
+        start = {
+            "mu_pa": self.mu_prior.median if hasattr(self.mu_prior, "median") else ECOFLEX_MU_PA,
+            "jm": self.jm_prior.median if hasattr(self.jm_prior, "median") else ECOFLEX_JM,
+            "noise_n": getattr(self.noise_prior, "median", 1.0),
+            "thickness_sd": getattr(self.thickness_sd_prior, "median", 0.05),
+        }
         start.update(fx.neutral_theta(self.effects))
         x = []
         for s in self.specs:
@@ -258,20 +284,25 @@ class HierarchicalModel(eqx.Module):
         out = {s.name: x[i] for i, s in enumerate(self.specs) if not s.name.startswith(LATENT)}
         if self.uses_latents:
             k = self.names.index(f"{LATENT}0]")
-            out["thickness"] = x[k:k + self.n_membranes]
+            out["thickness"] = x[k : k + self.n_membranes]
         return out
 
     # -- densities --------------------------------------------------------------------------
     def log_prior_u(self, u) -> jax.Array:
         """log p(x(u)) + log |dx/du| for one unconstrained vector ``u`` [dim]."""
         x = self.to_physical(u)
-        terms = [s.prior.logpdf_jax(x[i]) + s.log_jacobian(u[i]) for i, s in enumerate(self.specs)
-                 if not s.name.startswith(LATENT)]
+        terms = [
+            s.prior.logpdf_jax(x[i]) + s.log_jacobian(u[i])
+            for i, s in enumerate(self.specs)
+            if not s.name.startswith(LATENT)
+        ]
         if self.uses_latents:  # t_m ~ N(0, thickness_sd): the hierarchy
             v = self.unpack(x)
             sd = v["thickness_sd"]
-            terms.append(jnp.sum(-0.5 * (v["thickness"] / sd) ** 2 - jnp.log(sd)) - 0.5 * self.n_membranes
-                         * math.log(2 * math.pi))
+            terms.append(
+                jnp.sum(-0.5 * (v["thickness"] / sd) ** 2 - jnp.log(sd))
+                - 0.5 * self.n_membranes * math.log(2 * math.pi)
+            )
         return jnp.sum(jnp.stack(terms))
 
     def sim_params(self, x, data: CalibrationData, thickness_rel=None) -> SimParams:
@@ -307,9 +338,11 @@ class HierarchicalModel(eqx.Module):
             ll = -0.5 * r**2 - jnp.log(sigma) - 0.5 * math.log(2 * math.pi)
         else:
             nu = self.nu
-            c = (math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2) - 0.5 * math.log(nu * math.pi))
+            c = math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2) - 0.5 * math.log(nu * math.pi)
             ll = c - jnp.log(sigma) - 0.5 * (nu + 1) * jnp.log1p(r**2 / nu)
-        return jnp.where(good & jnp.isfinite(ll), ll, -1e10)  # a NaN force (outside the model's support) is "very unlikely"
+        return jnp.where(
+            good & jnp.isfinite(ll), ll, -1e10
+        )  # a NaN force (outside the model's support) is "very unlikely"
 
     def log_lik(self, x, data: CalibrationData) -> jax.Array:
         return jnp.sum(data.weight * self.pointwise_log_lik(x, data))
@@ -332,7 +365,7 @@ class HierarchicalModel(eqx.Module):
             return jnp.zeros((S, N))
         sd = x_samples[:, self.names.index("thickness_sd")]
         k = self.names.index(f"{LATENT}0]")
-        t = x_samples[:, k:k + self.n_membranes]
+        t = x_samples[:, k : k + self.n_membranes]
         known = t[:, jnp.clip(data.rows.membrane, 0, self.n_membranes - 1)]
         key = jax.random.PRNGKey(0) if key is None else key
         n_keys = len(data.design_keys)
@@ -346,12 +379,14 @@ class HierarchicalModel(eqx.Module):
         t = self.thickness_for(x_samples, data, key)
         # lax.map in small batches, not one vmap: S draws x N rows x the emulator's hidden
         # width at once runs to tens of GB on a trajectory grid.
-        return jax.lax.map(lambda a: self.expected_force(a[0], data, a[1]), (jnp.atleast_2d(x_samples), t),
-                           batch_size=SAMPLE_BATCH)
+        return jax.lax.map(
+            lambda a: self.expected_force(a[0], data, a[1]), (jnp.atleast_2d(x_samples), t), batch_size=SAMPLE_BATCH
+        )
 
 
-def fit_discrepancy(model: HierarchicalModel, x_ref, table, design_keys: Sequence[str], config, *,
-                    key=0, progress=False):
+def fit_discrepancy(
+    model: HierarchicalModel, x_ref, table, design_keys: Sequence[str], config, *, key=0, progress=False
+):
     """The discrepancy delta: an RPN ensemble fitted to ``F - E(x_ref)`` over all rows of
     ``table`` (Measurements of the calibrated membranes; ``design_keys`` in the
     calibration's order, so that each row gets its membrane's latent thickness), with
@@ -363,5 +398,13 @@ def fit_discrepancy(model: HierarchicalModel, x_ref, table, design_keys: Sequenc
     resid = np.asarray(data.force_n - model.expected_force(jnp.asarray(x_ref), data))
     ok = np.isfinite(resid)
     a = table.arrays()
-    return fit_ensemble(config, a["design"][ok], a["height_mm"][ok], a["pressure_pa"][ok], resid[ok],
-                        a["weight"][ok], key=key, progress=progress)
+    return fit_ensemble(
+        config,
+        a["design"][ok],
+        a["height_mm"][ok],
+        a["pressure_pa"][ok],
+        resid[ok],
+        a["weight"][ok],
+        key=key,
+        progress=progress,
+    )

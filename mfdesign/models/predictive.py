@@ -39,8 +39,9 @@ class MultiFidelity(eqx.Module):
     design_keys: tuple[str, ...] = eqx.field(static=True)
 
     @classmethod
-    def from_posterior(cls, model, posterior, delta=None, noise_n: float | None = None, max_draws: int = 128,
-                       seed: int = 0) -> "MultiFidelity":
+    def from_posterior(
+        cls, model, posterior, delta=None, noise_n: float | None = None, max_draws: int = 128, seed: int = 0
+    ) -> "MultiFidelity":
         """Thin the posterior to at most ``max_draws`` draws (``noise_n`` default: the
         posterior median noise scale)."""
         idx = np.random.default_rng(seed).permutation(len(posterior.samples))[:max_draws]
@@ -52,9 +53,12 @@ class MultiFidelity(eqx.Module):
         rows dropped as in calibration), or plain force rows at ``design`` [N, 6], ``h_mm``
         [N], ``p_pa`` [N]."""
         if table is not None:
-            keys = list(self.design_keys) + [k for k in dict.fromkeys(table.df["design_key"]) if k not in self.design_keys]
-            return CalibrationData.from_measurements(table, max_rows=None, design_keys=keys,
-                                                     min_lift_height_mm=min_lift_height_mm)
+            keys = list(self.design_keys) + [
+                k for k in dict.fromkeys(table.df["design_key"]) if k not in self.design_keys
+            ]
+            return CalibrationData.from_measurements(
+                table, max_rows=None, design_keys=keys, min_lift_height_mm=min_lift_height_mm
+            )
         from mfdesign.design import Membrane
         from mfdesign.physics.effects import Rows
 
@@ -64,8 +68,14 @@ class MultiFidelity(eqx.Module):
         keys = list(self.design_keys) + [k for k in dict.fromkeys(row_keys) if k not in self.design_keys]
         index = {k: i for i, k in enumerate(keys)}
         n = len(design)
-        rows = Rows(jnp.asarray(h_mm), jnp.asarray(p_pa), jnp.ones(n, bool), jnp.zeros(n, bool), jnp.zeros(n, bool),
-                    jnp.asarray([index[k] for k in row_keys], dtype=jnp.int32))
+        rows = Rows(
+            jnp.asarray(h_mm),
+            jnp.asarray(p_pa),
+            jnp.ones(n, bool),
+            jnp.zeros(n, bool),
+            jnp.zeros(n, bool),
+            jnp.asarray([index[k] for k in row_keys], dtype=jnp.int32),
+        )
         return CalibrationData(jnp.asarray(design), rows, jnp.zeros(n), jnp.ones(n), tuple(keys))
 
     def sample_data(self, data: CalibrationData, key=0) -> jax.Array:
@@ -98,8 +108,14 @@ class MultiFidelity(eqx.Module):
         from mfdesign.physics.effects import Rows
 
         n = design.shape[0]
-        rows = Rows(h_mm, p_pa, jnp.ones(n, bool), jnp.zeros(n, bool), jnp.zeros(n, bool),
-                    jnp.full(n, len(self.design_keys), jnp.int32))
+        rows = Rows(
+            h_mm,
+            p_pa,
+            jnp.ones(n, bool),
+            jnp.zeros(n, bool),
+            jnp.zeros(n, bool),
+            jnp.full(n, len(self.design_keys), jnp.int32),
+        )
         data = CalibrationData(design, rows, jnp.zeros(n), jnp.ones(n), self.design_keys + ("<new membrane>",))
         return self.sample_data(data, key)
 
@@ -116,8 +132,9 @@ class MultiFidelity(eqx.Module):
 
         thin = self.thinned(n_draws)
         sim = MultiFidelity(thin.model, thin.theta, None, thin.noise_n, thin.design_keys)
-        return FunctionPredictor({"rig": lambda d, h, p: thin.members(d, h, p),
-                                  "sim": lambda d, h, p: sim.members(d, h, p)})
+        return FunctionPredictor(
+            {"rig": lambda d, h, p: thin.members(d, h, p), "sim": lambda d, h, p: sim.members(d, h, p)}
+        )
 
     def interval(self, data: CalibrationData, level: float = 0.9, n_noise: int = 8, key=0):
         """Mean [N] and central ``level`` interval ``(lo, hi)`` [N] of the observation ``y``."""
@@ -146,6 +163,10 @@ def coverage(mf: MultiFidelity, table, level: float = 0.9, key=0) -> dict:
     inside = (f >= lo) & (f <= hi)
     keys = np.asarray(data.design_keys, dtype=object)[np.asarray(data.rows.membrane)]
     per = pd.DataFrame({"k": keys, "in": inside, "e2": (f - mean) ** 2}).groupby("k", sort=False).mean()
-    return {"level": level, "coverage": float(inside.mean()), "rmse_n": float(np.sqrt(np.mean((f - mean) ** 2))),
-            "per_membrane": {k: {"coverage": float(r["in"]), "rmse_n": float(np.sqrt(r["e2"]))} for k, r in per.iterrows()},
-            "mean_width_n": float(np.mean(hi - lo))}
+    return {
+        "level": level,
+        "coverage": float(inside.mean()),
+        "rmse_n": float(np.sqrt(np.mean((f - mean) ** 2))),
+        "per_membrane": {k: {"coverage": float(r["in"]), "rmse_n": float(np.sqrt(r["e2"]))} for k, r in per.iterrows()},
+        "mean_width_n": float(np.mean(hi - lo)),
+    }

@@ -107,8 +107,10 @@ class SplitPredictor(eqx.Module):
 
     def __check_init__(self):
         if self.sim.n_members != self.discrepancy.n_members:
-            raise ValueError(f"sim ({self.sim.n_members}) and discrepancy ({self.discrepancy.n_members}) "
-                             "ensembles need the same number of members")
+            raise ValueError(
+                f"sim ({self.sim.n_members}) and discrepancy ({self.discrepancy.n_members}) "
+                "ensembles need the same number of members"
+            )
 
     def grid_members(self, fidelity, design, grid):
         _check_fidelity(self, fidelity)

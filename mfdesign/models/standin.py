@@ -68,8 +68,9 @@ def standin_plane(design, h_grid, p_grid, params: SimParams = SimParams()):
     f, p_lock = _formula(np, lambda x: np.logaddexp(0.0, x), d, H.ravel(), P.ravel(), params)
     locking = 0.5 * (P.ravel() / p_lock) ** 2
     status = np.full(H.shape, int(Status.OK), np.int8)
-    return SimpleNamespace(force_n=f.reshape(H.shape), status=status, max_locking=locking.reshape(H.shape),
-                           max_rise_mm=P / 250.0 - H / 2.0)
+    return SimpleNamespace(
+        force_n=f.reshape(H.shape), status=status, max_locking=locking.reshape(H.shape), max_rise_mm=P / 250.0 - H / 2.0
+    )
 
 
 class StandinForceModel(ForceModel):

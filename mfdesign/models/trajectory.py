@@ -57,8 +57,15 @@ def measured_waypoints(lift, heights=WAYPOINTS_MM) -> pd.DataFrame:
         h, p = g["height_mm"].to_numpy(), g["pressure_pa"].to_numpy()
         p_at = [_p_at_height(h, p, hi) for hi in heights]
         for hi, pi in zip(heights, p_at):
-            rows.append(dict(design_key=key, trial=int(trial), force_n=float(g["force_n"].iloc[0]),
-                             h_mm=float(hi), p_pa=float(pi)))
+            rows.append(
+                dict(
+                    design_key=key,
+                    trial=int(trial),
+                    force_n=float(g["force_n"].iloc[0]),
+                    h_mm=float(hi),
+                    p_pa=float(pi),
+                )
+            )
     return pd.DataFrame(rows)
 
 
@@ -91,8 +98,9 @@ def model_pressure(model, design, force_n, h_mm, p_hi: float = 20_000.0, n_grid:
     return first_crossing(grid, f.reshape(k, n_grid), force_n.ravel())
 
 
-def trajectory_errors(model, waypoints: pd.DataFrame, p_max=P_MAX_PA, h_max=H_MAX_MM,
-                      p_hi: float = 20_000.0) -> tuple[pd.DataFrame, dict]:
+def trajectory_errors(
+    model, waypoints: pd.DataFrame, p_max=P_MAX_PA, h_max=H_MAX_MM, p_hi: float = 20_000.0
+) -> tuple[pd.DataFrame, dict]:
     """Per-way-point model pressures and per-membrane scaled errors e_p and e_d (module docstring)."""
     wp = waypoints[np.isfinite(waypoints["p_pa"])].copy()
     wp["p_model_pa"] = np.nan
@@ -111,14 +119,18 @@ def trajectory_errors(model, waypoints: pd.DataFrame, p_max=P_MAX_PA, h_max=H_MA
             curve = model_pressure(model, design, np.full(len(h_grid), force), h_grid, p_hi)
             curve = np.where(np.isnan(curve), p_hi, curve)
             d2 = ((h_grid[None, :] - g["h_mm"].to_numpy()[sel, None]) / h_max) ** 2 + (
-                (curve[None, :] - g["p_pa"].to_numpy()[sel, None]) / p_max) ** 2
+                (curve[None, :] - g["p_pa"].to_numpy()[sel, None]) / p_max
+            ) ** 2
             dist2[sel] = d2.min(1)
         wp.loc[g.index, "p_model_pa"] = p_hat
         wp.loc[g.index, "dist2"] = dist2
         e = (p_hat - g["p_pa"].to_numpy()) / p_max
-        summary[key] = {"traj_rmse_p": float(np.sqrt(np.mean(e**2))),
-                        "traj_rmse_dist": float(np.sqrt(np.mean(dist2))),
-                        "n_waypoints": int(len(g)), "unreached": unreached}
+        summary[key] = {
+            "traj_rmse_p": float(np.sqrt(np.mean(e**2))),
+            "traj_rmse_dist": float(np.sqrt(np.mean(dist2))),
+            "n_waypoints": int(len(g)),
+            "unreached": unreached,
+        }
     return wp, summary
 
 

@@ -384,9 +384,7 @@ def split_theta(effects: Iterable[str | Effect], theta: Mapping[str, Any] | None
             continue
         name, _, pname = key.partition(".")
         if name not in per or not pname:
-            raise KeyError(
-                f"theta key {key!r}: expected 'effect.parameter' with effect among {list(per)}"
-            )
+            raise KeyError(f"theta key {key!r}: expected 'effect.parameter' with effect among {list(per)}")
         per[name][pname] = value
     return {e.name: e.full_theta(per[e.name]) for e in effects}
 
@@ -444,10 +442,7 @@ def _replace(params: SimParams, **changes) -> SimParams:
 class ThicknessDeviation(Effect):
     name = "thickness_deviation"
     story = "gravity moulding leaves a membrane thicker or thinner than its nominal thickness"
-    parameters = (
-        Parameter("relative", "1", Normal(0.0, 0.1, -0.5, 0.5), 0.0, 0.08,
-                  "actual / nominal thickness - 1"),
-    )
+    parameters = (Parameter("relative", "1", Normal(0.0, 0.1, -0.5, 0.5), 0.0, 0.08, "actual / nominal thickness - 1"),)
 
     def sim_params(self, base, theta, context=None):
         return _replace(base, thickness_factor=base.thickness_factor * (1.0 + theta["relative"]))
@@ -459,8 +454,14 @@ class ThicknessGradient(Effect):
     name = "thickness_gradient"
     story = "the uncured rubber flows outwards in the mould: the membrane thins (or thickens) towards the clamp"
     parameters = (
-        Parameter("gradient", "1", Normal(0.0, 0.15, -0.6, 0.6), 0.0, -0.15,
-                  "relative thickness change from the disk edge to the clamp (zero-mean)"),
+        Parameter(
+            "gradient",
+            "1",
+            Normal(0.0, 0.15, -0.6, 0.6),
+            0.0,
+            -0.15,
+            "relative thickness change from the disk edge to the clamp (zero-mean)",
+        ),
     )
 
     def sim_params(self, base, theta, context=None):
@@ -472,9 +473,7 @@ class ThicknessGradient(Effect):
 class ClampPrestretch(Effect):
     name = "clamp_prestretch"
     story = "clamping the membrane stretches it radially before inflation"
-    parameters = (
-        Parameter("strain", "1", Uniform(0.0, 0.08), 0.0, 0.02, "hoop stretch at the clamp - 1"),
-    )
+    parameters = (Parameter("strain", "1", Uniform(0.0, 0.08), 0.0, 0.02, "hoop stretch at the clamp - 1"),)
 
     def sim_params(self, base, theta, context=None):
         return _replace(base, clamp_prestretch=base.clamp_prestretch * (1.0 + theta["strain"]))
@@ -486,8 +485,7 @@ class RingSoftening(Effect):
     name = "ring_softening"
     story = "the fabric rings partly delaminate from the rubber, so they are less stiff than assumed"
     parameters = (
-        Parameter("factor", "1", LogNormal(0.5, 1.0, 0.01, 1.0), 1.0, 0.3,
-                  "effective / assumed ring shear modulus"),
+        Parameter("factor", "1", LogNormal(0.5, 1.0, 0.01, 1.0), 1.0, 0.3, "effective / assumed ring shear modulus"),
     )
 
     def sim_params(self, base, theta, context=None):
@@ -499,9 +497,7 @@ class RingSoftening(Effect):
 class ContactOffset(Effect):
     name = "contact_offset"
     story = "the membrane sticks to the plate beyond the rigid disk, so the effective contact radius is larger"
-    parameters = (
-        Parameter("offset_mm", "mm", Uniform(0.0, 6.0), 0.0, 2.0, "effective - nominal contact radius"),
-    )
+    parameters = (Parameter("offset_mm", "mm", Uniform(0.0, 6.0), 0.0, 2.0, "effective - nominal contact radius"),)
 
     def sim_params(self, base, theta, context=None):
         return _replace(base, contact_offset_mm=base.contact_offset_mm + theta["offset_mm"])
@@ -513,8 +509,14 @@ class StressSoftening(Effect):
     name = "stress_softening"
     story = "Mullins effect: the virgin rubber of the first inflation is stiffer than in every later trial"
     parameters = (
-        Parameter("stiffening", "1", Uniform(0.0, 0.5), 0.0, 0.15,
-                  "relative increase of the rubber's shear modulus on the membrane's first trial"),
+        Parameter(
+            "stiffening",
+            "1",
+            Uniform(0.0, 0.5),
+            0.0,
+            0.15,
+            "relative increase of the rubber's shear modulus on the membrane's first trial",
+        ),
     )
 
     def sim_params(self, base, theta, context=None):
@@ -552,9 +554,7 @@ class PressureSensor(Effect):
 class LoadCellOffset(Effect):
     name = "load_cell_offset"
     story = "the load cell was tared with a different preload: every force reading is shifted"
-    parameters = (
-        Parameter("offset_n", "N", Normal(0.0, 1.0), 0.0, 0.8, "reading at zero force"),
-    )
+    parameters = (Parameter("offset_n", "N", Normal(0.0, 1.0), 0.0, 0.8, "reading at zero force"),)
 
     def observe(self, theta, sample, context):
         if context.experiment != "force":
@@ -582,8 +582,7 @@ class RigCompliance(Effect):
     name = "rig_compliance"
     story = "the rig's frame yields under the membrane's push: the plate sits higher than its set-point"
     parameters = (
-        Parameter("compliance_mm_per_n", "mm/N", Uniform(0.0, 0.1), 0.0, 0.02,
-                  "1 / k, plate displacement per newton"),
+        Parameter("compliance_mm_per_n", "mm/N", Uniform(0.0, 0.1), 0.0, 0.02, "1 / k, plate displacement per newton"),
     )
 
     def observe(self, theta, sample, context):
@@ -619,9 +618,7 @@ class Hysteresis(Effect):
 
     name = "hysteresis"
     story = "viscoelastic losses: the membrane pushes less on deflation than on inflation"
-    parameters = (
-        Parameter("loss", "1", Uniform(0.0, 0.3), 0.0, 0.08, "fractional force deficit on deflation"),
-    )
+    parameters = (Parameter("loss", "1", Uniform(0.0, 0.3), 0.0, 0.08, "fractional force deficit on deflation"),)
 
     def observe(self, theta, sample, context):
         loss = theta["loss"]
@@ -718,7 +715,8 @@ def observed_force_fn(effects, theta, force_fn, rows: Rows):
         if not e.has_likelihood:
             raise NotImplementedError(
                 f"effect {e.name!r} changes measurements (observe) but has no likelihood hook "
-                "observed_force_fn(theta, force_fn, rows); add one to use it in calibration")
+                "observed_force_fn(theta, force_fn, rows); add one to use it in calibration"
+            )
         force_fn = e.observed_force_fn(per[e.name], force_fn, rows)
     return force_fn
 

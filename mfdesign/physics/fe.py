@@ -81,8 +81,7 @@ class Mesh(eqx.Module):
     r_out_def: jax.Array  # deformed clamp radius s * r_out
 
 
-def build_mesh(design: Membrane, params: SimParams = SimParams(), n_elements: int = 400,
-               grading: float = 1.6) -> Mesh:
+def build_mesh(design: Membrane, params: SimParams = SimParams(), n_elements: int = 400, grading: float = 1.6) -> Mesh:
     """Graded mesh: ring edges are nodes; the first segment is refined towards the disk.
 
     Elements are shared among the segments (disk-ring-...-clamp) in proportion to their
@@ -125,11 +124,11 @@ def build_mesh(design: Membrane, params: SimParams = SimParams(), n_elements: in
     rg = np.stack([ra + g * dr for g in _GAUSS], axis=-1)
     r_mid = 0.5 * (r0 + r_out)
     t_gauss = (
-        design.thickness_mm * params.thickness_factor
+        design.thickness_mm
+        * params.thickness_factor
         * (1.0 + params.thickness_gradient * (jnp.asarray(rg) - r_mid) / (r_out - r0))
     )
-    return Mesh(r=jnp.asarray(r), mu=mu, jm=jm, t_gauss=t_gauss,
-                r_out_def=jnp.asarray(params.clamp_prestretch * r_out))
+    return Mesh(r=jnp.asarray(r), mu=mu, jm=jm, t_gauss=t_gauss, r_out_def=jnp.asarray(params.clamp_prestretch * r_out))
 
 
 # ----------------------------------------------------------------------------------------
@@ -177,8 +176,7 @@ def _element_args(mesh: Mesh):
 def potential_nodes(X, p_pa, mesh: Mesh):
     """Total potential ``Pi = U - p V`` [N mm] of the node array ``X = [[R_i, Z_i]]``."""
     q = jnp.concatenate([X[:-1], X[1:]], axis=1)
-    pe = jax.vmap(_element_potential, in_axes=(0, 0, 0, 0, 0, 0, None))(
-        q, *_element_args(mesh), p_pa)
+    pe = jax.vmap(_element_potential, in_axes=(0, 0, 0, 0, 0, 0, None))(q, *_element_args(mesh), p_pa)
     return jnp.sum(pe)
 
 
@@ -224,8 +222,7 @@ def _apply_mask(g, D, B, mask):
 
 def _inv2(S):
     det = S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
-    inv = jnp.stack([jnp.stack([S[..., 1, 1], -S[..., 0, 1]], -1),
-                     jnp.stack([-S[..., 1, 0], S[..., 0, 0]], -1)], -2)
+    inv = jnp.stack([jnp.stack([S[..., 1, 1], -S[..., 0, 1]], -1), jnp.stack([-S[..., 1, 0], S[..., 0, 0]], -1)], -2)
     return inv / det[..., None, None], det
 
 
@@ -316,10 +313,20 @@ class NewtonTrustRegion(optx.AbstractMinimiser):
         # The model is evaluated in `step` only (one copy in the compiled loop): the first
         # step is a zero step that just evaluates it at y0 and is always accepted.
         f, g, D, B, fabs, gabs = jax.tree_util.tree_map(
-            lambda s: jnp.full(s.shape, jnp.inf, s.dtype), jax.eval_shape(self.model, y, args))
-        return _NTRState(f=f, fabs=fabs, gabs=gabs, grad=g, D=D, B=B,
-                         lam=jnp.asarray(self.lam0), terminate=jnp.asarray(False),
-                         gnorm=jnp.asarray(jnp.inf), first=jnp.asarray(True))
+            lambda s: jnp.full(s.shape, jnp.inf, s.dtype), jax.eval_shape(self.model, y, args)
+        )
+        return _NTRState(
+            f=f,
+            fabs=fabs,
+            gabs=gabs,
+            grad=g,
+            D=D,
+            B=B,
+            lam=jnp.asarray(self.lam0),
+            terminate=jnp.asarray(False),
+            gnorm=jnp.asarray(jnp.inf),
+            first=jnp.asarray(True),
+        )
 
     def step(self, fn, y, args, options, state, tags):
         D, B, g, lam = state.D, state.B, state.grad, state.lam
@@ -337,9 +344,9 @@ class NewtonTrustRegion(optx.AbstractMinimiser):
         tiny = jnp.abs(pred) <= self.ftol_rel * state.fabs
         finite = jnp.isfinite(f_try) & jnp.all(jnp.isfinite(g_try))
         gmax_try = jnp.max(jnp.abs(g_try))
-        accept = state.first | (ok & finite & (
-            ((actual <= 1e-4 * pred) & ~tiny) | (tiny & (gmax_try <= 10.0 * state.gnorm))
-        ))
+        accept = state.first | (
+            ok & finite & (((actual <= 1e-4 * pred) & ~tiny) | (tiny & (gmax_try <= 10.0 * state.gnorm)))
+        )
         ratio = jnp.where(pred < 0, actual / jnp.where(pred < 0, pred, -1.0), 0.0)
         good = tiny | (ratio > 0.5)
         lam_new = jnp.where(accept, jnp.where(good, lam / 4.0, lam), lam * 8.0)
@@ -352,13 +359,20 @@ class NewtonTrustRegion(optx.AbstractMinimiser):
         # nothing left to do. The unloaded flat state, whose Hessian is singular, would
         # otherwise never pass the step test.
         exact = accept & (gmax_try <= self.gexact)
-        terminate = exact | (
-            accept & ~state.first & (lam_new < 1e-2) & (grad_small | (tiny & step_small)))
+        terminate = exact | (accept & ~state.first & (lam_new < 1e-2) & (grad_small | (tiny & step_small)))
         sel = lambda a, b: jnp.where(accept, a, b)  # noqa: E731
-        new = _NTRState(f=sel(f_try, state.f), fabs=sel(fabs_try, state.fabs),
-                        gabs=sel(gabs_try, state.gabs), grad=sel(g_try, g), D=sel(D_try, D),
-                        B=sel(B_try, B), lam=lam_new, terminate=terminate,
-                        gnorm=sel(gmax_try, state.gnorm), first=jnp.asarray(False))
+        new = _NTRState(
+            f=sel(f_try, state.f),
+            fabs=sel(fabs_try, state.fabs),
+            gabs=sel(gabs_try, state.gabs),
+            grad=sel(g_try, g),
+            D=sel(D_try, D),
+            B=sel(B_try, B),
+            lam=lam_new,
+            terminate=terminate,
+            gnorm=sel(gmax_try, state.gnorm),
+            first=jnp.asarray(False),
+        )
         return sel(y_try, y), new, None
 
     def terminate(self, fn, y, args, options, state, tags):
@@ -394,8 +408,7 @@ def _objective(X, args):
 
 def _minimise(X0, args, max_steps):
     solver = NewtonTrustRegion(model=_masked_model)
-    sol = optx.minimise(_objective, solver, X0, args, has_aux=True, max_steps=max_steps,
-                        throw=False)
+    sol = optx.minimise(_objective, solver, X0, args, has_aux=True, max_steps=max_steps, throw=False)
     return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
 
@@ -421,10 +434,16 @@ def _finish(X, p, mesh: Mesh, mask, ok_steps, nsteps):
     conv = ok_steps & jnp.isfinite(f) & (((residual < 1e-9) & pd) | trivial)
     nan = jnp.nan
     return FEResult(
-        force_n=jnp.where(conv, F_env, nan), force_disk_n=jnp.where(conv, F_disk, nan),
-        h_mm=jnp.where(conv, X[0, 1], nan), p_pa=p, r_mm=mesh.r,
-        R_mm=jnp.where(conv, X[:, 0], nan), Z_mm=jnp.where(conv, X[:, 1], nan),
-        energy=jnp.where(conv, f, nan), converged=conv, residual=residual,
+        force_n=jnp.where(conv, F_env, nan),
+        force_disk_n=jnp.where(conv, F_disk, nan),
+        h_mm=jnp.where(conv, X[0, 1], nan),
+        p_pa=p,
+        r_mm=mesh.r,
+        R_mm=jnp.where(conv, X[:, 0], nan),
+        Z_mm=jnp.where(conv, X[:, 1], nan),
+        energy=jnp.where(conv, f, nan),
+        converged=conv,
+        residual=residual,
         n_iterations=nsteps,
     )
 
@@ -439,8 +458,7 @@ def _continuation(X0, p_from, p_to, mesh: Mesh, mask, n_steps: int, max_steps: i
         X_new, ok_k, n_k = _minimise(X, (pk, mesh, mask), max_steps)
         return (X_new, ok & ok_k, ns + n_k), None
 
-    (X, ok, ns), _ = jax.lax.scan(body, (X0, jnp.asarray(True), jnp.asarray(0)),
-                                  jnp.arange(n_steps))
+    (X, ok, ns), _ = jax.lax.scan(body, (X0, jnp.asarray(True), jnp.asarray(0)), jnp.arange(n_steps))
     return _finish(X, p_to, mesh, mask, ok, ns)
 
 
@@ -472,13 +490,20 @@ def _initial_nodes(h, mesh: Mesh, p1=0.0):
 def _tree_reshape(res, shape):
     size = int(np.prod(shape))
     return jax.tree_util.tree_map(
-        lambda a: a.reshape(shape + a.shape[1:]) if a.ndim >= 1 and a.shape[0] == size else a,
-        res)
+        lambda a: a.reshape(shape + a.shape[1:]) if a.ndim >= 1 and a.shape[0] == size else a, res
+    )
 
 
-def fe_force(design: Membrane, h_mm, p_pa, params: SimParams = SimParams(),
-             n_elements: int = 400, init: FEResult | None = None, n_steps: int = 8,
-             max_steps: int = 200) -> FEResult:
+def fe_force(
+    design: Membrane,
+    h_mm,
+    p_pa,
+    params: SimParams = SimParams(),
+    n_elements: int = 400,
+    init: FEResult | None = None,
+    n_steps: int = 8,
+    max_steps: int = 200,
+) -> FEResult:
     """Force [N] on the plate held at height ``h_mm`` [mm] at pressure ``p_pa`` [Pa].
 
     ``h_mm`` and ``p_pa`` may be arrays (broadcast together; solved in parallel with
@@ -492,8 +517,7 @@ def fe_force(design: Membrane, h_mm, p_pa, params: SimParams = SimParams(),
     unstable state) have ``converged = False`` and NaN forces and shapes.
     """
     mesh = build_mesh(design, params, n_elements)
-    h, p = jnp.broadcast_arrays(jnp.asarray(h_mm, dtype=jnp.float64),
-                                jnp.asarray(p_pa, dtype=jnp.float64))
+    h, p = jnp.broadcast_arrays(jnp.asarray(h_mm, dtype=jnp.float64), jnp.asarray(p_pa, dtype=jnp.float64))
     mask = _plate_mask(mesh.r.shape[0])
 
     def one(hh, pp):
@@ -511,9 +535,15 @@ def fe_force(design: Membrane, h_mm, p_pa, params: SimParams = SimParams(),
     return _tree_reshape(jax.vmap(one)(h.ravel(), p.ravel()), h.shape)
 
 
-def fe_free_inflation(design: Membrane, p_pa, params: SimParams = SimParams(),
-                      n_elements: int = 400, n_steps: int = 8, max_steps: int = 200,
-                      h_guess_mm=None) -> FEResult:
+def fe_free_inflation(
+    design: Membrane,
+    p_pa,
+    params: SimParams = SimParams(),
+    n_elements: int = 400,
+    n_steps: int = 8,
+    max_steps: int = 200,
+    h_guess_mm=None,
+) -> FEResult:
     """Free inflation (no plate, ``F = 0``): the disk height ``h_mm`` is an unknown too.
 
     Starts from the paraboloid ``Z = h_g (1 - (r/a)^2) / (1 - (r0/a)^2)`` with ``h_g``
@@ -536,13 +566,21 @@ def fe_free_inflation(design: Membrane, p_pa, params: SimParams = SimParams(),
         r = mesh.r
         R = r + (r - r[0]) / (r[-1] - r[0]) * (mesh.r_out_def - r[-1])
         Z = hg * (1.0 - (r / r[-1]) ** 2) / (1.0 - (r[0] / r[-1]) ** 2)
-        return _continuation(jnp.stack([R, Z], -1), jnp.asarray(0.0), pp, mesh, mask,
-                             n_steps, max_steps)
+        return _continuation(jnp.stack([R, Z], -1), jnp.asarray(0.0), pp, mesh, mask, n_steps, max_steps)
 
     if p.ndim == 0:
         return one(p)
     return _tree_reshape(jax.vmap(one)(p.ravel()), p.shape)
 
 
-__all__ = ["FEResult", "Mesh", "NewtonTrustRegion", "block_tridiag_solve", "build_mesh",
-           "enclosed_volume", "fe_force", "fe_free_inflation", "potential_nodes"]
+__all__ = [
+    "FEResult",
+    "Mesh",
+    "NewtonTrustRegion",
+    "block_tridiag_solve",
+    "build_mesh",
+    "enclosed_volume",
+    "fe_force",
+    "fe_free_inflation",
+    "potential_nodes",
+]

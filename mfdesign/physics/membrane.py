@@ -34,7 +34,6 @@ import jax.numpy as jnp
 import optimistix as optx
 
 
-
 class Segment(eqx.Module):
     """Material and thickness law on one radial interval (stresses in MPa, lengths mm)."""
 
@@ -90,8 +89,6 @@ def meridional_force(seg: Segment, r, l1, l2):
     return r * t * seg.w1(l1, l2)
 
 
-
-
 def admissible_stretch(seg: Segment, l2, fraction=0.999):
     """Range ``(lo, hi)`` of ``lambda1`` with ``(I1 - 3) / J_m <= fraction`` at ``l2``.
 
@@ -116,9 +113,7 @@ def _jump_root(seg_a: Segment, seg_b: Segment, r, l1_a, l2):
         return (meridional_force(seg_b, r, x, l2) - target) / scale
 
     guess = jnp.clip(1.0 + (l1_a - 1.0) * seg_a.mu_mpa / seg_b.mu_mpa, lo, hi)
-    sol = optx.root_find(
-        residual, _JUMP_SOLVER, guess, options=dict(lower=lo, upper=hi), max_steps=60, throw=False
-    )
+    sol = optx.root_find(residual, _JUMP_SOLVER, guess, options=dict(lower=lo, upper=hi), max_steps=60, throw=False)
     return jnp.clip(sol.value, lo, hi)
 
 

@@ -46,4 +46,3 @@ class SimParams(eqx.Module):
     @property
     def fabric(self) -> Gent:
         return Gent(mu_pa=self.ring_mu_pa, jm=self.ring_jm)
-

@@ -82,21 +82,52 @@ def _jm_coord(params: SimParams, base: SimParams):
 AXES: dict[str, Axis] = {
     a.name: a
     for a in (
-        Axis("jm", _jm_coord, lambda b, c: dataclasses.replace(b, jm=b.jm * math.exp(c)),
-             step=math.log(2.0) / 8, lo=math.log(10.0 / ECOFLEX_JM), hi=math.log(400.0 / ECOFLEX_JM),
-             doc="log(J_m / J_m0): Gent locking of the rubber"),
-        Axis("ring", _ring_coord, lambda b, c: dataclasses.replace(b, ring_mu_pa=b.ring_mu_pa * math.exp(c)),
-             step=math.log(2.0) / 4, lo=math.log(0.005), hi=math.log(20.0), ringed_only=True,
-             doc="log(rho / rho0), rho = ring modulus / rubber modulus"),
-        Axis("gradient", lambda p, b: p.thickness_gradient - b.thickness_gradient,
-             lambda b, c: dataclasses.replace(b, thickness_gradient=b.thickness_gradient + c),
-             step=0.05, lo=-0.6, hi=0.6, doc="relative thickness change disk edge -> clamp"),
-        Axis("prestretch", lambda p, b: p.clamp_prestretch - b.clamp_prestretch,
-             lambda b, c: dataclasses.replace(b, clamp_prestretch=b.clamp_prestretch + c),
-             step=0.005, lo=0.0, hi=0.1, doc="hoop stretch at the clamp - 1"),
-        Axis("offset", lambda p, b: p.contact_offset_mm - b.contact_offset_mm,
-             lambda b, c: dataclasses.replace(b, contact_offset_mm=b.contact_offset_mm + c),
-             step=0.5, lo=0.0, hi=8.0, doc="effective - nominal contact radius [mm]"),
+        Axis(
+            "jm",
+            _jm_coord,
+            lambda b, c: dataclasses.replace(b, jm=b.jm * math.exp(c)),
+            step=math.log(2.0) / 8,
+            lo=math.log(10.0 / ECOFLEX_JM),
+            hi=math.log(400.0 / ECOFLEX_JM),
+            doc="log(J_m / J_m0): Gent locking of the rubber",
+        ),
+        Axis(
+            "ring",
+            _ring_coord,
+            lambda b, c: dataclasses.replace(b, ring_mu_pa=b.ring_mu_pa * math.exp(c)),
+            step=math.log(2.0) / 4,
+            lo=math.log(0.005),
+            hi=math.log(20.0),
+            ringed_only=True,
+            doc="log(rho / rho0), rho = ring modulus / rubber modulus",
+        ),
+        Axis(
+            "gradient",
+            lambda p, b: p.thickness_gradient - b.thickness_gradient,
+            lambda b, c: dataclasses.replace(b, thickness_gradient=b.thickness_gradient + c),
+            step=0.05,
+            lo=-0.6,
+            hi=0.6,
+            doc="relative thickness change disk edge -> clamp",
+        ),
+        Axis(
+            "prestretch",
+            lambda p, b: p.clamp_prestretch - b.clamp_prestretch,
+            lambda b, c: dataclasses.replace(b, clamp_prestretch=b.clamp_prestretch + c),
+            step=0.005,
+            lo=0.0,
+            hi=0.1,
+            doc="hoop stretch at the clamp - 1",
+        ),
+        Axis(
+            "offset",
+            lambda p, b: p.contact_offset_mm - b.contact_offset_mm,
+            lambda b, c: dataclasses.replace(b, contact_offset_mm=b.contact_offset_mm + c),
+            step=0.5,
+            lo=0.0,
+            hi=8.0,
+            doc="effective - nominal contact radius [mm]",
+        ),
     )
 }
 
@@ -141,8 +172,14 @@ def _params_tuple(params: SimParams) -> tuple[float, ...]:
 
 
 def _job_key(design: Membrane, params: SimParams, grid: PlaneGrid) -> str:
-    blob = json.dumps({"schema": SCHEMA, "design": design.key(), "params": _params_tuple(params),
-                       "grid": [grid.h_top_mm, grid.p_top_pa, H_STEP_MM, P_STEP_PA]})
+    blob = json.dumps(
+        {
+            "schema": SCHEMA,
+            "design": design.key(),
+            "params": _params_tuple(params),
+            "grid": [grid.h_top_mm, grid.p_top_pa, H_STEP_MM, P_STEP_PA],
+        }
+    )
     return hashlib.sha256(blob.encode()).hexdigest()[:24]
 
 
@@ -189,14 +226,18 @@ def _repair(design: Membrane, params: SimParams, grid: PlaneGrid, f: np.ndarray,
     H, P = np.meshgrid(grid.h, grid.p[1:], indexing="ij")
     idx = np.flatnonzero(~np.isfinite(f) & (status.ravel().reshape(f.shape) == Status.NOT_CONVERGED))
     for a in range(0, idx.size, REPAIR_BATCH):
-        part = idx[a:a + REPAIR_BATCH]
+        part = idx[a : a + REPAIR_BATCH]
         pad = np.concatenate([part, np.full(REPAIR_BATCH - part.size, part[-1])])
         res = force_at(design, H.ravel()[pad], P.ravel()[pad], params, signed=True)
-        f.ravel()[part] = np.asarray(res.force_n, float)[:part.size]
+        f.ravel()[part] = np.asarray(res.force_n, float)[: part.size]
 
 
-def solve_planes(jobs: Sequence[tuple[Membrane, SimParams]], grid: PlaneGrid, cache: Path | None | bool = None,
-                 progress: bool = False) -> list[np.ndarray]:
+def solve_planes(
+    jobs: Sequence[tuple[Membrane, SimParams]],
+    grid: PlaneGrid,
+    cache: Path | None | bool = None,
+    progress: bool = False,
+) -> list[np.ndarray]:
     """Signed force planes ``[len(grid.h), len(grid.p)]`` [N] of ``(design, params)`` jobs,
     from memory, the disk cache (``cache``: a folder, ``None`` for :func:`cache_dir`, ``False``
     for none) or the simulator (all missing ones in one :func:`force_planes` call)."""
@@ -219,13 +260,13 @@ def solve_planes(jobs: Sequence[tuple[Membrane, SimParams]], grid: PlaneGrid, ca
                 pass  # a torn or foreign file: solve again and overwrite it
         todo[k] = job
     if todo:
+
         def repaired(job, res):
             f = np.asarray(res.force_n, float)
             _repair(*job, grid, f, np.asarray(res.status))
             return f
 
-        results = force_planes(list(todo.values()), grid.h, grid.p[1:], signed=True, progress=progress,
-                               then=repaired)
+        results = force_planes(list(todo.values()), grid.h, grid.p[1:], signed=True, progress=progress, then=repaired)
         for k, f in zip(todo, results):
             f = np.concatenate([np.full((grid.h.size, 1), np.nan), f], axis=1)
             _MEMO[k] = _fill_zero_pressure(f)

@@ -235,9 +235,7 @@ def _shooting_residual_jvp(primals, tangents):
     res, jac = residual_and_jacobian(x, args)
     out = jnp.zeros_like(res) if _is_zero(dx) else jac @ dx
     if not all(_is_zero(t) for t in jax.tree.leaves(dargs, is_leaf=_is_zero)):
-        dargs = jax.tree.map(
-            lambda t, a: jnp.zeros_like(a) if _is_zero(t) else t, dargs, args, is_leaf=_is_zero
-        )
+        dargs = jax.tree.map(lambda t, a: jnp.zeros_like(a) if _is_zero(t) else t, dargs, args, is_leaf=_is_zero)
         out = out + jax.jvp(lambda a: force_residual(x, a), (args,), (dargs,))[1]
     return res, out
 
@@ -257,9 +255,7 @@ def solve_force(x0, geom: Geometry, params: SimParams, h_mm, p_mpa, active=True)
     integration per continuation step.
     """
     args = (geom, params, h_mm, p_mpa, jnp.asarray(active))
-    sol = optx.least_squares(
-        shooting_residual, SHOOTING_SOLVER, x0, args, max_steps=SHOOTING_MAX_STEPS, throw=False
-    )
+    sol = optx.least_squares(shooting_residual, SHOOTING_SOLVER, x0, args, max_steps=SHOOTING_MAX_STEPS, throw=False)
     x = sol.value
     res = sol.state.f_info.residual
     jac = sol.state.f_info.jac.as_matrix()

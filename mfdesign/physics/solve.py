@@ -108,11 +108,17 @@ def _step(carry, p_mpa, geom, params, h):
 def _path(geom, params, h, p_path_mpa):
     """Continuation along an increasing pressure path at fixed height."""
     z = jnp.zeros(2)
-    init = (z, jnp.asarray(0.0), z, jnp.asarray(0.0), jnp.asarray(0), jnp.asarray(1.0),
-            jnp.asarray(False), jnp.asarray(False))
-    _, (xs, conv, passed) = jax.lax.scan(
-        lambda c, p: _step(c, p, geom, params, h), init, p_path_mpa
+    init = (
+        z,
+        jnp.asarray(0.0),
+        z,
+        jnp.asarray(0.0),
+        jnp.asarray(0),
+        jnp.asarray(1.0),
+        jnp.asarray(False),
+        jnp.asarray(False),
     )
+    _, (xs, conv, passed) = jax.lax.scan(lambda c, p: _step(c, p, geom, params, h), init, p_path_mpa)
     return xs, conv, passed
 
 
@@ -128,8 +134,13 @@ def _descend(x, geom, params, h_from, h_to, p_mpa, n_steps: int = DESCENT_STEPS,
         dh = jnp.where(h1 != h2, h1 - h2, 1.0)
         predicted = x1 + jnp.where(h1 != h2, (x1 - x2) / dh, 0.0) * (hh - h1)
         x, conv, _ = sh.solve_force(predicted, geom, params, hh, p_mpa, active=ok)
-        return (jnp.where(conv, x, x1), jnp.where(conv, hh, h1), jnp.where(conv, x1, x2),
-                jnp.where(conv, h1, h2), conv), None
+        return (
+            jnp.where(conv, x, x1),
+            jnp.where(conv, hh, h1),
+            jnp.where(conv, x1, x2),
+            jnp.where(conv, h1, h2),
+            conv,
+        ), None
 
     h_from = jnp.asarray(h_from, float)
     init = (x, h_from, x, h_from, jnp.asarray(active))
@@ -316,8 +327,13 @@ def _solve_points(design: Membrane, hs: np.ndarray, ps_pa: np.ndarray, params: S
     """``_points_kernel``'s outputs (last: the shooting state) at sanitised points, the batch
     padded to a power of two so that few compiled sizes serve every caller."""
     n = hs.size
-    got = _points_kernel(sh.geometry_of(design), _traced(params), jnp.asarray(_pad(hs, n)),
-                         jnp.asarray(_pad(ps_pa, n)) * PA_TO_MPA, path_steps)
+    got = _points_kernel(
+        sh.geometry_of(design),
+        _traced(params),
+        jnp.asarray(_pad(hs, n)),
+        jnp.asarray(_pad(ps_pa, n)) * PA_TO_MPA,
+        path_steps,
+    )
     return [np.asarray(o)[:n] for o in got]
 
 
@@ -446,8 +462,9 @@ def force_plane(
         order = low_idx[np.argsort(-hs[low_idx], kind="stable")]  # the plate goes down
         h_low = jnp.asarray(hs[order])
         # Pressures are independent lanes of the descent: split like the rows.
-        down = _in_parts(lambda *b: _descent_kernel(geom, params, h_low, *b),
-                         x_start, start_ok, p_rep, locking_start, parts=parts)
+        down = _in_parts(
+            lambda *b: _descent_kernel(geom, params, h_low, *b), x_start, start_ok, p_rep, locking_start, parts=parts
+        )
         down = [np.swapaxes(o, 0, 1) for o in down]  # (pressure, height) -> (height, pressure)
         down.insert(1, np.broadcast_to(out[1][-1], down[0].shape))  # passed: the anchor's
         full = []
@@ -747,7 +764,9 @@ class Shape(eqx.Module):
     status: int
 
 
-def shape(design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimParams(), n_per_segment: int = 64) -> Shape:
+def shape(
+    design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimParams(), n_per_segment: int = 64
+) -> Shape:
     """The deformed membrane at plate height ``h_mm`` [mm] and pressure ``p_pa`` [Pa]."""
     h, p = np.array([float(h_mm)]), np.array([float(p_pa)])
     # The scattered-point kernel gives the state too: one compiled program, shared with
@@ -757,8 +776,14 @@ def shape(design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimPar
     res = _classify(h, p, *out[:7])
     geom = sh.geometry_of(design)
     params = _traced(params)
-    r, y, w1, w2, _, _ = _profile_jit(jnp.asarray(out[7][0]), geom, params, jnp.asarray(float(h_mm)),
-                                      jnp.asarray(float(p_pa) * PA_TO_MPA), n_save=n_per_segment)
+    r, y, w1, w2, _, _ = _profile_jit(
+        jnp.asarray(out[7][0]),
+        geom,
+        params,
+        jnp.asarray(float(h_mm)),
+        jnp.asarray(float(p_pa) * PA_TO_MPA),
+        n_save=n_per_segment,
+    )
     segs = sh.segments(geom, params)
     t = jnp.repeat(segs.seg.t_mm, n_per_segment)
     n = sh.n_segments(design.n_rings) * n_per_segment  # unused ring slots: repeats at the clamp

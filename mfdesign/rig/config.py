@@ -85,17 +85,25 @@ class RigConfig:
                 raise ConfigError(f"{name} must be a positive number, got {v!r}")
 
         for name in (
-            "telemetry_timeout_s", "heartbeat_interval_s", "safe_state_deadline_s", "hard_pressure_limit_pa",
-            "height_tolerance_mm", "set_height_timeout_s", "max_tilt_mm", "trial_timeout_s", "pressurise_timeout_s",
-            "zero_pressure_pa", "burst_min_peak_pa", "sensor_dropout_timeout_s", "time_unit_s",
+            "telemetry_timeout_s",
+            "heartbeat_interval_s",
+            "safe_state_deadline_s",
+            "hard_pressure_limit_pa",
+            "height_tolerance_mm",
+            "set_height_timeout_s",
+            "max_tilt_mm",
+            "trial_timeout_s",
+            "pressurise_timeout_s",
+            "zero_pressure_pa",
+            "burst_min_peak_pa",
+            "sensor_dropout_timeout_s",
+            "time_unit_s",
         ):
             positive(name)
         if not (0.0 <= self.fsync_interval_s <= 10.0):
             raise ConfigError(f"fsync_interval_s must be in [0, 10] s, got {self.fsync_interval_s}")
         if not (0.05 <= self.burst_drop_fraction <= 0.95):
-            raise ConfigError(
-                f"burst_drop_fraction must be in [0.05, 0.95], got {self.burst_drop_fraction}"
-            )
+            raise ConfigError(f"burst_drop_fraction must be in [0.05, 0.95], got {self.burst_drop_fraction}")
         if self.port_baudrate not in (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600):
             raise ConfigError(f"port_baudrate {self.port_baudrate} is not a standard rate")
         if not (self.height_min_mm < self.height_max_mm):
@@ -129,9 +137,7 @@ class RigConfig:
         for name, value in data.items():
             if name in ("tof_left", "tof_right"):
                 if not isinstance(value, dict) or set(value) - {"scale", "offset_mm"}:
-                    raise ConfigError(
-                        f"{source}: {name} must be a table with keys scale and offset_mm, got {value!r}"
-                    )
+                    raise ConfigError(f"{source}: {name} must be a table with keys scale and offset_mm, got {value!r}")
                 try:
                     kwargs[name] = Affine(**{k: _number(source, f"{name}.{k}", v) for k, v in value.items()})
                 except ConfigError:

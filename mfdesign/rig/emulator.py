@@ -54,8 +54,14 @@ LEAK_TAU_S = 600.0
 WORKING_PRESSURE_PA = 10000.0  # the most a procedure pumps to (procedures.RINGLESS_LIMIT_PA, lift)
 
 
-def pump_time_s(from_pa: float, to_pa: float, *, pump_rate_pa_s: float = PUMP_RATE_PA_S,
-                pump_max_pa: float = PUMP_MAX_PA, leak_tau_s: float = LEAK_TAU_S) -> float:
+def pump_time_s(
+    from_pa: float,
+    to_pa: float,
+    *,
+    pump_rate_pa_s: float = PUMP_RATE_PA_S,
+    pump_max_pa: float = PUMP_MAX_PA,
+    leak_tau_s: float = LEAK_TAU_S,
+) -> float:
     """Rig seconds the pump needs, valve closed, to take the chamber from ``from_pa`` to
     ``to_pa`` (``inf`` if it never gets there): the closed form of the model that
     :meth:`RigEmulator._advance` integrates, ``dp/dt = rate (1 - p / max) - p / leak_tau``.
@@ -106,14 +112,19 @@ class AnalyticPlant:
 
     @classmethod
     def from_design(cls, design, burst_pressure_pa: float | None = None) -> "AnalyticPlant":
-        return cls(design.thickness_mm, design.contact_radius_mm, design.n_rings, burst_pressure_pa,
-                   design.outer_radius_mm)
+        return cls(
+            design.thickness_mm, design.contact_radius_mm, design.n_rings, burst_pressure_pa, design.outer_radius_mm
+        )
 
     def reach_mm(self, pressure_pa: float) -> float:
         if pressure_pa <= 0:
             return 0.0
-        return (self.reach_ref_mm * (pressure_pa / 1e4) ** (1 / 3) * (2.0 / self.thickness_mm) ** (1 / 3)
-                * 0.6 ** self.n_rings)
+        return (
+            self.reach_ref_mm
+            * (pressure_pa / 1e4) ** (1 / 3)
+            * (2.0 / self.thickness_mm) ** (1 / 3)
+            * 0.6**self.n_rings
+        )
 
     def force_n(self, height_mm: float, pressure_pa: float) -> float:
         overlap = self.reach_mm(pressure_pa) - height_mm
@@ -277,8 +288,9 @@ class RigEmulator:
 
     def time_to_pressure_s(self, from_pa: float, to_pa: float) -> float:
         """Rig seconds this emulator's pump needs from ``from_pa`` to ``to_pa`` (valve closed)."""
-        return pump_time_s(from_pa, to_pa, pump_rate_pa_s=self.pump_rate, pump_max_pa=self.pump_max,
-                           leak_tau_s=self.leak_tau)
+        return pump_time_s(
+            from_pa, to_pa, pump_rate_pa_s=self.pump_rate, pump_max_pa=self.pump_max, leak_tau_s=self.leak_tau
+        )
 
     # -- serving ---------------------------------------------------------------------------
     def _serve(self) -> None:
@@ -326,8 +338,14 @@ class RigEmulator:
             self._status(f"#watchdog,armed,{self.watchdog_s:.3f}")
             return
         push = -1 if self.config.push_lowers_plate else 1  # height direction of "push"
-        moves = {"u": ("left", push), "i": ("left", -push), "o": ("left", 0),
-                 "j": ("right", push), "k": ("right", -push), "l": ("right", 0)}
+        moves = {
+            "u": ("left", push),
+            "i": ("left", -push),
+            "o": ("left", 0),
+            "j": ("right", push),
+            "k": ("right", -push),
+            "l": ("right", 0),
+        }
         if ch == "w":
             self.pump = True
         elif ch == "s":
@@ -362,8 +380,10 @@ class RigEmulator:
         self.watchdog_trips.append((wall, self.t, silent_s, self.pressure))
         self.pump, self.valve_open = False, True  # what the host's s, q, h would do
         self.motion = {"left": 0, "right": 0}
-        self._event(f"watchdog: no command for {silent_s:.3f} s at {self.pressure:.0f} Pa: "
-                    f"pump off, valve open, actuators stopped")
+        self._event(
+            f"watchdog: no command for {silent_s:.3f} s at {self.pressure:.0f} Pa: "
+            f"pump off, valve open, actuators stopped"
+        )
         self._status(f"#watchdog,tripped,{silent_s:.3f}")
 
     def _status(self, line: str) -> None:
@@ -409,7 +429,7 @@ class RigEmulator:
             if self.burst:
                 dp = -p / 0.05
             else:
-                dp = (self.pump_rate * max(0.0, 1 - p / self.pump_max) if self.pump else 0.0)
+                dp = self.pump_rate * max(0.0, 1 - p / self.pump_max) if self.pump else 0.0
                 dp -= p / self.valve_tau if self.valve_open else 0.0
                 dp -= p / self.leak_tau
             self.pressure = max(0.0, p + dp * h)
@@ -446,9 +466,11 @@ class RigEmulator:
         ltof = 8190.0 if drop["left"] else max(0.0, ltof)
         rtof = 8190.0 if drop["right"] else max(0.0, rtof)
         flow = (0.8 if self.pump else 0.0) + (0.01 * n[3] if self.noise else 0.0)
-        return (f"{self.t:.3f},{(force + 0.05 * n[2]) / LBF_TO_N:.4f},"
-                f"{(self.pressure + 5.0 * n[3]) / PSI_TO_PA:.5f},{ltof:.1f},{rtof:.1f},"
-                f"{flow:.3f},{0 if contact else 1}")
+        return (
+            f"{self.t:.3f},{(force + 0.05 * n[2]) / LBF_TO_N:.4f},"
+            f"{(self.pressure + 5.0 * n[3]) / PSI_TO_PA:.5f},{ltof:.1f},{rtof:.1f},"
+            f"{flow:.3f},{0 if contact else 1}"
+        )
 
     def _emit(self, wall: float) -> None:
         for f in self.faults:
@@ -476,8 +498,9 @@ class RigEmulator:
             data = line.encode()[: len(line) // 2]  # cut short; the next line runs on
             self._after_partial = True
         else:
-            if kind == "ok" and (not self.sensors_on or any(
-                    f.kind == "dropout" and f.active(self.t) for f in self.faults)):
+            if kind == "ok" and (
+                not self.sensors_on or any(f.kind == "dropout" and f.active(self.t) for f in self.faults)
+            ):
                 kind = "dropout"
             data = line.encode() + b"\n"
         self.sent.append((wall, self.t, kind, line))

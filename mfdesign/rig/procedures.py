@@ -40,11 +40,40 @@ log = logging.getLogger("mfdesign.rig")
 RINGED_LIMITS_PA = (4300.0, 6100.0)  # first pass, retest when the membrane did not burst
 RINGLESS_LIMIT_PA = 10000.0  # ringless run until contact; this caps them
 HEIGHTS_MM = tuple(float(h) for h in range(0, 71, 10))
-MEASUREMENT_COLUMNS = ["design_key", "trial", "experiment", "phase", "time_s", "height_set_mm",
-                       "height_mm", "pressure_pa", "force_n", "weight", "source"]
-SAMPLE_COLUMNS = ["seq", "trial_key", "attempt", "stage", "trial", "experiment", "phase",
-                  "height_set_mm", "rig_time_s", "time_s", "host_time_s", "height_mm", "left_mm",
-                  "right_mm", "height_held", "pressure_pa", "force_n", "flow", "contact"]
+MEASUREMENT_COLUMNS = [
+    "design_key",
+    "trial",
+    "experiment",
+    "phase",
+    "time_s",
+    "height_set_mm",
+    "height_mm",
+    "pressure_pa",
+    "force_n",
+    "weight",
+    "source",
+]
+SAMPLE_COLUMNS = [
+    "seq",
+    "trial_key",
+    "attempt",
+    "stage",
+    "trial",
+    "experiment",
+    "phase",
+    "height_set_mm",
+    "rig_time_s",
+    "time_s",
+    "host_time_s",
+    "height_mm",
+    "left_mm",
+    "right_mm",
+    "height_held",
+    "pressure_pa",
+    "force_n",
+    "flow",
+    "contact",
+]
 
 
 class JobError(ValueError):
@@ -110,10 +139,15 @@ class Plan:
     def stage_trials(self, stage: int) -> list[TrialSpec]:
         limit = self.pressure_limits_pa[stage]
         if self.experiment == "lift":
-            return [TrialSpec(f"lift-s{stage}-t{k}", "lift", stage, stage * self.trials + k, math.nan,
-                              limit, self.mass_kg) for k in range(self.trials)]
-        return [TrialSpec(f"force-s{stage}-h{h:g}-t{k}", "force", stage, stage * self.trials + k, h, limit)
-                for h in self.heights_mm for k in range(self.trials)]
+            return [
+                TrialSpec(f"lift-s{stage}-t{k}", "lift", stage, stage * self.trials + k, math.nan, limit, self.mass_kg)
+                for k in range(self.trials)
+            ]
+        return [
+            TrialSpec(f"force-s{stage}-h{h:g}-t{k}", "force", stage, stage * self.trials + k, h, limit)
+            for h in self.heights_mm
+            for k in range(self.trials)
+        ]
 
     def all_trials(self) -> list[TrialSpec]:
         return [t for s in range(len(self.pressure_limits_pa)) for t in self.stage_trials(s)]
@@ -129,15 +163,23 @@ class Plan:
         return cls(**d)
 
 
-def membrane_plan(design, *, heights_mm=HEIGHTS_MM, trials: int = 3, ringed_limits_pa=RINGED_LIMITS_PA,
-                  ringless_limit_pa: float = RINGLESS_LIMIT_PA, source: str = "rig") -> Plan:
+def membrane_plan(
+    design,
+    *,
+    heights_mm=HEIGHTS_MM,
+    trials: int = 3,
+    ringed_limits_pa=RINGED_LIMITS_PA,
+    ringless_limit_pa: float = RINGLESS_LIMIT_PA,
+    source: str = "rig",
+) -> Plan:
     """The paper's programme: ringed to 4.3 kPa, retested to 6.1 kPa; ringless until contact."""
     limits = tuple(ringed_limits_pa) if design.n_rings else (ringless_limit_pa,)
     return Plan(design.key(), "force", limits, tuple(float(h) for h in heights_mm), trials, 0.0, source)
 
 
-def lift_plan(design, mass_kg: float, *, trials: int = 3, pressure_limit_pa: float = 10000.0,
-              source: str = "rig") -> Plan:
+def lift_plan(
+    design, mass_kg: float, *, trials: int = 3, pressure_limit_pa: float = 10000.0, source: str = "rig"
+) -> Plan:
     return Plan(design.key(), "lift", (pressure_limit_pa,), (), trials, float(mass_kg), source)
 
 
@@ -159,8 +201,7 @@ def _repair_tail(path: Path) -> None:
         cut = data.rfind(b"\n") + 1
         with open(path, "r+b") as f:
             f.truncate(cut)
-        log.warning("journal %s: dropped a partial last line (%d bytes) left by a crash",
-                    path.name, len(data) - cut)
+        log.warning("journal %s: dropped a partial last line (%d bytes) left by a crash", path.name, len(data) - cut)
 
 
 class Journal:
@@ -178,8 +219,7 @@ class Journal:
             except (ValueError, KeyError, TypeError) as exc:
                 raise JobError(f"{meta} is not a job file: {exc}") from None
             if saved_plan != plan:
-                raise JobError(f"{self.dir} holds a different job ({saved_plan}); use another --out "
-                               f"to run {plan}")
+                raise JobError(f"{self.dir} holds a different job ({saved_plan}); use another --out to run {plan}")
             if saved.get("config") != config.to_dict():
                 log.warning("rig config differs from the one this job started with; using the new one")
         else:
@@ -243,14 +283,31 @@ class Journal:
             if self.config.fsync_interval_s:
                 time.sleep(self.config.fsync_interval_s)
 
-    def samples(self, spec: TrialSpec, attempt: int, t0: float,
-                rows: list[tuple[str, Sample, float, bool]]) -> None:
+    def samples(self, spec: TrialSpec, attempt: int, t0: float, rows: list[tuple[str, Sample, float, bool]]) -> None:
         """Append ``(phase, sample, height_mm, height_held)`` rows; one flush (+ fsync)."""
         lines = []
         for phase, s, height_mm, held in rows:
-            row = [self.next_seq + len(lines), spec.key, attempt, spec.stage, spec.trial, spec.experiment,
-                   phase, spec.height_set_mm, s.rig_time_s, s.rig_time_s - t0, time.time(), height_mm,
-                   s.left_mm, s.right_mm, held, s.pressure_pa, s.force_n, s.flow, s.contact]
+            row = [
+                self.next_seq + len(lines),
+                spec.key,
+                attempt,
+                spec.stage,
+                spec.trial,
+                spec.experiment,
+                phase,
+                spec.height_set_mm,
+                s.rig_time_s,
+                s.rig_time_s - t0,
+                time.time(),
+                height_mm,
+                s.left_mm,
+                s.right_mm,
+                held,
+                s.pressure_pa,
+                s.force_n,
+                s.flow,
+                s.contact,
+            ]
             lines.append(",".join(_fmt(v) for v in row) + "\n")
         self._write(self._samples, "".join(lines))
         self.next_seq += len(lines)
@@ -321,10 +378,13 @@ def _why(exc: BaseException) -> str:
 
 def _moves(cfg: RigConfig) -> dict[str, dict[int, Command]]:
     """Per side: +1 (plate up), -1 (down), 0 (stop) -> command."""
-    up_l, down_l = (Command.LEFT_PULL, Command.LEFT_PUSH) if cfg.push_lowers_plate else (Command.LEFT_PUSH, Command.LEFT_PULL)
-    up_r, down_r = (Command.RIGHT_PULL, Command.RIGHT_PUSH) if cfg.push_lowers_plate else (Command.RIGHT_PUSH, Command.RIGHT_PULL)
-    return {"left": {1: up_l, -1: down_l, 0: Command.LEFT_STOP},
-            "right": {1: up_r, -1: down_r, 0: Command.RIGHT_STOP}}
+    up_l, down_l = (
+        (Command.LEFT_PULL, Command.LEFT_PUSH) if cfg.push_lowers_plate else (Command.LEFT_PUSH, Command.LEFT_PULL)
+    )
+    up_r, down_r = (
+        (Command.RIGHT_PULL, Command.RIGHT_PUSH) if cfg.push_lowers_plate else (Command.RIGHT_PUSH, Command.RIGHT_PULL)
+    )
+    return {"left": {1: up_l, -1: down_l, 0: Command.LEFT_STOP}, "right": {1: up_r, -1: down_r, 0: Command.RIGHT_STOP}}
 
 
 def set_height(conn: RigConnection, target_mm: float, config: RigConfig | None = None) -> float:
@@ -346,8 +406,12 @@ def set_height(conn: RigConnection, target_mm: float, config: RigConfig | None =
         s = backlog[-1] if backlog else s
         start = s.rig_time_s if start is None else start
         if s.rig_time_s - start > cfg.set_height_timeout_s:
-            raise conn.fail(SetHeightError(f"plate did not reach {target_mm:g} mm within "
-                                           f"{cfg.set_height_timeout_s:g} s (at {s.height_mm:.1f} mm)"))
+            raise conn.fail(
+                SetHeightError(
+                    f"plate did not reach {target_mm:g} mm within "
+                    f"{cfg.set_height_timeout_s:g} s (at {s.height_mm:.1f} mm)"
+                )
+            )
         h = {"left": s.left_mm, "right": s.right_mm}
         if math.isnan(h["left"]) and math.isnan(h["right"]):
             if any(state.values()):
@@ -355,8 +419,11 @@ def set_height(conn: RigConnection, target_mm: float, config: RigConfig | None =
                 state = {"left": 0, "right": 0}
             last_seen = s.rig_time_s if last_seen is None else last_seen
             if s.rig_time_s - last_seen > cfg.sensor_dropout_timeout_s:
-                raise conn.fail(SensorDropout(f"both height sensors out for {s.rig_time_s - last_seen:.1f} s "
-                                              "while setting the height"))
+                raise conn.fail(
+                    SensorDropout(
+                        f"both height sensors out for {s.rig_time_s - last_seen:.1f} s while setting the height"
+                    )
+                )
             continue
         last_seen = None
         for side, other in (("left", "right"), ("right", "left")):
@@ -392,8 +459,11 @@ def wait_deflated(conn: RigConnection, config: RigConfig | None = None) -> None:
         if s.pressure_pa < cfg.zero_pressure_pa:
             return
         if s.rig_time_s - start > cfg.trial_timeout_s:
-            raise conn.fail(TrialTimeout(f"chamber still at {s.pressure_pa:.0f} Pa after "
-                                         f"{cfg.trial_timeout_s:g} s with the valve open"))
+            raise conn.fail(
+                TrialTimeout(
+                    f"chamber still at {s.pressure_pa:.0f} Pa after {cfg.trial_timeout_s:g} s with the valve open"
+                )
+            )
 
 
 @dataclass
@@ -445,8 +515,9 @@ def run_trial(conn: RigConnection, journal: Journal, spec: TrialSpec, attempt: i
                     t_rise = smp.rig_time_s if (t_rise is None and p > cfg.burst_min_peak_pa) else t_rise
                     if peak > cfg.burst_min_peak_pa and p < (1 - cfg.burst_drop_fraction) * peak:
                         status = reason = act = "burst"
-                        log.error("BURST in trial %s: pressure fell from %.0f Pa to %.0f Pa while pumping",
-                                  spec.key, peak, p)
+                        log.error(
+                            "BURST in trial %s: pressure fell from %.0f Pa to %.0f Pa while pumping", spec.key, peak, p
+                        )
                         done = True
                         break
                     if p >= spec.pressure_limit_pa:
@@ -456,12 +527,16 @@ def run_trial(conn: RigConnection, journal: Journal, spec: TrialSpec, attempt: i
                     elif spec.experiment == "lift" and smp.height_mm >= cfg.height_max_mm:
                         reason = "height_limit"
                     elif t_rise is None and smp.rig_time_s - t0 > cfg.pressurise_timeout_s:
-                        fault = TrialTimeout(f"trial {spec.key}: pressure still {p:.0f} Pa after pumping "
-                                             f"{cfg.pressurise_timeout_s:g} s (leak, pump failure or burst membrane)")
+                        fault = TrialTimeout(
+                            f"trial {spec.key}: pressure still {p:.0f} Pa after pumping "
+                            f"{cfg.pressurise_timeout_s:g} s (leak, pump failure or burst membrane)"
+                        )
                         break
                     elif smp.rig_time_s - t0 > cfg.trial_timeout_s:
-                        fault = TrialTimeout(f"trial {spec.key}: {spec.pressure_limit_pa:.0f} Pa not "
-                                             f"reached in {cfg.trial_timeout_s:g} s (at {p:.0f} Pa)")
+                        fault = TrialTimeout(
+                            f"trial {spec.key}: {spec.pressure_limit_pa:.0f} Pa not "
+                            f"reached in {cfg.trial_timeout_s:g} s (at {p:.0f} Pa)"
+                        )
                         break
                     if reason:
                         act, phase, t_deflate = "deflate", "deflate", smp.rig_time_s
@@ -485,12 +560,27 @@ def run_trial(conn: RigConnection, journal: Journal, spec: TrialSpec, attempt: i
                 raise fault
     except BaseException as exc:
         conn.on_exception(exc)  # safe state first, then the bookkeeping
-        journal.event(event="end", trial_key=spec.key, attempt=attempt, status="aborted",
-                      end_reason=_why(exc), burst=False, n_samples=n)
+        journal.event(
+            event="end",
+            trial_key=spec.key,
+            attempt=attempt,
+            status="aborted",
+            end_reason=_why(exc),
+            burst=False,
+            n_samples=n,
+        )
         log.error("trial %s attempt %d aborted after %d samples: %s", spec.key, attempt, n, _why(exc))
         raise
-    journal.event(event="end", trial_key=spec.key, attempt=attempt, status=status, end_reason=reason,
-                  burst=status == "burst", n_samples=n, peak_pa=peak)
+    journal.event(
+        event="end",
+        trial_key=spec.key,
+        attempt=attempt,
+        status=status,
+        end_reason=reason,
+        burst=status == "burst",
+        n_samples=n,
+        peak_pa=peak,
+    )
     return TrialResult(spec.key, attempt, status, reason, n, peak)
 
 
@@ -508,8 +598,11 @@ class _JobLog:
 
     def __init__(self, job_dir: Path):
         self.handler = logging.FileHandler(job_dir / "rig.log", encoding="utf-8")
-        self.handler.setFormatter(logging.Formatter(
-            "%(asctime)s.%(msecs)03d %(levelname)s [%(threadName)s] %(name)s: %(message)s", "%Y-%m-%d %H:%M:%S"))
+        self.handler.setFormatter(
+            logging.Formatter(
+                "%(asctime)s.%(msecs)03d %(levelname)s [%(threadName)s] %(name)s: %(message)s", "%Y-%m-%d %H:%M:%S"
+            )
+        )
         self.handler.setLevel(logging.INFO)
         self.loggers = [logging.getLogger("mfdesign.rig")]
 
@@ -526,8 +619,9 @@ class _JobLog:
         self.handler.close()
 
 
-def run_job(port: str, job_dir: str | Path, plan: Plan, config: RigConfig | None = None, *,
-            progress: bool = True) -> JobResult:
+def run_job(
+    port: str, job_dir: str | Path, plan: Plan, config: RigConfig | None = None, *, progress: bool = True
+) -> JobResult:
     """Run (or resume) a plan on the rig at ``port``, journaling into ``job_dir``.
 
     Any fault or exception leaves the rig safe and the port closed, and propagates; run
@@ -535,8 +629,10 @@ def run_job(port: str, job_dir: str | Path, plan: Plan, config: RigConfig | None
     """
     cfg = config or RigConfig()
     if max(plan.pressure_limits_pa) >= cfg.hard_pressure_limit_pa:
-        raise JobError(f"plan pressure limits {plan.pressure_limits_pa} Pa must stay below the rig's "
-                       f"hard limit {cfg.hard_pressure_limit_pa:g} Pa")
+        raise JobError(
+            f"plan pressure limits {plan.pressure_limits_pa} Pa must stay below the rig's "
+            f"hard limit {cfg.hard_pressure_limit_pa:g} Pa"
+        )
     job_dir = Path(job_dir)
     journal = Journal(job_dir, plan, cfg)
     with _JobLog(job_dir):
@@ -552,20 +648,35 @@ def run_job(port: str, job_dir: str | Path, plan: Plan, config: RigConfig | None
 def _run(port: str, journal: Journal, plan: Plan, cfg: RigConfig, progress: bool) -> JobResult:
     st = job_state(journal.events())
     for key, att in st.open_attempts:
-        journal.event(event="end", trial_key=key, attempt=att, status="aborted",
-                      end_reason="interrupted (found on resume)", burst=False)
-        log.warning("resume: trial %s attempt %d was cut off; its samples stay in the journal, "
-                    "the trial runs again", key, att)
+        journal.event(
+            event="end",
+            trial_key=key,
+            attempt=att,
+            status="aborted",
+            end_reason="interrupted (found on resume)",
+            burst=False,
+        )
+        log.warning(
+            "resume: trial %s attempt %d was cut off; its samples stay in the journal, the trial runs again", key, att
+        )
     todo = [t for t in plan.all_trials() if t.key not in st.finished]
     skipped = len(plan.all_trials()) - len(todo)
-    log.info("job %s: %s %s, %d trials to run, %d done before", journal.dir, plan.experiment,
-             plan.design_key, len(todo), skipped)
+    log.info(
+        "job %s: %s %s, %d trials to run, %d done before",
+        journal.dir,
+        plan.experiment,
+        plan.design_key,
+        len(todo),
+        skipped,
+    )
     if st.burst:
         log.warning("the membrane burst in an earlier run; nothing left to do")
         return JobResult(journal.dir, "burst", [], skipped)
     results: list[TrialResult] = []
-    with RigConnection(port, cfg) as conn, tqdm(total=len(todo), desc="trials", unit="trial",
-                                                disable=not progress) as bar:
+    with (
+        RigConnection(port, cfg) as conn,
+        tqdm(total=len(todo), desc="trials", unit="trial", disable=not progress) as bar,
+    ):
         conn.send(Command.SENSORS_ON)
         conn.safe_state("start of job")
         for spec in todo:
@@ -573,8 +684,10 @@ def _run(port: str, journal: Journal, plan: Plan, cfg: RigConfig, progress: bool
             results.append(r)
             bar.update(1)
             if r.status == "burst":
-                log.error("membrane burst in %s; job ends (the trial is kept in the journal, "
-                          "dropped from the measurements)", spec.key)
+                log.error(
+                    "membrane burst in %s; job ends (the trial is kept in the journal, dropped from the measurements)",
+                    spec.key,
+                )
                 return JobResult(journal.dir, "burst", results, skipped)
         conn.send(Command.BOTH_STOP)
     log.info("job complete: %d trials run now, %d before", len(results), skipped)
@@ -599,29 +712,30 @@ def journal_frame(job_dir: str | Path) -> pd.DataFrame:
                 events.append(json.loads(line))
             except json.JSONDecodeError:
                 continue
-    good = {(e["trial_key"], e["attempt"]) for e in events
-            if e.get("event") == "end" and e.get("status") == "complete"}
+    good = {(e["trial_key"], e["attempt"]) for e in events if e.get("event") == "end" and e.get("status") == "complete"}
     df = read_samples(job_dir)
     keep = [(k, a) in good for k, a in zip(df["trial_key"], df["attempt"])]
     df = df[keep]
     missing = df["height_mm"].isna()
     if missing.any():
-        log.warning("%d samples without a height (both sensors out) left out of the measurements",
-                    int(missing.sum()))
+        log.warning("%d samples without a height (both sensors out) left out of the measurements", int(missing.sum()))
         df = df[~missing]
-    out = pd.DataFrame({
-        "design_key": plan.design_key,
-        "trial": df["trial"].astype(int),
-        "experiment": df["experiment"].astype(str),
-        "phase": df["phase"].astype(str),
-        "time_s": df["time_s"].astype(float),
-        "height_set_mm": df["height_set_mm"].astype(float),
-        "height_mm": df["height_mm"].astype(float),
-        "pressure_pa": df["pressure_pa"].astype(float),
-        "force_n": df["force_n"].astype(float) if plan.experiment == "force" else float(plan.mass_kg * G_M_S2),
-        "weight": 1.0,
-        "source": plan.source,
-    }, columns=MEASUREMENT_COLUMNS)
+    out = pd.DataFrame(
+        {
+            "design_key": plan.design_key,
+            "trial": df["trial"].astype(int),
+            "experiment": df["experiment"].astype(str),
+            "phase": df["phase"].astype(str),
+            "time_s": df["time_s"].astype(float),
+            "height_set_mm": df["height_set_mm"].astype(float),
+            "height_mm": df["height_mm"].astype(float),
+            "pressure_pa": df["pressure_pa"].astype(float),
+            "force_n": df["force_n"].astype(float) if plan.experiment == "force" else float(plan.mass_kg * G_M_S2),
+            "weight": 1.0,
+            "source": plan.source,
+        },
+        columns=MEASUREMENT_COLUMNS,
+    )
     return out.reset_index(drop=True)
 
 

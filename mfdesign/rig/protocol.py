@@ -80,8 +80,12 @@ WATCHDOG_STATUS_PREFIX = b"#watchdog,"
 SAFE_SEQUENCE = (Command.PUMP_OFF, Command.VALVE_OPEN, Command.BOTH_STOP)
 # commands that cannot add energy: allowed after a fault, and do not leave the safe state
 _SAFE_CHARS = {c.value for c in SAFE_SEQUENCE} | {
-    Command.LEFT_STOP.value, Command.RIGHT_STOP.value, Command.SENSORS_ON.value, Command.SENSORS_OFF.value,
-    Command.HEARTBEAT.value}
+    Command.LEFT_STOP.value,
+    Command.RIGHT_STOP.value,
+    Command.SENSORS_ON.value,
+    Command.SENSORS_OFF.value,
+    Command.HEARTBEAT.value,
+}
 
 
 class TelemetryError(ValueError):
@@ -168,8 +172,15 @@ def parse_telemetry(line: bytes | str, config: RigConfig, host_time: float | Non
         raise TelemetryError(f"limit_switch {parts[6]!r} is not 0 or 1")
     lmm, rmm = config.height_mm(ltof, rtof)
     return Sample(
-        rig_time_s=t, force_n=force, pressure_pa=pressure, left_tof=ltof, right_tof=rtof,
-        flow=flow, contact=parts[6] == "0", left_mm=lmm, right_mm=rmm,
+        rig_time_s=t,
+        force_n=force,
+        pressure_pa=pressure,
+        left_tof=ltof,
+        right_tof=rtof,
+        flow=flow,
+        contact=parts[6] == "0",
+        left_mm=lmm,
+        right_mm=rmm,
         host_time=time.monotonic() if host_time is None else host_time,
     )
 
@@ -275,19 +286,23 @@ class RigConnection:
         warned = False
         while not self._stop.wait(interval):
             now = time.monotonic()
-            if not (self._reader.is_alive() and self._heard
-                    and now - self._last_good <= self.config.telemetry_timeout_s):
+            if not (
+                self._reader.is_alive() and self._heard and now - self._last_good <= self.config.telemetry_timeout_s
+            ):
                 continue
             if not self._beat():
                 return
             if first_beat is None:
                 first_beat = now
-            if (not warned and self.controller_watchdog_s is None and now - first_beat > answer_wait_s):
+            if not warned and self.controller_watchdog_s is None and now - first_beat > answer_wait_s:
                 warned = True
                 self.log.warning(
                     "the controller did not answer %d heartbeats in %.1f s: its firmware has no "
                     "watchdog, so a host killed mid-trial leaves the pump running (docs/rig.md, "
-                    "'Controller watchdog')", self.heartbeats_sent, now - first_beat)
+                    "'Controller watchdog')",
+                    self.heartbeats_sent,
+                    now - first_beat,
+                )
 
     def _beat(self) -> bool:
         """Write one heartbeat (not logged or listed in ``sent``: five a second would bury the
@@ -312,23 +327,33 @@ class RigConnection:
         if st.state == "armed":
             if self.controller_watchdog_s != st.seconds:
                 self.controller_watchdog_s = st.seconds
-                self.log.info("controller watchdog: safe after %.3f s without a command "
-                              "(heartbeat every %.3f s)", st.seconds, self.config.heartbeat_interval_s)
+                self.log.info(
+                    "controller watchdog: safe after %.3f s without a command (heartbeat every %.3f s)",
+                    st.seconds,
+                    self.config.heartbeat_interval_s,
+                )
                 if st.seconds < 2 * self.config.heartbeat_interval_s:
-                    self.log.warning("the controller's %.3f s watchdog is under two heartbeat intervals "
-                                     "(%.3f s): one late beat will put the rig safe",
-                                     st.seconds, self.config.heartbeat_interval_s)
+                    self.log.warning(
+                        "the controller's %.3f s watchdog is under two heartbeat intervals "
+                        "(%.3f s): one late beat will put the rig safe",
+                        st.seconds,
+                        self.config.heartbeat_interval_s,
+                    )
             return
         if self._safe or self.fault is not None:
             # nothing of ours was undone (e.g. the trip of a previous session reaching a fresh one)
-            self.log.warning("controller watchdog went safe after %.3f s without a command "
-                             "(the rig was already safe)", st.seconds)
+            self.log.warning(
+                "controller watchdog went safe after %.3f s without a command (the rig was already safe)", st.seconds
+            )
             return
         # Faulting here also keeps the vent that follows from being read as a burst: this line
         # precedes, in the stream, every sample that shows the pressure falling.
-        self.fail(WatchdogTripped(
-            f"the controller went safe by itself after {st.seconds:.3f} s without a command "
-            f"(host stalled, or heartbeats lost?)"))
+        self.fail(
+            WatchdogTripped(
+                f"the controller went safe by itself after {st.seconds:.3f} s without a command "
+                f"(host stalled, or heartbeats lost?)"
+            )
+        )
 
     def safe_state(self, reason: str) -> bool:
         """Pump off, valve open, actuators stopped; log each action. True if all were sent."""
@@ -340,8 +365,9 @@ class RigConnection:
         level = logging.WARNING if all_ok else logging.ERROR
         self.log.log(level, "SAFE STATE (%s): %s in %.1f ms", reason, summary, dt_ms)
         if dt_ms > self.config.safe_state_deadline_s * 1e3:
-            self.log.error("safe state took %.1f ms, over the %.0f ms budget", dt_ms,
-                           self.config.safe_state_deadline_s * 1e3)
+            self.log.error(
+                "safe state took %.1f ms, over the %.0f ms budget", dt_ms, self.config.safe_state_deadline_s * 1e3
+            )
         self._safe = True
         return all_ok
 
@@ -411,9 +437,11 @@ class RigConnection:
                     buf = b""
             silent = now - self._last_good
             if silent > self.config.telemetry_timeout_s and self.fault is None:
-                self.fail(TelemetrySilence(
-                    f"no valid telemetry for {silent:.2f} s (timeout {self.config.telemetry_timeout_s:.2f} s)"
-                ))
+                self.fail(
+                    TelemetrySilence(
+                        f"no valid telemetry for {silent:.2f} s (timeout {self.config.telemetry_timeout_s:.2f} s)"
+                    )
+                )
 
     def _bad(self, raw: bytes, why: str) -> None:
         self.bad_lines += 1
@@ -443,8 +471,13 @@ class RigConnection:
             if dropped != self._dropout[side]:
                 self._dropout[side] = dropped
                 if dropped:
-                    self.log.warning("%s time-of-flight dropout (reading %g >= %g) at rig t=%.2f s",
-                                     side, tof, TOF_DROPOUT, s.rig_time_s)
+                    self.log.warning(
+                        "%s time-of-flight dropout (reading %g >= %g) at rig t=%.2f s",
+                        side,
+                        tof,
+                        TOF_DROPOUT,
+                        s.rig_time_s,
+                    )
                 else:
                     self.log.info("%s time-of-flight back (reading %g) at rig t=%.2f s", side, tof, s.rig_time_s)
         self._queue.put(s)
@@ -453,12 +486,13 @@ class RigConnection:
         if self._safe:
             if now - self._over_warned > 1.0:  # already venting: nothing more to command
                 self._over_warned = now
-                self.log.warning("pressure %.0f Pa over the hard limit while the rig is safe (venting)",
-                                 s.pressure_pa)
+                self.log.warning("pressure %.0f Pa over the hard limit while the rig is safe (venting)", s.pressure_pa)
         else:
-            self.fail(OverPressure(
-                f"pressure {s.pressure_pa:.0f} Pa over the hard limit {self.config.hard_pressure_limit_pa:.0f} Pa"
-            ))
+            self.fail(
+                OverPressure(
+                    f"pressure {s.pressure_pa:.0f} Pa over the hard limit {self.config.hard_pressure_limit_pa:.0f} Pa"
+                )
+            )
 
     # -- lifetime --------------------------------------------------------------------------
     def close(self, reason: str = "session end") -> None:

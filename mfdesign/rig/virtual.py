@@ -69,7 +69,6 @@ log = logging.getLogger(__name__)
 __all__ = ["Noise", "Protocol", "TruthPlane", "VirtualRig", "analytic_plane", "simulator_fingerprint"]
 
 
-
 @dataclass(frozen=True)
 class Noise:
     """Sensor noise (Gaussian standard deviations) and quantisation steps; 0 switches off."""
@@ -78,7 +77,9 @@ class Noise:
     pressure_sd_pa: float = 10.0
     height_sd_mm: float = 0.3
     force_step_n: float = 0.01  # load-cell resolution
-    pressure_step_pa: float = 1e-4 * PSI_TO_PA  # 0.69 Pa: the real sensor reads in steps of 1e-4 psi, as in the real mass-lift file
+    pressure_step_pa: float = (
+        1e-4 * PSI_TO_PA
+    )  # 0.69 Pa: the real sensor reads in steps of 1e-4 psi, as in the real mass-lift file
     height_step_mm: float = 1.0  # time-of-flight sensors read whole millimetres
 
     @classmethod
@@ -146,8 +147,9 @@ class TruthPlane:
     status: np.ndarray
 
     def __post_init__(self):
-        self.dF_dh = (np.gradient(self.force_n, self.h_grid, axis=0) if len(self.h_grid) > 1
-                      else np.zeros_like(self.force_n))
+        self.dF_dh = (
+            np.gradient(self.force_n, self.h_grid, axis=0) if len(self.h_grid) > 1 else np.zeros_like(self.force_n)
+        )
 
     def row(self, h: float) -> int:
         i = int(np.argmin(np.abs(self.h_grid - h)))
@@ -172,8 +174,12 @@ class TruthPlane:
         i = np.clip(np.searchsorted(hg, hh, side="right") - 1, 0, len(hg) - 2)
         w = (hh - hg[i]) / (hg[i + 1] - hg[i])
         j, u = self._pj(p)
-        v = ((1 - w) * (1 - u) * values[i, j] + w * (1 - u) * values[i + 1, j]
-             + (1 - w) * u * values[i, j + 1] + w * u * values[i + 1, j + 1])
+        v = (
+            (1 - w) * (1 - u) * values[i, j]
+            + w * (1 - u) * values[i + 1, j]
+            + (1 - w) * u * values[i, j + 1]
+            + w * u * values[i + 1, j + 1]
+        )
         return np.where(np.isfinite(h), v, np.nan)
 
     def lift_height(self, load_n: float) -> np.ndarray:
@@ -212,8 +218,15 @@ class TruthPlane:
     # -- storage -------------------------------------------------------------------------
     def to_npz(self, path: Path) -> None:
         tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez(tmp, h_grid=self.h_grid, p_grid=self.p_grid, force_n=self.force_n,
-                 locking=self.locking, rise_mm=self.rise_mm, status=self.status)
+        np.savez(
+            tmp,
+            h_grid=self.h_grid,
+            p_grid=self.p_grid,
+            force_n=self.force_n,
+            locking=self.locking,
+            rise_mm=self.rise_mm,
+            status=self.status,
+        )
         os.replace(tmp, path)
 
     @classmethod
@@ -233,11 +246,19 @@ def _force_plane(design, h_grid, p_grid, params):
     try:
         return force_plane(design, h_grid, p_grid, params)
     except Exception as err:  # noqa: BLE001 -- any solver failure: degrade to per-height
-        log.warning("force_plane failed for %s (%s: %s); retrying height by height",
-                    design.key(), type(err).__name__, str(err).splitlines()[0] if str(err) else "")
+        log.warning(
+            "force_plane failed for %s (%s: %s); retrying height by height",
+            design.key(),
+            type(err).__name__,
+            str(err).splitlines()[0] if str(err) else "",
+        )
     shape = (len(h_grid), len(p_grid))
-    out = SimpleNamespace(force_n=np.full(shape, np.nan), status=np.full(shape, int(Status.NOT_CONVERGED), np.int8),
-                          max_locking=np.full(shape, np.nan), max_rise_mm=np.full(shape, np.nan))
+    out = SimpleNamespace(
+        force_n=np.full(shape, np.nan),
+        status=np.full(shape, int(Status.NOT_CONVERGED), np.int8),
+        max_locking=np.full(shape, np.nan),
+        max_rise_mm=np.full(shape, np.nan),
+    )
     for i, h in enumerate(h_grid):
         try:
             r = force_plane(design, [h], p_grid, params)
@@ -264,7 +285,7 @@ def analytic_plane(design: Membrane, h_grid, p_grid, params: SimParams = SimPara
     p_contact = 40.0 * stiff * H * (1.0 + 0.4 * design.n_rings)
     force = np.maximum(0.0, np.pi * (r_eff * 1e-3) ** 2 * 1.6 * (P - p_contact))
     status = np.where(force > 0, int(Status.OK), int(Status.NO_CONTACT)).astype(np.int8)
-    locking = 0.9 * (P / 8000.0) ** 1.5 / stiff ** 0.5 * (1.0 + 0.15 * design.n_rings)
+    locking = 0.9 * (P / 8000.0) ** 1.5 / stiff**0.5 * (1.0 + 0.15 * design.n_rings)
     rise = P / 250.0 - H / 2.0
     return SimpleNamespace(force_n=force, status=status, max_locking=locking, max_rise_mm=rise)
 
@@ -346,11 +367,17 @@ class VirtualRig:
         """The simulator plane of a membrane under ``params`` (memoised, optionally on disk)."""
         params = self.sim_params(design) if params is None else params
         h_grid, p_grid = self.protocol.grids(design)
-        ident = json.dumps({
-            "design": design.key(), "params": _params_dict(params), "h": h_grid.tolist(),
-            "p": p_grid.tolist(), "format": 2,
-            "sim": simulator_fingerprint() if self.simulator is _force_plane else repr(self.simulator),
-        }, sort_keys=True)
+        ident = json.dumps(
+            {
+                "design": design.key(),
+                "params": _params_dict(params),
+                "h": h_grid.tolist(),
+                "p": p_grid.tolist(),
+                "format": 2,
+                "sim": simulator_fingerprint() if self.simulator is _force_plane else repr(self.simulator),
+            },
+            sort_keys=True,
+        )
         key = hashlib.sha256(ident.encode()).hexdigest()[:24]
         if key in self._planes:
             return self._planes[key]
@@ -366,8 +393,9 @@ class VirtualRig:
                 force_n=np.concatenate([zero, np.asarray(res.force_n, float)], axis=1),
                 locking=np.concatenate([zero, np.asarray(res.max_locking, float)], axis=1),
                 rise_mm=np.concatenate([zero, np.asarray(res.max_rise_mm, float)], axis=1),
-                status=np.concatenate([zero.astype(np.int8) + int(Status.NO_CONTACT),
-                                       np.asarray(res.status, np.int8)], axis=1),
+                status=np.concatenate(
+                    [zero.astype(np.int8) + int(Status.NO_CONTACT), np.asarray(res.status, np.int8)], axis=1
+                ),
             )
             if path is not None:
                 path.parent.mkdir(parents=True, exist_ok=True)
@@ -396,9 +424,15 @@ class VirtualRig:
         return t, p, down
 
     def _observe(self, design, experiment, trial_index, t, h_true, p_true, f_true, down, dF_dh, rng):
-        ctx = fx.Context(experiment=experiment, trial_index=trial_index,
-                         phase=np.where(down, "deflate", "inflate"), time_s=t, dF_dh=dF_dh,
-                         design=design, rng=rng)
+        ctx = fx.Context(
+            experiment=experiment,
+            trial_index=trial_index,
+            phase=np.where(down, "deflate", "inflate"),
+            time_s=t,
+            dF_dh=dF_dh,
+            design=design,
+            rng=rng,
+        )
         s = fx.apply_observe(self.effects, self._theta(design), fx.Sample(h_true, p_true, f_true), ctx)
         nz, n = self.noise, len(t)
         h = _quantise(s.height_mm + nz.height_sd_mm * rng.standard_normal(n), nz.height_step_mm)
@@ -412,19 +446,21 @@ class VirtualRig:
     @staticmethod
     def _frame(design, trial, experiment, t, h_set, h, p, f, down) -> pd.DataFrame:
         n = len(t)
-        return pd.DataFrame({
-            "design_key": design.key(),
-            "trial": np.full(n, trial, dtype=np.int64),
-            "experiment": experiment,
-            "phase": np.where(down, "deflate", "inflate"),
-            "time_s": t,
-            "height_set_mm": np.full(n, h_set, float),
-            "height_mm": h,
-            "pressure_pa": p,
-            "force_n": f,
-            "weight": np.ones(n),
-            "source": "virtual",
-        })
+        return pd.DataFrame(
+            {
+                "design_key": design.key(),
+                "trial": np.full(n, trial, dtype=np.int64),
+                "experiment": experiment,
+                "phase": np.where(down, "deflate", "inflate"),
+                "time_s": t,
+                "height_set_mm": np.full(n, h_set, float),
+                "height_mm": h,
+                "pressure_pa": p,
+                "force_n": f,
+                "weight": np.ones(n),
+                "source": "virtual",
+            }
+        )
 
     @staticmethod
     def _measurements(frames: list[pd.DataFrame]) -> Measurements:
@@ -447,11 +483,17 @@ class VirtualRig:
         over = np.nonzero(np.isfinite(lock) & (lock > threshold))[0]
         if not over.size:
             return False
-        event.update(status="burst", burst_pressure_pa=float(p[over[0]]),
-                     burst_locking=float(lock[over[0]]), threshold=threshold)
+        event.update(
+            status="burst", burst_pressure_pa=float(p[over[0]]), burst_locking=float(lock[over[0]]), threshold=threshold
+        )
         self.events.append(event)
-        log.info("virtual rig: %s burst at %.0f Pa (%s trial %d)", event["design_key"], p[over[0]],
-                 event["experiment"], event["trial"])
+        log.info(
+            "virtual rig: %s burst at %.0f Pa (%s trial %d)",
+            event["design_key"],
+            p[over[0]],
+            event["experiment"],
+            event["trial"],
+        )
         return True
 
     # -- experiments -------------------------------------------------------------------------
@@ -477,27 +519,41 @@ class VirtualRig:
                         if hit.size:
                             end = "contact"
                             t, p_true, down = self._ramp(float(p_true[hit[0]]))
-                    event = dict(design_key=design.key(), experiment="force", trial=trial,
-                                 height_set_mm=float(h_set), pressure_limit_pa=float(p_limit), pass_index=k)
+                    event = dict(
+                        design_key=design.key(),
+                        experiment="force",
+                        trial=trial,
+                        height_set_mm=float(h_set),
+                        pressure_limit_pa=float(p_limit),
+                        pass_index=k,
+                    )
                     lock = plane.along_p(plane.locking[i], p_true)
                     if self._burst(event, lock, p_true, threshold):
                         return self._measurements(frames), {"next_trial": trial + 1, "burst": True}
                     f_true = plane.along_p(plane.force_n[i], p_true)
                     slope = plane.along_p(plane.dF_dh[i], p_true)
-                    h, p, f = self._observe(design, "force", trial, t, np.full(len(t), float(h_set)),
-                                            p_true, f_true, down, slope, rng)
+                    h, p, f = self._observe(
+                        design, "force", trial, t, np.full(len(t), float(h_set)), p_true, f_true, down, slope, rng
+                    )
                     keep = np.isfinite(f)
-                    event.update(status="complete", end_reason=end, n_samples=int(keep.sum()),
-                                 n_omitted=int((~keep).sum()), peak_pa=float(np.max(p_true)))
+                    event.update(
+                        status="complete",
+                        end_reason=end,
+                        n_samples=int(keep.sum()),
+                        n_omitted=int((~keep).sum()),
+                        peak_pa=float(np.max(p_true)),
+                    )
                     self.events.append(event)
                     if keep.any():
-                        frames.append(self._frame(design, trial, "force", t[keep], h_set, h[keep],
-                                                  p[keep], f[keep], down[keep]))
+                        frames.append(
+                            self._frame(design, trial, "force", t[keep], h_set, h[keep], p[keep], f[keep], down[keep])
+                        )
                     trial += 1
         return self._measurements(frames), {"next_trial": trial, "burst": False}
 
-    def mass_lift(self, design: Membrane, mass_kg: float | Sequence[float] | None = None,
-                  first_trial: int = 0) -> Measurements:
+    def mass_lift(
+        self, design: Membrane, mass_kg: float | Sequence[float] | None = None, first_trial: int = 0
+    ) -> Measurements:
         """Mass-lift trials, ``lift_trials`` per mass (default masses: the protocol's)."""
         return self._mass_lift(design, mass_kg, first_trial)[0]
 
@@ -525,20 +581,28 @@ class VirtualRig:
                 if self._burst(event, lock, p_true, threshold):
                     return self._measurements(frames), {"next_trial": trial + 1, "burst": True}
                 slope = plane.at(plane.dF_dh, h_true, p_true)
-                h, p, f = self._observe(design, "lift", trial, t, h_true, p_true, np.full(len(t), load),
-                                        down, slope, rng)
+                h, p, f = self._observe(
+                    design, "lift", trial, t, h_true, p_true, np.full(len(t), load), down, slope, rng
+                )
                 keep = np.isfinite(h) & np.isfinite(p)
-                event.update(status="complete", end_reason=end, n_samples=int(keep.sum()),
-                             n_omitted=int((~keep).sum()), peak_pa=float(np.max(p_true)))
+                event.update(
+                    status="complete",
+                    end_reason=end,
+                    n_samples=int(keep.sum()),
+                    n_omitted=int((~keep).sum()),
+                    peak_pa=float(np.max(p_true)),
+                )
                 self.events.append(event)
                 if keep.any():
-                    frames.append(self._frame(design, trial, "lift", t[keep], np.nan, h[keep], p[keep],
-                                              f[keep], down[keep]))
+                    frames.append(
+                        self._frame(design, trial, "lift", t[keep], np.nan, h[keep], p[keep], f[keep], down[keep])
+                    )
                 trial += 1
         return self._measurements(frames), {"next_trial": trial, "burst": False}
 
-    def run(self, designs: Iterable[Membrane], characterise: bool = True, lift: bool = True,
-            progress: bool = True) -> Measurements:
+    def run(
+        self, designs: Iterable[Membrane], characterise: bool = True, lift: bool = True, progress: bool = True
+    ) -> Measurements:
         """Each membrane: the force characterisation, then (if it did not burst) the mass lifts;
         trial ids continue across the two, so ``trial`` is the order in the membrane's life."""
         from tqdm.auto import tqdm
