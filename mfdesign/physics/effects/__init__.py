@@ -1,0 +1,101 @@
+"""Physical effects that the plain membrane model lacks: the candidates for "what is missing".
+
+One effect per module of this package (the template: ``contact_offset.py``). An
+effect is a small class: a ``name``, a one-line physical ``story``, its ``parameters``
+(each with a unit, a prior, the ``neutral`` value at which the effect does nothing and a
+``typical`` realistic magnitude) and up to two hooks:
+
+* ``sim_params(base, theta, context) -> SimParams``: effects on the *mechanics* act only
+  through the simulator's inputs (:class:`~mfdesign.physics.params.SimParams`). Default:
+  identity.
+* ``observe(theta, sample, context) -> Sample``: effects of the *measurement chain*
+  (sensors, rig, rate-dependence of the rubber) turn the true values of a
+  :class:`Sample` into what the rig records. Default: identity.
+
+``theta`` handed to a hook is the effect's own ``{parameter name: value}``; a missing
+name means the neutral value. Across several effects, a flat dict with qualified names
+``"effect.parameter"`` is used (see :func:`split_theta`).
+
+Writing a new effect (see ``docs/effects.md``)::
+
+    @register_effect
+    @dataclass(frozen=True)
+    class HeightSensorOffset(Effect):
+        name = "height_offset"
+        story = "the time-of-flight sensors read the lifted plate a fixed distance high"
+        parameters = (Parameter("offset_mm", "mm", Normal(0.0, 2.0), 0.0, 1.5),)
+
+        def observe(self, theta, sample, context):
+            if context.experiment != "lift":
+                return sample
+            return sample.replace(height_mm=sample.height_mm + theta["offset_mm"])
+
+Sign conventions: heights are of the plate above the membrane plane (mm), the membrane
+pushes the plate *up* (positive force), the force falls with height at fixed pressure, so
+``dF_dh`` (N/mm) is usually negative.
+"""
+
+from mfdesign.physics.effects._base import (
+    EFFECTS,
+    apply_expected_force,
+    apply_row_sim_params,
+    observed_force_fn,
+    Context,
+    Effect,
+    Parameter,
+    Sample,
+    apply_observe,
+    apply_sim_params,
+    effect,
+    neutral_theta,
+    register_effect,
+    split_theta,
+    typical_theta,
+)
+from mfdesign.physics.effects._priors import LogNormal, Normal, Uniform
+from mfdesign.physics.effects._rows import Rows
+
+# The library: importing a module registers its effect (mechanics first, then the
+# measurement chain: the order of EFFECTS is the order of reports).
+from mfdesign.physics.effects.thickness_deviation import ThicknessDeviation
+from mfdesign.physics.effects.thickness_gradient import ThicknessGradient
+from mfdesign.physics.effects.clamp_prestretch import ClampPrestretch
+from mfdesign.physics.effects.ring_softening import RingSoftening
+from mfdesign.physics.effects.contact_offset import ContactOffset
+from mfdesign.physics.effects.stress_softening import StressSoftening
+from mfdesign.physics.effects.pressure_sensor import PressureSensor
+from mfdesign.physics.effects.load_cell_offset import LoadCellOffset
+from mfdesign.physics.effects.rig_compliance import RigCompliance
+from mfdesign.physics.effects.hysteresis import Hysteresis
+
+__all__ = [
+    "EFFECTS",
+    "Context",
+    "Effect",
+    "LogNormal",
+    "Normal",
+    "Parameter",
+    "Rows",
+    "Sample",
+    "Uniform",
+    "apply_expected_force",
+    "apply_observe",
+    "apply_row_sim_params",
+    "apply_sim_params",
+    "effect",
+    "neutral_theta",
+    "observed_force_fn",
+    "register_effect",
+    "split_theta",
+    "typical_theta",
+    "ThicknessDeviation",
+    "ThicknessGradient",
+    "ClampPrestretch",
+    "RingSoftening",
+    "ContactOffset",
+    "StressSoftening",
+    "PressureSensor",
+    "LoadCellOffset",
+    "RigCompliance",
+    "Hysteresis",
+]

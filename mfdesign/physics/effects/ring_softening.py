@@ -1,0 +1,23 @@
+"""Ring softening: the fabric rings partly delaminate from the rubber, so they are less stiff than assumed."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from mfdesign.physics.effects._base import Effect, Parameter, register_effect, _replace
+from mfdesign.physics.effects._priors import LogNormal
+
+__all__ = ["RingSoftening"]
+
+
+@register_effect
+@dataclass(frozen=True)
+class RingSoftening(Effect):
+    name = "ring_softening"
+    story = "the fabric rings partly delaminate from the rubber, so they are less stiff than assumed"
+    parameters = (
+        Parameter("factor", "1", LogNormal(0.5, 1.0, 0.01, 1.0), 1.0, 0.3, "effective / assumed ring shear modulus"),
+    )
+
+    def sim_params(self, base, theta, context=None):
+        return _replace(base, ring_mu_pa=base.ring_mu_pa * theta["factor"])

@@ -1,0 +1,39 @@
+"""Stress softening: Mullins effect: the virgin rubber of the first inflation is stiffer than in every later trial."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mfdesign.physics.effects._base import Effect, Parameter, register_effect, _replace
+from mfdesign.physics.effects._priors import Uniform
+
+__all__ = ["StressSoftening"]
+
+
+@register_effect
+@dataclass(frozen=True)
+class StressSoftening(Effect):
+    name = "stress_softening"
+    story = "Mullins effect: the virgin rubber of the first inflation is stiffer than in every later trial"
+    parameters = (
+        Parameter(
+            "stiffening",
+            "1",
+            Uniform(0.0, 0.5),
+            0.0,
+            0.15,
+            "relative increase of the rubber's shear modulus on the membrane's first trial",
+        ),
+    )
+
+    def sim_params(self, base, theta, context=None):
+        first = context is not None and int(np.min(context.trial_index)) == 0
+        if not first:
+            return base
+        return _replace(base, mu_pa=base.mu_pa * (1.0 + theta["stiffening"]))
+
+    def row_sim_params(self, base, theta, rows):
+        factor = 1.0 + theta["stiffening"] * rows.is_first_trial.astype(float)
+        return _replace(base, mu_pa=base.mu_pa * factor)
