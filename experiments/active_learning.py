@@ -39,7 +39,7 @@ also shows the nominal simulator alone (no data). Small ensembles (8 members, 1,
 steps) on a fixed-size resample of the training rows (one compilation for all fits); acquisition
 screens 1,000 random batches per ring count and refines the best 32 by 15 L-BFGS
 iterations. ``--quick`` swaps the simulator for the analytic stand-in
-(``mfdesign.rig.virtual.analytic_plane``), fewer steps: a smoke run, not a result.
+(``mfdesign.rig.virtual.standin_plane``), fewer steps: a smoke run, not a result.
 ``--simulator emulator`` (default): the truth rig and the sim fidelity run on the
 simulator's emulator (0.5 % of the force range from the simulator, held out; planes in
 milliseconds instead of minutes), as the hidden-effect sweep does; ``--simulator simulator``
@@ -110,7 +110,8 @@ class Lab:
 
     def __init__(self, simulator: str):
         from mfdesign.design import Membrane
-        from mfdesign.rig.virtual import VirtualRig, analytic_plane
+        from mfdesign.models.standin import standin_plane
+        from mfdesign.rig.virtual import VirtualRig
 
         if simulator == "emulator":
             from mfdesign.diagnose.emulated import emulator_plane
@@ -118,7 +119,7 @@ class Lab:
 
             sim = emulator_plane(load_default())
         else:
-            sim = analytic_plane if simulator == "analytic" else None
+            sim = standin_plane if simulator == "analytic" else None
         from mfdesign.physics.planes import cache_dir
 
         cache = cache_dir().parent / "rig_planes" if simulator == "simulator" else None  # $MFDESIGN_CACHE_DIR

@@ -71,10 +71,10 @@ def backend(physics):
     """Truth plane function for the rig (module doc); ``None``: the rig's own simulator."""
     if physics not in _BACKENDS:
         from mfdesign.diagnose.emulated import emulator_plane
-        from mfdesign.rig.virtual import analytic_plane
+        from mfdesign.models.standin import standin_plane
 
         if physics == "standin":
-            _BACKENDS[physics] = analytic_plane
+            _BACKENDS[physics] = standin_plane
         elif physics == "emulator":
             from mfdesign.models.emulator import load_default
 
@@ -261,7 +261,7 @@ def record(args, summary, cases) -> dict:
         "measured designs): truth and model share no interpolant, emulator or fit",
         "emulator": "emulator planes on a 2 mm x 50 Pa grid; diagnosis uses the same emulator: truth and model share "
         "the same physics, so this tests the diagnosis logic only, not the emulator's fidelity",
-        "standin": "analytic stand-in planes (mfdesign.rig.virtual.analytic_plane); diagnosis uses its JAX twin",
+        "standin": "analytic stand-in planes (mfdesign.rig.virtual.standin_plane); diagnosis uses its JAX twin",
     }[args.physics]
     return {
         "physics": args.physics,

@@ -67,10 +67,11 @@ def _holder(out: Path) -> subprocess.Popen:
 
 def test_two_runs_at_once_and_a_killed_runs_lock(tmp_path):
     from mfdesign.design import Membrane
-    from mfdesign.rig.virtual import Protocol, VirtualRig, analytic_plane
+    from mfdesign.models.standin import standin_plane
+    from mfdesign.rig.virtual import Protocol, VirtualRig
 
     data = tmp_path / "m.parquet"
-    VirtualRig(seed=1, simulator=analytic_plane, protocol=Protocol(sample_hz=0.5)).run(
+    VirtualRig(seed=1, simulator=standin_plane, protocol=Protocol(sample_hz=0.5)).run(
         [Membrane.from_key("[2.0, 25.4, nan, nan, nan, nan]")], progress=False
     ).to_parquet(data)
     out = tmp_path / "rep"

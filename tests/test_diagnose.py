@@ -1,8 +1,8 @@
 """Diagnosis: residual breakdowns, noise floor, effect screen and full check on hidden effects.
 
 Fast versions on the analytic stand-in simulator: the virtual rig measures with
-``mfdesign.rig.virtual.analytic_plane`` and diagnosis runs on its JAX twin
-(``EmulatorModel(analytic_force)``: autodiff screen, nonlinear refit); 4 membranes, 1 Hz sampling,
+``mfdesign.rig.virtual.standin_plane`` and diagnosis runs on its JAX twin
+(``EmulatorModel(StandinForceModel())``: autodiff screen, nonlinear refit); 4 membranes, 1 Hz sampling,
 deflation on. One test runs the emulator back end on a small random emulator. The full
 sweep is ``experiments/hidden_effects.py``.
 """
@@ -17,10 +17,12 @@ import pytest
 
 from mfdesign.design import Membrane
 from mfdesign.diagnose import compute_residuals, noise_floor, worst_regions
-from mfdesign.diagnose.emulated import EmulatorModel, analytic_force, emulator_plane
+from mfdesign.diagnose.emulated import EmulatorModel, emulator_plane
+from mfdesign.models.standin import StandinForceModel
 from mfdesign.diagnose.pipeline import diagnose
 from mfdesign.physics import effects as fx
-from mfdesign.rig.virtual import Protocol, VirtualRig, analytic_plane
+from mfdesign.models.standin import standin_plane
+from mfdesign.rig.virtual import Protocol, VirtualRig
 
 KEYS = (
     "[2.0, 25.4, nan, nan, nan, nan]",
@@ -38,7 +40,7 @@ def virtual(hidden=(), seed=3, theta=None):
             effects=list(hidden),
             theta=theta if theta is not None else fx.typical_theta(hidden),
             seed=seed,
-            simulator=analytic_plane,
+            simulator=standin_plane,
             protocol=Protocol(deflate=True, sample_hz=1.0),
         )
         _CACHE[key] = rig.run([Membrane.from_key(k) for k in KEYS], progress=False)
@@ -51,7 +53,7 @@ _SIM: dict = {}
 def sim():
     """The exact back end on the analytic stand-in (one instance: compiled code is shared)."""
     if "s" not in _SIM:
-        _SIM["s"] = EmulatorModel(analytic_force)
+        _SIM["s"] = EmulatorModel(StandinForceModel())
     return _SIM["s"]
 
 

@@ -10,7 +10,8 @@ from typer.testing import CliRunner
 from mfdesign.cli import app
 from mfdesign.design import Membrane
 from mfdesign.physics import effects as fx
-from mfdesign.rig.virtual import Protocol, VirtualRig, analytic_plane
+from mfdesign.models.standin import standin_plane
+from mfdesign.rig.virtual import Protocol, VirtualRig
 
 runner = CliRunner()
 KEYS = ("[2.0, 25.4, nan, nan, nan, nan]", "[1.5, 30.0, 45.0, 6.0, nan, nan]")
@@ -50,7 +51,7 @@ def data(tmp_path_factory):
         effects=["load_cell_offset"],
         theta={"load_cell_offset.offset_n": 0.8},
         seed=2,
-        simulator=analytic_plane,
+        simulator=standin_plane,
         protocol=Protocol(sample_hz=1.0),
     )
     rig.run([Membrane.from_key(k) for k in KEYS], progress=False).to_parquet(path)

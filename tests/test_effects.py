@@ -245,7 +245,8 @@ def test_user_defined_effect_in_a_few_lines():
 def test_user_effect_in_the_virtual_rig():
     """The virtual rig takes a user effect as hidden truth (with the analytic stand-in simulator)."""
     from mfdesign.design import Membrane
-    from mfdesign.rig.virtual import Noise, Protocol, VirtualRig, analytic_plane
+    from mfdesign.models.standin import standin_plane
+    from mfdesign.rig.virtual import Noise, Protocol, VirtualRig
 
     @dataclass(frozen=True)
     class LiftHeightOffset(Effect):
@@ -259,7 +260,7 @@ def test_user_effect_in_the_virtual_rig():
             return sample.replace(height_mm=sample.height_mm + theta["offset_mm"])
 
     design = Membrane(2.0, 25.4)
-    kw = dict(seed=3, noise=Noise.none(), protocol=Protocol(lift_trials=1), simulator=analytic_plane)
+    kw = dict(seed=3, noise=Noise.none(), protocol=Protocol(lift_trials=1), simulator=standin_plane)
     plain = VirtualRig(**kw).mass_lift(design, 1.5).df
     shifted = VirtualRig([LiftHeightOffset()], {"lift_height_offset.offset_mm": 5.0}, **kw).mass_lift(design, 1.5).df
     assert len(plain) == len(shifted)

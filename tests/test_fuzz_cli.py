@@ -25,7 +25,8 @@ from typer.testing import CliRunner
 
 from mfdesign.cli import app
 from mfdesign.design import Membrane
-from mfdesign.rig.virtual import Protocol, VirtualRig, analytic_plane
+from mfdesign.models.standin import standin_plane
+from mfdesign.rig.virtual import Protocol, VirtualRig
 
 runner = CliRunner()
 KEYS = ("[2.0, 25.4, nan, nan, nan, nan]", "[1.5, 30.0, 45.0, 6.0, nan, nan]")
@@ -59,7 +60,7 @@ class Tally:
 @pytest.fixture(scope="module")
 def valid(tmp_path_factory):
     d = tmp_path_factory.mktemp("fuzz_valid")
-    rig = VirtualRig(effects=[], seed=2, simulator=analytic_plane, protocol=Protocol(sample_hz=0.5))
+    rig = VirtualRig(effects=[], seed=2, simulator=standin_plane, protocol=Protocol(sample_hz=0.5))
     m = rig.run([Membrane.from_key(k) for k in KEYS], progress=False)
     m.to_parquet(d / "m.parquet")
     for args in (

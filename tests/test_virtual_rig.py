@@ -1,6 +1,6 @@
 """The virtual rig: protocol, effects as hidden truth, bursts, reproducibility (same seed, same bytes).
 
-Fast tests use the analytic stand-in simulator (``analytic_plane``); one test runs the real
+Fast tests use the analytic stand-in simulator (``standin_plane``); one test runs the real
 simulator on a small grid; the bit-for-bit regeneration of the bundled dataset is ``slow``.
 """
 
@@ -16,7 +16,8 @@ import pytest
 
 from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
-from mfdesign.rig.virtual import Noise, Protocol, TruthPlane, VirtualRig, analytic_plane
+from mfdesign.models.standin import standin_plane
+from mfdesign.rig.virtual import Noise, Protocol, TruthPlane, VirtualRig
 from mfdesign.units import G_M_S2 as G
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,7 +27,7 @@ SMALL = Protocol(heights_mm=(0.0, 30.0), trials_per_height=2, lift_trials=1, sam
 
 
 def _rig(**kw):
-    base = dict(seed=7, simulator=analytic_plane, protocol=SMALL)
+    base = dict(seed=7, simulator=standin_plane, protocol=SMALL)
     base.update(kw)
     return VirtualRig(**base)
 
@@ -201,7 +202,7 @@ def _load_script():
 def test_dataset_script_is_reproducible_tiny(tmp_path):
     """The bundling script's code path, bit for bit, on a tiny run with the analytic simulator."""
     mod = _load_script()
-    kw = dict(designs=[RINGLESS, RINGED], simulator=analytic_plane, protocol=SMALL, cache_dir=None)
+    kw = dict(designs=[RINGLESS, RINGED], simulator=standin_plane, protocol=SMALL, cache_dir=None)
     a = mod.build(tmp_path / "a", **kw)
     b = mod.build(tmp_path / "b", **kw)
     assert _sha(a["parquet"]) == _sha(b["parquet"])

@@ -15,7 +15,7 @@ See ``docs/diagnose.md``.
 """
 
 from mfdesign.diagnose.check import CheckResult, calibrate_effects, full_check, verdict
-from mfdesign.diagnose.emulated import EmulatorModel, analytic_force, emulator_plane, forward_model
+from mfdesign.diagnose.emulated import EmulatorModel, emulator_plane, forward_model
 from mfdesign.diagnose.expected import query_heights, trial_order, usable_rows
 from mfdesign.diagnose.residuals import Residuals, breakdowns, compute_residuals, noise_floor, worst_regions
 from mfdesign.diagnose.screen import ScreenResult, screen
@@ -23,7 +23,6 @@ from mfdesign.diagnose.screen import ScreenResult, screen
 __all__ = [
     "CheckResult",
     "EmulatorModel",
-    "analytic_force",
     "emulator_plane",
     "forward_model",
     "Residuals",

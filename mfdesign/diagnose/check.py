@@ -22,55 +22,23 @@ part".
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Mapping, Sequence
+from typing import TYPE_CHECKING, Sequence
 
-import numpy as np
 
-from mfdesign.data.measurements import Measurements
 from mfdesign.diagnose.refit import CheckResult, calibrate_exact, full_check_exact
 from mfdesign.diagnose.residuals import Residuals
-from mfdesign.physics import effects as fx
 
 if TYPE_CHECKING:
-    from mfdesign.diagnose.emulated import EmulatorModel
+    pass
 
 __all__ = ["CheckResult", "calibrate_effects", "full_check", "verdict"]
 
 FLOOR_FACTOR = 1.2
 
 
-def calibrate_effects(
-    sim: EmulatorModel,
-    meas: Measurements,
-    res: Residuals,
-    effects: Sequence[str | fx.Effect],
-    theta0: Mapping[str, float] | None = None,
-    base_offset: np.ndarray | None = None,
-) -> tuple[dict, np.ndarray]:
-    """Nonlinear least-squares ``theta`` of ``effects`` on the rows of ``res``; returns
-    ``(theta, prediction per row of meas)``. ``base_offset``: ``base - E(theta0)`` per row
-    of ``meas`` (0 for the plain simulator)."""
-    return calibrate_exact(sim, meas, res, effects, theta0, base_offset)
-
-
-def full_check(
-    sim: EmulatorModel,
-    meas: Measurements,
-    res: Residuals,
-    candidates: Sequence[Sequence[str]],
-    theta0: Mapping[str, float] | None = None,
-    base_pred: np.ndarray | None = None,
-    n_folds: int = 3,
-    seed: int = 0,
-    progress: bool = False,
-) -> list[CheckResult]:
-    """Calibrate each candidate effect set (a list of names), held-out RMSE and delta BIC;
-    sorted by held-out RMSE (best first). ``res``: residuals of the model without them;
-    ``base_pred``: that model's prediction per row of ``meas`` (default: the plain
-    simulator). See :func:`mfdesign.diagnose.refit.full_check_exact`."""
-    return full_check_exact(
-        sim, meas, res, candidates, theta0=theta0, base_pred=base_pred, n_folds=n_folds, seed=seed, progress=progress
-    )
+# The refits themselves live in :mod:`mfdesign.diagnose.refit` (nonlinear, exact lattice).
+calibrate_effects = calibrate_exact
+full_check = full_check_exact
 
 
 def verdict(

@@ -5,8 +5,9 @@
 SimParams) -> F [N]`` at every row: the exact model (simulator planes of the measured
 membranes, :mod:`mfdesign.models.exact`; the default of ``mfdesign diagnose``), the
 simulator's emulator (:func:`mfdesign.models.emulator.load_default`), or
-:func:`analytic_force` (the JAX twin of the virtual rig's cheap stand-in
-:func:`~mfdesign.rig.virtual.analytic_plane`, for tests). :func:`forward_model` builds one.
+:class:`~mfdesign.models.standin.StandinForceModel` (the closed-form stand-in, for tests;
+the virtual rig's truth with ``simulator=standin_plane`` is the same formula).
+:func:`forward_model` builds one.
 
 The expected recorded force of a row recorded at ``(h, p)`` with effects ``theta`` is the
 calibration's likelihood model (:mod:`mfdesign.physics.effects`, "the likelihood side")::
@@ -28,7 +29,6 @@ with a Gaussian prior as extra residuals, for all candidates and folds in one co
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from types import SimpleNamespace
 from typing import Any, Mapping, Sequence
 
 import equinox as eqx
@@ -41,25 +41,13 @@ from mfdesign.design import Membrane
 from mfdesign.diagnose.expected import query_heights, trial_order
 from mfdesign.physics import effects as fx
 from mfdesign.physics.params import SimParams
+from mfdesign.physics.solve import SimResult
 from mfdesign.physics.status import Status
-from mfdesign.materials import ECOFLEX_MU_PA
 
-__all__ = ["EmulatorModel", "analytic_force", "emulator_plane", "forward_model", "likelihood_effects"]
+__all__ = ["EmulatorModel", "emulator_plane", "forward_model", "likelihood_effects"]
 
 LATTICE_ROUNDS = 4  # refits while the exact model's lattice grows around the optima
 CHUNK = 4096  # rows per compiled call (bounds the memory of the emulator's activations)
-
-
-def analytic_force(design, h_mm, p_pa, params: SimParams = SimParams()) -> jax.Array:
-    """JAX twin of :func:`mfdesign.rig.virtual.analytic_plane` (same formula, no physics):
-    ``F = max(0, 1.6 pi (r_eff [m])^2 (p - 40 Pa/mm * s * h (1 + 0.4 n_rings)))`` with
-    ``s = mu t tf / 31.7 kPa mm`` and ``r_eff = c + contact_offset`` [mm]; ``[N]``."""
-    design = jnp.atleast_2d(jnp.asarray(design, float))
-    n_rings = (~jnp.isnan(design[:, 2])).astype(float) + (~jnp.isnan(design[:, 4])).astype(float)
-    stiff = params.mu_pa * design[:, 0] * params.thickness_factor / ECOFLEX_MU_PA
-    r_eff = design[:, 1] + params.contact_offset_mm
-    p_contact = 40.0 * stiff * h_mm * (1.0 + 0.4 * n_rings)
-    return jnp.maximum(0.0, jnp.pi * (r_eff * 1e-3) ** 2 * 1.6 * (p_pa - p_contact))
 
 
 @dataclass(frozen=True)
@@ -67,7 +55,7 @@ class emulator_plane:  # noqa: N801 -- used like a function: VirtualRig(simulato
     """A ``VirtualRig(simulator=...)`` adapter: ``force_model`` on the rig's h x p grid.
 
     Locking is reported as 0 (no bursts) and the membrane's rise as ``p / 250 - h / 2`` mm
-    (as :func:`~mfdesign.rig.virtual.analytic_plane`; it ends ringless force trials at the
+    (as :func:`~mfdesign.models.standin.standin_plane`; it ends ringless force trials at the
     rig's contact limit). With it the virtual rig's truth and :class:`EmulatorModel` share
     the same physics, so a sweep tests the diagnosis logic alone.
     """
@@ -85,11 +73,12 @@ class emulator_plane:  # noqa: N801 -- used like a function: VirtualRig(simulato
         f = np.asarray(
             _plane_force(self.force_model, jnp.asarray(d), jnp.asarray(H.ravel()), jnp.asarray(P.ravel()), params)
         ).reshape(H.shape)
-        return SimpleNamespace(
+        return SimResult(
             force_n=f,
             status=np.full(H.shape, int(Status.OK), np.int8),
             max_locking=np.zeros(H.shape),
             max_rise_mm=P / 250.0 - H / 2.0,
+            wrinkled=np.zeros(H.shape, bool),
         )
 
 
@@ -236,8 +225,6 @@ class EmulatorModel:
 
     @property
     def name(self) -> str:
-        if self.force_model is analytic_force:
-            return "analytic stand-in"
         return getattr(self.force_model, "name", "") or type(self.force_model).__name__.lower()
 
     def _cover(self, meas: Measurements, order, thetas: np.ndarray, rows=None) -> None:
@@ -464,5 +451,7 @@ def forward_model(physics: str, meas: Measurements, *, cache=None, progress: boo
     if physics == "emulator":
         return EmulatorModel(None, progress=progress)
     if physics == "standin":
-        return EmulatorModel(analytic_force, progress=progress)
+        from mfdesign.models.standin import StandinForceModel
+
+        return EmulatorModel(StandinForceModel(), progress=progress)
     raise ValueError(f"--physics must be one of {list(FORCE_MODELS)}, got {physics!r}")

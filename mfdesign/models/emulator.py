@@ -47,6 +47,7 @@ import optax
 
 from mfdesign.data.shipped import emulator_dir
 from mfdesign.design import OUTER_RADIUS_MM, DesignSpace
+from mfdesign.models.emulator_data import PARAM_FIELDS  # the constants the emulator takes
 from mfdesign.models.force import ForceModel
 from mfdesign.physics.params import SimParams
 
@@ -54,16 +55,6 @@ FORMAT_VERSION = 1
 DEFAULT_DIR = emulator_dir()  # shipped in the package (mfdesign.data.shipped)
 N_FEATURES = 14
 Q_SCALE = 1.0  # 1/mm: q = p / (mu t_eff) is at most ~1 in the training ranges
-PARAM_FIELDS = (
-    "mu_pa",
-    "jm",
-    "ring_mu_pa",
-    "ring_jm",
-    "thickness_factor",
-    "thickness_gradient",
-    "clamp_prestretch",
-    "contact_offset_mm",
-)
 MIN_RUBBER_MM = 0.5  # the effective disk edge must stay this far inside the first ring
 
 

@@ -13,15 +13,13 @@ until the membrane reaches the plate, then rising and stiffening with pressure):
     p_lock = 250 Pa * J_m * s                                Gent-like stiffening scale [Pa]
     F      = 1.6 pi (c + dc)^2 * w softplus((p - p_c) / w) * (1 + p / p_lock),  w = 50 Pa
 
-(c the disk radius [m], dc the contact offset). Unlike
-:func:`mfdesign.rig.virtual.analytic_plane` it depends on J_m, so both Gent constants are
-identifiable (mu through the height dependence, J_m through the curvature in p).
+(c the disk radius [m], dc the contact offset). It depends on J_m, so both Gent
+constants are identifiable (mu through the height dependence, J_m through the curvature in
+p).
 :func:`standin_plane` wraps it as a ``simulator`` for :class:`~mfdesign.rig.virtual.VirtualRig`.
 """
 
 from __future__ import annotations
-
-from types import SimpleNamespace
 
 import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import jax
@@ -30,6 +28,7 @@ import numpy as np
 
 from mfdesign.models.force import ForceModel
 from mfdesign.physics.params import SimParams
+from mfdesign.physics.solve import SimResult
 from mfdesign.physics.status import Status
 from mfdesign.materials import ECOFLEX_MU_PA
 
@@ -59,17 +58,23 @@ def standin_plane(design, h_grid, p_grid, params: SimParams = SimParams()):
     """:func:`standin_force` on ``h_grid x p_grid`` in the ``force_plane`` result layout
     (NumPy: the virtual rig calls it with many shapes, where JAX would compile each).
 
-    Locking ``(p / p_lock)^2 / 2`` stays far below bursting; ``rise = p / 250 - h / 2`` mm
-    (as ``analytic_plane``), which ends ringless force trials at the rig's contact limit.
+    Locking ``0.9 (p / 8 kPa)^1.5 / sqrt(s) (1 + 0.15 n_rings)`` reaches a burst threshold of
+    ~0.9 only near the ringed membranes' pressure limits; ``rise = p / 250 - h / 2`` mm ends
+    ringless force trials at the rig's contact limit.
     """
     H, P = np.meshgrid(np.asarray(h_grid, float), np.asarray(p_grid, float), indexing="ij")
     d = np.broadcast_to(np.asarray(design.to_array(), float), (H.size, 6))
     params = jax.tree.map(lambda a: np.asarray(a, float), params)
-    f, p_lock = _formula(np, lambda x: np.logaddexp(0.0, x), d, H.ravel(), P.ravel(), params)
-    locking = 0.5 * (P.ravel() / p_lock) ** 2
+    f, _ = _formula(np, lambda x: np.logaddexp(0.0, x), d, H.ravel(), P.ravel(), params)
+    stiff = float(params.mu_pa) * design.thickness_mm * float(params.thickness_factor) / ECOFLEX_MU_PA
+    locking = 0.9 * (P / 8000.0) ** 1.5 / stiff**0.5 * (1.0 + 0.15 * design.n_rings)
     status = np.full(H.shape, int(Status.OK), np.int8)
-    return SimpleNamespace(
-        force_n=f.reshape(H.shape), status=status, max_locking=locking.reshape(H.shape), max_rise_mm=P / 250.0 - H / 2.0
+    return SimResult(
+        force_n=f.reshape(H.shape),
+        status=status,
+        max_locking=locking.reshape(H.shape),
+        max_rise_mm=P / 250.0 - H / 2.0,
+        wrinkled=np.zeros(H.shape, bool),
     )
 
 

@@ -31,6 +31,7 @@ from typing import Iterator, Literal
 import pandas as pd
 from tqdm import tqdm
 
+from mfdesign.data.measurements import COLUMNS
 from mfdesign.rig.config import RigConfig
 from mfdesign.rig.protocol import Command, RigConnection, RigFault, Sample
 from mfdesign.units import G_M_S2
@@ -40,19 +41,7 @@ log = logging.getLogger("mfdesign.rig")
 RINGED_LIMITS_PA = (4300.0, 6100.0)  # first pass, retest when the membrane did not burst
 RINGLESS_LIMIT_PA = 10000.0  # ringless run until contact; this caps them
 HEIGHTS_MM = tuple(float(h) for h in range(0, 71, 10))
-MEASUREMENT_COLUMNS = [
-    "design_key",
-    "trial",
-    "experiment",
-    "phase",
-    "time_s",
-    "height_set_mm",
-    "height_mm",
-    "pressure_pa",
-    "force_n",
-    "weight",
-    "source",
-]
+MEASUREMENT_COLUMNS = list(COLUMNS)  # the Measurements schema (mfdesign.data.measurements)
 SAMPLE_COLUMNS = [
     "seq",
     "trial_key",

@@ -62,11 +62,10 @@ from mfdesign.physics import effects as fx
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status
 from mfdesign.units import G_M_S2, PSI_TO_PA
-from mfdesign.materials import ECOFLEX_MU_PA
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Noise", "Protocol", "TruthPlane", "VirtualRig", "analytic_plane", "simulator_fingerprint"]
+__all__ = ["Noise", "Protocol", "TruthPlane", "VirtualRig", "simulator_fingerprint"]
 
 
 @dataclass(frozen=True)
@@ -239,9 +238,7 @@ def _force_plane(design, h_grid, p_grid, params):
     """``force_plane``; if the simulator raises (it should return statuses, but a solver
     error inside JIT can escape), retry height by height and mark the failing heights
     ``NOT_CONVERGED`` (NaN) instead of losing the whole membrane."""
-    from types import SimpleNamespace
-
-    from mfdesign.physics.solve import force_plane
+    from mfdesign.physics.solve import SimResult, force_plane
 
     try:
         return force_plane(design, h_grid, p_grid, params)
@@ -253,11 +250,12 @@ def _force_plane(design, h_grid, p_grid, params):
             str(err).splitlines()[0] if str(err) else "",
         )
     shape = (len(h_grid), len(p_grid))
-    out = SimpleNamespace(
+    out = SimResult(
         force_n=np.full(shape, np.nan),
         status=np.full(shape, int(Status.NOT_CONVERGED), np.int8),
         max_locking=np.full(shape, np.nan),
         max_rise_mm=np.full(shape, np.nan),
+        wrinkled=np.zeros(shape, bool),
     )
     for i, h in enumerate(h_grid):
         try:
@@ -268,26 +266,6 @@ def _force_plane(design, h_grid, p_grid, params):
         out.force_n[i], out.status[i] = r.force_n[0], r.status[0]
         out.max_locking[i], out.max_rise_mm[i] = r.max_locking[0], r.max_rise_mm[0]
     return out
-
-
-def analytic_plane(design: Membrane, h_grid, p_grid, params: SimParams = SimParams()):
-    """A cheap analytic stand-in for ``force_plane`` (tests, tutorials): same outputs, no physics.
-
-    ``F = max(0, k (p - p_contact(h)))`` with ``k`` proportional to the disk area and
-    ``p_contact`` growing with h and with the membrane's stiffness ``mu t``; locking and
-    rise grow with pressure. Shaped like the real planes, but only a stand-in.
-    """
-    from types import SimpleNamespace
-
-    H, P = np.meshgrid(np.asarray(h_grid, float), np.asarray(p_grid, float), indexing="ij")
-    stiff = float(params.mu_pa) * design.thickness_mm * float(params.thickness_factor) / ECOFLEX_MU_PA
-    r_eff = design.contact_radius_mm + float(params.contact_offset_mm)
-    p_contact = 40.0 * stiff * H * (1.0 + 0.4 * design.n_rings)
-    force = np.maximum(0.0, np.pi * (r_eff * 1e-3) ** 2 * 1.6 * (P - p_contact))
-    status = np.where(force > 0, int(Status.OK), int(Status.NO_CONTACT)).astype(np.int8)
-    locking = 0.9 * (P / 8000.0) ** 1.5 / stiff**0.5 * (1.0 + 0.15 * design.n_rings)
-    rise = P / 250.0 - H / 2.0
-    return SimpleNamespace(force_n=force, status=status, max_locking=locking, max_rise_mm=rise)
 
 
 def simulator_fingerprint() -> str:
