@@ -47,10 +47,10 @@ def _run(
     likelihood: str,
     seed: int,
     resume: bool,
-    multi_fidelity: bool,
-    members: int,
-    delta_steps: int,
     allow_outside_design_space: bool = False,
+    multi_fidelity: bool = False,
+    members: int = 0,
+    delta_steps: int = 0,
 ) -> None:
     from mfdesign import outputs
     from mfdesign.cli._app import fail
@@ -226,6 +226,7 @@ def register(app: typer.Typer) -> None:
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
         """Calibrate mu [Pa], J_m and the effects' parameters with emcee (posterior table, corner plot, chain)."""
+        opts = dict(physics=physics, likelihood=likelihood, seed=seed, resume=resume)
         _run(
             data,
             list(effects or []),
@@ -233,14 +234,8 @@ def register(app: typer.Typer) -> None:
             steps,
             walkers,
             max_rows,
-            physics,
-            likelihood,
-            seed,
-            resume,
-            False,
-            0,
-            0,
-            allow_outside_design_space,
+            **opts,
+            allow_outside_design_space=allow_outside_design_space,
         )
 
     @app.command("fit-mf")
@@ -265,6 +260,8 @@ def register(app: typer.Typer) -> None:
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
         """Multi-fidelity fit: calibrated simulator + RPN discrepancy ensemble + noise."""
+        opts = dict(physics=physics, likelihood=likelihood, seed=seed, resume=resume)
+        mf = dict(multi_fidelity=True, members=members, delta_steps=delta_steps)
         _run(
             data,
             list(effects or []),
@@ -272,12 +269,7 @@ def register(app: typer.Typer) -> None:
             steps,
             walkers,
             max_rows,
-            physics,
-            likelihood,
-            seed,
-            resume,
-            True,
-            members,
-            delta_steps,
-            allow_outside_design_space,
+            **opts,
+            **mf,
+            allow_outside_design_space=allow_outside_design_space,
         )
