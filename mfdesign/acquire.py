@@ -323,12 +323,33 @@ def propose(
     progress: bool = False,
     n_refine: int = 32,
 ) -> Proposal:
-    """Choose ``q`` (design, fidelity) pairs maximising ``U / cost`` (module docstring).
+    """Choose ``q`` (design, fidelity) pairs maximising expected uncertainty reduction per cost.
 
-    ``n_restarts`` random joint batches per (ring count, fidelity) are scored; the best
-    ``n_refine`` of them (all, if fewer) are refined by ``n_steps`` L-BFGS iterations, all
-    ring counts and restarts in one vmapped, jitted call per fidelity. ``key``: int seed or
-    ``jax.random`` key. Raises ``ValueError`` on bad arguments.
+    The batch utility is the paper's (module docstring) over the height-pressure grid;
+    ``n_restarts`` random joint batches per (ring count, fidelity) are scored, the best
+    ``n_refine`` refined by ``n_steps`` L-BFGS iterations, all ring counts and restarts in
+    one vmapped, jitted call per fidelity (start heuristics apart from the utility, as in
+    BoTorch).
+
+    **Arguments:**
+
+    - `predictor`: members per fidelity (:class:`~mfdesign.models.predictor.Predictor`).
+    - `q`: designs in the batch.
+    - `fidelities`: fidelities to choose from (`"rig"`, `"sim"`).
+    - `costs`: cost per fidelity (default :data:`DEFAULT_COSTS`).
+    - `n_restarts`: random batches scored per (ring count, fidelity).
+    - `n_rings`: ring counts to search.
+    - `grid`: the height [mm] x pressure [Pa] grid the uncertainty is measured on.
+    - `key`: int seed or `jax.random` key.
+    - `space`: the design space (bounds, gaps).
+    - `n_steps`: L-BFGS iterations of each refined batch.
+    - `progress`: progress output.
+    - `n_refine`: batches refined per (ring count, fidelity).
+
+    **Returns:**
+
+    A :class:`Proposal`: the designs (mm), their fidelities, utilities and costs. Raises
+    `ValueError` on bad arguments.
     """
     t0 = time.perf_counter()
     if not isinstance(q, (int, np.integer)) or isinstance(q, bool) or q < 1:

@@ -618,11 +618,36 @@ def optimize(
     sim_params=None,
     progress: bool = True,
 ) -> Result:
-    """Optimise a design for ``problem`` with ``model`` (a :class:`Predictor` or an ensemble).
+    """Optimise a membrane design for a lift task (the paper's design study).
 
     One :func:`multistart` per ring count in ``rings``; the lowest loss wins. The winner's
     per-member predictions and trajectories are reported, and with ``check`` its lift
     heights are recomputed by the simulator (slow: minutes on 2 CPU cores).
+
+    **Arguments:**
+
+    - `model`: a :class:`Predictor` or an ensemble with members (`members(design, h_mm,
+      p_pa)`).
+    - `problem`: :class:`HeightTargets` (maximise the lifted heights of given loads [N] at
+      given pressures [Pa]) or :class:`Waypoints` (reach heights [mm] at loads with least
+      pressure error).
+    - `rings`: ring counts to search.
+    - `space`: the design space (bounds, gaps).
+    - `weights`: the loss's weights and scales (:class:`Weights`; default the paper's).
+    - `n_starts`: random starts per ring count (all scored).
+    - `steps`: projected-Adam steps of each refined start.
+    - `lr`: Adam's learning rate (unit-cube coordinates).
+    - `n_refine`: best starts refined (`None`: all).
+    - `seed`: random seed.
+    - `batch_size`: starts per `jax.lax.map` chunk (bounds memory).
+    - `check`: recompute the winner's lift heights with the simulator.
+    - `sim_params`: simulator constants of the check (default the authors').
+    - `progress`: progress bars.
+
+    **Returns:**
+
+    A :class:`Result`: the winning design (mm), its loss and predictions with the members'
+    spread, the runner-up per ring count, and the simulator check when asked.
     """
     from tqdm.auto import tqdm
 

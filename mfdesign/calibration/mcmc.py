@@ -426,19 +426,44 @@ def calibrate(
     stop_when_converged: bool = False,
     check_every: int = 50,
 ) -> Posterior:
-    """Sample the posterior of ``model`` given ``data`` (Measurements or CalibrationData).
+    """Sample the posterior of ``model`` given ``data`` with emcee; stop when converged.
 
-    ``n_steps``: total chain length (a resumed run samples only the missing steps);
-    ``chain_path``: HDF5 file for the chain (``emcee.backends.HDFBackend``, group
-    ``"mcmc"``; the MAP is stored beside it, group ``"mfdesign"``); ``resume=False``
-    starts over; ``pool``: anything with ``map`` (multiprocessing, schwimmbad MPI);
-    ``callback(iteration)`` after every step (progress hooks, tests); ``moves``: emcee
-    moves, default differential evolution mixed with its snooker update (ter Braak 2006;
-    ter Braak & Vrugt 2008), which mixes faster than the stretch move on these posteriors.
-    ``stop_when_converged``: ``n_steps`` is then the most steps; every ``check_every``
-    steps the autocorrelation time is estimated and sampling stops once the chain is
-    ``MIN_TAU_RATIO`` times the longest tau and that estimate moved < 5 % since the last
+    The MAP (optimistix BFGS from ``map_starts`` starts) seeds a Gaussian ball of walkers;
+    the default moves are differential evolution mixed with its snooker update (ter Braak
+    2006; ter Braak & Vrugt 2008), which mix faster than the stretch move on these
+    posteriors. With ``stop_when_converged`` the chain stops once it is ``MIN_TAU_RATIO``
+    times the longest autocorrelation time and that estimate moved < 5 % since the last
     check (emcee's documented monitoring recipe).
+
+    **Arguments:**
+
+    - `data`: the measurements (:class:`~mfdesign.data.measurements.Measurements`, or a
+      prepared :class:`~mfdesign.models.hierarchical.CalibrationData`).
+    - `model`: the :class:`~mfdesign.models.hierarchical.HierarchicalModel` (force model,
+      effects, priors, likelihood).
+    - `n_walkers`: emcee walkers (default `max(32, 2 dim + 2)`).
+    - `n_steps`: total chain length (the most steps with `stop_when_converged`); a resumed
+      run samples only the missing steps.
+    - `chain_path`: HDF5 file of the chain (`emcee.backends.HDFBackend`, group `"mcmc"`; the
+      MAP is stored beside it, group `"mfdesign"`); `None`: in memory.
+    - `resume`: continue the chain in `chain_path` (`False` starts over).
+    - `pool`: anything with `map` (multiprocessing, an MPI pool from schwimmbad).
+    - `seed`: random seed of the starts and walkers.
+    - `progress`: progress bars.
+    - `max_rows`: rows the likelihood uses (evenly within trials; `None`: all).
+    - `map_starts`: optimiser starts of the MAP search.
+    - `ball`: width of the walkers' start ball in Laplace standard deviations.
+    - `callback`: called with the iteration after every step.
+    - `warn`: emit a `ConvergenceWarning` when the chain has not converged.
+    - `moves`: emcee moves (default above).
+    - `stop_when_converged`: stop early once converged (above).
+    - `check_every`: steps between convergence checks.
+
+    **Returns:**
+
+    A :class:`~mfdesign.calibration.posterior.Posterior`: constrained samples, the MAP, the
+    convergence report (R-hat, ESS, tau; `converged` says whether to trust it) and
+    `to_inference_data()` for ArviZ.
     """
     import emcee
 

@@ -87,15 +87,38 @@ def diagnose(
     n_folds: int = 3,
     progress: bool = False,
 ) -> Diagnosis:
-    """Diagnose ``model`` (default: the plain simulator of ``sim``) on ``meas`` (module doc).
+    """Where the model fails on ``meas``, and which physical effect is missing.
 
-    ``sim``: the forward model, :class:`~mfdesign.diagnose.emulated.EmulatorModel` on a force
-    model (:func:`~mfdesign.diagnose.emulated.forward_model`: exact, emulator or stand-in;
-    default: the bundled emulator): autodiff screen, nonlinear refit.
+    Residuals by height, pressure, design, trial and phase with a noise floor; then forward
+    selection (Efroymson 1960) of effects: an autodiff screen of every candidate, a
+    nonlinear refit of the best with held-out membranes and delta BIC, and a verdict that
+    claims nothing at the noise floor or when no candidate explains the residual (module
+    doc).
 
-    ``effects``: effects the user adds; their ``theta`` is calibrated unless every
-    parameter is given in ``theta``. ``candidates``: effects the search may try (default:
-    all registered). ``search=False`` skips the effect search.
+    **Arguments:**
+
+    - `meas`: the measurements (:class:`~mfdesign.data.measurements.Measurements`).
+    - `sim`: the forward model, an :class:`~mfdesign.diagnose.emulated.EmulatorModel` (build
+      one with :func:`~mfdesign.diagnose.emulated.forward_model`: `"exact"` simulator planes
+      of the measured designs, `"emulator"` or `"standin"`); default the bundled emulator.
+    - `model`: the model under diagnosis, `predict(meas) -> force [N] per row` (default: the
+      plain simulator of `sim`).
+    - `model_name`: its name in the report.
+    - `effects`: effects the user adds; their parameters are calibrated unless every one is
+      given in `theta`.
+    - `theta`: effect parameters, `{"effect.parameter": value}`.
+    - `candidates`: effects the search may try (default: every registered one).
+    - `search`: `False` skips the effect search (residuals and the user's effects only).
+    - `check_top`: screened candidates refitted in each round.
+    - `max_steps`: rounds of forward selection.
+    - `n_folds`: folds of held-out membranes in the refit.
+    - `progress`: progress output.
+
+    **Returns:**
+
+    A :class:`Diagnosis`: residuals before and after, every round's screen, checks and
+    verdict, the effects found with their parameters; `to_json()` for files and
+    :func:`~mfdesign.diagnose.report.write_report` for HTML.
     """
     if sim is None:
         from mfdesign.diagnose.emulated import EmulatorModel

@@ -308,9 +308,25 @@ def force_at(
 ) -> SimResult:
     """Force on a plate held at height ``h_mm`` [mm] with gauge pressure ``p_pa`` [Pa].
 
-    ``h_mm`` and ``p_pa`` broadcast together; every point is solved independently by
-    quasi-static inflation in ``path_steps`` pressure steps at its height (vmapped).
-    ``signed``: ``NO_CONTACT`` points keep their negative force (see :func:`force_plane`).
+    Every point is solved independently by quasi-static inflation in ``path_steps``
+    pressure steps at its height (points below 4 mm: inflation at 4 mm, then the plate is
+    lowered), all points in one vmapped kernel.
+
+    **Arguments:**
+
+    - `design`: the membrane (:class:`~mfdesign.design.Membrane`).
+    - `h_mm`: plate heights [mm], any shape broadcasting with `p_pa`.
+    - `p_pa`: gauge pressures [Pa].
+    - `params`: simulator constants (:class:`~mfdesign.physics.params.SimParams`; default the
+      authors' Ecoflex 00-30).
+    - `path_steps`: pressure steps from `p / path_steps` to `p` of each point's path.
+    - `signed`: keep the negative force of `NO_CONTACT` points (smooth across the contact
+      boundary, for interpolation; see :func:`force_plane`).
+
+    **Returns:**
+
+    A :class:`SimResult` of the broadcast shape: force [N] (NaN where the status is not
+    usable, never a silent number), status codes, locking, rise and wrinkling checks.
     """
     h, p = np.broadcast_arrays(np.asarray(h_mm, float), np.asarray(p_pa, float))
     shape_ = h.shape
@@ -418,14 +434,29 @@ def force_plane(
     signed: bool = False,
     parts: int | None = None,
 ) -> SimResult:
-    """Force on a ``len(h_grid) x len(p_grid)`` grid (heights mm, pressures Pa).
+    """Force on a ``len(h_grid) x len(p_grid)`` grid of plate heights and pressures.
 
-    Pressures must be increasing; each height is one continuation path through all of
-    them (``substeps`` steps per grid interval, more where an interval is wider than
-    ``MAX_PATH_STEP_PA``), vmapped over heights. ``signed``: ``NO_CONTACT`` points keep the
-    negative force that would hold the plate at ``h`` (smooth across the contact
-    boundary, for interpolation; p = 0 is then NaN). ``parts``: how many slices the
-    heights are split into (default: every core or device, :func:`n_workers`).
+    Each height is one continuation path through all the pressures (vmapped over heights,
+    split over every core or device); heights below 4 mm are reached by lowering the plate
+    from 4 mm at each pressure.
+
+    **Arguments:**
+
+    - `design`: the membrane (:class:`~mfdesign.design.Membrane`).
+    - `h_grid_mm`: plate heights [mm], any order.
+    - `p_grid_pa`: gauge pressures [Pa], strictly increasing.
+    - `params`: simulator constants (default the authors' Ecoflex 00-30).
+    - `substeps`: continuation steps per grid interval (more where an interval is wider
+      than `MAX_PATH_STEP_PA`).
+    - `signed`: `NO_CONTACT` points keep the negative force that would hold the plate at `h`
+      (smooth across the contact boundary, for interpolation; p = 0 is then NaN).
+    - `parts`: slices the heights are split into (default: every core or device,
+      :func:`n_workers`).
+
+    **Returns:**
+
+    A :class:`SimResult` of shape `(len(h_grid), len(p_grid))`: force [N] (NaN where not
+    usable), status codes, locking, rise and wrinkling checks.
     """
     h_grid = np.asarray(h_grid_mm, float).ravel()
     p_grid = np.asarray(p_grid_pa, float).ravel()
@@ -628,10 +659,23 @@ def height_at(
     The branch reached by quasi-static inflation from ``h = 0``: at pressure ``p`` the
     plate rises until the membrane's force at fixed height falls to the load, i.e. the
     first height where ``F(h, p)`` crosses the load from above (found on a height grid
-    from :func:`force_at`, then refined by shooting at fixed force). ``NOT_LIFTED`` (h = 0)
-    when the force at ``h = 0`` is below the load, ``BEYOND_GRID`` (NaN) when the plate
-    rises past ``h_max_mm``. Folds along a pressure sweep are
-    reported by :func:`lift_curve`. Returns ``(height_mm, status)``.
+    from :func:`force_at`, then refined by shooting at fixed force). Folds along a pressure
+    sweep are reported by :func:`lift_curve`.
+
+    **Arguments:**
+
+    - `design`: the membrane.
+    - `force_n`: loads [N] (the lifted weight, plate included), broadcasting with `p_pa`.
+    - `p_pa`: gauge pressures [Pa].
+    - `params`: simulator constants (default the authors').
+    - `h_max_mm`: top of the height grid [mm]; a plate that rises past it is `BEYOND_GRID`.
+    - `n_heights`: points of the height grid the crossing is bracketed on.
+
+    **Returns:**
+
+    `(height_mm, status)`: heights [mm] (0 with `NOT_LIFTED` where the force at `h = 0` is
+    below the load; NaN with `BEYOND_GRID` past `h_max_mm` or where the solve failed) and
+    status codes (:class:`~mfdesign.physics.status.Status`).
     """
     F, p = np.broadcast_arrays(np.asarray(force_n, float), np.asarray(p_pa, float))
     shape_ = F.shape
