@@ -31,7 +31,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-import mfdesign  # noqa: F401
+import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign import optimize as opt
 from mfdesign.design import DesignSpace
 

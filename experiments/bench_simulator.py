@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-import mfdesign  # noqa: F401
+import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.physics.solve import force_plane
 from mfdesign.physics.status import Status, summarize

@@ -21,7 +21,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-import mfdesign  # noqa: F401
+import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 
 OUT = Path(__file__).parent / "out"
 

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-import mfdesign  # noqa: F401  (float64)
+import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 
 OUT = Path(__file__).parent / "out"
 Z90 = 1.6448536269514722

@@ -18,6 +18,7 @@ change of the shooting Jacobian's determinant along the path; points beyond it a
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, Sequence
@@ -66,6 +67,25 @@ class SimResult(eqx.Module):
     @property
     def ok(self) -> np.ndarray:
         return np.isin(self.status, [Status.OK, Status.NO_CONTACT])
+
+
+class PointSolution(eqx.Module):
+    """What a kernel knows about each point it solved (arrays with the points' leading axes).
+
+    ``converged``: the shooting converged at the point; ``passed``: a pressure limit point
+    was passed on the way (a fold); ``force_n`` [N] (negative before contact); ``wrinkled``,
+    ``locking``, ``rise_mm``, ``profile_ok``: the stress checks of the state (of the last
+    converged one where the point failed); ``state``: the shooting unknowns ``x`` [..., 2].
+    """
+
+    converged: Any
+    passed: Any
+    force_n: Any
+    wrinkled: Any
+    locking: Any
+    rise_mm: Any
+    profile_ok: Any
+    state: Any
 
 
 # --------------------------------------------------------------------------------------
@@ -192,7 +212,7 @@ def _points_kernel(geom, params, h, p_mpa, n_steps: int):
         force, wrinkled, locking, rise, ok_prof = _point_outputs(x, geom, params, h_at, p_at, pp)
         # No converged state on the whole path: nothing is known about locking.
         locking = jnp.where(jnp.any(conv), locking, jnp.nan)
-        return conv_end, passed[-1], force, wrinkled, locking, rise, ok_prof, x
+        return PointSolution(conv_end, passed[-1], force, wrinkled, locking, rise, ok_prof, x)
 
     return jax.vmap(one)(h, p_mpa)
 
@@ -214,7 +234,7 @@ def _plane_kernel(geom, params, h_grid, p_path_mpa, report_idx):
             lambda x, pa, pp: _point_outputs(x, geom, params, hh, pa, pp)
         )(x_chk, p_chk, p_rep)
         locking = jnp.where(seen, locking, jnp.nan)  # nothing converged yet: unknown
-        return conv, passed, force, wrinkled, locking, rise, ok_prof, x_chk
+        return PointSolution(conv, passed, force, wrinkled, locking, rise, ok_prof, x_chk)
 
     return jax.vmap(one_h)(h_grid)
 
@@ -223,7 +243,7 @@ def _descent_starts(anchor):
     """Start states of the descent, one per grid pressure, from the anchor row (solved at
     ``LOW_HEIGHT_MM``). Where the anchor did not converge (low tension at the lowest
     pressures makes the shooting touchy), its nearest converged state at a higher pressure."""
-    conv_a, _, _, _, locking_a, _, _, x_a = (np.asarray(o) for o in anchor)
+    conv_a, locking_a, x_a = (np.asarray(o) for o in (anchor.converged, anchor.locking, anchor.state))
     n_p = conv_a.shape[0]
     idx = np.where(conv_a, np.arange(n_p), n_p)
     nxt = np.flip(np.minimum.accumulate(np.flip(idx)))
@@ -235,7 +255,7 @@ def _descent_kernel(geom, params, h_low, x_start, start_ok, p_rep_mpa, locking_s
     """Low rows of a plane: from the start states (``_descent_starts``) the plate is
     lowered through the heights ``h_low`` (decreasing) at every grid pressure; vmapped over
     pressures (leading axis of every output), one continuation through all low heights per
-    pressure."""
+    pressure. ``passed`` is left False: the caller takes the anchor row's."""
     h_prev = jnp.concatenate([jnp.array([LOW_HEIGHT_MM]), h_low[:-1]])
 
     def one_p(x0, ok0, pp, lock0):
@@ -246,7 +266,7 @@ def _descent_kernel(geom, params, h_low, x_start, start_ok, p_rep_mpa, locking_s
             force, wrinkled, locking, rise, ok_prof = _point_outputs(x, geom, params, h_to, pp, pp)
             # Unsolved: the anchor's state says whether the Gent limit was near.
             locking = jnp.where(conv, locking, lock0)
-            return (x, conv), (conv, force, wrinkled, locking, rise, ok_prof)
+            return (x, conv), PointSolution(conv, jnp.zeros_like(conv), force, wrinkled, locking, rise, ok_prof, x)
 
         _, outs = jax.lax.scan(leg, (x0, ok0), (h_prev, h_low))
         return outs
@@ -254,7 +274,10 @@ def _descent_kernel(geom, params, h_low, x_start, start_ok, p_rep_mpa, locking_s
     return jax.vmap(one_p)(x_start, start_ok, p_rep_mpa, locking_start)
 
 
-def _classify(h, p, conv, passed, force, wrinkled, locking, rise, ok_prof, signed: bool = False) -> SimResult:
+def _classify(h, p, sol: PointSolution, signed: bool = False) -> SimResult:
+    """Status codes and the reported force of every point from what its kernel found."""
+    conv, passed, force, wrinkled = sol.converged, sol.passed, sol.force_n, sol.wrinkled
+    locking, rise, ok_prof = sol.locking, sol.rise_mm, sol.profile_ok
     h, p = np.broadcast_arrays(np.asarray(h, float), np.asarray(p, float))
     conv, passed, wrinkled, ok_prof = (np.asarray(a, bool) for a in (conv, passed, wrinkled, ok_prof))
     force = np.asarray(force, float).copy()
@@ -335,13 +358,15 @@ def force_at(
         empty = np.zeros(shape_)
         return SimResult(empty, empty.astype(np.int8), empty, empty, empty.astype(bool))
     out = _solve_points(design, hs, ps, params, path_steps)
-    res = _classify(h.ravel(), p.ravel(), *out[:7], signed=signed)
+    res = _classify(h.ravel(), p.ravel(), out, signed=signed)
     return jax.tree.map(lambda a: a.reshape(shape_), res)
 
 
-def _solve_points(design: Membrane, hs: np.ndarray, ps_pa: np.ndarray, params: SimParams, path_steps: int) -> list:
-    """``_points_kernel``'s outputs (last: the shooting state) at sanitised points, the batch
-    padded to a power of two so that few compiled sizes serve every caller."""
+def _solve_points(
+    design: Membrane, hs: np.ndarray, ps_pa: np.ndarray, params: SimParams, path_steps: int
+) -> PointSolution:
+    """``_points_kernel`` at sanitised points (NumPy), the batch padded to a power of two so
+    that few compiled sizes serve every caller."""
     n = hs.size
     got = _points_kernel(
         sh.geometry_of(design),
@@ -350,7 +375,7 @@ def _solve_points(design: Membrane, hs: np.ndarray, ps_pa: np.ndarray, params: S
         jnp.asarray(_pad(ps_pa, n)) * PA_TO_MPA,
         path_steps,
     )
-    return [np.asarray(o)[:n] for o in got]
+    return jax.tree.map(lambda o: np.asarray(o)[:n], got)
 
 
 def _traced(params: SimParams) -> SimParams:
@@ -409,20 +434,20 @@ def _in_parts(kernel, *batch: np.ndarray, parts: int | None = None) -> list[np.n
     if len(devices) > 1:
         size = -(-n // len(devices)) * len(devices)
         padded = [np.concatenate([a, np.repeat(a[-1:], size - n, axis=0)]) for a in batch]
-        return [np.asarray(o)[:n] for o in kernel(*(_shard_rows(a) for a in padded))]
+        return jax.tree.map(lambda o: np.asarray(o)[:n], kernel(*(_shard_rows(a) for a in padded)))
     parts = min(parts, max(1, n // (PARALLEL_MIN_ROWS // 2)))
     if n < PARALLEL_MIN_ROWS or parts < 2:
-        return [np.asarray(o) for o in kernel(*batch)]
+        return jax.tree.map(np.asarray, kernel(*batch))
     size = -(-n // parts)
     padded = [np.concatenate([a, np.repeat(a[-1:], size * parts - n, axis=0)]) for a in batch]
 
     def run(k):
         sl = slice(k * size, (k + 1) * size)
-        return [np.asarray(o) for o in kernel(*(a[sl] for a in padded))]
+        return jax.tree.map(np.asarray, kernel(*(a[sl] for a in padded)))
 
     with ThreadPoolExecutor(parts) as pool:
         chunks = list(pool.map(run, range(parts)))
-    return [np.concatenate(outs)[:n] for outs in zip(*chunks)]
+    return jax.tree.map(lambda *outs: np.concatenate(outs)[:n], *chunks)
 
 
 def force_plane(
@@ -487,7 +512,7 @@ def force_plane(
     rows = np.concatenate([hs[~low], [LOW_HEIGHT_MM]]) if low.any() else hs
     out = _in_parts(lambda r: _plane_kernel(geom, params, r, path_mpa, report), rows, parts=parts)
     if low.any():
-        x_start, start_ok, locking_start = _descent_starts([o[-1] for o in out])
+        x_start, start_ok, locking_start = _descent_starts(jax.tree.map(lambda o: o[-1], out))
         p_rep = np.asarray(path_mpa[report])
         low_idx = np.nonzero(low)[0]
         order = low_idx[np.argsort(-hs[low_idx], kind="stable")]  # the plate goes down
@@ -496,16 +521,17 @@ def force_plane(
         down = _in_parts(
             lambda *b: _descent_kernel(geom, params, h_low, *b), x_start, start_ok, p_rep, locking_start, parts=parts
         )
-        down = [np.swapaxes(o, 0, 1) for o in down]  # (pressure, height) -> (height, pressure)
-        down.insert(1, np.broadcast_to(out[1][-1], down[0].shape))  # passed: the anchor's
-        full = []
-        for o_main, o_low in zip(out[:7], down):
+        down = jax.tree.map(lambda o: np.swapaxes(o, 0, 1), down)  # (pressure, height) -> (height, pressure)
+        down = dataclasses.replace(down, passed=np.broadcast_to(out.passed[-1], down.converged.shape))  # the anchor's
+
+        def merge(o_main, o_low):
             arr = np.empty((hs.size,) + o_main.shape[1:], o_main.dtype)
             arr[~low], arr[order] = o_main[:-1], o_low
-            full.append(arr)
-        out = full
+            return arr
+
+        out = jax.tree.map(merge, out, down)
     H, P = np.meshgrid(h_grid, p_grid, indexing="ij")
-    return _classify(H, P, *out[:7], signed=signed)
+    return _classify(H, P, out, signed=signed)
 
 
 def force_planes(
@@ -817,11 +843,11 @@ def shape(
     # force_at and the plane repairs (a separate state kernel cost a cold
     # diagnosis two more compilations).
     out = _solve_points(design, *_sanitize(h, p), params, PATH_STEPS)
-    res = _classify(h, p, *out[:7])
+    res = _classify(h, p, out)
     geom = sh.geometry_of(design)
     params = _traced(params)
     r, y, w1, w2, _, _ = _profile_jit(
-        jnp.asarray(out[7][0]),
+        jnp.asarray(out.state[0]),
         geom,
         params,
         jnp.asarray(float(h_mm)),
