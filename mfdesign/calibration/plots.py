@@ -94,7 +94,9 @@ def pair_plot(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    if hasattr(posterior, "samples") and hasattr(posterior, "names"):
+    from mfdesign.calibration.posterior import Posterior
+
+    if isinstance(posterior, Posterior):
         all_names = list(posterior.names)
         names = list(names) if names is not None else [n for n in all_names if not n.startswith("thickness[")]
         missing = [n for n in names if n not in all_names]

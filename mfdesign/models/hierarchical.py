@@ -43,6 +43,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pandas as pd
 
 from mfdesign.physics import effects as fx
 from mfdesign.physics.effects import LogNormal, Normal, Rows
@@ -122,7 +123,7 @@ class CalibrationData(eqx.Module):
         Lift rows recorded below ``min_lift_height_mm`` are dropped: the plate still rests on
         its support there, so the membrane's force is only bounded (F <= W), not equal to W.
         """
-        df = table.df if hasattr(table, "df") else table
+        df = table if isinstance(table, pd.DataFrame) else table.df
         df = df[~((df["experiment"] == "lift") & (df["height_mm"] < min_lift_height_mm))]
         if len(df) == 0:
             raise ValueError("calibration data: no usable rows (empty table, or only unlifted lift rows)")
@@ -265,10 +266,10 @@ class HierarchicalModel(eqx.Module):
     def initial_physical(self) -> np.ndarray:
         """A sensible starting point: prior medians (mu, J_m, noise, sigma_t), effects neutral, z = 0."""
         start = {
-            "mu_pa": self.mu_prior.median if hasattr(self.mu_prior, "median") else ECOFLEX_MU_PA,
-            "jm": self.jm_prior.median if hasattr(self.jm_prior, "median") else ECOFLEX_JM,
-            "noise_n": getattr(self.noise_prior, "median", 1.0),
-            "thickness_sd": getattr(self.thickness_sd_prior, "median", 0.05),
+            "mu_pa": self.mu_prior.center,
+            "jm": self.jm_prior.center,
+            "noise_n": self.noise_prior.center,
+            "thickness_sd": self.thickness_sd_prior.center,
         }
         start.update(fx.neutral_theta(self.effects))
         x = []

@@ -48,7 +48,7 @@ def first_crossing(x, y, level):
 
 def measured_waypoints(lift, heights=WAYPOINTS_MM) -> pd.DataFrame:
     """Way-points of every lift trial: design_key, trial, force_n, h_mm, p_pa (NaN if unreached)."""
-    df = lift.df if hasattr(lift, "df") else lift
+    df = lift if isinstance(lift, pd.DataFrame) else lift.df
     df = df[df["experiment"] == "lift"]
     if df.empty:
         raise ValueError("measured_waypoints: no rows with experiment == 'lift'")

@@ -27,6 +27,11 @@ class Uniform:
     def bounds(self) -> tuple[float, float]:
         return (self.low, self.high)
 
+    @property
+    def center(self) -> float:
+        """A starting point inside the support: the midpoint."""
+        return 0.5 * (self.low + self.high)
+
     def logpdf(self, x):
         x = np.asarray(x, float)
         inside = (x >= self.low) & (x <= self.high)
@@ -57,6 +62,11 @@ class Normal:
     @property
     def bounds(self) -> tuple[float, float]:
         return (self.low, self.high)
+
+    @property
+    def center(self) -> float:
+        """A starting point inside the support: the mean, clipped to the bounds."""
+        return min(max(self.mean, self.low), self.high)
 
     def _mass(self) -> float:
         cdf = lambda x: 0.5 * (1.0 + math.erf((x - self.mean) / (self.sd * math.sqrt(2.0))))
@@ -100,6 +110,11 @@ class LogNormal:
     @property
     def bounds(self) -> tuple[float, float]:
         return (self.low, self.high)
+
+    @property
+    def center(self) -> float:
+        """A starting point inside the support: the median, clipped to the bounds."""
+        return min(max(self.median, self.low), self.high)
 
     def _log_normal(self) -> Normal:
         lo = math.log(self.low) if self.low > 0 else -math.inf

@@ -6,6 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pandas as pd
 
 
 __all__ = ["Rows"]
@@ -40,7 +41,7 @@ class Rows(eqx.Module):
     def from_measurements(cls, table, design_keys=None) -> "Rows":
         """Rows of a :class:`~mfdesign.data.measurements.Measurements` (membrane index into
         ``design_keys``, default the table's own order)."""
-        df = table.df if hasattr(table, "df") else table
+        df = table if isinstance(table, pd.DataFrame) else table.df
         keys = list(design_keys) if design_keys is not None else list(dict.fromkeys(df["design_key"]))
         index = {k: i for i, k in enumerate(keys)}
         missing = sorted(set(df["design_key"]) - set(index))
