@@ -1,4 +1,4 @@
-"""The code passes ruff's lint and format checks (configured in pyproject.toml).
+"""The code passes ruff's lint and format checks and mypy (configured in pyproject.toml).
 
 Part of the suite so that ``pytest`` (the README's test command, and CI's) enforces them.
 """
@@ -20,4 +20,10 @@ RUFF = shutil.which("ruff")
 @pytest.mark.parametrize("args", [["check"], ["format", "--check"]], ids=["lint", "format"])
 def test_ruff(args):
     r = subprocess.run([RUFF, *args, *PATHS], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]
+
+
+@pytest.mark.skipif(shutil.which("mypy") is None, reason="mypy is not installed (pip install -e '.[test]')")
+def test_mypy():
+    r = subprocess.run([shutil.which("mypy")], cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]
