@@ -8,7 +8,7 @@ simulator constants, sensor noise, and ONE hidden effect: a pressure-sensor zero
 (``pressure_sensor.offset_pa = 150 Pa``, gain 1). The card ``bundled_card.json``
 records seed, effect, protocol, noise, designs, row count, SHA-256 of the Parquet file and
 the simulator fingerprint. Same seed, same simulator source and same library versions ->
-the same bytes (``tests/test_virtual_rig.py``).
+the same bytes (``tests/rig/test_virtual_rig.py``).
 
     python experiments/make_bundled_dataset.py [--out mfdesign/data/files] [--cache-dir DIR | --no-cache]
 """

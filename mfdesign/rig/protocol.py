@@ -70,7 +70,7 @@ class Command(str, enum.Enum):
 # The controller's watchdog timeout (wall-clock s) asked of the firmware (docs/rig.md) and the
 # emulator's default. From the highest working pressure (10 kPa: ringless cap, lift default)
 # the emulated pump needs 2.15 s, valve closed, to reach the 12 kPa hard limit
-# (emulator.pump_time_s; tests/test_rig_watchdog.py keeps this number honest): after 1 s of
+# (emulator.pump_time_s; tests/rig/test_rig_watchdog.py keeps this number honest): after 1 s of
 # silence it has added about 0.95 kPa, leaving > 1 kPa and > 1.1 s of margin. Shorter would
 # trip on a host descheduled for a few hundred ms (seen: 0.45 s on a loaded 2-core machine).
 DEFAULT_WATCHDOG_S = 1.0

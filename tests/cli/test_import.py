@@ -130,6 +130,6 @@ def test_data_takes_several_sources_and_rig_job_folders(tmp_path):
 def test_measurements_schema_is_documented():
     from pathlib import Path
 
-    doc = (Path(__file__).resolve().parents[1] / "docs" / "data.md").read_text()
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "data.md").read_text()
     for column in COLUMNS:
         assert f"`{column}`" in doc

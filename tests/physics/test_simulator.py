@@ -62,7 +62,7 @@ def test_first_integral_holds_along_the_solution(design, h, p):
     strict=True,
     reason="open (issue 2): shooting does not converge at a 0.5 mm disk and ~3 Pa "
     "(boundary layer at the tiny rigid disk, near-zero tension); the FE free inflation "
-    "matches Hencky to 0.15 % (tests/test_fe_reference.py) and the shooting matches FE "
+    "matches Hencky to 0.15 % (tests/physics/test_fe_reference.py) and the shooting matches FE "
     "to 2e-5 at plate points",
 )
 def test_free_inflation_matches_hencky():

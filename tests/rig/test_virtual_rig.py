@@ -20,7 +20,7 @@ from mfdesign.models.standin import standin_plane
 from mfdesign.rig.virtual import Noise, Protocol, TruthPlane, VirtualRig
 from mfdesign.units import G_M_S2 as G
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RINGLESS = Membrane(2.0, 25.4)
 RINGED = Membrane.from_key("[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]")
 SMALL = Protocol(heights_mm=(0.0, 30.0), trials_per_height=2, lift_trials=1, sample_hz=2.0)

@@ -15,7 +15,7 @@ from mfdesign.cli.rig import rig_app
 
 from test_rig_support import RINGLESS, emulator, fast_config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 runner = CliRunner()
 
 

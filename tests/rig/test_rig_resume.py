@@ -14,7 +14,7 @@ from mfdesign.rig.procedures import iter_trial_events, membrane_plan, read_sampl
 
 from test_rig_support import RINGLESS, assert_no_lost_samples, emulator, fast_config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _count_lines(path: Path) -> int:

@@ -17,7 +17,7 @@ from mfdesign.cli import app
 from mfdesign.outputs import LOCK_NAME, OutputLock
 
 runner = CliRunner()
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _lines(r):

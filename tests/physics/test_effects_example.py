@@ -10,7 +10,7 @@ import numpy as np
 
 from mfdesign.physics import effects as fx
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "docs" / "examples" / "lift_height_offset.py"
 
 

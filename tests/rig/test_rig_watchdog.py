@@ -29,7 +29,7 @@ from mfdesign.rig.protocol import (
 
 from test_rig_support import RINGLESS, emulator, fast_config, log_text
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 # The killed host: connects, closes the valve, starts the pump, then only reads (its reader
 # and heartbeat threads run) until the test kills it.
