@@ -8,12 +8,12 @@ from dataclasses import dataclass
 
 import jax.numpy as jnp
 
-from mfdesign.physics.effects import Effect, Normal, Parameter, register_effect
+from mfdesign.physics.effects import MeasurementEffect, Normal, Parameter, register_effect
 
 
 @register_effect
 @dataclass(frozen=True)
-class LiftHeightOffset(Effect):
+class LiftHeightOffset(MeasurementEffect):
     name = "lift_height_offset"
     story = "the time-of-flight sensors read the lifted plate a fixed distance high"
     parameters = (Parameter("offset_mm", "mm", Normal(0.0, 2.0), 0.0, 1.5, "reading - true height in lifts"),)

@@ -107,7 +107,7 @@ def test_stress_softening_rows_match_trial_context():
 
 
 def test_measurement_effect_without_likelihood_is_refused():
-    class Bare(fx.Effect):
+    class Bare(fx.MeasurementEffect):
         name, story = "bare_test_effect", "changes readings, no likelihood"
         parameters = (fx.Parameter("a", "N", fx.Normal(0, 1), 0.0, 1.0),)
 

@@ -12,7 +12,8 @@ from mfdesign.physics import effects as fx
 from mfdesign.physics.effects import (
     EFFECTS,
     Context,
-    Effect,
+    MeasurementEffect,
+    MechanicalEffect,
     Normal,
     Parameter,
     Sample,
@@ -200,7 +201,7 @@ def test_user_defined_effect_in_a_few_lines():
     """A user writes a new effect in one short file and the whole machinery takes it."""
 
     @dataclass(frozen=True)
-    class MouldShrink(Effect):
+    class MouldShrink(MechanicalEffect):
         name = "test_mould_shrink"
         story = "the cured rubber shrinks, so the clamp pre-stretches it"
         parameters = (Parameter("shrink", "1", Uniform(0.0, 0.05), 0.0, 0.01),)
@@ -209,7 +210,7 @@ def test_user_defined_effect_in_a_few_lines():
             return dataclasses.replace(base, clamp_prestretch=base.clamp_prestretch / (1 - theta["shrink"]))
 
     @dataclass(frozen=True)
-    class HeightOffset(Effect):
+    class HeightOffset(MeasurementEffect):
         name = "test_height_offset"
         story = "the time-of-flight sensors read the lifted plate a fixed distance high"
         parameters = (Parameter("offset_mm", "mm", Normal(0.0, 2.0), 0.0, 1.5),)
@@ -233,7 +234,7 @@ def test_user_defined_effect_in_a_few_lines():
 
             @register_effect
             @dataclass(frozen=True)
-            class Clash(Effect):
+            class Clash(MechanicalEffect):
                 name = "pressure_sensor"
                 story = "a clash"
                 parameters = (Parameter("x", "1", Uniform(0, 1), 0.0, 0.5),)
@@ -249,7 +250,7 @@ def test_user_effect_in_the_virtual_rig():
     from mfdesign.rig.virtual import Noise, Protocol, VirtualRig
 
     @dataclass(frozen=True)
-    class LiftHeightOffset(Effect):
+    class LiftHeightOffset(MeasurementEffect):
         name = "lift_height_offset"
         story = "the time-of-flight sensors read the lifted plate a fixed distance high"
         parameters = (Parameter("offset_mm", "mm", Normal(0.0, 2.0), 0.0, 1.5),)

@@ -3,14 +3,15 @@
 One effect per module of this package (the template: ``contact_offset.py``). An
 effect is a small class: a ``name``, a one-line physical ``story``, its ``parameters``
 (each with a unit, a prior, the ``neutral`` value at which the effect does nothing and a
-``typical`` realistic magnitude) and up to two hooks:
+``typical`` realistic magnitude) and two hooks that :class:`Effect` declares abstract;
+a :class:`MechanicalEffect` implements the first, a :class:`MeasurementEffect` the second
+(the other is the identity):
 
 * ``sim_params(base, theta, context) -> SimParams``: effects on the *mechanics* act only
-  through the simulator's inputs (:class:`~mfdesign.physics.params.SimParams`). Default:
-  identity.
+  through the simulator's inputs (:class:`~mfdesign.physics.params.SimParams`).
 * ``observe(theta, sample, context) -> Sample``: effects of the *measurement chain*
   (sensors, rig, rate-dependence of the rubber) turn the true values of a
-  :class:`Sample` into what the rig records. Default: identity.
+  :class:`Sample` into what the rig records.
 
 ``theta`` handed to a hook is the effect's own ``{parameter name: value}``; a missing
 name means the neutral value. Across several effects, a flat dict with qualified names
@@ -20,7 +21,7 @@ Writing a new effect (see ``docs/effects.md``)::
 
     @register_effect
     @dataclass(frozen=True)
-    class HeightSensorOffset(Effect):
+    class HeightSensorOffset(MeasurementEffect):
         name = "height_offset"
         story = "the time-of-flight sensors read the lifted plate a fixed distance high"
         parameters = (Parameter("offset_mm", "mm", Normal(0.0, 2.0), 0.0, 1.5),)
@@ -42,6 +43,8 @@ from mfdesign.physics.effects._base import (
     observed_force_fn,
     Context,
     Effect,
+    MeasurementEffect,
+    MechanicalEffect,
     Parameter,
     Sample,
     apply_observe,
@@ -73,6 +76,8 @@ __all__ = [
     "Context",
     "Effect",
     "LogNormal",
+    "MeasurementEffect",
+    "MechanicalEffect",
     "Normal",
     "Parameter",
     "Rows",

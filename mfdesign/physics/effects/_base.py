@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import abc
 import dataclasses
+import inspect
 from dataclasses import dataclass
 from typing import Any, ClassVar, Iterable, Mapping
 
@@ -87,29 +89,33 @@ class Context:
 
 
 # -- the effect base class and the registry -----------------------------------------------------
-class Effect:
-    """Base class of an effect; subclasses set ``name``, ``story``, ``parameters`` and
-    override one or both hooks. Instances carry no state (use frozen dataclasses)."""
+class Effect(abc.ABC):
+    """An effect: ``name``, ``story``, ``parameters`` and two hooks (the interface, as
+    diffrax's ``AbstractSolver`` declares its own). Subclass :class:`MechanicalEffect` (it
+    implements ``sim_params``) or :class:`MeasurementEffect` (``observe``); the other hook
+    is then the identity. Instances carry no state (use frozen dataclasses)."""
 
     name: ClassVar[str] = ""
     story: ClassVar[str] = ""
     parameters: ClassVar[tuple[Parameter, ...]] = ()
 
     # -- hooks ----------------------------------------------------------------------------
+    @abc.abstractmethod
     def sim_params(self, base: SimParams, theta: Mapping[str, float], context: Context | None = None) -> SimParams:
-        return base
+        """Simulator inputs with the effect on the mechanics (``dataclasses.replace(base, ...)``)."""
 
+    @abc.abstractmethod
     def observe(self, theta: Mapping[str, float], sample: Sample, context: Context) -> Sample:
-        return sample
+        """True height, pressure and force arrays -> what the rig records (the virtual rig)."""
 
     # -- helpers --------------------------------------------------------------------------
     @property
     def acts_on_mechanics(self) -> bool:
-        return type(self).sim_params is not Effect.sim_params
+        return isinstance(self, MechanicalEffect)
 
     @property
     def acts_on_measurement(self) -> bool:
-        return type(self).observe is not Effect.observe
+        return isinstance(self, MeasurementEffect)
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -178,6 +184,31 @@ class Effect:
         return (not self.acts_on_measurement) or type(self).observed_force_fn is not Effect.observed_force_fn
 
 
+class MechanicalEffect(Effect):
+    """An effect on the mechanics: it acts only through the simulator's inputs
+    (:class:`~mfdesign.physics.params.SimParams`); the likelihood gets it for free."""
+
+    @abc.abstractmethod
+    def sim_params(self, base: SimParams, theta: Mapping[str, float], context: Context | None = None) -> SimParams:
+        """Simulator inputs with the effect (``dataclasses.replace(base, ...)``)."""
+
+    def observe(self, theta: Mapping[str, float], sample: Sample, context: Context) -> Sample:
+        return sample
+
+
+class MeasurementEffect(Effect):
+    """An effect of the measurement chain (sensors, rig, rate-dependence): ``observe`` for
+    the virtual rig and, for calibration and diagnosis, ``observed_force_fn`` (without it the
+    effect works as hidden truth only, ``has_likelihood`` False)."""
+
+    def sim_params(self, base: SimParams, theta: Mapping[str, float], context: Context | None = None) -> SimParams:
+        return base
+
+    @abc.abstractmethod
+    def observe(self, theta: Mapping[str, float], sample: Sample, context: Context) -> Sample:
+        """True height, pressure and force arrays -> what the rig records."""
+
+
 EFFECTS: dict[str, type[Effect]] = {}
 
 
@@ -197,6 +228,12 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     other = EFFECTS.get(cls.name)
     if other is not None and other.__qualname__ != cls.__qualname__:
         raise ValueError(f"an effect named {cls.name!r} is already registered ({other.__qualname__})")
+    if inspect.isabstract(cls):
+        missing = sorted(getattr(cls, "__abstractmethods__", ()))
+        raise TypeError(
+            f"effect {cls.__name__} does not implement {missing}: subclass MechanicalEffect "
+            "(implement sim_params) or MeasurementEffect (implement observe)"
+        )
     EFFECTS[cls.name] = cls
     return cls
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mfdesign.physics.effects._base import Effect, Parameter, register_effect, _replace
+from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
 from mfdesign.physics.effects._priors import Uniform
 
 __all__ = ["ClampPrestretch"]
@@ -12,7 +12,7 @@ __all__ = ["ClampPrestretch"]
 
 @register_effect
 @dataclass(frozen=True)
-class ClampPrestretch(Effect):
+class ClampPrestretch(MechanicalEffect):
     name = "clamp_prestretch"
     story = "clamping the membrane stretches it radially before inflation"
     parameters = (Parameter("strain", "1", Uniform(0.0, 0.08), 0.0, 0.02, "hoop stretch at the clamp - 1"),)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mfdesign.physics.effects._base import Effect, Parameter, register_effect, _replace
+from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
 from mfdesign.physics.effects._priors import Uniform
 
 __all__ = ["ContactOffset"]
@@ -12,7 +12,7 @@ __all__ = ["ContactOffset"]
 
 @register_effect
 @dataclass(frozen=True)
-class ContactOffset(Effect):
+class ContactOffset(MechanicalEffect):
     name = "contact_offset"
     story = "the membrane sticks to the plate beyond the rigid disk, so the effective contact radius is larger"
     parameters = (Parameter("offset_mm", "mm", Uniform(0.0, 6.0), 0.0, 2.0, "effective - nominal contact radius"),)

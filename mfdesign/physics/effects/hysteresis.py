@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from mfdesign.physics.effects._base import Effect, Parameter, register_effect
+from mfdesign.physics.effects._base import MeasurementEffect, Parameter, register_effect
 from mfdesign.physics.effects._priors import Uniform
 
 __all__ = ["Hysteresis"]
@@ -15,7 +15,7 @@ __all__ = ["Hysteresis"]
 
 @register_effect
 @dataclass(frozen=True)
-class Hysteresis(Effect):
+class Hysteresis(MeasurementEffect):
     """Viscoelastic loss: on deflation the rubber carries a fraction ``loss`` less force.
 
     In a force trial the load cell reads ``(1 - loss) F``. In a mass lift the plate then

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import jax.numpy as jnp
 
-from mfdesign.physics.effects._base import Effect, Parameter, register_effect
+from mfdesign.physics.effects._base import MeasurementEffect, Parameter, register_effect
 from mfdesign.physics.effects._priors import Normal
 
 __all__ = ["LoadCellOffset"]
@@ -14,7 +14,7 @@ __all__ = ["LoadCellOffset"]
 
 @register_effect
 @dataclass(frozen=True)
-class LoadCellOffset(Effect):
+class LoadCellOffset(MeasurementEffect):
     name = "load_cell_offset"
     story = "the load cell was tared with a different preload: every force reading is shifted"
     parameters = (Parameter("offset_n", "N", Normal(0.0, 1.0), 0.0, 0.8, "reading at zero force"),)

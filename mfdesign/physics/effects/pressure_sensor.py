@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mfdesign.physics.effects._base import Effect, Parameter, register_effect
+from mfdesign.physics.effects._base import MeasurementEffect, Parameter, register_effect
 from mfdesign.physics.effects._priors import Normal
 
 __all__ = ["PressureSensor"]
@@ -12,7 +12,7 @@ __all__ = ["PressureSensor"]
 
 @register_effect
 @dataclass(frozen=True)
-class PressureSensor(Effect):
+class PressureSensor(MeasurementEffect):
     name = "pressure_sensor"
     story = "the pressure transducer has a zero offset and a gain error"
     parameters = (

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mfdesign.physics.effects._base import Effect, Parameter, register_effect
+from mfdesign.physics.effects._base import MeasurementEffect, Parameter, register_effect
 from mfdesign.physics.effects._priors import Uniform
 
 __all__ = ["RigCompliance"]
@@ -16,7 +16,7 @@ __all__ = ["RigCompliance"]
 
 @register_effect
 @dataclass(frozen=True)
-class RigCompliance(Effect):
+class RigCompliance(MeasurementEffect):
     """The frame that holds the plate at its set height is a spring of stiffness ``k``.
 
     The membrane pushes the plate up with the force ``F_obs`` the load cell reads; the

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mfdesign.physics.effects._base import Effect, Parameter, register_effect, _replace
+from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
 from mfdesign.physics.effects._priors import LogNormal
 
 __all__ = ["RingSoftening"]
@@ -12,7 +12,7 @@ __all__ = ["RingSoftening"]
 
 @register_effect
 @dataclass(frozen=True)
-class RingSoftening(Effect):
+class RingSoftening(MechanicalEffect):
     name = "ring_softening"
     story = "the fabric rings partly delaminate from the rubber, so they are less stiff than assumed"
     parameters = (

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mfdesign.physics.effects._base import Effect, Parameter, register_effect, _replace
+from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
 from mfdesign.physics.effects._priors import Uniform
 
 __all__ = ["StressSoftening"]
@@ -14,7 +14,7 @@ __all__ = ["StressSoftening"]
 
 @register_effect
 @dataclass(frozen=True)
-class StressSoftening(Effect):
+class StressSoftening(MechanicalEffect):
     name = "stress_softening"
     story = "Mullins effect: the virgin rubber of the first inflation is stiffer than in every later trial"
     parameters = (

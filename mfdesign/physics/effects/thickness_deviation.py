@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mfdesign.physics.effects._base import Effect, Parameter, register_effect, _replace
+from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
 from mfdesign.physics.effects._priors import Normal
 
 __all__ = ["ThicknessDeviation"]
@@ -12,7 +12,7 @@ __all__ = ["ThicknessDeviation"]
 
 @register_effect
 @dataclass(frozen=True)
-class ThicknessDeviation(Effect):
+class ThicknessDeviation(MechanicalEffect):
     name = "thickness_deviation"
     story = "gravity moulding leaves a membrane thicker or thinner than its nominal thickness"
     parameters = (Parameter("relative", "1", Normal(0.0, 0.1, -0.5, 0.5), 0.0, 0.08, "actual / nominal thickness - 1"),)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mfdesign.physics.effects._base import Effect, Parameter, register_effect, _replace
+from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
 from mfdesign.physics.effects._priors import Normal
 
 __all__ = ["ThicknessGradient"]
@@ -12,7 +12,7 @@ __all__ = ["ThicknessGradient"]
 
 @register_effect
 @dataclass(frozen=True)
-class ThicknessGradient(Effect):
+class ThicknessGradient(MechanicalEffect):
     name = "thickness_gradient"
     story = "the uncured rubber flows outwards in the mould: the membrane thins (or thickens) towards the clamp"
     parameters = (
