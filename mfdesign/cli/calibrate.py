@@ -18,6 +18,8 @@ from typing import List, Optional
 
 import typer
 
+from mfdesign.cli._app import ALLOW_OUTSIDE
+
 
 def _check_chain(chain: Path) -> None:
     """A chain.h5 to resume must be a readable HDF5 file (a truncated or foreign one would
@@ -198,11 +200,16 @@ LIKELIHOOD = typer.Option(
 )
 SEED = typer.Option(0, help="Random seed.")
 RESUME = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists.")
-ALLOW_OUTSIDE = typer.Option(
-    False,
-    "--allow-outside-design-space",
-    help="Research: accept membranes outside the product's design space (wider physical range).",
-)
+
+
+def _mcmc_steps(default: int):
+    return typer.Option(
+        default,
+        "--mcmc-steps",
+        min=1,
+        help="Most emcee steps (total; a rerun resumes); sampling stops earlier once the chain is >= 50 "
+        "autocorrelation times long.",
+    )
 
 
 def register(app: typer.Typer) -> None:
@@ -211,12 +218,7 @@ def register(app: typer.Typer) -> None:
         data: List[Path] = DATA,
         out: Path = typer.Option(..., help="Output folder (chain.h5, posterior.json/.npz, corner.png)."),
         effects: Optional[List[str]] = EFFECTS,
-        steps: int = typer.Option(
-            3000,
-            "--mcmc-steps",
-            min=1,
-            help="Most emcee steps (total; a rerun resumes); sampling stops earlier once the chain is >= 50 autocorrelation times long.",
-        ),
+        steps: int = _mcmc_steps(3000),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: max(32, 2 dim + 2))."),
         max_rows: int = typer.Option(3000, min=10, help="Rows used by the likelihood (evenly within trials)."),
         physics: str = PHYSICS,
@@ -243,12 +245,7 @@ def register(app: typer.Typer) -> None:
         data: List[Path] = DATA,
         out: Path = typer.Option(..., help="Output folder."),
         effects: Optional[List[str]] = EFFECTS,
-        steps: int = typer.Option(
-            2000,
-            "--mcmc-steps",
-            min=1,
-            help="Most emcee steps (total; a rerun resumes); sampling stops earlier once the chain is >= 50 autocorrelation times long.",
-        ),
+        steps: int = _mcmc_steps(2000),
         walkers: int = typer.Option(0, min=0, help="emcee walkers (0: automatic)."),
         max_rows: int = typer.Option(1500, min=10, help="Rows used by the likelihood."),
         physics: str = PHYSICS,
