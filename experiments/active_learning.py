@@ -609,7 +609,12 @@ def main() -> None:
         "note": (
             "fidelity arm: SplitPredictor (sim ensemble + discrepancy ensemble, warm-started with "
             "--warm-sims simulator planes); mf-* arms: the issue-5 multi-fidelity model (emcee calibration "
-            "through the emulator + RPN discrepancy)"
+            + (
+                "on the exact force model (simulator planes), the acquisition searching on the emulator"
+                if args.simulator == "simulator"
+                else "through the emulator"
+            )
+            + " + RPN discrepancy)"
         ),
     }
     (OUT / f"active_learning{tag}.json").write_text(json.dumps(out, indent=2))
