@@ -18,7 +18,6 @@ import json
 import os
 import platform
 import time
-from pathlib import Path
 
 import jax
 
@@ -26,7 +25,7 @@ import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign.data.spa_design import load_mass_lift
 from mfdesign.models.ensemble import EnsembleConfig, fit_ensemble
 
-OUT = Path(__file__).parent / "out"
+from _common import OUT, write_json  # experiments/ is on a script's path
 
 
 def main():
@@ -68,7 +67,7 @@ def main():
         "backend": jax.default_backend(),
     }
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "bench_ensemble.json").write_text(json.dumps(result, indent=2))
+    write_json(OUT / "bench_ensemble.json", result)
     print(json.dumps(result, indent=2))
 
 

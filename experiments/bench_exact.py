@@ -31,8 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import OUT, write_json  # experiments/ is on a script's path
+
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "experiments" / "out"
 BUNDLED = ROOT / "mfdesign" / "data" / "files" / "bundled_virtual.parquet"
 
 
@@ -186,7 +187,7 @@ def main() -> None:
             f"{out['accuracy']['rows']} rows",
             flush=True,
         )
-        path.write_text(json.dumps(out, indent=1))
+        write_json(path, out, indent=1)
     if not args.skip_timings:
         exe = [sys.executable, "-m", "mfdesign.cli"]
         with tempfile.TemporaryDirectory() as tmp:
@@ -242,7 +243,7 @@ def main() -> None:
             if isinstance(v, dict) and "wall_s" in v:
                 print(f"{k}: {v['wall_s']} s (rc {v['rc']}; load {v['load_before']} -> {v['load_after']})", flush=True)
     out["machine"]["load_at_end"] = load()
-    path.write_text(json.dumps(out, indent=1))
+    write_json(path, out, indent=1)
     print(f"wrote {path}")
 
 

@@ -22,11 +22,8 @@ Writes ``experiments/out/bench_optimize.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
-import time
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -35,7 +32,7 @@ import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign import optimize as opt
 from mfdesign.design import DesignSpace
 
-OUT = Path(__file__).parent / "out"
+from _common import OUT, timed, write_json  # experiments/ is on a script's path
 
 
 def model(members: int):
@@ -53,16 +50,10 @@ def model(members: int):
     ), f"untrained RPN ensemble ({members} members)"
 
 
-def timed(fn):
-    load0 = os.getloadavg()
-    w0, c0 = time.perf_counter(), time.process_time()
-    out = fn()
-    return out, dict(
-        wall_s=time.perf_counter() - w0,
-        cpu_s=time.process_time() - c0,
-        load_average_before=list(load0),
-        load_average_after=list(os.getloadavg()),
-    )
+def run_timed(fn):
+    with timed() as t:
+        out = fn()
+    return out, t
 
 
 def main():
@@ -89,8 +80,8 @@ def main():
     )
     for name, (loss, dim, kw) in cases.items():
         run = lambda: opt.multistart(loss, dim, n_starts=args.starts, seed=0, **kw)  # noqa: E731
-        _, first = timed(run)
-        res, t = timed(run)
+        _, first = run_timed(run)
+        res, t = run_timed(run)
         t.update(
             first_call_wall_s=first["wall_s"],
             screen_s=res["screen_s"],
@@ -107,7 +98,7 @@ def main():
             flush=True,
         )
         OUT.mkdir(parents=True, exist_ok=True)  # after every case: a long run leaves what it measured
-        (OUT / "bench_optimize.json").write_text(json.dumps(result, indent=2))
+        write_json(OUT / "bench_optimize.json", result)
 
 
 if __name__ == "__main__":
