@@ -119,7 +119,8 @@ class OutputLock:
     """Exclusive, non-blocking lock on an output folder (see the module doc)."""
 
     def __init__(self, out: str | os.PathLike, option: str = "--out"):
-        self.out, self.option, self._fd = Path(out), option, None
+        self.out, self.option = Path(out), option
+        self._fd: int | None = None
 
     def acquire(self) -> "OutputLock":
         path = self.out / LOCK_NAME

@@ -12,9 +12,12 @@ import math
 import signal
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
+
+if TYPE_CHECKING:  # imported on use: --help stays fast
+    from mfdesign.design import Membrane
 
 from mfdesign.cli._contract import item_parser
 from mfdesign.rig.config import ConfigError, RigConfig
@@ -30,7 +33,7 @@ def _config(path: Optional[Path]) -> RigConfig:
         raise typer.BadParameter(str(exc), param_hint="--config") from None
 
 
-def _design(key: str) -> "Membrane":  # noqa: F821  (imported on use: --help stays fast)
+def _design(key: str) -> Membrane:
     from mfdesign.design import DesignError, Membrane
 
     try:

@@ -201,7 +201,7 @@ def read_characterisation(source, where: str | None = None) -> Measurements:
             raise InputError(f"{where}: entry {key}: the design columns us[:, 1:7] disagree with the key")
         height = us[:, 0]
         _, trial = np.unique(np.round(height, 6), return_inverse=True)
-        first = {}
+        first: dict[int, int] = {}
         for t in trial:  # number the set heights in order of first appearance
             first.setdefault(int(t), len(first))
         frames.append(

@@ -400,7 +400,7 @@ class RigConnection:
 
     def drain(self) -> list[Sample]:
         """Samples already received and not yet consumed (without waiting)."""
-        out = []
+        out: list[Sample] = []
         while True:
             try:
                 item = self._queue.get_nowait()
