@@ -2,7 +2,7 @@
 
 Uses the system's ``chromium`` (Debian package ``chromium``) through its command line:
 ``--dump-dom`` prints the page after its scripts ran, where :mod:`mfdesign.report` pages
-record ``data-broken-images``; ``--screenshot`` writes a PNG.
+(template ``base.html.j2``) record ``data-broken-images``; ``--screenshot`` writes a PNG.
 """
 
 from __future__ import annotations

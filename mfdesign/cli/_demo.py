@@ -206,7 +206,7 @@ def run_demo(
     from mfdesign.data.store import read_parquet
     from mfdesign.diagnose.emulated import forward_model
     from mfdesign.diagnose.pipeline import diagnose
-    from mfdesign.diagnose.report import write_report
+    from mfdesign.report.diagnosis import write_report
     from mfdesign.models.ensemble import EnsembleConfig
     from mfdesign.optimize import TARGET_SETS, optimize, plot as plot_optimum
     from mfdesign.report import Report

@@ -145,7 +145,7 @@ def register(app: typer.Typer) -> None:
         import numpy as np
 
         from mfdesign.diagnose.pipeline import diagnose as run
-        from mfdesign.diagnose.report import write_report
+        from mfdesign.report.diagnosis import write_report
 
         predict, model_name = None, "simulator"
         if model_dir is not None:

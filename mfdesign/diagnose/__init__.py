@@ -8,8 +8,9 @@
 * :mod:`~mfdesign.diagnose.residuals`: residuals, breakdowns, noise floor, worst regions in words;
 * :mod:`~mfdesign.diagnose.screen`: the fast effect screen (sensitivities + least squares);
 * :mod:`~mfdesign.diagnose.check`: the full check (calibration, held-out error, BIC) and the verdict;
-* :mod:`~mfdesign.diagnose.pipeline`: the whole story in one call (:func:`diagnose`);
-* :mod:`~mfdesign.diagnose.report`: pictures, HTML and JSON.
+* :mod:`~mfdesign.diagnose.pipeline`: the whole story in one call (:func:`diagnose`).
+
+Pictures, HTML and JSON of a diagnosis: :mod:`mfdesign.report.diagnosis` (downstream).
 
 See ``docs/diagnose.md``.
 """

@@ -118,7 +118,7 @@ def diagnose(
 
     A :class:`Diagnosis`: residuals before and after, every round's screen, checks and
     verdict, the effects found with their parameters; `to_json()` for files and
-    :func:`~mfdesign.diagnose.report.write_report` for HTML.
+    :func:`~mfdesign.report.diagnosis.write_report` for HTML.
     """
     if sim is None:
         from mfdesign.diagnose.emulated import EmulatorModel

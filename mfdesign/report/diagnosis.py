@@ -1,7 +1,10 @@
 """Pictures, HTML and JSON of a :class:`~mfdesign.diagnose.pipeline.Diagnosis`.
 
-``write_report(diagnosis, out_dir)`` writes ``diagnosis.json``, ``report.html`` (which
-links the PNGs by relative path, so the folder can be moved) and:
+Diagnosis produces the numbers and the words (``Diagnosis.to_json()``); this module draws
+them and renders the page. ``write_report(diagnosis, out_dir)`` writes ``diagnosis.json``,
+``report.html`` (template ``diagnosis.html.j2``, through
+:func:`mfdesign.report.render.write_html`; it links the PNGs by relative path, so the
+folder can be moved) and:
 
 * ``maps_before.png`` / ``maps_after.png``: per-membrane height x pressure maps of the mean
   residual (observed - predicted, N; red = model under-predicts), one colour scale;
@@ -13,15 +16,15 @@ links the PNGs by relative path, so the folder can be moved) and:
 
 from __future__ import annotations
 
-import html
 import json
 import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from mfdesign import outputs  # atomic writes: a reader never sees a torn file
 from mfdesign.diagnose.residuals import Residuals, breakdowns
+from mfdesign.report.render import write_html
 
 __all__ = ["write_report"]
 
@@ -35,16 +38,10 @@ def _plt():
     return plt
 
 
-def _outputs():
-    from mfdesign import outputs  # atomic writes: a reader never sees a torn file
-
-    return outputs
-
-
 def _save(fig, path: Path) -> None:
     """Lay out, write (90 dpi: the report shows many small figures) and free a figure."""
     fig.tight_layout()
-    _outputs().savefig(fig, path, dpi=90)
+    outputs.savefig(fig, path, dpi=90)
     _plt().close(fig)
 
 
@@ -84,7 +81,7 @@ def residual_maps(res: Residuals, path: Path, title: str, vmax: float | None = N
     if im is not None:
         fig.colorbar(im, ax=axes.ravel().tolist(), label="mean residual (obs - model) [N]")
     fig.suptitle(f"{title}: RMSE {res.rmse_n:.3f} N, noise floor {res.noise_floor_n:.3f} N")
-    _outputs().savefig(fig, path, dpi=90)
+    outputs.savefig(fig, path, dpi=90)
     plt.close(fig)
     return vmax
 
@@ -210,22 +207,6 @@ def shapes_plot(res: Residuals, path: Path, params=None, n: int = 3) -> list[dic
     return out
 
 
-def _table(rows: list[dict], cols: list[str]) -> str:
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(_fmt(r.get(c)))}</td>" for c in cols) + "</tr>" for r in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    if isinstance(v, dict):
-        return ", ".join(f"{k} = {_fmt(x)}" for k, x in v.items())
-    if isinstance(v, (list, tuple)):
-        return ", ".join(_fmt(x) for x in v)
-    return "" if v is None else str(v)
-
-
 def write_report(diag, out_dir, shapes: bool = False, params=None) -> dict[str, Path]:
     """Write JSON, PNGs and ``report.html`` into ``out_dir``; returns the paths."""
     out = Path(out_dir)
@@ -247,66 +228,13 @@ def write_report(diag, out_dir, shapes: bool = False, params=None) -> dict[str, 
     if shapes:
         data["worst_point_shapes"] = shapes_plot(diag.before, out / "shapes.png", params)
         paths["shapes"] = out / "shapes.png"
-    _outputs().write_text(out / "diagnosis.json", json.dumps(data, indent=1, default=str))
+    outputs.write_text(out / "diagnosis.json", json.dumps(data, indent=1, default=str))
     paths["json"] = out / "diagnosis.json"
-    paths["html"] = out / "report.html"
-    _outputs().write_text(out / "report.html", _html(diag, data, paths))
+    paths["html"] = write_html(
+        out / "report.html",
+        "diagnosis.html.j2",
+        title="mfdesign diagnosis",
+        data=data,
+        images={k: p.name for k, p in paths.items() if p.suffix == ".png"},
+    )
     return paths
-
-
-def _html(diag, data: dict, paths: dict) -> str:
-    img = lambda k: f'<img src="{paths[k].name}" style="max-width:100%">' if k in paths else ""
-    b = data["before"]["summary"]
-    parts = [
-        f"<h1>Diagnosis of the {html.escape(diag.model)}</h1>",
-        f"<p>{b['n']} usable rows of {b['membranes']} membranes; RMSE {b['rmse_n']:.3f} N, bias "
-        f"{b['bias_n']:+.3f} N, noise floor {b['noise_floor_n']:.3f} N (ratio {_fmt(b['rmse_over_noise'])}); "
-        f"left out: {_fmt(b['dropped'])}.</p>",
-        "<h2>Where it fails</h2><ul>"
-        + "".join(f"<li>{html.escape(w['words'])}</li>" for w in data["before"]["worst_regions"])
-        + "".join(f"<li>{html.escape(t)}</li>" for t in data["before"]["trends"])
-        + "</ul>",
-        img("maps_before"),
-        img("breakdown"),
-        img("parity"),
-        img("trial_order"),
-        img("shapes"),
-    ]
-    for i, js in enumerate(data["search"][: len(diag.steps)]):
-        parts.append(f"<h2>Which effect is missing (round {i + 1})</h2>")
-        parts.append(
-            _table(
-                js["screen"],
-                ["effect", "explained_fraction", "structure_explained_fraction", "theta", "stderr", "delta_bic"],
-            )
-        )
-        parts.append(img(f"screen_{i + 1}"))
-        parts.append(
-            "<h3>Full check</h3>"
-            + _table(
-                js["checks"],
-                [
-                    "effects",
-                    "theta",
-                    "stderr",
-                    "rmse_n",
-                    "heldout_rmse_base_n",
-                    "heldout_rmse_n",
-                    "heldout_over_noise",
-                    "delta_bic",
-                ],
-            )
-        )
-        parts.append(f"<p><b>{html.escape(js['verdict']['words'])}</b></p>")
-    if diag.after is not None:
-        a = data["after"]["summary"]
-        parts.append(
-            f"<h2>After adding {html.escape(', '.join(diag.effects))}</h2>"
-            f"<p>theta: {html.escape(_fmt(diag.theta))}; RMSE {b['rmse_n']:.3f} &rarr; {a['rmse_n']:.3f} N "
-            f"(noise floor {a['noise_floor_n']:.3f} N)</p><ul>"
-            + "".join(f"<li>{html.escape(w['words'])}</li>" for w in data["after"]["worst_regions"])
-            + "</ul>"
-            + img("maps_after")
-        )
-    style = "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #ccc;padding:3px}</style>"
-    return f"<!doctype html><html><head><meta charset='utf-8'><title>mfdesign diagnosis</title>{style}</head><body>{''.join(parts)}</body></html>"

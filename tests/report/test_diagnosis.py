@@ -1,0 +1,110 @@
+"""A diagnosis's page: every number, word and table of ``Diagnosis.to_json()`` reaches
+``report.html``, escaped, with its pictures (the whole command: tests/cli/test_diagnose_cli.py)."""
+
+import copy
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import pytest
+
+from browser import check_page, chromium_path
+from mfdesign.report.render import write_html
+
+SUMMARY = {
+    "n": 4805,
+    "rmse_n": 0.8118,
+    "bias_n": 0.7694,
+    "noise_floor_n": 0.2016,
+    "rmse_over_noise": 4.0266,
+    "membranes": 2,
+    "dropped": {"lift_plate_resting_or_at_top": 381},
+}
+DATA = {
+    "model": "plain <simulator>",
+    "effects_added": ["load_cell_offset"],
+    "theta": {"load_cell_offset.offset_n": 0.803017},
+    "before": {
+        "summary": SUMMARY,
+        "worst_regions": [{"words": "below 6 kPa the model under-predicts"}],
+        "trends": ["by experiment: RMS 0.83 N at force"],
+    },
+    "after": {
+        "summary": {**SUMMARY, "rmse_n": 0.1969, "noise_floor_n": 0.2016},
+        "worst_regions": [{"words": "at 6-8 kPa the model over-predicts"}],
+    },
+    "search": [
+        {
+            "base_effects": [],
+            "screen": [
+                {
+                    "effect": "load_cell_offset",
+                    "explained_fraction": 0.93981,
+                    "structure_explained_fraction": 1.0,
+                    "theta": {"load_cell_offset.offset_n": 0.8047},
+                    "stderr": {"load_cell_offset.offset_n": 0.0029},
+                    "delta_bic": -13490.0,
+                }
+            ],
+            "checks": [
+                {
+                    "effects": ["load_cell_offset"],
+                    "theta": {"load_cell_offset.offset_n": 0.803},
+                    "stderr": {"load_cell_offset.offset_n": 0.0064},
+                    "rmse_n": 0.1968,
+                    "heldout_rmse_base_n": 0.8095,
+                    "heldout_rmse_n": 0.1969,
+                    "heldout_over_noise": 3.2,
+                    "delta_bic": -2822.0,
+                }
+            ],
+            "verdict": {"words": "nothing explains it: held-out RMSE 3.2x the noise floor & <more>"},
+        }
+    ],
+    "found": ["load_cell_offset"],
+}
+
+
+def _png(path):
+    fig, ax = plt.subplots(figsize=(3, 2))
+    ax.plot([0, 1], [0, 1])
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _page(tmp_path, data, names=("maps_before", "parity", "screen_1", "maps_after")):
+    images = {k: _png(tmp_path / f"{k}.png").name for k in names}
+    return write_html(
+        tmp_path / "report.html", "diagnosis.html.j2", title="mfdesign diagnosis", data=data, images=images
+    )
+
+
+def test_numbers_words_and_tables_reach_the_page(tmp_path):
+    page = _page(tmp_path, DATA).read_text()
+    assert "<h1>Diagnosis of the plain &lt;simulator&gt;</h1>" in page
+    assert "4805 usable rows of 2 membranes; RMSE 0.812 N, bias +0.769 N, noise floor 0.202 N (ratio 4.027)" in page
+    assert "left out: lift_plate_resting_or_at_top = 381." in page
+    assert "<li>below 6 kPa the model under-predicts</li>" in page and "<li>by experiment: RMS 0.83 N" in page
+    assert "Which effect is missing (round 1)" in page and "<td>0.9398</td>" in page and "<td>-1.349e+04</td>" in page
+    assert "<h3>Full check</h3>" in page and "<th>heldout_over_noise</th>" in page and "<td>3.2</td>" in page
+    assert "<b>nothing explains it: held-out RMSE 3.2x the noise floor &amp; &lt;more&gt;</b>" in page
+    assert "<h2>After adding load_cell_offset</h2>" in page
+    assert "theta: load_cell_offset.offset_n = 0.803; RMSE 0.812 &rarr; 0.197 N (noise floor 0.202 N)" in page
+    for png in ("maps_before.png", "parity.png", "screen_1.png", "maps_after.png"):
+        assert f'src="{png}"' in page
+    assert 'src="breakdown.png"' not in page  # a picture not drawn is not linked
+
+
+def test_without_effects_or_search_the_page_has_no_after_or_rounds(tmp_path):
+    data = copy.deepcopy(DATA) | {"after": None, "search": [], "effects_added": []}
+    page = _page(tmp_path, data, names=("maps_before",)).read_text()
+    assert "After adding" not in page and "Which effect is missing" not in page
+    assert "RMSE 0.812 N" in page
+
+
+@pytest.mark.skipif(chromium_path() is None, reason="no Chromium installed (Debian package 'chromium')")
+def test_headless_chromium_sees_every_picture(tmp_path):
+    page = check_page(_page(tmp_path, DATA), tmp_path / "shot.png")
+    assert (page.images, page.broken_images) == (4, 0)
