@@ -12,9 +12,10 @@ coverage).
 
 from __future__ import annotations
 
+import inspect
 import json
 from pathlib import Path
-from typing import List, Optional
+from typing import Annotated, List, Optional
 
 import typer
 
@@ -212,23 +213,41 @@ def _mcmc_steps(default: int):
     )
 
 
-def register(app: typer.Typer) -> None:
-    @app.command()
-    def calibrate(
+# The discrepancy ensemble's options: fit-mf's only (Annotated, so that their defaults are
+# plain values: calibrate's command never receives them and _run ignores them there).
+ENSEMBLE_OPTIONS = ("members", "delta_steps")
+
+
+def _register(
+    app: typer.Typer,
+    name: str,
+    doc: str,
+    *,
+    multi_fidelity: bool,
+    steps_default: int,
+    rows_default: int,
+    out_help: str,
+    walkers_help: str,
+    rows_help: str,
+) -> None:
+    """Add ``calibrate`` or ``fit-mf`` to ``app``: one parameter list for both commands, which
+    differ in defaults, help texts and (fit-mf only) the :data:`ENSEMBLE_OPTIONS`."""
+
+    def command(
         data: List[Path] = DATA,
-        out: Path = typer.Option(..., help="Output folder (chain.h5, posterior.json/.npz, corner.png)."),
+        out: Path = typer.Option(..., help=out_help),
         effects: Optional[List[str]] = EFFECTS,
-        steps: int = _mcmc_steps(3000),
-        walkers: int = typer.Option(0, min=0, help="emcee walkers (0: max(32, 2 dim + 2))."),
-        max_rows: int = typer.Option(3000, min=10, help="Rows used by the likelihood (evenly within trials)."),
+        steps: int = _mcmc_steps(steps_default),
+        walkers: int = typer.Option(0, min=0, help=walkers_help),
+        max_rows: int = typer.Option(rows_default, min=10, help=rows_help),
         physics: str = PHYSICS,
         likelihood: str = LIKELIHOOD,
+        members: Annotated[int, typer.Option(min=1, help="Discrepancy ensemble members.")] = 8,
+        delta_steps: Annotated[int, typer.Option(min=1, help="Discrepancy training steps.")] = 3000,
         seed: int = SEED,
         resume: bool = RESUME,
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
-        """Calibrate mu [Pa], J_m and the effects' parameters with emcee (posterior table, corner plot, chain)."""
-        opts = dict(physics=physics, likelihood=likelihood, seed=seed, resume=resume)
         _run(
             data,
             list(effects or []),
@@ -236,37 +255,46 @@ def register(app: typer.Typer) -> None:
             steps,
             walkers,
             max_rows,
-            **opts,
+            physics=physics,
+            likelihood=likelihood,
+            seed=seed,
+            resume=resume,
             allow_outside_design_space=allow_outside_design_space,
+            multi_fidelity=multi_fidelity,
+            members=members,
+            delta_steps=delta_steps,
         )
 
-    @app.command("fit-mf")
-    def fit_mf(
-        data: List[Path] = DATA,
-        out: Path = typer.Option(..., help="Output folder."),
-        effects: Optional[List[str]] = EFFECTS,
-        steps: int = _mcmc_steps(2000),
-        walkers: int = typer.Option(0, min=0, help="emcee walkers (0: automatic)."),
-        max_rows: int = typer.Option(1500, min=10, help="Rows used by the likelihood."),
-        physics: str = PHYSICS,
-        likelihood: str = LIKELIHOOD,
-        members: int = typer.Option(8, min=1, help="Discrepancy ensemble members."),
-        delta_steps: int = typer.Option(3000, min=1, help="Discrepancy training steps."),
-        seed: int = SEED,
-        resume: bool = RESUME,
-        allow_outside_design_space: bool = ALLOW_OUTSIDE,
-    ) -> None:
-        """Multi-fidelity fit: calibrated simulator + RPN discrepancy ensemble + noise."""
-        opts = dict(physics=physics, likelihood=likelihood, seed=seed, resume=resume)
-        mf = dict(multi_fidelity=True, members=members, delta_steps=delta_steps)
-        _run(
-            data,
-            list(effects or []),
-            out,
-            steps,
-            walkers,
-            max_rows,
-            **opts,
-            **mf,
-            allow_outside_design_space=allow_outside_design_space,
+    command.__doc__ = doc
+    if not multi_fidelity:
+        # typer reads a command's options from its signature: calibrate's has no ensemble options.
+        sig = inspect.signature(command)
+        command.__signature__ = sig.replace(  # type: ignore[attr-defined]
+            parameters=[p for n, p in sig.parameters.items() if n not in ENSEMBLE_OPTIONS]
         )
+    app.command(name)(command)
+
+
+def register(app: typer.Typer) -> None:
+    _register(
+        app,
+        "calibrate",
+        "Calibrate mu [Pa], J_m and the effects' parameters with emcee (posterior table, corner plot, chain).",
+        multi_fidelity=False,
+        steps_default=3000,
+        rows_default=3000,
+        out_help="Output folder (chain.h5, posterior.json/.npz, corner.png).",
+        walkers_help="emcee walkers (0: max(32, 2 dim + 2)).",
+        rows_help="Rows used by the likelihood (evenly within trials).",
+    )
+    _register(
+        app,
+        "fit-mf",
+        "Multi-fidelity fit: calibrated simulator + RPN discrepancy ensemble + noise.",
+        multi_fidelity=True,
+        steps_default=2000,
+        rows_default=1500,
+        out_help="Output folder.",
+        walkers_help="emcee walkers (0: automatic).",
+        rows_help="Rows used by the likelihood.",
+    )
