@@ -8,11 +8,15 @@ with a message fit for the terminal.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List
+from typing import TYPE_CHECKING, List
 
 import typer
 
 from mfdesign.cli._app import ALLOW_OUTSIDE, fail
+
+if TYPE_CHECKING:
+    from mfdesign.models.baselines import CurveFitConfig
+    from mfdesign.models.ensemble import EnsembleConfig
 
 MODELS = ("ensemble", "curve-fit")
 
@@ -97,27 +101,17 @@ def make_spec(model: str, members: int, steps: int, batch: int, degree: int, mon
     raise ValueError(f"model must be one of {MODELS}, got {model!r}")
 
 
-def fit(
-    data: Path,
-    out: Path,
-    members: int = 32,
-    steps: int = 10_000,
-    batch: int = 100,
-    degree: int = 2,
-    monotone: bool = True,
-    seed: int = 0,
-    allow_outside_design_space: bool = False,
-) -> Path:
-    """Fit an RPN ensemble to all of ``data`` and save it to ``out`` (``Ensemble.load``-able)."""
+def fit(data: Path, out: Path, spec: "EnsembleConfig", seed: int = 0, allow_outside_design_space: bool = False) -> Path:
+    """Fit an RPN ensemble (``spec``: an ``EnsembleConfig``, :func:`make_spec`) to all of
+    ``data`` and save it to ``out`` (``Ensemble.load``-able)."""
     table = load_data(data, "fit", allow_outside_design_space)
     a = table.arrays()
-    cfg = make_spec("ensemble", members, steps, batch, degree, monotone)
-    model = cfg.fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=seed, progress=True)
+    model = spec.fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=seed, progress=True)
     model.save(out)
     mu, _ = model.mean_std(a["design"], a["height_mm"], a["pressure_pa"])
     rmse = float(((mu - a["force_n"]) ** 2).mean() ** 0.5)
     print(
-        f"fitted {members} members on {len(table)} rows of {len(table.design_keys)} membranes; "
+        f"fitted {spec.n_members} members on {len(table)} rows of {len(table.design_keys)} membranes; "
         f"training RMSE {rmse:.3f} N; saved to {out}"
     )
     return Path(out)
@@ -125,23 +119,19 @@ def fit(
 
 def cv(
     data: Path,
-    model: str = "ensemble",
+    model: str,
+    spec: "EnsembleConfig | CurveFitConfig",
     folds: int = 0,
-    members: int = 32,
-    steps: int = 10_000,
-    batch: int = 100,
-    degree: int = 2,
-    monotone: bool = True,
     seed: int = 0,
     out: Path | None = None,
     allow_outside_design_space: bool = False,
 ) -> dict:
-    """Leave-membranes-out CV (``folds`` = 0: leave-one-membrane-out); prints and returns metrics."""
+    """Leave-membranes-out CV of ``spec`` (:func:`make_spec` of the model type ``model``;
+    ``folds`` = 0: leave-one-membrane-out); prints and returns metrics."""
     from mfdesign.models.cv import cross_validate
 
     table = load_data(data, "cv", allow_outside_design_space)
     splits = table.leave_one_out() if folds == 0 else table.kfold(folds, seed=seed)
-    spec = make_spec(model, members, steps, batch, degree, monotone)
     result = cross_validate(spec, splits, seed=seed, progress=True)
     for f in result.folds:
         print(
@@ -180,7 +170,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Fit the paper's RPN ensemble to measurements and save it."""
         try:
-            fit(data, out, members, steps, batch, degree, monotone, seed, allow_outside_design_space)
+            spec = make_spec("ensemble", members, steps, batch, degree, monotone)
+            fit(data, out, spec, seed, allow_outside_design_space)
         except ValueError as err:
             fail(str(err))
 
@@ -203,7 +194,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Leave-membranes-out cross-validation: RMSE [N], median error, interval coverage."""
         try:
-            cv(data, model, folds, members, steps, batch, degree, monotone, seed, out, allow_outside_design_space)
+            spec = make_spec(model, members, steps, batch, degree, monotone)
+            cv(data, model, spec, folds, seed, out, allow_outside_design_space)
         except ValueError as err:
             fail(str(err))
 
