@@ -1,12 +1,13 @@
 """Data layer: the validated Measurements table, Parquet storage, safe loaders of real data."""
 
-from mfdesign.data.measurements import (
-    COLUMNS,
-    EXPERIMENTS,
-    PHASES,
-    SOURCES,
-    MeasurementError,
-    Measurements,
+from mfdesign.data import measurements
+from mfdesign.data.measurements import (  # "X as X": re-exported (PEP 484), listed in measurements.__all__
+    COLUMNS as COLUMNS,
+    EXPERIMENTS as EXPERIMENTS,
+    PHASES as PHASES,
+    SOURCES as SOURCES,
+    MeasurementError as MeasurementError,
+    Measurements as Measurements,
 )
 from mfdesign.data.spa_design import (
     SharedDataMissing,
@@ -21,13 +22,7 @@ from mfdesign.data.spa_design import (
 )
 from mfdesign.data.store import read_parquet, write_parquet
 
-__all__ = [
-    "COLUMNS",
-    "EXPERIMENTS",
-    "PHASES",
-    "SOURCES",
-    "MeasurementError",
-    "Measurements",
+__all__ = measurements.__all__ + [
     "SharedDataMissing",
     "SimPlane",
     "UnsafePickleError",
