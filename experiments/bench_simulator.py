@@ -25,7 +25,7 @@ from mfdesign.design import DesignSpace, Membrane
 from mfdesign.physics.solve import force_plane
 from mfdesign.physics.status import Status, summarize
 
-from _common import load, machine, parser, timed, write_json  # experiments/ is on a script's path
+from _common import command, load, machine, parser, timed, write_json  # experiments/ is on a script's path
 
 UNREACHABLE = (Status.LIMIT_POINT, Status.EXTENSION_LIMIT, Status.INVALID_INPUT)
 
@@ -103,7 +103,7 @@ def main():
     h = np.linspace(0.0, 70.0, args.grid)
     p = np.linspace(0.0, 10_000.0, args.grid)
     result = {
-        "command": f"python experiments/bench_simulator.py --grid {args.grid} --n-designs {args.n_designs} --design-grid {args.design_grid}",
+        "command": command(__file__, args),
         "machine": machine(),
         "targets": {"two_ring_converged_points_per_s": 500, "converged_fraction_of_reachable": 0.99},
         "load_average_at_start": load(),

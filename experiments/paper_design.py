@@ -148,7 +148,7 @@ def trajectory_study(model, data, args) -> dict:
     for t in keys:
         ok = np.isfinite(measured[t])
         problem = opt.Waypoints(Fg[ok], measured[t][ok], hg[ok])
-        with timed() as t:
+        with timed() as clock:  # (t is the target)
             res = opt.optimize(
                 model,
                 problem,
@@ -163,7 +163,7 @@ def trajectory_study(model, data, args) -> dict:
             predicted_traj_rmse=res.prediction["traj_rmse"],
             model_traj_rmse_of_target_membrane=E_model[keys.index(t)][keys.index(t)],
             per_rings={r: v["loss"] for r, v in res.per_rings.items()},
-            seconds=t["wall_s"],
+            seconds=clock["wall_s"],
         )
         print(
             f"target {t}: designed {res.design_key}, predicted e_p {res.prediction['traj_rmse']:.3f} "
