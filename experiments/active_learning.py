@@ -60,16 +60,13 @@ Writes ``experiments/out/active_learning[_quick].json`` and ``.png``.
 
 from __future__ import annotations
 
-import argparse
 import json
-import time
 import zlib
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "experiments" / "out"
+from _common import Timing, command, parser, timed, write_json  # experiments/ is on a script's path
+
 HIDDEN = ("pressure_sensor", {"pressure_sensor.offset_pa": 150.0, "pressure_sensor.gain": 1.0})
 HELD_OUT = (
     "[2.0, 25.4, nan, nan, nan, nan]",
@@ -342,10 +339,10 @@ def run_arm(lab, arm, seed, args, cfgs, state) -> dict:
         mf = arm.startswith("mf")  # the mf arms read Measurements tables, not arrays
         rig_data = None if mf else _cat([lab.fabricate(Membrane.from_key(k), seed) for k in rig_keys])
         sim_data = _cat([lab.simulate(Membrane.from_key(k)) for k in sim_keys]) if sim_keys else None
-        t = time.perf_counter()
-        tables = [lab.table(Membrane.from_key(k), seed) for k in rig_keys] if mf else None
-        model = Model(arm, rig_data, sim_data, cfgs, seed * 100 + it, tables, args)
-        fit_s = time.perf_counter() - t
+        with timed() as t:
+            tables = [lab.table(Membrane.from_key(k), seed) for k in rig_keys] if mf else None
+            model = Model(arm, rig_data, sim_data, cfgs, seed * 100 + it, tables, args)
+        fit_s = t["wall_s"]
         h = lab.held
         err = model.predict(h["design"], h["height_mm"], h["pressure_pa"]) - h["force_n"]
         rmse = float(np.sqrt(np.mean(err**2)))
@@ -368,25 +365,25 @@ def run_arm(lab, arm, seed, args, cfgs, state) -> dict:
         )
         if it >= args.iters:
             return state
-        t = time.perf_counter()
-        if arm in ("random", "mf-random"):
-            new = [(space.decode(_lhs(rng, 1, space.dim(n))[0], n), "rig") for n in rng.integers(0, 3, size=args.q)]
-        else:
-            fids = ("rig", "sim") if arm == "fidelity" else ("rig",)
-            cheap = arm.startswith("mf")  # every evaluation runs the emulator for each posterior draw
-            prop = propose(
-                model.predictor,
-                args.q,
-                fidelities=fids,
-                costs=costs,
-                n_restarts=args.restarts,
-                n_refine=args.mf_refine if cheap else args.refine,
-                n_steps=args.lbfgs_steps,
-                grid=_mf_grid() if cheap else Grid(),
-                key=seed * 1000 + it,
-            )
-            new = list(zip(prop.designs, prop.fidelities))
-        curve[-1]["propose_s"] = time.perf_counter() - t
+        with timed() as t:
+            if arm in ("random", "mf-random"):
+                new = [(space.decode(_lhs(rng, 1, space.dim(n))[0], n), "rig") for n in rng.integers(0, 3, size=args.q)]
+            else:
+                fids = ("rig", "sim") if arm == "fidelity" else ("rig",)
+                cheap = arm.startswith("mf")  # every evaluation runs the emulator for each posterior draw
+                prop = propose(
+                    model.predictor,
+                    args.q,
+                    fidelities=fids,
+                    costs=costs,
+                    n_restarts=args.restarts,
+                    n_refine=args.mf_refine if cheap else args.refine,
+                    n_steps=args.lbfgs_steps,
+                    grid=_mf_grid() if cheap else Grid(),
+                    key=seed * 1000 + it,
+                )
+                new = list(zip(prop.designs, prop.fidelities))
+        curve[-1]["propose_s"] = t["wall_s"]
         curve[-1]["proposed"] = [[d.key(), f] for d, f in new]
         for d, f in new:
             if f == "rig" and d.key() not in rig_keys:
@@ -480,7 +477,7 @@ def plot(results, summary, args, path):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="analytic stand-in simulator, short fits")
     ap.add_argument(
         "--simulator",
@@ -531,7 +528,7 @@ def main() -> None:
     tag = "_quick" if args.quick else ("" if args.simulator == "emulator" else f"_{args.simulator}")
     # One checkpoint file per (seed, arm): runs of different arms can go on in parallel
     # processes (e.g. one per core) without overwriting each other.
-    runs_dir = OUT / f"active_learning{tag}_runs"
+    runs_dir = args.out / f"active_learning{tag}_runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
     results: dict = {}
     for f in sorted(runs_dir.glob("seed*_*.json")):
@@ -540,22 +537,19 @@ def main() -> None:
 
     def saver(seed, arm):
         def save():
-            path = runs_dir / f"seed{seed}_{arm}.json"
-            tmp = path.with_suffix(".tmp")
-            tmp.write_text(json.dumps(results[seed][arm], indent=1))
-            tmp.replace(path)
+            write_json(runs_dir / f"seed{seed}_{arm}.json", results[seed][arm], indent=1)
 
         return save
 
     common = dict(n_members=args.members, steps=args.steps, chunk=min(500, args.steps), batch=100)
     cfgs = {"rig": EnsembleConfig(monotone=True, **common), "disc": EnsembleConfig(monotone=False, **common)}
-    t0 = time.perf_counter()
+    clock = Timing()
     lab = Lab(args.simulator)
     args.held_ranges = (float(lab.held["height_mm"].max()), float(lab.held["pressure_pa"].max()))
     args.simulator_rmse = lab.simulator_rmse()
     print(f"nominal simulator alone: held-out RMSE {args.simulator_rmse} N", flush=True)
     print(
-        f"held-out: {len(lab.held['force_n'])} rows of {len(HELD_OUT)} membranes ({time.perf_counter() - t0:.0f} s)",
+        f"held-out: {len(lab.held['force_n'])} rows of {len(HELD_OUT)} membranes ({clock.elapsed():.0f} s)",
         flush=True,
     )
     for seed in [] if args.report_only else args.seeds:
@@ -583,12 +577,7 @@ def main() -> None:
         r, a = summary["random"]["final_rmse_n_mean"], summary["rig"]["final_rmse_n_mean"]
         print(f"ratio final RMSE random / rig acquisition: {r / a:.2f}", flush=True)
     out = {
-        "command": "python experiments/active_learning.py "
-        + " ".join(
-            f"--{k.replace('_', '-')} {v}"
-            for k, v in vars(args).items()
-            if k not in ("save", "simulator_rmse", "held_ranges")
-        ),
+        "command": command(__file__, args, skip=("out", "save", "simulator_rmse", "held_ranges")),
         "quick": args.quick,
         "simulator": args.simulator,
         "hidden_effect": {"name": HIDDEN[0], "theta": HIDDEN[1]},
@@ -605,7 +594,7 @@ def main() -> None:
         "simulator_alone_rmse_n": args.simulator_rmse,
         "summary": summary,
         "runs": {str(k): v for k, v in results.items()},
-        "wall_s": time.perf_counter() - t0,
+        "wall_s": clock.elapsed(),
         "note": (
             "fidelity arm: SplitPredictor (sim ensemble + discrepancy ensemble, warm-started with "
             "--warm-sims simulator planes); mf-* arms: the issue-5 multi-fidelity model (emcee calibration "
@@ -617,9 +606,9 @@ def main() -> None:
             + " + RPN discrepancy)"
         ),
     }
-    (OUT / f"active_learning{tag}.json").write_text(json.dumps(out, indent=2))
-    plot(results, summary, args, OUT / f"active_learning{tag}.png")
-    print(f"wrote {OUT / f'active_learning{tag}.json'} and .png", flush=True)
+    path = write_json(args.out / f"active_learning{tag}.json", out)
+    plot(results, summary, args, path.with_suffix(".png"))
+    print(f"wrote {path} and .png", flush=True)
 
 
 if __name__ == "__main__":

@@ -20,24 +20,15 @@ Writes ``experiments/out/bench_acquire.json``.
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
-import resource
-import time
 from pathlib import Path
+
+from _common import command, load, machine, parser, timed, write_json  # experiments/ is on a script's path
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def cpu_s() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
-
-
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--restarts", type=int, default=1000)
     ap.add_argument("--members", type=int, default=32)
     ap.add_argument("--refine", type=int, default=32, help="screened starts refined by L-BFGS")
@@ -56,7 +47,6 @@ def main() -> None:
         help="training steps of the ensemble (0: untrained; the timing does not depend on it)",
     )
     ap.add_argument("--rings", type=int, nargs="+", default=[2, 1, 0])
-    ap.add_argument("--out", type=Path, default=ROOT / "experiments" / "out" / "bench_acquire.json")
     args = ap.parse_args()
 
     import jax
@@ -81,17 +71,14 @@ def main() -> None:
         ens = init_ensemble(cfg, norm, jax.random.PRNGKey(0))
     pred = EnsemblePredictor(ens)
     grid = Grid()
-    load_before = os.getloadavg()
+    load_before = load()
+    host = machine()
     rows = []
+    path = args.out / "bench_acquire.json"
 
     def write(extra):
         out = {
-            "command": "python experiments/bench_acquire.py "
-            + " ".join(
-                f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}"
-                for k, v in vars(args).items()
-                if k != "out"
-            ),
+            "command": command(__file__, args),
             "q": args.q,
             "restarts_per_ring_count": args.restarts,
             "refined_per_ring_count": args.refine,
@@ -103,25 +90,24 @@ def main() -> None:
             "target_s": 10.0,
             "meets_target_per_ring_count": bool(rows) and bool(max(r["wall_s"] for r in rows) <= 10.0),
             "paper_gpu_s_per_ring_count": [21, 28],
-            "load_average_before": list(load_before),
-            "load_average_after": list(os.getloadavg()),
-            "cpu_count": os.cpu_count(),
-            "machine": platform.platform(),
-            "jax": jax.__version__,
-            "backend": jax.default_backend(),
+            "load_average_before": load_before,
+            "load_average_after": load(),
+            "cpu_count": host["cpus"],
+            "machine": host,
+            "jax": host["jax"],
+            "backend": host["backend"],
             **extra,
         }
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(out, indent=2))
+        write_json(path, out)
 
     for n in args.rings:
-        t, c = time.perf_counter(), cpu_s()
         kw = dict(n_rings=(n,), grid=grid, n_steps=args.steps)
-        propose(pred, args.q, n_restarts=args.restarts, n_refine=args.refine, key=1, **kw)
-        first = time.perf_counter() - t
-        t, c = time.perf_counter(), cpu_s()
-        p = propose(pred, args.q, n_restarts=args.restarts, n_refine=args.refine, key=2, **kw)
-        wall, cpu = time.perf_counter() - t, cpu_s() - c
+        with timed() as t:
+            propose(pred, args.q, n_restarts=args.restarts, n_refine=args.refine, key=1, **kw)
+        first = t["wall_s"]
+        with timed() as t:
+            p = propose(pred, args.q, n_restarts=args.restarts, n_refine=args.refine, key=2, **kw)
+        wall, cpu = t["wall_s"], t["cpu_s"]
         row = {
             "n_rings": n,
             "first_call_incl_compile_s": first,
@@ -138,11 +124,11 @@ def main() -> None:
         if args.compare_full > 0:
             full = args.compare_full
             propose(pred, args.q, n_restarts=full, n_refine=full, key=1, **kw)  # compile
-            t = time.perf_counter()
-            f = propose(pred, args.q, n_restarts=full, n_refine=full, key=2, **kw)
+            with timed() as t:
+                f = propose(pred, args.q, n_restarts=full, n_refine=full, key=2, **kw)
             row |= {
                 "full_lbfgs_restarts": full,
-                "full_lbfgs_wall_s": time.perf_counter() - t,
+                "full_lbfgs_wall_s": t["wall_s"],
                 "full_lbfgs_utility_n": f.utility,
                 "full_lbfgs_designs": [d.key() for d in f.designs],
                 "utility_ratio_screened_to_full": p.utility / f.utility,
@@ -155,12 +141,12 @@ def main() -> None:
         rows.append(row)
         write({"complete": False})
     kw = dict(n_restarts=args.restarts, n_refine=args.refine, n_rings=tuple(args.rings), grid=grid, n_steps=args.steps)
-    t = time.perf_counter()
-    propose(pred, args.q, key=4, **kw)  # the three-arm shapes compile once
-    all_first = time.perf_counter() - t
-    t, c = time.perf_counter(), cpu_s()
-    p = propose(pred, args.q, key=3, **kw)
-    all_wall, all_cpu = time.perf_counter() - t, cpu_s() - c
+    with timed() as t:
+        propose(pred, args.q, key=4, **kw)  # the three-arm shapes compile once
+    all_first = t["wall_s"]
+    with timed() as t:
+        p = propose(pred, args.q, key=3, **kw)
+    all_wall, all_cpu = t["wall_s"], t["cpu_s"]
     print(
         f"all three ring counts: {all_wall:.2f} s wall ({all_cpu:.1f} s CPU); ratio to 10 s target "
         f"per ring count: {max(r['wall_s'] for r in rows) / 10.0:.2f}",
@@ -177,7 +163,7 @@ def main() -> None:
             "meets_target_all_ring_counts": bool(all_wall <= 10.0),
         }
     )
-    print(f"wrote {args.out}", flush=True)
+    print(f"wrote {path}", flush=True)
 
 
 if __name__ == "__main__":

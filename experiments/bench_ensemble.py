@@ -13,11 +13,7 @@ Writes ``experiments/out/bench_ensemble.json``.
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
-import platform
-import time
 
 import jax
 
@@ -25,11 +21,11 @@ import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign.data.spa_design import load_mass_lift
 from mfdesign.models.ensemble import EnsembleConfig, fit_ensemble
 
-from _common import OUT, write_json  # experiments/ is on a script's path
+from _common import machine, parser, timed, write_json  # experiments/ is on a script's path
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--members", type=int, default=32)
     ap.add_argument("--steps", type=int, default=10_000)
     ap.add_argument("--batch", type=int, default=100)
@@ -38,14 +34,14 @@ def main():
     a = load_mass_lift().arrays()
     inputs = (a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"])
     cfg = EnsembleConfig(n_members=args.members, steps=args.steps, batch=args.batch, chunk=args.chunk, monotone=True)
-    t0 = time.perf_counter()
-    fit_ensemble(EnsembleConfig(**{**cfg.to_dict(), "steps": args.chunk}), *inputs, key=0, progress=False)
-    compile_s = time.perf_counter() - t0
-    load0 = os.getloadavg()
-    c0, t0 = time.process_time(), time.perf_counter()
-    model = fit_ensemble(cfg, *inputs, key=1, progress=True)
-    jax.block_until_ready(model.trainable)
-    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    with timed() as t:
+        fit_ensemble(EnsembleConfig(**{**cfg.to_dict(), "steps": args.chunk}), *inputs, key=0, progress=False)
+    compile_s = t["wall_s"]
+    with timed() as t:
+        model = fit_ensemble(cfg, *inputs, key=1, progress=True)
+        jax.block_until_ready(model.trainable)
+    wall, cpu = t["wall_s"], t["cpu_s"]
+    host = machine()
     result = {
         "members": args.members,
         "steps": args.steps,
@@ -56,18 +52,17 @@ def main():
         "first_fit_of_one_chunk_incl_compile_s": compile_s,
         "train_wall_s": wall,
         "train_process_cpu_s": cpu,
-        "cpu_count": os.cpu_count(),
+        "cpu_count": host["cpus"],
         "member_steps_per_s": args.members * args.steps / wall,
-        "load_average_before": load0,
-        "load_average_after": os.getloadavg(),
+        "load_average_before": t["load_average_before"],
+        "load_average_after": t["load_average_after"],
         "target_s": 60.0,
         "meets_target": wall <= 60.0,
-        "machine": platform.platform(),
-        "jax": jax.__version__,
-        "backend": jax.default_backend(),
+        "machine": host,
+        "jax": host["jax"],
+        "backend": host["backend"],
     }
-    OUT.mkdir(parents=True, exist_ok=True)
-    write_json(OUT / "bench_ensemble.json", result)
+    write_json(args.out / "bench_ensemble.json", result)
     print(json.dumps(result, indent=2))
 
 

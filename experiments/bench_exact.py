@@ -19,26 +19,20 @@ the most it may take); its convergence report is copied into the JSON.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-from _common import OUT, write_json  # experiments/ is on a script's path
+from _common import Timing, load, machine, parser, timed, write_json  # experiments/ is on a script's path
 
 ROOT = Path(__file__).resolve().parents[1]
 BUNDLED = ROOT / "mfdesign" / "data" / "files" / "bundled_virtual.parquet"
-
-
-def load() -> str:
-    return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
 def accuracy(n_rows: int, seed: int) -> dict:
@@ -56,7 +50,7 @@ def accuracy(n_rows: int, seed: int) -> dict:
     h_all = query_heights(meas)
     keys = list(dict.fromkeys(df["design_key"]))
     rng = np.random.default_rng(seed)
-    t0 = time.perf_counter()
+    clock = Timing()
     # Each use in its own configuration: calibration varies mu, J_m and the thickness on a
     # tensor lattice (J_m x ring ratio: exact cross terms); diagnosis varies one mechanical
     # effect at a time on additive axes (exact for one effect, first order in cross terms,
@@ -125,7 +119,7 @@ def accuracy(n_rows: int, seed: int) -> dict:
         "rows": int(n),
         "nan_where_simulator_finite": int(sum(c["model_nan_where_simulator_finite"] for c in cases)),
         "target": {"rmse_n": 0.05, "max_abs_n": 0.15},
-        "wall_s": round(time.perf_counter() - t0, 1),
+        "wall_s": round(clock.elapsed(), 1),
         "lattice": {
             use: {
                 "tensor": [(a.name, a.k0, a.n) for a in fm.tensor_axes],
@@ -148,35 +142,32 @@ def characterisation_450(path: Path) -> None:
     write_parquet(Measurements(df.loc[np.concatenate(keep)].reset_index(drop=True)), path)
 
 
-def timed(cmd: list[str], cache: Path) -> dict:
+def run_cli(cmd: list[str], cache: Path) -> dict:
+    """Run ``cmd`` (an ``mfdesign`` command) with its own cache folder; its wall time and tail."""
     env = dict(os.environ, MFDESIGN_CACHE_DIR=str(cache))
-    before = load()
-    t0 = time.perf_counter()
-    r = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
+    with timed() as t:
+        r = subprocess.run(cmd, env=env, capture_output=True, text=True)
     tail = [ln for ln in r.stdout.splitlines() if ln.strip()][-6:]
     return {
         "cmd": " ".join(cmd),
-        "wall_s": round(wall, 1),
+        "wall_s": round(t["wall_s"], 1),
         "rc": r.returncode,
-        "load_before": before,
-        "load_after": load(),
+        "load_before": t["load_average_before"],
+        "load_after": t["load_average_after"],
         "stdout_tail": tail,
         "stderr_tail": r.stderr.splitlines()[-3:] if r.returncode else [],
     }
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__, seed=True)
     ap.add_argument("--rows", type=int, default=30, help="random rows per design and case")
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--skip-timings", action="store_true")
     ap.add_argument("--skip-accuracy", action="store_true")
     ap.add_argument("--mcmc-steps", type=int, default=4000)
     args = ap.parse_args()
-    OUT.mkdir(parents=True, exist_ok=True)
-    out = {"machine": {"cpus": os.cpu_count(), "load_at_start": load()}}
-    path = OUT / "bench_exact.json"
+    out = {"machine": machine() | {"load_at_start": load()}}
+    path = args.out / "bench_exact.json"
     if path.exists():  # keep the other half of an earlier run
         old = json.loads(path.read_text())
         out = {**old, **out}
@@ -196,10 +187,10 @@ def main() -> None:
             characterisation_450(small)
             cold = tmp / "cache_cold"
             t = {}
-            t["diagnose_450_cold"] = timed(exe + ["diagnose", str(small), "--out", str(tmp / "d1")], cold)
-            t["diagnose_450_warm"] = timed(exe + ["diagnose", str(small), "--out", str(tmp / "d2")], cold)
-            t["diagnose_bundled"] = timed(exe + ["diagnose", str(BUNDLED), "--out", str(tmp / "d3")], cold)
-            t["calibrate_6_membranes"] = timed(
+            t["diagnose_450_cold"] = run_cli(exe + ["diagnose", str(small), "--out", str(tmp / "d1")], cold)
+            t["diagnose_450_warm"] = run_cli(exe + ["diagnose", str(small), "--out", str(tmp / "d2")], cold)
+            t["diagnose_bundled"] = run_cli(exe + ["diagnose", str(BUNDLED), "--out", str(tmp / "d3")], cold)
+            t["calibrate_6_membranes"] = run_cli(
                 exe
                 + [
                     "calibrate",
@@ -241,7 +232,8 @@ def main() -> None:
         out["timings"] = t
         for k, v in t.items():
             if isinstance(v, dict) and "wall_s" in v:
-                print(f"{k}: {v['wall_s']} s (rc {v['rc']}; load {v['load_before']} -> {v['load_after']})", flush=True)
+                before, after = (" ".join(f"{x:.2f}" for x in v[w]) for w in ("load_before", "load_after"))
+                print(f"{k}: {v['wall_s']} s (rc {v['rc']}; load {before} -> {after})", flush=True)
     out["machine"]["load_at_end"] = load()
     write_json(path, out, indent=1)
     print(f"wrote {path}")

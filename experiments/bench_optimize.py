@@ -21,10 +21,6 @@ Writes ``experiments/out/bench_optimize.json``.
 
 from __future__ import annotations
 
-import argparse
-import os
-import platform
-
 import jax
 import numpy as np
 
@@ -32,13 +28,13 @@ import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign import optimize as opt
 from mfdesign.design import DesignSpace
 
-from _common import OUT, timed, write_json  # experiments/ is on a script's path
+from _common import PAPER_DESIGN_MODEL, machine, parser, timed, write_json  # experiments/ is on a script's path
 
 
 def model(members: int):
     from mfdesign.models.ensemble import Ensemble, EnsembleConfig, Normaliser, init_ensemble
 
-    cached = OUT / "paper_design_model"
+    cached = PAPER_DESIGN_MODEL
     if (cached / "ensemble.json").exists():
         m = Ensemble.load(cached)
         return m, f"{cached} ({m.n_members} members)"
@@ -57,7 +53,7 @@ def run_timed(fn):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--members", type=int, default=16)
     ap.add_argument("--starts", type=int, default=2500)
     args = ap.parse_args()
@@ -69,13 +65,14 @@ def main():
         "trajectory_screen_refine": (opt.trajectory_loss(ens, wp, space, 2), 6, dict(steps=60, n_refine=32)),
         "height_refine_all": (opt.height_loss(ens, opt.TARGET_SETS["A"], space, 2), 6, dict(steps=25, n_refine=None)),
     }
+    host = machine()
     result = dict(
         model=what,
         n_starts=args.starts,
         target_s=20.0,
-        machine=platform.processor() or platform.machine(),
-        cpu_count=os.cpu_count(),
-        jax=jax.__version__,
+        machine=host,
+        cpu_count=host["cpus"],
+        jax=host["jax"],
         cases={},
     )
     for name, (loss, dim, kw) in cases.items():
@@ -97,8 +94,7 @@ def main():
             f"{t['wall_s'] / 20:.2f}",
             flush=True,
         )
-        OUT.mkdir(parents=True, exist_ok=True)  # after every case: a long run leaves what it measured
-        write_json(OUT / "bench_optimize.json", result)
+        write_json(args.out / "bench_optimize.json", result)  # after every case: a long run leaves what it measured
 
 
 if __name__ == "__main__":

@@ -16,12 +16,7 @@ OK or NO_CONTACT.
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
-import platform
-import time
-from pathlib import Path
 
 import numpy as np
 
@@ -30,31 +25,32 @@ from mfdesign.design import DesignSpace, Membrane
 from mfdesign.physics.solve import force_plane
 from mfdesign.physics.status import Status, summarize
 
-OUT = Path(__file__).parent / "out"
+from _common import command, load, machine, parser, timed, write_json  # experiments/ is on a script's path
+
 UNREACHABLE = (Status.LIMIT_POINT, Status.EXTENSION_LIMIT, Status.INVALID_INPUT)
 
 
 def timed_plane(design: Membrane, h, p):
     # Wall time and process CPU time: other jobs share the cores, so wall time alone
     # says as much about the load as about the simulator.
-    t0, c0 = time.perf_counter(), time.process_time()
-    first = force_plane(design, h, p)
-    t1, c1 = time.perf_counter(), time.process_time()
-    again = force_plane(design, h, p)
-    t2, c2 = time.perf_counter(), time.process_time()
+    load_at_start = load()
+    with timed() as first_t:
+        first = force_plane(design, h, p)
+    with timed() as run_t:
+        again = force_plane(design, h, p)
     conv = np.isin(again.status, [Status.OK, Status.NO_CONTACT])
     return {
         "design": design.key(),
         "grid": [len(h), len(p)],
-        "load_average_1_5_15min": os.getloadavg(),
-        "first_call_s": t1 - t0,
-        "first_call_cpu_s": c1 - c0,
-        "run_s": t2 - t1,
-        "run_cpu_s": c2 - c1,
-        "compile_s_estimate": (t1 - t0) - (t2 - t1),
+        "load_average_1_5_15min": load_at_start,
+        "first_call_s": first_t["wall_s"],
+        "first_call_cpu_s": first_t["cpu_s"],
+        "run_s": run_t["wall_s"],
+        "run_cpu_s": run_t["cpu_s"],
+        "compile_s_estimate": first_t["wall_s"] - run_t["wall_s"],
         "converged_points": int(conv.sum()),
-        "converged_points_per_s": float(conv.sum() / (t2 - t1)),
-        "converged_points_per_cpu_s": float(conv.sum() / (c2 - c1)),
+        "converged_points_per_s": float(conv.sum() / run_t["wall_s"]),
+        "converged_points_per_cpu_s": float(conv.sum() / run_t["cpu_s"]),
         "status": summarize(again.status),
         "identical_on_rerun": bool(np.array_equal(first.force_n, again.force_n, equal_nan=True)),
     }
@@ -68,21 +64,21 @@ def reachable_convergence(n_designs: int, grid: int, seed: int):
     h = np.linspace(0.0, 70.0, grid)
     p = np.linspace(0.0, 10_000.0, grid)
     rows = []
-    t0, c0 = time.perf_counter(), time.process_time()
-    for k in tqdm(range(n_designs), desc="random designs"):
-        design = space.sample(rng, 1, n_rings=k % 3)[0]
-        res = force_plane(design, h, p)
-        reach = ~np.isin(res.status, UNREACHABLE)
-        conv = np.isin(res.status, [Status.OK, Status.NO_CONTACT]) & reach
-        rows.append(
-            {
-                "design": design.key(),
-                "reachable": int(reach.sum()),
-                "converged": int(conv.sum()),
-                "plane_usable_points": int(np.isfinite(res.force_n).sum()),
-                "status": summarize(res.status),
-            }
-        )
+    with timed() as t:
+        for k in tqdm(range(n_designs), desc="random designs"):
+            design = space.sample(rng, 1, n_rings=k % 3)[0]
+            res = force_plane(design, h, p)
+            reach = ~np.isin(res.status, UNREACHABLE)
+            conv = np.isin(res.status, [Status.OK, Status.NO_CONTACT]) & reach
+            rows.append(
+                {
+                    "design": design.key(),
+                    "reachable": int(reach.sum()),
+                    "converged": int(conv.sum()),
+                    "plane_usable_points": int(np.isfinite(res.force_n).sum()),
+                    "status": summarize(res.status),
+                }
+            )
     reach = sum(r["reachable"] for r in rows)
     conv = sum(r["converged"] for r in rows)
     return {
@@ -92,44 +88,41 @@ def reachable_convergence(n_designs: int, grid: int, seed: int):
         "converged_reachable_points": conv,
         "converged_fraction_of_reachable": conv / max(reach, 1),
         "designs_with_a_plane": sum(r["plane_usable_points"] > 0 for r in rows),
-        "wall_s": time.perf_counter() - t0,
-        "cpu_s": time.process_time() - c0,
+        "wall_s": t["wall_s"],
+        "cpu_s": t["cpu_s"],
         "per_design": rows,
     }
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = parser(__doc__, seed=True)
     ap.add_argument("--grid", type=int, default=50)
     ap.add_argument("--n-designs", type=int, default=200)
     ap.add_argument("--design-grid", type=int, default=12, help="grid for the random-design sweep")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=OUT / "bench_simulator.json")
     args = ap.parse_args()
     h = np.linspace(0.0, 70.0, args.grid)
     p = np.linspace(0.0, 10_000.0, args.grid)
     result = {
-        "command": f"python experiments/bench_simulator.py --grid {args.grid} --n-designs {args.n_designs} --design-grid {args.design_grid}",
-        "machine": f"{platform.machine()} {platform.processor()} cpus={__import__('os').cpu_count()}",
+        "command": command(__file__, args),
+        "machine": machine(),
         "targets": {"two_ring_converged_points_per_s": 500, "converged_fraction_of_reachable": 0.99},
-        "load_average_at_start": os.getloadavg(),
+        "load_average_at_start": load(),
         "planes": [],
     }
-    t0, c0 = time.perf_counter(), time.process_time()
-    for key in ("[2.0, 25.4, nan, nan, nan, nan]", "[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]"):
-        row = timed_plane(Membrane.from_key(key), h, p)
-        print(json.dumps(row))
-        result["planes"].append(row)
-    if args.n_designs:
-        result["random_designs"] = reachable_convergence(args.n_designs, args.design_grid, args.seed)
-        rd = result["random_designs"]
-        print(f"reachable convergence {rd['converged_fraction_of_reachable']:.4f} over {rd['n_designs']} designs")
-    result["load_average_at_end"] = os.getloadavg()
-    result["wall_s"] = time.perf_counter() - t0
-    result["cpu_s"] = time.process_time() - c0
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
-    print(f"wrote {args.out}")
+    with timed() as t:
+        for key in ("[2.0, 25.4, nan, nan, nan, nan]", "[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]"):
+            row = timed_plane(Membrane.from_key(key), h, p)
+            print(json.dumps(row))
+            result["planes"].append(row)
+        if args.n_designs:
+            result["random_designs"] = reachable_convergence(args.n_designs, args.design_grid, args.seed)
+            rd = result["random_designs"]
+            print(f"reachable convergence {rd['converged_fraction_of_reachable']:.4f} over {rd['n_designs']} designs")
+    result["load_average_at_end"] = t["load_average_after"]
+    result["wall_s"] = t["wall_s"]
+    result["cpu_s"] = t["cpu_s"]
+    path = write_json(args.out / "bench_simulator.json", result)
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

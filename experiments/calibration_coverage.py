@@ -13,17 +13,13 @@ Writes ``experiments/out/calibration_coverage_<simulator>.json``.
 
 from __future__ import annotations
 
-import argparse
-import json
-import time
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
 import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 
-OUT = Path(__file__).parent / "out"
+from _common import parser, timed, write_json  # experiments/ is on a script's path
 
 
 def emulator_plane(emu):
@@ -41,7 +37,7 @@ def emulator_plane(emu):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--steps", type=int, default=1500)
     ap.add_argument("--rows", type=int, default=400)
@@ -69,14 +65,14 @@ def main():
         from mfdesign.models.standin import standin_plane
 
         plane, kw = standin_plane, {}
-    t0 = time.perf_counter()
     trials = []
-    for seed in range(args.seeds):
-        trials.append(
-            truth_trial(seed, fm, plane, tuple(args.effects), rows=args.rows, n_steps=args.steps, model_kwargs=kw)
-        )
-        t = trials[-1]
-        print(f"seed {seed}: covered {t['covered']}  steps/tau {t['steps_over_tau']:.1f}", flush=True)
+    with timed() as clock:
+        for seed in range(args.seeds):
+            trials.append(
+                truth_trial(seed, fm, plane, tuple(args.effects), rows=args.rows, n_steps=args.steps, model_kwargs=kw)
+            )
+            t = trials[-1]
+            print(f"seed {seed}: covered {t['covered']}  steps/tau {t['steps_over_tau']:.1f}", flush=True)
     names = list(trials[0]["covered"])
     per = {n: float(np.mean([t["covered"][n] for t in trials])) for n in names}
     overall = float(np.mean([[t["covered"][n] for n in names] for t in trials]))
@@ -91,12 +87,10 @@ def main():
         "coverage_overall": overall,
         "target": ">= 0.85",
         "met": overall >= 0.85,
-        "seconds": time.perf_counter() - t0,
+        "seconds": clock["wall_s"],
         "trials": trials,
     }
-    OUT.mkdir(exist_ok=True)
-    path = OUT / f"calibration_coverage_{args.simulator}.json"
-    path.write_text(json.dumps(out, indent=2))
+    path = write_json(args.out / f"calibration_coverage_{args.simulator}.json", out)
     print(f"coverage of 95 % intervals: overall {overall:.3f} (target >= 0.85); per parameter {per}; wrote {path}")
 
 

@@ -18,10 +18,8 @@ Outputs ``experiments/out/compare_authors_sim.{json,png}``. Explained in docs/ph
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -37,7 +35,8 @@ from mfdesign.physics.params import SimParams  # noqa: E402
 from mfdesign.physics.solve import force_at  # noqa: E402
 from mfdesign.physics.status import Status, summarize  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "out"
+from _common import Timing, parser, timed, write_json  # noqa: E402  (experiments/ is on a script's path)
+
 BIG_N = 0.5  # N: a difference above this (and above 5 %) counts as "big"
 BIG_REL = 0.05
 GRID_H, GRID_P = 6, 5  # coarse reverse-direction grid: 30 points per plane
@@ -89,9 +88,9 @@ def compare_plane(plane, n, rng, params):
     hg = np.linspace(max(1.0, plane.height_mm.min()), plane.height_mm.max(), GRID_H)
     pg = np.linspace(plane.pressure_pa.min(), plane.pressure_pa.max(), GRID_P)
     Hg, Pg = (a.ravel() for a in np.meshgrid(hg, pg, indexing="ij"))
-    t0 = time.perf_counter()
-    res = force_at(plane.design, np.concatenate([h_s, Hg]), np.concatenate([p_s, Pg]), params)
-    seconds = time.perf_counter() - t0
+    with timed() as t:
+        res = force_at(plane.design, np.concatenate([h_s, Hg]), np.concatenate([p_s, Pg]), params)
+    seconds = t["wall_s"]
     F_o, st = res.force_n[:n], res.status[:n]
     uniq = np.unique(idx, return_index=True)[1]  # padded repeats count once
     F_o, st, F_a, h_s, p_s = F_o[uniq], st[uniq], F_a[uniq], h_s[uniq], p_s[uniq]
@@ -180,9 +179,9 @@ def arbitrate(planes_by_key, rows, k, params, n_elements):
     out = []
     for diff, key, w in tqdm(picked, desc="FE arbitration", file=sys.stdout):
         design = planes_by_key[key].design
-        t0 = time.perf_counter()
-        fe = fe_force(design, np.array([w["h_mm"]]), np.array([w["p_pa"]]), params, n_elements=n_elements)
-        F_fe = float(np.asarray(fe.force_n)[0])
+        with timed() as t:
+            fe = fe_force(design, np.array([w["h_mm"]]), np.array([w["p_pa"]]), params, n_elements=n_elements)
+            F_fe = float(np.asarray(fe.force_n)[0])
         verdict = "n/a (FE did not converge)"
         if np.isfinite(F_fe):
             e_o, e_a = abs(F_fe - w["F_ours_n"]), abs(F_fe - w["F_authors_n"])
@@ -194,7 +193,7 @@ def arbitrate(planes_by_key, rows, k, params, n_elements):
                 "F_fe_n": F_fe,
                 "F_fe_disk_n": float(np.asarray(fe.force_disk_n)[0]),
                 "closer_to_fe": verdict,
-                "seconds": time.perf_counter() - t0,
+                "seconds": t["wall_s"],
             }
         )
         tqdm.write(json.dumps(out[-1]))
@@ -286,13 +285,11 @@ def plot(rows, path):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = parser(__doc__, seed=True)
     ap.add_argument("--planes", type=int, nargs="*", help="plane indices 0-17 (default all)")
     ap.add_argument("--n", type=int, default=150, help="points per plane")
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--arbitrate", type=int, default=3, help="FE checks at the k worst points")
     ap.add_argument("--fe-elements", type=int, default=400)
-    ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument(
         "--supplement", type=Path, default=None, help="only add the supplementary FE checks to this existing JSON"
     )
@@ -300,18 +297,18 @@ def main(argv=None):
     enable_compilation_cache()
     if args.supplement:
         report = json.loads(args.supplement.read_text())
-        t0 = time.perf_counter()
-        report["supplementary_checks"] = supplementary_checks(
-            load_sim_planes(), report["planes"], SimParams(), args.fe_elements
-        )
-        report["supplementary_checks"]["seconds"] = time.perf_counter() - t0
+        with timed() as t:
+            report["supplementary_checks"] = supplementary_checks(
+                load_sim_planes(), report["planes"], SimParams(), args.fe_elements
+            )
+        report["supplementary_checks"]["seconds"] = t["wall_s"]
         report["supplementary_checks"]["command"] = "python experiments/compare_authors_sim.py " + " ".join(
             argv or sys.argv[1:]
         )
-        args.supplement.write_text(json.dumps(report, indent=1))
+        write_json(args.supplement, report, indent=1)
         print(json.dumps(report["supplementary_checks"], indent=1))
         return
-    t_start = time.perf_counter()
+    clock = Timing()
     params = SimParams()
     planes = load_sim_planes()
     which = args.planes if args.planes else list(range(len(planes)))
@@ -328,7 +325,7 @@ def main(argv=None):
             f"status {row['status_counts']} ({row['seconds']:.0f} s)"
         )
         partial = [{k: v for k, v in r.items() if k != "_scatter"} for r in rows]
-        (args.out / "compare_authors_sim.partial.json").write_text(json.dumps(partial, indent=1))
+        write_json(args.out / "compare_authors_sim.partial.json", partial, indent=1)
     all_d = np.concatenate([np.abs(np.array(r["_scatter"][1]) - np.array(r["_scatter"][0])) for r in rows])
     overall = {
         "n_planes": len(rows),
@@ -371,15 +368,15 @@ def main(argv=None):
         "overall": overall,
         "arbitration": arb,
         "planes": rows,
-        "runtime_s": time.perf_counter() - t_start,
+        "runtime_s": clock.elapsed(),
     }
-    stem.with_suffix(".json").write_text(json.dumps(report, indent=1))
+    write_json(stem.with_suffix(".json"), report, indent=1)
     print(json.dumps(overall, indent=1))
     if args.arbitrate:  # written first without it: the FE reference is slow
         by_key = {p.design.key(): p for p in planes}
         arb.extend(arbitrate(by_key, rows, args.arbitrate, params, args.fe_elements))
-        report["runtime_s"] = time.perf_counter() - t_start
-        stem.with_suffix(".json").write_text(json.dumps(report, indent=1))
+        report["runtime_s"] = clock.elapsed()
+        write_json(stem.with_suffix(".json"), report, indent=1)
     print(f"wrote {stem}.json/.png in {report['runtime_s']:.0f} s")
 
 

@@ -19,20 +19,15 @@ Writes ``experiments/out/few_membranes_mf.json`` (``few_membranes_mf_emulator.js
 
 from __future__ import annotations
 
-import argparse
 import json
-import time
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "experiments" / "out"
+from _common import command, parser, timed, write_json  # experiments/ is on a script's path
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seed", type=int, default=0)
+    ap = parser(__doc__, seed=True)
     ap.add_argument("--mcmc-steps", type=int, default=4000, help="most emcee steps (the chain stops once converged)")
     ap.add_argument("--physics", choices=("exact", "emulator"), default="exact")
     ap.add_argument("--walkers", type=int, default=28)
@@ -80,8 +75,7 @@ def main() -> None:
         fm = force_model_named("emulator")
         simulator_alone = lab.simulator_rmse()
     out = {
-        "command": "python experiments/few_membranes_mf.py "
-        + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()),
+        "command": command(__file__, args),
         "membranes": [d.key() for d in initial_designs(args.seed)],
         "truth": {"effect": "pressure_sensor", "offset_pa": 150.0, "mu_pa": 31.7e3, "jm": 39.6},
         "physics": args.physics,
@@ -90,19 +84,19 @@ def main() -> None:
     }
     cfg = EnsembleConfig(monotone=False, n_members=8, steps=1500, chunk=500, batch=100)
     for effects in ((), ("pressure_sensor",)):
-        t = time.perf_counter()
-        fit = fit_multi_fidelity(
-            table,
-            fm,
-            effects,
-            n_steps=args.mcmc_steps,
-            n_walkers=args.walkers,
-            max_rows=args.rows,
-            ensemble_config=cfg,
-            seed=args.seed,
-            progress=False,
-        )
-        fit_s = time.perf_counter() - t
+        with timed() as t:
+            fit = fit_multi_fidelity(
+                table,
+                fm,
+                effects,
+                n_steps=args.mcmc_steps,
+                n_walkers=args.walkers,
+                max_rows=args.rows,
+                ensemble_config=cfg,
+                seed=args.seed,
+                progress=False,
+            )
+        fit_s = t["wall_s"]
         mf = fit.mf.thinned(32)
         bare = MultiFidelity(mf.model, mf.theta, None, mf.noise_n, mf.design_keys)
         post = fit.posterior
@@ -128,8 +122,9 @@ def main() -> None:
         }
         out["fits"].append(row)
         print(json.dumps(row), flush=True)
-    path = OUT / ("few_membranes_mf.json" if args.physics == "exact" else "few_membranes_mf_emulator.json")
-    path.write_text(json.dumps(out, indent=2))
+    path = write_json(
+        args.out / ("few_membranes_mf.json" if args.physics == "exact" else "few_membranes_mf_emulator.json"), out
+    )
     print(f"nominal simulator alone {out['simulator_alone_rmse_n']:.2f} N; wrote {path}", flush=True)
 
 

@@ -29,13 +29,11 @@ case; a rerun skips finished cases) and a PNG.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
-import time
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from _common import Timing, parser, write_json  # experiments/ is on a script's path
+
 DESIGNS = (
     "[2.0, 25.4, nan, nan, nan, nan]",
     "[1.0, 38.1, nan, nan, nan, nan]",
@@ -105,7 +103,7 @@ def run_case(hidden, seed, physics, sample_hz):
         protocol=Protocol(deflate=True, sample_hz=sample_hz, **fine),
         cache_dir=cache_dir().parent / "rig_planes",
     )  # $MFDESIGN_CACHE_DIR/rig_planes
-    t0 = time.time()
+    clock = Timing()
     meas = rig.run([Membrane.from_key(k) for k in DESIGNS], progress=False)
     sim = forward_model(physics, meas)
     d = diagnose(meas, sim)
@@ -150,7 +148,7 @@ def run_case(hidden, seed, physics, sample_hz):
         "oracle_rmse_n": oracle,
         "heldout_over_oracle": None if oracle is None else heldout / oracle,
         "verdicts": [s["verdict"]["words"] for s in d.steps],
-        "seconds": time.time() - t0,
+        "seconds": clock.elapsed(),
     }
 
 
@@ -277,7 +275,7 @@ def record(args, summary, cases) -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--physics", choices=("exact", "emulator", "standin"), default="exact")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--clean-seeds", type=int, default=5)
@@ -288,14 +286,10 @@ def main(argv=None):
         "--effects", nargs="*", default=None, help="hidden effects to sweep (default: all the physics can show)"
     )
     ap.add_argument("--no-outside", action="store_true", help="skip the out-of-library (narrow rings) case")
-    ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     from mfdesign.physics import effects as fx
 
-    out = args.out or ROOT / "experiments" / "out" / (
-        "hidden_effects.json" if args.physics == "exact" else f"hidden_effects_{args.physics}.json"
-    )
-    out.parent.mkdir(parents=True, exist_ok=True)
+    out = args.out / ("hidden_effects.json" if args.physics == "exact" else f"hidden_effects_{args.physics}.json")
     names = (
         args.effects
         if args.effects is not None
@@ -319,9 +313,9 @@ def main(argv=None):
             flush=True,
         )
         summary = summarise(done)
-        out.write_text(json.dumps(record(args, summary, done), indent=1))
+        write_json(out, record(args, summary, done), indent=1)
     summary = summarise(done)
-    out.write_text(json.dumps(record(args, summary, done), indent=1))
+    write_json(out, record(args, summary, done), indent=1)
     plot(summary, done, out.with_suffix(".png"))
     print(json.dumps({k: v for k, v in summary.items() if k != "per_effect"}, indent=1))
     return summary

@@ -18,11 +18,8 @@ Writes ``experiments/out/hyperparameter_sweep.{json,csv}``.
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
-import time
-from pathlib import Path
 
 import pandas as pd
 from tqdm.auto import tqdm
@@ -32,7 +29,8 @@ from mfdesign.data.spa_design import load_mass_lift, shared_data_dir
 from mfdesign.models.cv import cross_validate
 from mfdesign.models.ensemble import EnsembleConfig
 
-OUT = Path(__file__).parent / "out"
+from _common import parser, timed, write_json  # experiments/ is on a script's path
+
 GRID = {
     "latent_depth": (1, 2, 3, 4),
     "latent_width": (8, 16, 32, 64),
@@ -86,11 +84,10 @@ def _slice(table: pd.DataFrame, name: str, full: bool) -> pd.DataFrame:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__, seed=True)
     ap.add_argument("--members", type=int, default=8)
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--folds", type=int, default=3)
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--full-grid", action="store_true")
     args = ap.parse_args()
     data = load_mass_lift()
@@ -100,8 +97,8 @@ def main():
         cfg = EnsembleConfig(
             n_members=args.members, steps=args.steps, monotone=True, chunk=min(500, args.steps), **point
         )
-        t0 = time.perf_counter()
-        cv = cross_validate(cfg, folds, seed=args.seed, progress=False)
+        with timed() as t:
+            cv = cross_validate(cfg, folds, seed=args.seed, progress=False)
         rows.append(
             {
                 **point,
@@ -109,7 +106,7 @@ def main():
                 "fold_rmse_mean_n": cv.overall["fold_rmse_mean_n"],
                 "median_abs_n": cv.overall["median_abs_n"],
                 "coverage95_total": cv.overall["coverage95_total"],
-                "seconds": time.perf_counter() - t0,
+                "seconds": t["wall_s"],
             }
         )
         print(rows[-1], flush=True)
@@ -140,9 +137,8 @@ def main():
         "authors": theirs,
         "comparison": comparison,
     }
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "hyperparameter_sweep.json").write_text(json.dumps(result, indent=2))
-    table.to_csv(OUT / "hyperparameter_sweep.csv", index=False)
+    write_json(args.out / "hyperparameter_sweep.json", result)
+    table.to_csv(args.out / "hyperparameter_sweep.csv", index=False)
     print(table.to_string(index=False))
     print(json.dumps(comparison, indent=2))
 

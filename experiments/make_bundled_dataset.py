@@ -15,13 +15,12 @@ the same bytes (``tests/rig/test_virtual_rig.py``).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import hashlib
-import json
 import sys
-import time
 from pathlib import Path
+
+from _common import PLANE_CACHE, Timing, parser, write_json  # experiments/ is on a script's path
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 20250401  # the paper's arXiv month; any fixed integer would do
@@ -51,7 +50,7 @@ def build(
     simulator=None,
     protocol=None,
     seed: int = SEED,
-    cache_dir=ROOT / "experiments" / "out" / "plane_cache",
+    cache_dir=PLANE_CACHE,
     progress: bool = True,
 ) -> dict:
     """Run the virtual rig and write the Parquet file and its card into ``out_dir``."""
@@ -76,7 +75,7 @@ def build(
         simulator=simulator,
         cache_dir=cache_dir,
     )
-    t0 = time.time()
+    clock = Timing()
     m = rig.run(designs, progress=progress)
     parquet = out_dir / PARQUET
     m.to_parquet(parquet)
@@ -116,21 +115,17 @@ def build(
         },
         "regenerate": "python experiments/make_bundled_dataset.py",
     }
-    card_path = out_dir / CARD
-    card_path.write_text(json.dumps(card, indent=1, default=float) + "\n")
-    return {"parquet": parquet, "card": card_path, "card_data": card, "seconds": round(time.time() - t0, 1)}
+    card_path = write_json(out_dir / CARD, card, indent=1, default=float)
+    return {"parquet": parquet, "card": card_path, "card_data": card, "seconds": round(clock.elapsed(), 1)}
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default=str(ROOT / "mfdesign" / "data" / "files"))
-    ap.add_argument("--cache-dir", default=str(ROOT / "experiments" / "out" / "plane_cache"))
-    ap.add_argument("--no-cache", action="store_true", help="recompute every simulator plane")
+    ap = parser(__doc__, out=ROOT / "mfdesign" / "data" / "files", plane_cache=True)
     args = ap.parse_args(argv)
     from mfdesign.cli._app import enable_compilation_cache
 
     enable_compilation_cache()
-    res = build(args.out, cache_dir=None if args.no_cache else args.cache_dir)
+    res = build(args.out, cache_dir=args.cache_dir)
     c = res["card_data"]
     print(
         f"{res['parquet']}: {c['n_rows']} rows, {c['bytes'] / 1e6:.2f} MB, sha256 {c['sha256'][:16]}..., "

@@ -27,8 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import time
 from pathlib import Path
 
 import numpy as np
@@ -40,15 +38,15 @@ from mfdesign.data.spa_design import load_mass_lift
 from mfdesign.design import Membrane
 from mfdesign.models.trajectory import P_MAX_PA, WAYPOINTS_MM, measured_waypoints, model_pressure
 
-OUT = Path(__file__).parent / "out"
-MODEL_DIR = OUT / "paper_design_model"
+from _common import PAPER_DESIGN_MODEL, Timing, load, parser, timed, write_json  # experiments/ is on a script's path
+
 NOTEBOOK_A = opt.HeightTargets((24.525,) * 3, (4137.0, 5516.0, 6895.0))  # the authors' notebook variant
 
 
 def get_model(path: Path | None, members: int, steps: int):
     from mfdesign.models.ensemble import Ensemble, EnsembleConfig
 
-    path = Path(path) if path else MODEL_DIR
+    path = Path(path) if path else PAPER_DESIGN_MODEL
     if (path / "ensemble.json").exists():
         return Ensemble.load(path), str(path)
     data = load_mass_lift()
@@ -150,22 +148,22 @@ def trajectory_study(model, data, args) -> dict:
     for t in keys:
         ok = np.isfinite(measured[t])
         problem = opt.Waypoints(Fg[ok], measured[t][ok], hg[ok])
-        t0 = time.perf_counter()
-        res = opt.optimize(
-            model,
-            problem,
-            n_starts=args.starts,
-            steps=args.traj_steps,
-            n_refine=args.traj_refine,
-            seed=args.seed,
-            progress=False,
-        )
+        with timed() as clock:  # (t is the target)
+            res = opt.optimize(
+                model,
+                problem,
+                n_starts=args.starts,
+                steps=args.traj_steps,
+                n_refine=args.traj_refine,
+                seed=args.seed,
+                progress=False,
+            )
         designed[t] = dict(
             design_key=res.design_key,
             predicted_traj_rmse=res.prediction["traj_rmse"],
             model_traj_rmse_of_target_membrane=E_model[keys.index(t)][keys.index(t)],
             per_rings={r: v["loss"] for r, v in res.per_rings.items()},
-            seconds=time.perf_counter() - t0,
+            seconds=clock["wall_s"],
         )
         print(
             f"target {t}: designed {res.design_key}, predicted e_p {res.prediction['traj_rmse']:.3f} "
@@ -216,20 +214,21 @@ def height_study(model, data, args) -> dict:
             flush=True,
         )
         if name in ("A", "B"):
-            t0 = time.perf_counter()
-            res = opt.optimize(
-                model,
-                targets,
-                n_starts=args.starts,
-                steps=args.steps,
-                n_refine=args.refine,
-                seed=args.seed,
-                check=args.check,
-                progress=False,
-            )
+            with timed() as t:
+                res = opt.optimize(
+                    model,
+                    targets,
+                    n_starts=args.starts,
+                    steps=args.steps,
+                    n_refine=args.refine,
+                    seed=args.seed,
+                    check=args.check,
+                    progress=False,
+                )
             entry["optimised"] = res.to_json()
-            entry["optimised"]["seconds"] = time.perf_counter() - t0
-            opt.plot(res, OUT / f"paper_design_{name}.png", title=f"set {name}: {res.design_key}")
+            entry["optimised"]["seconds"] = t["wall_s"]
+            args.out.mkdir(parents=True, exist_ok=True)
+            opt.plot(res, args.out / f"paper_design_{name}.png", title=f"set {name}: {res.design_key}")
             p = res.prediction
             sim = res.simulator
             print(
@@ -304,7 +303,7 @@ def plot(result: dict, path: Path) -> None:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__, seed=True)
     ap.add_argument("--model", type=Path, default=None)
     ap.add_argument("--members", type=int, default=16)
     ap.add_argument("--fit-steps", type=int, default=3000)
@@ -313,10 +312,9 @@ def main():
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--traj-refine", type=int, default=32)
     ap.add_argument("--traj-steps", type=int, default=60)
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--check", action=argparse.BooleanOptionalAction, default=True)
     args = ap.parse_args()
-    t0 = time.perf_counter()
+    clock = Timing()
     data = load_mass_lift()
     model, model_path = get_model(args.model, args.members, args.fit_steps)
     tr = trajectory_study(model, data, args)
@@ -335,16 +333,15 @@ def main():
     }
     result = dict(
         model=model_path,
-        settings=vars(args) | {"model": model_path},
+        settings={k: v for k, v in vars(args).items() if k != "out"} | {"model": model_path},
         trajectories=tr,
         height=hs,
         summary=summary,
-        seconds=time.perf_counter() - t0,
-        load_average=list(os.getloadavg()),
+        seconds=clock.elapsed(),
+        load_average=load(),
     )
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "paper_design.json").write_text(json.dumps(result, indent=2, default=str))
-    plot(result, OUT / "paper_design.png")
+    write_json(args.out / "paper_design.json", result)
+    plot(result, args.out / "paper_design.png")
     print(json.dumps(summary, indent=1), flush=True)
 
 

@@ -26,17 +26,15 @@ Writes ``experiments/out/real_mass_lift.{json,png}``.
 
 from __future__ import annotations
 
-import argparse
 import json
-import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 
 import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 
-OUT = Path(__file__).parent / "out"
+from _common import Timing, parser, write_json  # experiments/ is on a script's path
+
 Z90 = 1.6448536269514722
 
 
@@ -51,14 +49,13 @@ class _Mean:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__, seed=True)
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--walkers", type=int, default=24)
     ap.add_argument("--max-rows", type=int, default=400)
     ap.add_argument("--members", type=int, default=8)
     ap.add_argument("--ens-steps", type=int, default=3000)
     ap.add_argument("--folds", type=int, default=7)
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
         "--only", type=int, nargs="+", default=None, help="compute only these folds (checkpoints), no summary"
     )
@@ -93,12 +90,13 @@ def main():
     rows = {n: [] for n in names}
     # One checkpoint file per fold (a rerun with the same settings skips finished folds;
     # ``--only`` lets several processes share the folds, one core each).
-    settings = {k: v for k, v in vars(args).items() if k != "only"}
+    # (the output folder is where, not what: a checkpoint serves any --out)
+    settings = {k: v for k, v in vars(args).items() if k not in ("only", "out")}
 
     def ckpt(i):
-        return OUT / "cache" / f"real_mass_lift_{args.physics}_fold{i}.json"
+        return args.out / "cache" / f"real_mass_lift_{args.physics}_fold{i}.json"
 
-    t_all = time.perf_counter()
+    clock = Timing()
     for i, (train, test) in enumerate(folds):
         if ckpt(i).exists() and json.loads(ckpt(i).read_text()).get("settings") == settings:
             saved = json.loads(ckpt(i).read_text())["rows"]
@@ -108,7 +106,7 @@ def main():
             continue
         if args.only is not None and i not in args.only:
             continue
-        t0 = time.perf_counter()
+        fold_clock = Timing()
         tr, te = lifted_rows(train), lifted_rows(test)
         a, b = tr.arrays(), te.arrays()
         key = test.design_keys[0]
@@ -124,14 +122,14 @@ def main():
             seed=args.seed + i,
             progress=False,
         )
-        t_fit = time.perf_counter() - t0
+        t_fit = fold_clock.elapsed()
         calibrated = MultiFidelity.from_posterior(fit.model, fit.posterior, None, seed=args.seed).thinned(args.draws)
         paper = _Mean(lambda d, h, p: emu(d, h, p, SimParams()))  # the reference node of every lattice
         ens = EnsembleConfig(n_members=args.members, steps=args.ens_steps, monotone=True).fit(
             a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=args.seed + i, progress=False
         )
         curve = CurveFitConfig(degree=1).fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"])
-        t_base = time.perf_counter() - t0 - t_fit
+        t_base = fold_clock.elapsed() - t_fit
         for name, model in zip(names, (paper, calibrated, ens, curve, fit.mf.thinned(args.draws))):
             if isinstance(model, MultiFidelity):
                 dat = model.data_for(None, None, None, table=te)
@@ -173,18 +171,15 @@ def main():
                 f"{rows[n][-1]['coverage90']:.2f}"
                 for n in names
             )
-            + f"  ({time.perf_counter() - t0:.0f} s)",
+            + f"  ({fold_clock.elapsed():.0f} s)",
             flush=True,
         )
         rows["b_sim_calibrated"][-1]["seconds"] = {
             "multi_fidelity_fit": t_fit,
             "baselines_fit": t_base,
-            "total": time.perf_counter() - t0,
+            "total": fold_clock.elapsed(),
         }
-        ckpt(i).parent.mkdir(parents=True, exist_ok=True)
-        ckpt(i).write_text(
-            json.dumps({"settings": settings, "rows": {n: rows[n][-1] for n in names}}, indent=1, default=float)
-        )
+        write_json(ckpt(i), {"settings": settings, "rows": {n: rows[n][-1] for n in names}}, indent=1, default=float)
     if args.only is not None:
         print(f"folds {args.only} done (--only: no summary)", flush=True)
         return
@@ -212,7 +207,7 @@ def main():
     )
     post = full.posterior.summary().set_index("parameter")
     out = {
-        "settings": vars(args),
+        "settings": {k: v for k, v in vars(args).items() if k != "out"},
         "physics": args.physics,
         "metrics_held_out": summary,
         "folds": rows,
@@ -221,19 +216,18 @@ def main():
         "mu_pa_paper_uniaxial": 31.5e3,
         "jm": {k: float(post.loc["jm", k]) for k in ("median", "q05", "q95")},
         "jm_paper": 39.6,
-        "seconds": time.perf_counter() - t_all,
+        "seconds": clock.elapsed(),
         "notes": (
             "held-out rows: lift rows with h >= 2 mm (force = lifted weight); likelihood rows subsampled "
             f"to {args.max_rows} per fit; emcee {args.walkers} walkers x {args.steps} steps; ensembles "
             f"{args.members} members x {args.ens_steps} steps; {args.draws} posterior draws in the predictive"
         ),
     }
-    OUT.mkdir(exist_ok=True)
     stem = "real_mass_lift" if args.physics == "exact" else "real_mass_lift_emulator"
-    (OUT / f"{stem}.json").write_text(json.dumps(out, indent=2, default=float))
+    write_json(args.out / f"{stem}.json", out, default=float)
     print(json.dumps(summary, indent=1))
     print(f"mu {out['mu_pa']} (paper 31.5 kPa), J_m {out['jm']} (paper 39.6)")
-    _plot(summary, rows, names, OUT / f"{stem}.png")
+    _plot(summary, rows, names, args.out / f"{stem}.png")
 
 
 def _plot(summary, rows, names, path):

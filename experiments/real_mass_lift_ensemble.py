@@ -15,12 +15,6 @@ Writes ``experiments/out/real_mass_lift_ensemble.{json,png}``.
 
 from __future__ import annotations
 
-import argparse
-import json
-import platform
-import time
-from pathlib import Path
-
 import numpy as np
 import pandas as pd
 
@@ -31,7 +25,7 @@ from mfdesign.models.cv import cross_validate
 from mfdesign.models.ensemble import EnsembleConfig
 from mfdesign.models.trajectory import measured_waypoints, trajectory_errors
 
-OUT = Path(__file__).parent / "out"
+from _common import machine, parser, timed, write_json  # experiments/ is on a script's path
 
 
 def loo_trajectories(models, folds, waypoints):
@@ -48,10 +42,9 @@ def loo_trajectories(models, folds, waypoints):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__, seed=True)
     ap.add_argument("--steps", type=int, default=10_000)
     ap.add_argument("--members", type=int, default=32)
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--curve-degree", type=int, default=1)
     args = ap.parse_args()
 
@@ -65,14 +58,14 @@ def main():
     result = {
         "data": "mass_lift_data_dictionary_N_Pa.pkl (7 membranes, 45,924 rows)",
         "protocol": "leave-one-membrane-out; force = lifted weight at measured (h, p)",
-        "machine": platform.processor() or platform.machine(),
+        "machine": machine(),
         "models": {},
     }
     tables = {}
     for name, spec in specs.items():
-        t0 = time.perf_counter()
-        cv = cross_validate(spec, folds, seed=args.seed, keep_models=True)
-        per, traj_p, traj_d, table = loo_trajectories(cv.models, folds, waypoints)
+        with timed() as t:
+            cv = cross_validate(spec, folds, seed=args.seed, keep_models=True)
+            per, traj_p, traj_d, table = loo_trajectories(cv.models, folds, waypoints)
         tables[name] = (cv, table)
         result["models"][name] = {
             "config": spec.__dict__ if not hasattr(spec, "to_dict") else spec.to_dict(),
@@ -80,7 +73,7 @@ def main():
             "trajectory_new_designs": per,
             "trajectory_rmse_p_new": traj_p,
             "trajectory_rmse_dist_new": traj_d,
-            "seconds": time.perf_counter() - t0,
+            "seconds": t["wall_s"],
         }
         print(
             f"{name}: force RMSE {cv.overall['rmse_n']:.2f} N (fold mean "
@@ -99,9 +92,8 @@ def main():
     result["models"]["ensemble"]["trajectory_known_designs"] = per
     result["models"]["ensemble"]["trajectory_rmse_p_known"] = float(np.sqrt(np.mean(e**2)))
     print(f"ensemble, known designs: trajectory RMSE {np.sqrt(np.mean(e**2)):.3f}")
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "real_mass_lift_ensemble.json").write_text(json.dumps(result, indent=2))
-    plot(tables, waypoints, OUT / "real_mass_lift_ensemble.png")
+    write_json(args.out / "real_mass_lift_ensemble.json", result)
+    plot(tables, waypoints, args.out / "real_mass_lift_ensemble.png")
 
 
 def plot(tables, waypoints, path):

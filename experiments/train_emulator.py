@@ -13,9 +13,6 @@ The trained artifact goes into the package, ``mfdesign/data/files/emulator/`` (`
 
 from __future__ import annotations
 
-import argparse
-import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -24,12 +21,13 @@ import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign.models import emulator as em
 from mfdesign.models.emulator_data import load_training
 
+from _common import parser, timed, write_json  # experiments/ is on a script's path
+
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "experiments" / "out"
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--data", type=Path, default=ROOT / "data" / "emulator" / "parts")
     ap.add_argument("--artifact", type=Path, default=em.DEFAULT_DIR)
     ap.add_argument("--steps", type=int, default=20_000)
@@ -39,7 +37,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--batch", type=int, default=512)
     ap.add_argument("--lr", type=float, default=3e-3)
     ap.add_argument("--test-mod", type=int, default=10)
-    ap.add_argument("--tag", default="emulator", help="output name in experiments/out/")
+    ap.add_argument("--tag", default="emulator", help="output name (<tag>.json, <tag>.png) in --out")
     ap.add_argument("--no-save", action="store_true", help="do not overwrite the artifact")
     a = ap.parse_args(argv)
 
@@ -55,9 +53,9 @@ def main(argv=None) -> dict:
     )
 
     cfg = em.EmulatorConfig(n_members=a.members, width=a.width, depth=a.depth, steps=a.steps, batch=a.batch, lr=a.lr)
-    t0 = time.perf_counter()
-    emu, hist = em.fit_emulator(train_a, cfg)
-    train_s = time.perf_counter() - t0
+    with timed() as t:
+        emu, hist = em.fit_emulator(train_a, cfg)
+    train_s = t["wall_s"]
 
     acc = em.evaluate(emu, test_a)
     acc_train = em.evaluate(emu, train_a)
@@ -65,12 +63,11 @@ def main(argv=None) -> dict:
     acc_train.pop("_pred")
     import jax
 
-    t0 = time.perf_counter()
     f = jax.jit(emu.__call__)
-    f(test_a["design"], test_a["h"], test_a["p"], em.params_of(test_a)).block_until_ready()
-    t1 = time.perf_counter()
-    f(test_a["design"], test_a["h"], test_a["p"], em.params_of(test_a)).block_until_ready()
-    eval_s = time.perf_counter() - t1
+    f(test_a["design"], test_a["h"], test_a["p"], em.params_of(test_a)).block_until_ready()  # compiles
+    with timed() as t:
+        f(test_a["design"], test_a["h"], test_a["p"], em.params_of(test_a)).block_until_ready()
+    eval_s = t["wall_s"]
     report = {
         "config": cfg.to_dict(),
         "dtype": "float64",
@@ -87,9 +84,8 @@ def main(argv=None) -> dict:
         "target_rmse_over_range": 0.01,
         "target_met": bool(acc["all"]["rmse_over_range"] <= 0.01),
     }
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / f"{a.tag}.json").write_text(json.dumps(report, indent=2))
-    _parity(test_a, pred, acc, OUT / f"{a.tag}.png")
+    write_json(a.out / f"{a.tag}.json", report)
+    _parity(test_a, pred, acc, a.out / f"{a.tag}.png")
     if not a.no_save:
         emu.save(
             a.artifact,

@@ -17,14 +17,11 @@ virtual trial).
 
 from __future__ import annotations
 
-import argparse
 import json
-import time
-from pathlib import Path
 
 import numpy as np
 
-OUT = Path(__file__).resolve().parent / "out"
+from _common import Timing, parser, timed, write_json  # experiments/ is on a script's path
 
 
 def virtual_pressure_at(h_traj: np.ndarray, p_traj: np.ndarray, heights: np.ndarray) -> np.ndarray:
@@ -50,10 +47,7 @@ def virtual_pressure_at(h_traj: np.ndarray, p_traj: np.ndarray, heights: np.ndar
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cache-dir", default=str(OUT / "plane_cache"), help="simulator plane cache ('' = none)")
-    ap.add_argument("--out", default=str(OUT))
-    ap.add_argument("--seed", type=int, default=0)
+    ap = parser(__doc__, seed=True, plane_cache=True)
     args = ap.parse_args(argv)
 
     from mfdesign.cli._app import enable_compilation_cache
@@ -69,25 +63,25 @@ def main(argv=None) -> dict:
     from mfdesign.rig.virtual import Noise, Protocol, VirtualRig, simulator_fingerprint
     from mfdesign.units import G_M_S2 as G
 
-    out = Path(args.out)
+    out = args.out
     out.mkdir(parents=True, exist_ok=True)
     real = load_mass_lift().df
     keys = list(dict.fromkeys(real["design_key"]))
     masses_n = sorted(real["force_n"].unique())
     masses_kg = [round(f / G, 3) for f in masses_n]
-    cache = args.cache_dir or None
+    cache = args.cache_dir
     proto = Protocol(lift_trials=1)
     clean = VirtualRig(seed=args.seed, noise=Noise.none(), protocol=proto, cache_dir=cache)
     noisy = VirtualRig(seed=args.seed, protocol=proto, cache_dir=cache)
-    gaps, t0 = [], time.time()
+    gaps, clock = [], Timing()
     fig, axes = plt.subplots(2, 4, figsize=(18, 8.5), sharex=True, sharey=True)
     colours = dict(zip(masses_n, ["tab:blue", "tab:orange", "tab:red"]))
     for ax, key in zip(axes.ravel(), keys):
         design = Membrane.from_key(key)
-        t1 = time.time()
-        vc = clean.mass_lift(design, masses_kg).df
-        vn = noisy.mass_lift(design, masses_kg).df
-        print(f"{key}: {time.time() - t1:.0f} s", flush=True)
+        with timed() as t:
+            vc = clean.mass_lift(design, masses_kg).df
+            vn = noisy.mass_lift(design, masses_kg).df
+        print(f"{key}: {t['wall_s']:.0f} s", flush=True)
         for f_n in masses_n:
             r = real[(real["design_key"] == key) & (real["force_n"] == f_n)]
             load = f_n
@@ -154,9 +148,9 @@ def main(argv=None) -> dict:
         summary=summary,
         gaps=gaps,
         burst_events=[e for e in clean.events if e["status"] == "burst"],
-        seconds=round(time.time() - t0, 1),
+        seconds=round(clock.elapsed(), 1),
     )
-    (out / "virtual_vs_real.json").write_text(json.dumps(result, indent=1))
+    write_json(out / "virtual_vs_real.json", result, indent=1)
     print(json.dumps(summary, indent=1))
     return result
 

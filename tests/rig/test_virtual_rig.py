@@ -190,7 +190,11 @@ def test_plane_cache(tmp_path):
     np.testing.assert_array_equal(again["force_n"], rig.characterise(RINGED).df["force_n"])
 
 
-def _load_script():
+def _load_script(monkeypatch):
+    """The bundling script as a module. It imports ``_common`` from its own folder, which
+    ``python experiments/make_bundled_dataset.py`` puts first on the path; so does this
+    (for the one test only)."""
+    monkeypatch.syspath_prepend(str(ROOT / "experiments"))
     spec = importlib.util.spec_from_file_location(
         "make_bundled_dataset", ROOT / "experiments" / "make_bundled_dataset.py"
     )
@@ -199,9 +203,9 @@ def _load_script():
     return mod
 
 
-def test_dataset_script_is_reproducible_tiny(tmp_path):
+def test_dataset_script_is_reproducible_tiny(tmp_path, monkeypatch):
     """The bundling script's code path, bit for bit, on a tiny run with the analytic simulator."""
-    mod = _load_script()
+    mod = _load_script(monkeypatch)
     kw = dict(designs=[RINGLESS, RINGED], simulator=standin_plane, protocol=SMALL, cache_dir=None)
     a = mod.build(tmp_path / "a", **kw)
     b = mod.build(tmp_path / "b", **kw)
@@ -246,7 +250,7 @@ def test_real_simulator_small_plane():
 
 
 @pytest.mark.slow
-def test_bundled_dataset_regenerates_bit_for_bit(tmp_path):
+def test_bundled_dataset_regenerates_bit_for_bit(tmp_path, monkeypatch):
     card_path = ROOT / "mfdesign" / "data" / "files" / "bundled_card.json"
     if not card_path.is_file():
         pytest.skip("bundled dataset not generated yet")
@@ -255,5 +259,5 @@ def test_bundled_dataset_regenerates_bit_for_bit(tmp_path):
 
     if card["simulator_fingerprint"] != simulator_fingerprint():
         pytest.skip("the simulator's source changed since the dataset was made: regenerate it")
-    out = _load_script().build(tmp_path, cache_dir=None)
+    out = _load_script(monkeypatch).build(tmp_path, cache_dir=None)
     assert _sha(Path(out["parquet"])) == card["sha256"]
