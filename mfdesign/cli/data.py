@@ -112,7 +112,9 @@ def fit(
     table = load_data(data, "fit", allow_outside_design_space)
     a = table.arrays()
     cfg = make_spec("ensemble", members, steps, batch, degree, monotone)
-    model = cfg.fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=seed, progress=True)
+    model = cfg.fit(
+        a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=seed, progress=True
+    ).ensemble
     model.save(out)
     mu, _ = model.mean_std(a["design"], a["height_mm"], a["pressure_pa"])
     rmse = float(((mu - a["force_n"]) ** 2).mean() ** 0.5)
