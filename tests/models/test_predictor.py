@@ -1,13 +1,12 @@
 """The one predictor interface: abstract base, pointwise members, grid path, fidelity checks."""
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import mfdesign  # noqa: F401  (float64)
 from mfdesign.models.baselines import CurveFitConfig
-from mfdesign.models.ensemble import EnsembleConfig, Normaliser, init_ensemble
+from mfdesign.models.ensemble import EnsembleConfig
 from mfdesign.models.predictor import (
     AbstractPredictor,
     EnsemblePredictor,
@@ -15,16 +14,10 @@ from mfdesign.models.predictor import (
     Grid,
     SplitPredictor,
 )
+from tiny_models import tiny_ensemble
 
 GRID = Grid(h_mm=(0.0, 25.0), p_pa=(2000.0, 6000.0, 8000.0))
 DESIGNS = jnp.asarray([[2.0, 26.0, 36.0, 6.0, np.nan, np.nan], [1.2, 30.0, np.nan, np.nan, np.nan, np.nan]])
-
-
-def tiny_ensemble(seed=0, members=3):
-    design = np.array([[2.0, 25.4, np.nan, np.nan, np.nan, np.nan], [1.5, 30.0, 45.0, 6.0, 60.0, 5.0]])
-    norm = Normaliser.fit(design, np.array([0.0, 40.0]), np.array([1e3, 8e3]), np.array([1.0, 30.0]))
-    cfg = EnsembleConfig(n_members=members, latent_width=8, latent_depth=1, ring_embed_dim=4)
-    return init_ensemble(cfg, norm, jax.random.PRNGKey(seed))
 
 
 def test_the_base_declares_members_and_fidelities():
@@ -46,7 +39,7 @@ def test_the_base_declares_members_and_fidelities():
 def test_fast_ensemble_grid_equals_the_pointwise_grid(fidelity):
     """The ensembles' grid override and the base's grid (built on ``members``) agree."""
     ens = EnsemblePredictor(tiny_ensemble())
-    split = SplitPredictor(tiny_ensemble(0), tiny_ensemble(1))
+    split = SplitPredictor(tiny_ensemble(seed=0), tiny_ensemble(seed=1))
     for pred in (ens, split):
         if fidelity not in pred.fidelities:
             continue
@@ -57,7 +50,7 @@ def test_fast_ensemble_grid_equals_the_pointwise_grid(fidelity):
 
 
 def test_split_members_add_pointwise():
-    sim, disc = tiny_ensemble(0), tiny_ensemble(1)
+    sim, disc = tiny_ensemble(seed=0), tiny_ensemble(seed=1)
     pred = SplitPredictor(sim, disc)
     h, p = jnp.asarray([0.0, 30.0]), jnp.asarray([3000.0, 7000.0])
     np.testing.assert_allclose(pred.members("sim", DESIGNS, h, p), sim.predict(DESIGNS, h, p))
