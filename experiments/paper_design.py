@@ -45,15 +45,16 @@ NOTEBOOK_A = opt.HeightTargets((24.525,) * 3, (4137.0, 5516.0, 6895.0))  # the a
 
 def get_model(path: Path | None, members: int, steps: int):
     from mfdesign.models.ensemble import Ensemble, EnsembleConfig
+    from mfdesign.models.predictor import EnsemblePredictor
 
     path = Path(path) if path else PAPER_DESIGN_MODEL
     if (path / "ensemble.json").exists():
-        return Ensemble.load(path), str(path)
+        return EnsemblePredictor(Ensemble.load(path)), str(path)
     data = load_mass_lift()
     a = data.arrays()
     cfg = EnsembleConfig(n_members=members, steps=steps, monotone=True)
     model = cfg.fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=0)
-    model.save(path)
+    model.ensemble.save(path)
     return model, str(path)
 
 
@@ -192,7 +193,7 @@ def height_study(model, data, args) -> dict:
     keys = data.design_keys
     prior, authors = keys[:5], {"A": keys[5], "B": keys[6]}
     tau = opt.PAPER_WEIGHTS.temperature_mm
-    predictor = opt.as_predictor(model)
+    predictor = model
     out = {}
     for name, targets in (("A", opt.TARGET_SETS["A"]), ("B", opt.TARGET_SETS["B"]), ("A_notebook", NOTEBOOK_A)):
         real = real_scores(data, targets, tau)

@@ -38,14 +38,11 @@ from _common import Timing, parser, write_json  # experiments/ is on a script's 
 Z90 = 1.6448536269514722
 
 
-class _Mean:
-    """A deterministic model as a ``ForceModel`` ([1, N])."""
+def _mean_predictor(fn):
+    """A deterministic model ``fn(design, h, p) -> [N]`` as a one-member rig predictor ([1, N])."""
+    from mfdesign.models.predictor import FunctionPredictor
 
-    def __init__(self, fn):
-        self.fn = fn
-
-    def predict(self, design, h_mm, p_pa):
-        return np.asarray(self.fn(design, h_mm, p_pa))[None, :]
+    return FunctionPredictor({"rig": lambda d, h, p: np.asarray(fn(d, h, p))[None, :]})
 
 
 def main():
@@ -124,7 +121,7 @@ def main():
         )
         t_fit = fold_clock.elapsed()
         calibrated = MultiFidelity.from_posterior(fit.model, fit.posterior, None, seed=args.seed).thinned(args.draws)
-        paper = _Mean(lambda d, h, p: emu(d, h, p, SimParams()))  # the reference node of every lattice
+        paper = _mean_predictor(lambda d, h, p: emu(d, h, p, SimParams()))  # the reference node of every lattice
         ens = EnsembleConfig(n_members=args.members, steps=args.ens_steps, monotone=True).fit(
             a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=args.seed + i, progress=False
         )
@@ -145,7 +142,7 @@ def main():
             # extrapolation, e.g. a posterior draw of a thin new membrane needs planes above
             # their top) is left out of the metrics and counted.
             ok = np.isfinite(mean) & np.isfinite(lo) & np.isfinite(hi)
-            _, traj = trajectory_errors(model, wp)
+            _, traj = trajectory_errors(model.predictor(args.draws) if isinstance(model, MultiFidelity) else model, wp)
             rows[name].append(
                 {
                     "membrane": key,

@@ -61,19 +61,18 @@ import optax
 
 from mfdesign.design import DesignError, DesignSpace, Membrane  # noqa: F401
 from mfdesign.models.predictor import (  # noqa: F401  (re-exported: acquisition's inputs)
+    AbstractPredictor,
     EnsemblePredictor,
     FunctionPredictor,
     Grid,
-    Predictor,
     SplitPredictor,
-    _check_fidelity,
 )
 
 __all__ = [
     "FIDELITIES",
     "DEFAULT_COSTS",
     "Grid",
-    "Predictor",
+    "AbstractPredictor",
     "EnsemblePredictor",
     "SplitPredictor",
     "FunctionPredictor",
@@ -111,7 +110,7 @@ def _deviation(predictor, fidelity, design, grid):
 
 
 def evaluate(
-    predictor: Predictor,
+    predictor: AbstractPredictor,
     designs,
     fidelities: Sequence[str],
     grid: Grid = Grid(),
@@ -310,7 +309,7 @@ def _greedy(dev, cost, q, units):
 
 
 def propose(
-    predictor: Predictor,
+    predictor: AbstractPredictor,
     q: int,
     fidelities: Sequence[str] = ("rig",),
     costs: Mapping[str, float] | None = None,
@@ -333,7 +332,7 @@ def propose(
 
     **Arguments:**
 
-    - `predictor`: members per fidelity (:class:`~mfdesign.models.predictor.Predictor`).
+    - `predictor`: members per fidelity (:class:`~mfdesign.models.predictor.AbstractPredictor`).
     - `q`: designs in the batch.
     - `fidelities`: fidelities to choose from (`"rig"`, `"sim"`).
     - `costs`: cost per fidelity (default :data:`DEFAULT_COSTS`).

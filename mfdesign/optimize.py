@@ -47,17 +47,19 @@ screen and one of the refinement (they were three each). Measured once each, not
 running, height maximisation on the paper-design ensemble, 2,500 starts, best 64 refined,
 rings 0-2: first call 61.8 s -> 55.3 s, second call 39.8 s -> 31.1 s.
 
-The model is any :class:`Predictor`: ``members(design [N, 6], h_mm [N], p_pa [N]) -> [M,
-N]`` forces (N), traceable in all inputs. The optimiser uses the member mean; the member
-spread is reported as the uncertainty of the winner's lift heights and trajectories.
+The model is any :class:`~mfdesign.models.predictor.AbstractPredictor` offering the
+``rig`` fidelity: ``members("rig", design [N, 6], h_mm [N], p_pa [N]) -> [M, N]`` forces
+(N), traceable in all inputs. The optimiser uses the member mean; the member spread is
+reported as the uncertainty of the winner's lift heights and trajectories.
 """
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import math
 import time
-from typing import Any, Callable, Protocol, Sequence, runtime_checkable
+from typing import Callable, Sequence
 
 import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
@@ -67,6 +69,7 @@ import numpy as np
 import optax
 
 from mfdesign.design import DesignSpace, Membrane
+from mfdesign.models.predictor import RIG, AbstractPredictor
 from mfdesign.models.trajectory import P_MAX_PA
 from mfdesign.units import G_M_S2
 
@@ -77,13 +80,11 @@ __all__ = [
     "PAPER_WEIGHTS",
     "HeightTargets",
     "Waypoints",
-    "Predictor",
-    "EnsembleMembers",
-    "as_predictor",
     "smooth_min",
     "first_crossing",
     "lift_heights",
     "model_pressures",
+    "DesignLoss",
     "HeightLoss",
     "height_loss",
     "TrajectoryLoss",
@@ -190,43 +191,12 @@ TARGET_SETS = {
 }
 
 
-# --------------------------------------------------------------------------- predictors
-@runtime_checkable
-class Predictor(Protocol):
-    """``members(design [N, 6] mm, h_mm [N], p_pa [N]) -> [M, N]`` forces in N; traceable."""
-
-    def members(self, design, h_mm, p_pa) -> jax.Array: ...
-
-
-@runtime_checkable
-class MembersModel(Protocol):
-    """``predict(design [N, 6] mm, h_mm [N], p_pa [N]) -> [M, N]`` forces in N (the RPN ensemble)."""
-
-    def predict(self, design, h_mm, p_pa) -> jax.Array: ...
-
-
-class EnsembleMembers(eqx.Module):
-    """Adapter: a :class:`MembersModel` as a :class:`Predictor`."""
-
-    model: Any
-
-    def members(self, design, h_mm, p_pa):
-        return self.model.predict(design, h_mm, p_pa)
-
-
-def as_predictor(model) -> Predictor:
-    """A :class:`Predictor` from a :class:`Predictor` or a :class:`MembersModel`."""
-    if isinstance(model, Predictor):
-        return model
-    if isinstance(model, MembersModel):
-        return EnsembleMembers(model)
-    raise TypeError(f"{type(model).__name__} has neither members(design, h, p) nor predict(design, h, p)")
-
-
-def _members_at(predictor, design, h, p):
-    """Members [M] at one point (design [6], scalars h, p); vmap it over grids so that work
-    not depending on the mapped input (e.g. the ensemble's latent net over a p grid) runs once."""
-    return predictor.members(design[None], jnp.reshape(h, (1,)), jnp.reshape(p, (1,)))[:, 0]
+# --------------------------------------------------------------------------- predictor
+def _members_at(predictor: AbstractPredictor, design, h, p):
+    """Rig members [M] (N) at one point (design [6] mm, scalars h mm, p Pa): a membrane is
+    designed for the rig. vmap it over grids so that work not depending on the mapped input
+    (e.g. the ensemble's latent net over a p grid) runs once."""
+    return predictor.members(RIG, design[None], jnp.reshape(h, (1,)), jnp.reshape(p, (1,)))[:, 0]
 
 
 # --------------------------------------------------------------------------- building blocks
@@ -269,7 +239,7 @@ def lift_heights(predictor, design, force_n, p_pa, h_grid, members: bool = False
     lifted), ``h_grid[-1]`` when it never falls (saturated). Mean force by default; per
     member with ``members=True`` (leading axis M). Returns ``(h, force at h_grid[0])``.
     """
-    predictor, h_grid = as_predictor(predictor), jnp.asarray(h_grid)
+    h_grid = jnp.asarray(h_grid)
     f = jax.vmap(jax.vmap(lambda h, p: _members_at(predictor, design, h, p), (0, None)), (None, 0))(
         h_grid, jnp.asarray(p_pa)
     )  # [K, G, M]
@@ -284,7 +254,7 @@ def model_pressures(predictor, design, force_n, h_mm, p_grid, members: bool = Fa
     """Pressures (Pa) at which the predicted force at height ``h_mm`` [K] first reaches
     ``force_n`` [K], on ``p_grid`` [G] (``p_grid[-1]`` when never). Returns ``(p, force at
     p_grid[-1])``; per member with ``members=True``."""
-    predictor, p_grid = as_predictor(predictor), jnp.asarray(p_grid)
+    p_grid = jnp.asarray(p_grid)
     f = jax.vmap(jax.vmap(lambda h, p: _members_at(predictor, design, h, p), (None, 0)), (0, None))(
         jnp.asarray(h_mm), p_grid
     )  # [K, G, M]
@@ -346,22 +316,35 @@ def _decode(space: DesignSpace, u, n_rings):
     )
 
 
-class HeightLoss(eqx.Module):
-    """``u [dim] -> (loss, aux)`` of height maximisation (module docstring); aux: heights
-    [K] mm, smooth minimum (the score, mm) and the force-deficit penalty. A pytree (the
-    predictor's arrays are leaves), so compiled multi-starts are reused across models."""
+class DesignLoss(eqx.Module):
+    """What the two losses share: ``u [dim] -> (loss, aux)`` decodes the unit-cube point
+    (:func:`_decode`, ring count ``n_rings``) and scores the design ``[6]`` mm
+    (:meth:`of_design`) for loads ``force_n`` [K] N at pressures ``p_pa`` [K] Pa. A pytree
+    (the predictor's arrays are leaves), so compiled multi-starts are reused across models."""
 
-    predictor: Any
+    predictor: AbstractPredictor
     force_n: jax.Array
     p_pa: jax.Array
-    h_grid: jax.Array
     n_rings: jax.Array  # data, not static: one compilation for every ring count
     space: DesignSpace = eqx.field(static=True)
     weights: Weights = eqx.field(static=True)
 
     def __call__(self, u):
+        return self.of_design(_decode(self.space, u, self.n_rings))
+
+    @abc.abstractmethod
+    def of_design(self, design) -> tuple[jax.Array, dict]:
+        """``(loss, aux)`` of one design ``[6]`` mm."""
+
+
+class HeightLoss(DesignLoss):
+    """Height maximisation (module docstring) on the height grid ``h_grid`` [G] mm; aux:
+    heights [K] mm, smooth minimum (the score, mm) and the force-deficit penalty."""
+
+    h_grid: jax.Array
+
+    def of_design(self, design):
         w = self.weights
-        design = _decode(self.space, u, self.n_rings)
         h, f0 = _invert(
             lambda hh: _mean_force(self.predictor, design, hh, self.p_pa), self.h_grid, self.force_n, decreasing=True
         )
@@ -371,40 +354,39 @@ class HeightLoss(eqx.Module):
         return -w.k_height * score / w.height_scale_mm + penalty, dict(heights_mm=h, score_mm=score, penalty=penalty)
 
 
-def height_loss(
-    predictor, targets: HeightTargets, space: DesignSpace, n_rings: int, weights: Weights = PAPER_WEIGHTS, h_grid=None
-) -> HeightLoss:
-    """The height-maximisation loss; ``h_grid`` default 0-80 mm in 5 mm steps."""
-    h_grid = jnp.linspace(0.0, 80.0, 17) if h_grid is None else jnp.asarray(h_grid, float)
+def _shared_fields(predictor, problem: HeightTargets | Waypoints, space: DesignSpace, n_rings: int, weights) -> dict:
+    """The :class:`DesignLoss` fields of ``problem`` (raises on a ring count ``space`` lacks)."""
     space.dim(n_rings)
-    return HeightLoss(
-        as_predictor(predictor),
-        jnp.asarray(targets.force_n),
-        jnp.asarray(targets.p_pa),
-        h_grid,
-        jnp.asarray(int(n_rings)),
-        space,
-        weights,
+    return dict(
+        predictor=predictor,
+        force_n=jnp.asarray(problem.force_n),
+        p_pa=jnp.asarray(problem.p_pa),
+        n_rings=jnp.asarray(int(n_rings)),
+        space=space,
+        weights=weights,
     )
 
 
-class TrajectoryLoss(eqx.Module):
-    """``u [dim] -> (loss, aux)`` of trajectory targeting (module docstring); aux: model
-    pressures [K] Pa, the scaled trajectory RMSE ``e_p`` and the unreachable penalty."""
+def height_loss(
+    predictor, targets: HeightTargets, space: DesignSpace, n_rings: int, weights: Weights = PAPER_WEIGHTS, h_grid=None
+) -> HeightLoss:
+    """The height-maximisation loss of ``predictor`` (an :class:`AbstractPredictor`);
+    ``h_grid`` default 0-80 mm in 5 mm steps."""
+    h_grid = jnp.linspace(0.0, 80.0, 17) if h_grid is None else jnp.asarray(h_grid, float)
+    return HeightLoss(**_shared_fields(predictor, targets, space, n_rings, weights), h_grid=h_grid)
 
-    predictor: Any
-    force_n: jax.Array
-    p_pa: jax.Array
+
+class TrajectoryLoss(DesignLoss):
+    """Trajectory targeting (module docstring): way-points at heights ``h_mm`` [K] mm with
+    normalised weights ``weight`` [K], inverted on the pressure grid ``p_grid`` [G] Pa; aux:
+    model pressures [K] Pa, the scaled trajectory RMSE ``e_p`` and the unreachable penalty."""
+
     h_mm: jax.Array
     weight: jax.Array
     p_grid: jax.Array
-    n_rings: jax.Array  # data, not static: one compilation for every ring count
-    space: DesignSpace = eqx.field(static=True)
-    weights: Weights = eqx.field(static=True)
 
-    def __call__(self, u):
+    def of_design(self, design):
         w = self.weights
-        design = _decode(self.space, u, self.n_rings)
         p_hat, f_lo = _invert(
             lambda pp: _mean_force(self.predictor, design, self.h_mm, pp), self.p_grid, self.force_n, decreasing=False
         )
@@ -417,18 +399,15 @@ class TrajectoryLoss(eqx.Module):
 def trajectory_loss(
     predictor, waypoints: Waypoints, space: DesignSpace, n_rings: int, weights: Weights = PAPER_WEIGHTS, p_grid=None
 ) -> TrajectoryLoss:
-    """The trajectory-targeting loss; ``p_grid`` default 0-20 kPa in 250 Pa steps."""
+    """The trajectory-targeting loss of ``predictor`` (an :class:`AbstractPredictor`);
+    ``p_grid`` default 0-20 kPa in 250 Pa steps."""
     p_grid = jnp.linspace(0.0, 2.0 * P_MAX_PA, 81) if p_grid is None else jnp.asarray(p_grid, float)
-    space.dim(n_rings)
     wt = np.asarray(waypoints.weight) / sum(waypoints.weight)
     return TrajectoryLoss(
-        as_predictor(predictor),
-        *(jnp.asarray(getattr(waypoints, k)) for k in ("force_n", "p_pa", "h_mm")),
-        jnp.asarray(wt),
-        p_grid,
-        jnp.asarray(int(n_rings)),
-        space,
-        weights,
+        **_shared_fields(predictor, waypoints, space, n_rings, weights),
+        h_mm=jnp.asarray(waypoints.h_mm),
+        weight=jnp.asarray(wt),
+        p_grid=p_grid,
     )
 
 
@@ -531,36 +510,33 @@ class Result:
         return dataclasses.asdict(self)
 
 
-def lift_curves(predictor, design, forces, p_grid, h_grid) -> dict:
-    """Per force: lift height (mm) vs pressure ``p_grid`` (Pa), member mean and 5/95 % band."""
-    d, predictor = jnp.asarray(design), as_predictor(predictor)
-    fn = jax.jit(lambda F, pp: lift_heights(predictor, d, jnp.full_like(pp, F), pp, h_grid, members=True)[0])
+def _member_curves(fn, forces, grid, x_key: str, y: str, unit: str) -> dict:
+    """Per force ``F``: the members' curves ``fn(F, grid) -> [M, X]`` over ``grid`` [X] as
+    ``{x_key: grid, y_mean_unit, y_lo_unit, y_hi_unit}`` (member mean and 5/95 % band)."""
     out = {}
     for F in forces:
-        h = np.asarray(fn(F, jnp.asarray(p_grid)))  # [M, P]
-        out[f"{F:.3f}"] = dict(
-            p_pa=np.asarray(p_grid).tolist(),
-            h_mean_mm=h.mean(0).tolist(),
-            h_lo_mm=np.percentile(h, 5, 0).tolist(),
-            h_hi_mm=np.percentile(h, 95, 0).tolist(),
-        )
+        v = np.asarray(fn(F, jnp.asarray(grid)))  # [M, X]
+        out[f"{F:.3f}"] = {
+            x_key: np.asarray(grid).tolist(),
+            f"{y}_mean_{unit}": v.mean(0).tolist(),
+            f"{y}_lo_{unit}": np.percentile(v, 5, 0).tolist(),
+            f"{y}_hi_{unit}": np.percentile(v, 95, 0).tolist(),
+        }
     return out
+
+
+def lift_curves(predictor, design, forces, p_grid, h_grid) -> dict:
+    """Per force: lift height (mm) vs pressure ``p_grid`` (Pa), member mean and 5/95 % band."""
+    d = jnp.asarray(design)
+    fn = jax.jit(lambda F, pp: lift_heights(predictor, d, jnp.full_like(pp, F), pp, h_grid, members=True)[0])
+    return _member_curves(fn, forces, p_grid, "p_pa", "h", "mm")
 
 
 def pressure_curves(predictor, design, forces, h_grid, p_grid) -> dict:
     """Per force: pressure (Pa) to hold the load at heights ``h_grid`` (mm), mean and 5/95 % band."""
-    d, predictor = jnp.asarray(design), as_predictor(predictor)
+    d = jnp.asarray(design)
     fn = jax.jit(lambda F, hh: model_pressures(predictor, d, jnp.full_like(hh, F), hh, p_grid, members=True)[0])
-    out = {}
-    for F in forces:
-        p = np.asarray(fn(F, jnp.asarray(h_grid)))
-        out[f"{F:.3f}"] = dict(
-            h_mm=np.asarray(h_grid).tolist(),
-            p_mean_pa=p.mean(0).tolist(),
-            p_lo_pa=np.percentile(p, 5, 0).tolist(),
-            p_hi_pa=np.percentile(p, 95, 0).tolist(),
-        )
-    return out
+    return _member_curves(fn, forces, h_grid, "h_mm", "p", "pa")
 
 
 def check_with_simulator(
@@ -603,7 +579,7 @@ def _param_dict(params) -> dict:
 
 
 def optimize(
-    model,
+    predictor: AbstractPredictor,
     problem: HeightTargets | Waypoints,
     rings: Sequence[int] = (0, 1, 2),
     space: DesignSpace = DesignSpace(),
@@ -626,8 +602,9 @@ def optimize(
 
     **Arguments:**
 
-    - `model`: a :class:`Predictor` or an ensemble with members (`members(design, h_mm,
-      p_pa)`).
+    - `predictor`: the model, offering the `rig` fidelity
+      (:class:`~mfdesign.models.predictor.AbstractPredictor`; a fitted RPN ensemble through
+      :class:`~mfdesign.models.predictor.EnsemblePredictor`).
     - `problem`: :class:`HeightTargets` (maximise the lifted heights of given loads [N] at
       given pressures [Pa]) or :class:`Waypoints` (reach heights [mm] at loads with least
       pressure error).
@@ -651,7 +628,6 @@ def optimize(
     """
     from tqdm.auto import tqdm
 
-    predictor = as_predictor(model)
     rings = tuple(int(r) for r in rings)
     if not rings or any(r not in (0, 1, 2) for r in rings):
         raise ValueError(f"rings must be a non-empty subset of (0, 1, 2), got {rings}")

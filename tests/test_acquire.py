@@ -13,7 +13,8 @@ from typer.testing import CliRunner
 import mfdesign  # noqa: F401  (float64)
 from mfdesign.acquire import EnsemblePredictor, FunctionPredictor, Grid, SplitPredictor, evaluate, propose
 from mfdesign.design import DesignSpace, Membrane
-from mfdesign.models.ensemble import EnsembleConfig, Normaliser, fit_ensemble, init_ensemble
+from mfdesign.models.ensemble import EnsembleConfig, fit_ensemble
+from tiny_models import tiny_ensemble
 
 SPACE = DesignSpace()
 GRID = Grid(h_mm=(0.0, 20.0, 40.0), p_pa=(2000.0, 5000.0))
@@ -30,13 +31,6 @@ def toy_members(d, h, p):
 def toy_members_np(d, h, p):
     x = np.nan_to_num(d, nan=0.0)
     return (x @ W.T).T * (p / 1000.0)[None] + 0.1 * h[None]
-
-
-def tiny_ensemble(members=3, seed=0):
-    design = np.array([[2.0, 25.4, np.nan, np.nan, np.nan, np.nan], [1.5, 30.0, 45.0, 6.0, 60.0, 5.0]])
-    norm = Normaliser.fit(design, np.array([0.0, 40.0]), np.array([1e3, 8e3]), np.array([1.0, 30.0]))
-    cfg = EnsembleConfig(n_members=members, latent_width=8, latent_depth=1, ring_embed_dim=4)
-    return init_ensemble(cfg, norm, jax.random.PRNGKey(seed))
 
 
 def test_decode_unit_corners_by_hand_and_gradient_under_jit():

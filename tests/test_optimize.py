@@ -12,16 +12,22 @@ from typer.testing import CliRunner
 import mfdesign  # noqa: F401  (float64)
 from mfdesign import optimize as opt
 from mfdesign.design import DesignSpace, Membrane
+from mfdesign.models.predictor import AbstractPredictor
 from mfdesign.models.trajectory import first_crossing as np_first_crossing
 
 SPACE = DesignSpace()
 
 
-class Toy(eqx.Module):
+class Toy(AbstractPredictor):
     """Analytic two-member force model (N): rises with p, falls with h; a thin membrane with a
     large disk lifts highest; rings stiffen it (lower lift)."""
 
-    def members(self, d, h, p):
+    @property
+    def fidelities(self):
+        return ("rig",)
+
+    def members(self, fidelity, d, h, p):
+        self.check_fidelity(fidelity)
         t, c = d[:, 0], d[:, 1]
         rings = jnp.nan_to_num(d[:, 3]) + jnp.nan_to_num(d[:, 5])
         f = (c / 25.0) * p / 100.0 - (2.0 * t + 0.3 + 0.02 * rings) * h
@@ -67,7 +73,7 @@ def test_lift_height_reproduces_forward_force():
     p = jnp.array([4000.0, 6000.0, 8000.0])
     h, _ = jax.jit(opt.lift_heights, static_argnums=0)(toy, d, F, p, jnp.linspace(0, 80, 161))
     assert np.all((np.asarray(h) > 0) & (np.asarray(h) < 80))
-    back = toy.members(jnp.tile(d, (3, 1)), h, p).mean(0)
+    back = toy.members("rig", jnp.tile(d, (3, 1)), h, p).mean(0)
     np.testing.assert_allclose(np.asarray(back), np.asarray(F), atol=1e-9)  # linear in h: exact
     pr, _ = jax.jit(opt.model_pressures, static_argnums=0)(toy, d, F, h, jnp.linspace(0, 2e4, 401))
     np.testing.assert_allclose(np.asarray(pr), np.asarray(p), rtol=1e-9)

@@ -328,7 +328,7 @@ def run_demo(
     # 6. optimise a membrane for a lift task
     with log.stage("optimise a membrane for lift task A (height maximisation)"):
         result = optimize(
-            search_mf.thinned(s.design_draws),
+            predictor,
             TARGET_SETS["A"],
             n_starts=s.optimise_starts,
             n_refine=s.optimise_refine,

@@ -106,7 +106,9 @@ def fit(data: Path, out: Path, spec: "EnsembleConfig", seed: int = 0, allow_outs
     ``data`` and save it to ``out`` (``Ensemble.load``-able)."""
     table = load_data(data, "fit", allow_outside_design_space)
     a = table.arrays()
-    model = spec.fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=seed, progress=True)
+    model = spec.fit(
+        a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=seed, progress=True
+    ).ensemble
     model.save(out)
     mu, _ = model.mean_std(a["design"], a["height_mm"], a["pressure_pa"])
     rmse = float(((mu - a["force_n"]) ** 2).mean() ** 0.5)

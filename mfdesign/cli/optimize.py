@@ -51,9 +51,11 @@ def read_targets(path: Path):
 
 
 def load_model(path: Path):
-    """A saved model folder: the RPN ensemble of ``mfdesign fit`` (``ensemble.json``) or the
-    multi-fidelity fit of ``mfdesign fit-mf`` (``mf.json``; 16 posterior draws)."""
+    """The predictor (:class:`~mfdesign.models.predictor.AbstractPredictor`) of a saved model
+    folder: the RPN ensemble of ``mfdesign fit`` (``ensemble.json``) or the multi-fidelity fit
+    of ``mfdesign fit-mf`` (``mf.json``; 16 posterior draws)."""
     from mfdesign.models.ensemble import Ensemble
+    from mfdesign.models.predictor import EnsemblePredictor
 
     path = Path(path)
     if not path.is_dir():
@@ -61,9 +63,9 @@ def load_model(path: Path):
     if (path / "mf.json").is_file():
         from mfdesign.calibration.workflow import load_multi_fidelity
 
-        return load_multi_fidelity(path).mf.thinned(16)
+        return load_multi_fidelity(path).mf.predictor(16)
     try:
-        return Ensemble.load(path)
+        return EnsemblePredictor(Ensemble.load(path))
     except (FileNotFoundError, ValueError, KeyError) as err:
         raise ValueError(f"cannot load a model from {path}: {err}") from None
 

@@ -16,7 +16,7 @@ from mfdesign.cli._contract import item_parser
 
 
 def load_predictor(model: Path):
-    """A :class:`~mfdesign.models.predictor.Predictor` from a folder.
+    """A :class:`~mfdesign.models.predictor.AbstractPredictor` from a folder.
 
     * ``DIR/ensemble.json`` (``mfdesign fit``): the rig-only paper case;
     * ``DIR/sim/ensemble.json`` + ``DIR/discrepancy/ensemble.json``: a

@@ -20,10 +20,12 @@ import dataclasses
 import itertools
 
 import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from mfdesign.models.ensemble import check_inputs
+from mfdesign.models.predictor import RIG, AbstractPredictor
 
 
 def monomials(n_vars: int, degree: int) -> np.ndarray:
@@ -40,15 +42,14 @@ def _raw_features(design, h, p, ringed: bool):
     return jnp.column_stack([design, h, p, two])
 
 
-@dataclasses.dataclass(frozen=True)
-class _Poly:
+class _Poly(eqx.Module):
     """One fitted polynomial: standardisation, exponents, coefficients."""
 
     mu: np.ndarray
     sd: np.ndarray
     exps: np.ndarray
     coef: np.ndarray
-    ringed: bool
+    ringed: bool = eqx.field(static=True)
 
     def __call__(self, design, h, p):
         x = (_raw_features(design, h, p, self.ringed) - self.mu) / self.sd
@@ -86,27 +87,33 @@ class CurveFitConfig:
             raise ValueError(f"CurveFitConfig.ridge must be finite and >= 0, got {self.ridge!r}")
 
     def fit(self, design, h_mm, p_pa, force_n, weight=None, *, key=None, progress=False) -> "CurveFit":
-        """:class:`ForceModelSpec` interface (``key``/``progress`` unused: the fit is exact)."""
+        """:class:`~mfdesign.models.cv.ForceModelSpec` interface (``key``/``progress`` unused:
+        the fit is exact)."""
         return fit_curve(self, design, h_mm, p_pa, force_n, weight)
 
 
-@dataclasses.dataclass(frozen=True)
-class CurveFit:
-    """Fitted baseline; ``predict`` returns ``[1, n]`` (one "member") like the ensemble."""
+class CurveFit(AbstractPredictor):
+    """Fitted baseline, a predictor of the ``rig`` fidelity with one member (a curve fit has
+    no spread)."""
 
     ringless: _Poly
     ringed: _Poly
-    fallback: tuple[str, ...]
+    fallback: tuple[str, ...] = eqx.field(static=True)
 
-    def predict(self, design, h_mm, p_pa):
+    @property
+    def fidelities(self):
+        return (RIG,)
+
+    def members(self, fidelity, design, h_mm, p_pa):
         """Force [1, n] N at design rows [n, 6] (mm), h [n] mm, p [n] Pa."""
+        self.check_fidelity(fidelity)
         design = jnp.asarray(design)
         h, p = jnp.broadcast_arrays(jnp.asarray(h_mm, dtype=design.dtype), jnp.asarray(p_pa, dtype=design.dtype))
         has_ring = ~jnp.isnan(design[:, 2])
         return jnp.where(has_ring, self.ringed(design, h, p), self.ringless(design, h, p))[None, :]
 
     def mean_std(self, design, h_mm, p_pa):
-        f = self.predict(design, h_mm, p_pa)[0]
+        f = self.members(RIG, design, h_mm, p_pa)[0]
         return f, jnp.zeros_like(f)
 
 

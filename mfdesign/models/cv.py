@@ -1,5 +1,9 @@
 """Leave-membranes-out cross-validation of any force model, and its metrics.
 
+A model is a :class:`ForceModelSpec` (an unfitted config) whose ``fit`` returns an
+:class:`~mfdesign.models.predictor.AbstractPredictor`; held-out rows are scored with its
+``rig`` members (the measurements are the rig's).
+
 Folds hold out whole membranes (``Measurements.kfold`` / ``leave_one_out``): the question
 is how well a model predicts a design it has never seen (Campbell et al. 2025 used
 11-fold by membrane on 22 membranes).
@@ -23,28 +27,25 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from tqdm.auto import tqdm
 
+from mfdesign.models.predictor import RIG, AbstractPredictor
+
 Z = {0.68: 0.994457883, 0.95: 1.959963985}
 
 
 @runtime_checkable
-class ForceModel(Protocol):
-    """A fitted model: ``predict(design [n,6] mm, h [n] mm, p [n] Pa) -> F [members, n] N``."""
-
-    def predict(self, design, h_mm, p_pa): ...
-
-
-@runtime_checkable
 class ForceModelSpec(Protocol):
-    """An unfitted model (its config): ``fit(design, h, p, F, w, key=..., progress=...)``."""
+    """An unfitted model (its config): ``fit(design [n, 6] mm, h [n] mm, p [n] Pa, F [n] N,
+    w [n], key=..., progress=...)`` returns the fitted predictor."""
 
-    def fit(self, design, h_mm, p_pa, force_n, weight=None, *, key=None, progress=False) -> ForceModel: ...
+    def fit(self, design, h_mm, p_pa, force_n, weight=None, *, key=None, progress=False) -> AbstractPredictor: ...
 
 
-def predict_mean_std(model: ForceModel, design, h, p, batch: int = 20_000):
-    """Mean and member std [n] of ``model.predict``, in batches of rows (bounded memory)."""
+def predict_mean_std(model: AbstractPredictor, design, h, p, batch: int = 20_000):
+    """Mean and member std [n] (N) of the ``rig`` members at design rows [n, 6] mm, heights
+    [n] mm and pressures [n] Pa, in batches of rows (bounded memory)."""
     mus, sds = [], []
     for s in range(0, len(h), batch):
-        f = np.asarray(model.predict(design[s : s + batch], h[s : s + batch], p[s : s + batch]))
+        f = np.asarray(model.members(RIG, design[s : s + batch], h[s : s + batch], p[s : s + batch]))
         mus.append(f.mean(0))
         sds.append(f.std(0))
     return (np.concatenate(mus), np.concatenate(sds)) if mus else (np.zeros(0), np.zeros(0))
@@ -76,7 +77,7 @@ class CVResult:
     folds: list[dict[str, Any]]
     overall: dict[str, float]
     predictions: dict[str, np.ndarray]
-    models: list[Any] = dataclasses.field(default_factory=list)
+    models: list[AbstractPredictor] = dataclasses.field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         return {"folds": self.folds, "overall": self.overall}

@@ -46,6 +46,8 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
+from mfdesign.models.predictor import EnsemblePredictor
+
 FORMAT_VERSION = 1
 MAX_RINGS = 2
 
@@ -118,9 +120,10 @@ class EnsembleConfig:
             raise ValueError(f"unknown EnsembleConfig fields: {sorted(unknown)}")
         return cls(**d)
 
-    def fit(self, design, h_mm, p_pa, force_n, weight=None, *, key=None, progress=True):
-        """:class:`ForceModelSpec` interface: ``fit_ensemble`` with this config."""
-        return fit_ensemble(self, design, h_mm, p_pa, force_n, weight, key=key, progress=progress)
+    def fit(self, design, h_mm, p_pa, force_n, weight=None, *, key=None, progress=True) -> EnsemblePredictor:
+        """:class:`~mfdesign.models.cv.ForceModelSpec` interface: :func:`fit_ensemble` with this
+        config, as a predictor (its ``ensemble`` is the fitted :class:`Ensemble`)."""
+        return EnsemblePredictor(fit_ensemble(self, design, h_mm, p_pa, force_n, weight, key=key, progress=progress))
 
 
 # --------------------------------------------------------------------------- inputs

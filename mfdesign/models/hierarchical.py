@@ -52,7 +52,7 @@ from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
 __all__ = ["LATENT", "CalibrationData", "HierarchicalModel", "ParamSpec", "fit_discrepancy"]
 
-ForceModel = Callable[..., jax.Array]
+ForceFn = Callable[..., jax.Array]  # force_model(design [N, 6], h [N], p [N], SimParams) -> [N] N
 LATENT = "thickness["  # name prefix of the per-membrane thickness latents
 
 
@@ -188,7 +188,7 @@ class HierarchicalModel(eqx.Module):
     ``base``: SimParams of everything not sampled (ring constants, ...).
     """
 
-    force_model: ForceModel
+    force_model: ForceFn
     effects: tuple[str, ...] = eqx.field(default=(), converter=_effect_names, static=True)
     n_membranes: int = eqx.field(default=0, static=True)
     membrane_latents: bool = eqx.field(default=True, static=True)

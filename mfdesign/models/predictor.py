@@ -1,15 +1,18 @@
-"""What acquisition and design optimisation consume: paired members per fidelity on a
-height x pressure grid (:class:`Predictor`), and the concrete predictors.
+"""The one predictor interface (:class:`AbstractPredictor`) that acquisition, design
+optimisation and cross-validation consume, and its concrete predictors.
 
-Member ``m`` of every fidelity is the same hypothesis, so a fidelity's spread is what a
-run at that fidelity can inform. Everything here is traceable (jit, vmap and grad in the
-design), because acquisition differentiates through it.
+A predictor offers one or more fidelities (``rig``: the real rig, ``sim``: the simulator)
+and, per fidelity, ``M`` paired members: member ``m`` of every fidelity is the same
+hypothesis, so a fidelity's spread is what a run at that fidelity can inform. Everything
+here is traceable (jit, vmap and grad in the design), because acquisition and design
+optimisation differentiate through it.
 """
 
 from __future__ import annotations
 
+import abc
 import dataclasses
-from typing import Any, Callable, Mapping, Protocol, runtime_checkable
+from typing import Any, Callable, Mapping
 
 import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
@@ -17,7 +20,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["EnsemblePredictor", "FunctionPredictor", "Grid", "Predictor", "SplitPredictor"]
+__all__ = [
+    "RIG",
+    "AbstractPredictor",
+    "EnsemblePredictor",
+    "FunctionPredictor",
+    "Grid",
+    "SplitPredictor",
+]
+
+# The real rig's fidelity: what measurements are, hence what cross-validation scores and
+# what a membrane is designed for.
+RIG = "rig"
 
 
 # --------------------------------------------------------------------------- grid
@@ -52,19 +66,40 @@ class Grid:
 
 
 # --------------------------------------------------------------------------- predictors
-@runtime_checkable
-class Predictor(Protocol):
-    """What acquisition consumes: paired members per fidelity on a grid.
+class AbstractPredictor(eqx.Module):
+    """Paired members per fidelity: what acquisition, design optimisation and CV consume.
 
-    ``grid_members(fidelity, design [B, 6], grid) -> [M, B, G]`` forces in N (design rows
-    ``[t, c, r1, w1, r2, w2]`` mm, NaN for no ring; ``G = grid.size``, heights outer).
-    Must be traceable (jit/vmap/grad in ``design``); member ``m`` of every fidelity is the
-    same hypothesis.
+    ``members(fidelity, design [N, 6], h_mm [N], p_pa [N]) -> [M, N]`` forces in N at
+    points (design rows ``[t, c, r1, w1, r2, w2]`` mm, NaN for no ring; heights mm;
+    pressures Pa). Must be traceable in every numeric input; member ``m`` of every
+    fidelity is the same hypothesis. ``fidelities``: the fidelities offered (a property of
+    the kind of predictor, not a constructor argument).
+
+    :meth:`grid_members` (every design on a height x pressure grid) is built on
+    :meth:`members`; a concrete predictor overrides it where a grid has a faster path.
     """
 
-    fidelities: tuple[str, ...]
+    @property
+    @abc.abstractmethod
+    def fidelities(self) -> tuple[str, ...]:
+        """The fidelities offered, e.g. ``("rig", "sim")``."""
 
-    def grid_members(self, fidelity: str, design, grid: Grid) -> jax.Array: ...
+    @abc.abstractmethod
+    def members(self, fidelity: str, design, h_mm, p_pa) -> jax.Array:
+        """Members [M, N] (N) at design rows [N, 6] mm, heights [N] mm, pressures [N] Pa."""
+
+    def grid_members(self, fidelity: str, design, grid: Grid) -> jax.Array:
+        """Members [M, B, G] (N) of designs [B, 6] mm on ``grid`` (``G = grid.size``, heights outer)."""
+        h, p = (jnp.asarray(a) for a in grid.points())
+        b, g = design.shape[0], h.shape[0]
+        rows = jnp.repeat(design, g, axis=0)
+        out = self.members(fidelity, rows, jnp.tile(h, b), jnp.tile(p, b))
+        return out.reshape(out.shape[0], b, g)
+
+    def check_fidelity(self, fidelity: str) -> None:
+        """``ValueError`` naming the offered fidelities when ``fidelity`` is not one of them."""
+        if fidelity not in self.fidelities:
+            raise ValueError(f"fidelity {fidelity!r} not offered by this predictor; allowed: {list(self.fidelities)}")
 
 
 def _ensemble_grid(ens, design, grid: Grid):
@@ -82,18 +117,26 @@ def _ensemble_grid(ens, design, grid: Grid):
     return out.reshape(out.shape[0], out.shape[1], -1).astype(jnp.result_type(float))
 
 
-class EnsemblePredictor(eqx.Module):
-    """The rig-only paper case: the members of one RPN :class:`~mfdesign.models.ensemble.Ensemble`."""
+class EnsemblePredictor(AbstractPredictor):
+    """The rig-only paper case: the members of one RPN :class:`~mfdesign.models.ensemble.Ensemble`
+    (what :meth:`~mfdesign.models.ensemble.EnsembleConfig.fit` returns)."""
 
     ensemble: Any
-    fidelities: tuple[str, ...] = eqx.field(static=True, default=("rig",))
+
+    @property
+    def fidelities(self):
+        return (RIG,)
+
+    def members(self, fidelity, design, h_mm, p_pa):
+        self.check_fidelity(fidelity)
+        return self.ensemble.predict(design, h_mm, p_pa)
 
     def grid_members(self, fidelity, design, grid):
-        _check_fidelity(self, fidelity)
+        self.check_fidelity(fidelity)
         return _ensemble_grid(self.ensemble, design, grid)
 
 
-class SplitPredictor(eqx.Module):
+class SplitPredictor(AbstractPredictor):
     """Simulator surrogate + discrepancy: ``rig_m = sim_m + disc_m``, ``sim_m = sim_m``.
 
     ``sim``: an ensemble fitted to simulator output (its spread is what simulator runs
@@ -103,7 +146,10 @@ class SplitPredictor(eqx.Module):
 
     sim: Any
     discrepancy: Any
-    fidelities: tuple[str, ...] = eqx.field(static=True, default=("rig", "sim"))
+
+    @property
+    def fidelities(self):
+        return (RIG, "sim")
 
     def __check_init__(self):
         if self.sim.n_members != self.discrepancy.n_members:
@@ -112,33 +158,31 @@ class SplitPredictor(eqx.Module):
                 "ensembles need the same number of members"
             )
 
+    def members(self, fidelity, design, h_mm, p_pa):
+        self.check_fidelity(fidelity)
+        s = self.sim.predict(design, h_mm, p_pa)
+        return s if fidelity == "sim" else s + self.discrepancy.predict(design, h_mm, p_pa)
+
     def grid_members(self, fidelity, design, grid):
-        _check_fidelity(self, fidelity)
+        self.check_fidelity(fidelity)
         s = _ensemble_grid(self.sim, design, grid)
         return s if fidelity == "sim" else s + _ensemble_grid(self.discrepancy, design, grid)
 
 
-class FunctionPredictor(eqx.Module):
+class FunctionPredictor(AbstractPredictor):
     """Any pointwise model: ``functions[fidelity](design [N, 6], h_mm [N], p_pa [N]) -> [M, N]``."""
 
     functions: tuple[tuple[str, Callable], ...] = eqx.field(static=True)
-    fidelities: tuple[str, ...] = eqx.field(static=True)
 
     def __init__(self, functions: Mapping[str, Callable]):
         if not functions:
             raise ValueError("FunctionPredictor needs at least one fidelity")
         self.functions = tuple(dict(functions).items())  # hashable: jit caches on it
-        self.fidelities = tuple(dict(functions))
 
-    def grid_members(self, fidelity, design, grid):
-        _check_fidelity(self, fidelity)
-        h, p = (jnp.asarray(a) for a in grid.points())
-        b, g = design.shape[0], h.shape[0]
-        rows = jnp.repeat(design, g, axis=0)
-        out = dict(self.functions)[fidelity](rows, jnp.tile(h, b), jnp.tile(p, b))
-        return out.reshape(out.shape[0], b, g)
+    @property
+    def fidelities(self):
+        return tuple(name for name, _ in self.functions)
 
-
-def _check_fidelity(predictor, fidelity):
-    if fidelity not in predictor.fidelities:
-        raise ValueError(f"fidelity {fidelity!r} not offered by this predictor; allowed: {list(predictor.fidelities)}")
+    def members(self, fidelity, design, h_mm, p_pa):
+        self.check_fidelity(fidelity)
+        return dict(self.functions)[fidelity](design, h_mm, p_pa)

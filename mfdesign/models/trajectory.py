@@ -23,6 +23,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from mfdesign.models.predictor import RIG
+
 P_MAX_PA = 10_000.0
 H_MAX_MM = 50.0
 WAYPOINTS_MM = (5.0, 40.0, 50.0)
@@ -88,13 +90,14 @@ def _p_at_height(h, p, level):
 def model_pressure(model, design, force_n, h_mm, p_hi: float = 20_000.0, n_grid: int = 401):
     """Model pressure [k] (Pa) at which the mean force first reaches ``force_n`` [k] at ``h_mm`` [k].
 
-    One design row ``design`` [6]; one vectorised ``model.predict`` call on a [k, G] grid.
+    One design row ``design`` [6]; one vectorised call of the ``rig`` members of ``model``
+    (an :class:`~mfdesign.models.predictor.AbstractPredictor`) on a [k, G] grid.
     """
     force_n, h_mm = np.broadcast_arrays(np.asarray(force_n, float), np.asarray(h_mm, float))
     k = force_n.size
     grid = np.linspace(0.0, p_hi, n_grid)
     d = np.broadcast_to(np.asarray(design, float), (k * n_grid, 6))
-    f = np.asarray(model.predict(d, np.repeat(h_mm.ravel(), n_grid), np.tile(grid, k))).mean(0)
+    f = np.asarray(model.members(RIG, d, np.repeat(h_mm.ravel(), n_grid), np.tile(grid, k))).mean(0)
     return first_crossing(grid, f.reshape(k, n_grid), force_n.ravel())
 
 

@@ -75,8 +75,9 @@ def test_propose_and_optimize_read_the_folder(folder):
     rig, sim = (np.asarray(pred.grid_members(f, design, Grid())) for f in ("rig", "sim"))
     assert rig.shape == sim.shape == (16, 1, Grid().size)
     assert not np.allclose(rig, sim)  # rig members carry the discrepancy, sim members do not
-    model = load_model(folder)
-    assert model.theta.shape[0] == 16 and hasattr(model, "members")
+    model = load_model(folder)  # optimize's predictor: the same 16 posterior draws, rig and sim
+    assert model.fidelities == ("rig", "sim")
+    assert model.members("rig", design, jnp.zeros(1), jnp.full(1, 5000.0)).shape == (16, 1)
 
 
 def test_a_folder_without_the_discrepancy_is_refused(folder, tmp_path):

@@ -10,7 +10,8 @@ import mfdesign  # noqa: F401
 from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
 from mfdesign.models.baselines import CurveFitConfig, monomials
-from mfdesign.models.cv import ForceModel, ForceModelSpec, cross_validate, metrics
+from mfdesign.models.cv import ForceModelSpec, cross_validate, metrics
+from mfdesign.models.predictor import AbstractPredictor
 from mfdesign.models.trajectory import first_crossing, model_pressure, trajectory_errors
 
 NAN = np.nan
@@ -65,7 +66,7 @@ def test_curve_fit_recovers_known_polynomial():
     a = table().arrays()
     model = CurveFitConfig(degree=2, ridge=0.0).fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"])
     b = table(seed=1).arrays()
-    pred = np.asarray(model.predict(b["design"], b["height_mm"], b["pressure_pa"]))
+    pred = np.asarray(model.members("rig", b["design"], b["height_mm"], b["pressure_pa"]))
     assert pred.shape == (1, len(b["force_n"]))
     np.testing.assert_allclose(pred[0], b["force_n"], atol=1e-6)
     assert model.fallback == ()
@@ -75,18 +76,22 @@ def test_curve_fit_pooled_fallback_for_empty_group():
     a = table().subset([Membrane.from_array(d).key() for d in DESIGNS[2:]]).arrays()
     model = CurveFitConfig(degree=1).fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"])
     assert model.fallback == ("ringless",)
-    out = model.predict(np.array([DESIGNS[0]]), np.array([10.0]), np.array([1e3]))
+    out = model.members("rig", np.array([DESIGNS[0]]), np.array([10.0]), np.array([1e3]))
     assert np.all(np.isfinite(out))
 
 
-@dataclasses.dataclass(frozen=True)
-class ConstModel:
+class ConstModel(AbstractPredictor):
     """Toy fitted model: the training mean, with a fixed member spread."""
 
     value: float
     spread: float
 
-    def predict(self, design, h_mm, p_pa):
+    @property
+    def fidelities(self):
+        return ("rig",)
+
+    def members(self, fidelity, design, h_mm, p_pa):
+        self.check_fidelity(fidelity)
         n = len(h_mm)
         return np.stack([np.full(n, self.value - self.spread), np.full(n, self.value + self.spread)])
 
@@ -103,7 +108,7 @@ class ConstSpec:
 
 def test_protocols():
     assert isinstance(ConstSpec(), ForceModelSpec)
-    assert isinstance(ConstModel(0.0, 1.0), ForceModel)
+    assert isinstance(ConstModel(0.0, 1.0), AbstractPredictor)
     assert isinstance(CurveFitConfig(), ForceModelSpec)
 
 
@@ -137,10 +142,15 @@ def test_metrics_coverage_with_noise_term():
         metrics(f, np.zeros(3), np.zeros(4))
 
 
-class LinearForce:
+class LinearForce(AbstractPredictor):
     """F = (p - 1000) / 100 + 0.1 h: invertible by hand."""
 
-    def predict(self, design, h_mm, p_pa):
+    @property
+    def fidelities(self):
+        return ("rig",)
+
+    def members(self, fidelity, design, h_mm, p_pa):
+        self.check_fidelity(fidelity)
         return ((np.asarray(p_pa) - 1000) / 100 + 0.1 * np.asarray(h_mm))[None]
 
 
