@@ -350,7 +350,7 @@ def _quantise(x: np.ndarray, step: float) -> np.ndarray:
 # -- recording through the effects' hooks (jitted; every trial padded to one length, so that
 # a rig compiles once per list of measurement effects) ----------------------------------------
 @eqx.filter_jit
-def _lookup(plane: TruthPlane, values: jax.Array, h: jax.Array, p: jax.Array) -> jax.Array:
+def _plane_at(plane: TruthPlane, values: jax.Array, h: jax.Array, p: jax.Array) -> jax.Array:
     """The plane of ``values`` at set-points ``(h, p)``."""
     return plane.at(values, h, p)
 
@@ -498,7 +498,7 @@ class VirtualRig:
     def _lookup(self, plane: TruthPlane, values, h, p) -> np.ndarray:
         """``values`` of the truth plane at set-points ``(h, p)`` (NumPy)."""
         n, size = len(p), self._size
-        return np.asarray(_lookup(plane, values, _pad(np.broadcast_to(h, (n,)), size), _pad(p, size)))[:n]
+        return np.asarray(_plane_at(plane, values, _pad(np.broadcast_to(h, (n,)), size), _pad(p, size)))[:n]
 
     def _branch(self, plane: TruthPlane, h_star: np.ndarray, p) -> np.ndarray:
         """Height [mm] of the truth's quasi-static lift branch at pressures ``p`` (from ``h_star``
