@@ -88,18 +88,9 @@ def _plane_force(force_model, d, h, p, params):
 
 
 def likelihood_effects(names: Sequence[str] | None = None) -> list[str]:
-    """Registered effects (or ``names``) that have a JAX likelihood hook; raises for one that has not."""
-    out = []
-    for n in sorted(fx.EFFECTS) if names is None else names:
-        e = fx.effect(n)
-        if e.has_likelihood:
-            out.append(e.name)
-        elif names is not None:
-            raise ValueError(
-                f"effect {e.name!r} has no likelihood hook (observed_force_fn), so the emulator/analytic "
-                "backend cannot evaluate it; add the hook (docs/effects.md) or use --simulator full"
-            )
-    return out
+    """Registered effects (or ``names``, checked): every effect has its JAX likelihood hook
+    (a measurement effect without ``observed_force_fn`` cannot be registered)."""
+    return [fx.effect(n).name for n in (sorted(fx.EFFECTS) if names is None else names)]
 
 
 CHAIN = ("pressure_sensor", "hysteresis", "rig_compliance", "load_cell_offset")

@@ -58,42 +58,28 @@ LATENT = "thickness["  # name prefix of the per-membrane thickness latents
 
 @dataclasses.dataclass(frozen=True)
 class ParamSpec:
-    """One sampled parameter: ``name``, ``unit``, ``prior`` (effects' prior classes), ``doc``."""
+    """One sampled parameter: ``name``, ``unit``, ``prior`` (effects' prior classes), ``doc``.
+
+    The map between the sampler's unconstrained ``u`` and the physical value is the
+    prior's support's :func:`~mfdesign.physics.effects.bijection` (one implementation)."""
 
     name: str
     unit: str
     prior: object
     doc: str = ""
 
+    @property
+    def bijection(self) -> fx.Bijection:
+        return fx.bijection(self.prior.bounds)
+
     def to_physical(self, u):
-        lo, hi = self.prior.bounds
-        if math.isfinite(lo) and math.isfinite(hi):
-            return lo + (hi - lo) * jax.nn.sigmoid(u)
-        if math.isfinite(lo):
-            return lo + jnp.exp(u)
-        if math.isfinite(hi):
-            return hi - jnp.exp(u)
-        return u
+        return self.bijection.to_physical(u)
 
     def log_jacobian(self, u):
-        lo, hi = self.prior.bounds
-        if math.isfinite(lo) and math.isfinite(hi):
-            return math.log(hi - lo) + jax.nn.log_sigmoid(u) + jax.nn.log_sigmoid(-u)
-        if math.isfinite(lo) or math.isfinite(hi):
-            return u
-        return jnp.zeros_like(u)
+        return self.bijection.log_jacobian(u)
 
     def to_unconstrained(self, x):
-        lo, hi = self.prior.bounds
-        x = np.asarray(x, float)
-        if math.isfinite(lo) and math.isfinite(hi):
-            q = np.clip((x - lo) / (hi - lo), 1e-12, 1 - 1e-12)
-            return np.log(q) - np.log1p(-q)
-        if math.isfinite(lo):
-            return np.log(np.maximum(x - lo, 1e-300))
-        if math.isfinite(hi):
-            return np.log(np.maximum(hi - x, 1e-300))
-        return x
+        return self.bijection.to_unconstrained(x)
 
 
 class CalibrationData(eqx.Module):
@@ -201,9 +187,6 @@ class HierarchicalModel(eqx.Module):
     base: SimParams = SimParams()
 
     def __check_init__(self):
-        for e in self.effects:
-            if not fx.effect(e).has_likelihood:
-                raise ValueError(f"effect {e!r} has no likelihood hook; it cannot be calibrated")
         if self.likelihood not in ("gaussian", "student_t"):
             raise ValueError(f"likelihood must be 'gaussian' or 'student_t', got {self.likelihood!r}")
         if not (isinstance(self.n_membranes, (int, np.integer)) and self.n_membranes >= 0):
@@ -293,7 +276,7 @@ class HierarchicalModel(eqx.Module):
         """log p(x(u)) + log |dx/du| for one unconstrained vector ``u`` [dim]."""
         x = self.to_physical(u)
         terms = [
-            s.prior.logpdf_jax(x[i]) + s.log_jacobian(u[i])
+            s.prior.logpdf(x[i]) + s.log_jacobian(u[i])
             for i, s in enumerate(self.specs)
             if not s.name.startswith(LATENT)
         ]

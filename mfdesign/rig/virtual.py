@@ -27,12 +27,25 @@ Protocol (the paper's, see ``docs/rig.md``); every number is a field of :class:`
   sample beyond it bursts the membrane: that trial is dropped (as in the paper), the burst
   is logged in :attr:`VirtualRig.events`, and the membrane takes no further trials.
 
+Recording: the rig's controller regulates on its own sensors, so a trial runs on
+RECORDED set-points (the ramp is the pressure the transducer reads; a force trial holds
+the plate where the height sensors read ``h_set``). The recorded force of a force trial is
+:func:`~mfdesign.physics.effects.apply_expected_force` of the measurement effects at its
+set-points, with the truth plane as ``force_fn``; the recorded height of a mass lift is
+where that expected force equals the weight
+(:func:`~mfdesign.physics.effects.recorded_lift_height`, from the truth's quasi-static
+branch; the plate's support at 0 and the rig's top are stiff springs, so a resting or
+pinned plate has a height too). The effects' one JAX hook thus records the data and
+scores them in the likelihood. Physical events (contact, bursts, the top) are looked up on
+the truth at the set-points: measurement effects change what is recorded, not the membrane.
+
 Efficiency: per membrane and distinct ``SimParams`` the simulator runs once, one
 :func:`~mfdesign.physics.solve.force_plane` on (heights x pressures): the set heights and
 a lift grid (0-80 mm every ``height_step_mm``) x ``pressure_step_pa`` up to the highest
-pressure of the programme. Samples interpolate linearly in pressure (and in height for the
-lift crossing). Samples where the simulator has no usable value (not converged, past a
-limit point) are omitted and counted in the trial's event. Planes can be memoised on
+pressure of the programme. The rig reads it bilinearly (:meth:`TruthPlane.at`, JAX, so
+that the effects' hooks can trace and differentiate it). Samples where the simulator has
+no usable value (not converged, past a limit point) are omitted and counted in the
+trial's event. Planes can be memoised on
 disk (``cache_dir``), keyed by design, SimParams, grids and a hash of the simulator's
 source, so a rerun after a simulator change never reads a stale plane.
 
@@ -53,6 +66,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
@@ -134,52 +150,101 @@ class Protocol:
 
 
 # -- truth on a grid -----------------------------------------------------------------------
-@dataclass
-class TruthPlane:
-    """Simulator output on ``h_grid x p_grid``; ``p_grid[0] = 0`` (no pressure, no force)."""
+# The plate's support (h = 0) and the rig's top stop, as springs for the lift solve: stiff
+# enough that a resting plate sits within ~1e-4 mm of its support under 100 N, soft enough
+# that the root find's residual (1e-7 N) is not lost to rounding (K * ulp(75 mm) ~ 1e-8 N).
+STOP_N_PER_MM = 1e6
 
-    h_grid: np.ndarray
-    p_grid: np.ndarray
-    force_n: np.ndarray
-    locking: np.ndarray
-    rise_mm: np.ndarray
-    status: np.ndarray
 
-    def __post_init__(self):
-        self.dF_dh = (
-            np.gradient(self.force_n, self.h_grid, axis=0) if len(self.h_grid) > 1 else np.zeros_like(self.force_n)
+def _cell(grid, x):
+    """Cell ``i`` of ``x`` on a sorted ``grid`` (``grid[i] <= x < grid[i + 1]``, the end
+    cells extended) and the fraction ``(x - grid[i]) / (grid[i + 1] - grid[i])``."""
+    i = jnp.clip(jnp.searchsorted(grid, x, side="right") - 1, 0, grid.shape[0] - 2)
+    return i, (x - grid[i]) / (grid[i + 1] - grid[i])
+
+
+def _mix(a, b, t):
+    """``(1 - t) a + t b``; at a node only that node counts (an unsolved NaN neighbour does not)."""
+    return jnp.where(t == 0, a, jnp.where(t == 1, b, (1.0 - t) * a + t * b))
+
+
+@jax.custom_jvp
+def _bilinear(table, h_grid, p_grid, h, p):
+    """Bilinear interpolation of ``table[h_grid, p_grid]`` at points ``(h, p)``."""
+    i, w = _cell(h_grid, h)
+    j, u = _cell(p_grid, p)
+    return _mix(_mix(table[i, j], table[i, j + 1], u), _mix(table[i + 1, j], table[i + 1, j + 1], u), w)
+
+
+@_bilinear.defjvp
+def _bilinear_jvp(primals, tangents):
+    # The slopes of the cell the point lies in: the difference quotients of the table (a
+    # node takes the cell above it), NaN where a corner is unsolved. Autodiff of
+    # ``_mix`` would drop the zero-weight corner's slope at a node, where the force trials
+    # sit. The grids are constants (their tangents are ignored).
+    table, h_grid, p_grid, h, p = primals
+    d_table, _, _, dh, dp = tangents
+    i, w = _cell(h_grid, h)
+    j, u = _cell(p_grid, p)
+    dfdh = (_mix(table[i + 1, j], table[i + 1, j + 1], u) - _mix(table[i, j], table[i, j + 1], u)) / (
+        h_grid[i + 1] - h_grid[i]
+    )
+    dfdp = (_mix(table[i, j + 1], table[i + 1, j + 1], w) - _mix(table[i, j], table[i + 1, j], w)) / (
+        p_grid[j + 1] - p_grid[j]
+    )
+    value = _bilinear(table, h_grid, p_grid, h, p)
+    return value, dfdh * dh + dfdp * dp + _bilinear(d_table, h_grid, p_grid, h, p)
+
+
+_PLANE_FIELDS = ("h_grid", "p_grid", "force_n", "locking", "rise_mm", "status")
+
+
+def _as_float(a) -> jax.Array:
+    return jnp.asarray(a, float)
+
+
+class TruthPlane(eqx.Module):
+    """Simulator output on ``h_grid`` [mm] x ``p_grid`` [Pa]; ``p_grid[0] = 0`` (no pressure,
+    no force): ``force_n`` [N], ``locking`` [1], ``rise_mm`` [mm], ``status`` (codes)."""
+
+    h_grid: jax.Array = eqx.field(converter=_as_float)
+    p_grid: jax.Array = eqx.field(converter=_as_float)
+    force_n: jax.Array = eqx.field(converter=_as_float)
+    locking: jax.Array = eqx.field(converter=_as_float)
+    rise_mm: jax.Array = eqx.field(converter=_as_float)
+    status: jax.Array = eqx.field(converter=jnp.asarray)
+
+    def along_p(self, values, p) -> jax.Array:
+        """Linear interpolation in pressure ``p`` [Pa] of ``values`` on ``p_grid``."""
+        j, u = _cell(self.p_grid, jnp.asarray(p, float))
+        values = jnp.asarray(values, float)
+        return _mix(values[..., j], values[..., j + 1], u)
+
+    def at(self, values, h, p) -> jax.Array:
+        """Bilinear interpolation of a plane of ``values`` at heights ``h`` [mm] and pressures
+        ``p`` [Pa] (NaN where h is NaN or a weighted corner is unsolved; a pressure below the
+        grid reads the zero-pressure column: nothing acts below zero gauge pressure)."""
+        h, p = jnp.broadcast_arrays(jnp.asarray(h, float), jnp.asarray(p, float))
+        ok = jnp.isfinite(h)
+        v = _bilinear(
+            jnp.asarray(values, float),
+            self.h_grid,
+            self.p_grid,
+            jnp.where(ok, h, self.h_grid[0]),
+            jnp.maximum(p, self.p_grid[0]),
         )
+        return jnp.where(ok, v, jnp.nan)
 
-    def row(self, h: float) -> int:
-        i = int(np.argmin(np.abs(self.h_grid - h)))
-        if abs(self.h_grid[i] - h) > 1e-9:
-            raise ValueError(f"height {h} mm is not on the plane's grid {self.h_grid}")
-        return i
+    def force(self, h, p) -> jax.Array:
+        """The true force [N] at true height ``h`` [mm] and pressure ``p`` [Pa] (the effects' ``force_fn``)."""
+        return self.at(self.force_n, h, p)
 
-    def _pj(self, p):
-        j = np.clip(np.searchsorted(self.p_grid, p, side="right") - 1, 0, len(self.p_grid) - 2)
-        u = (p - self.p_grid[j]) / (self.p_grid[j + 1] - self.p_grid[j])
-        return j, u
-
-    def along_p(self, values: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """Linear interpolation in pressure of one row (a NaN neighbour gives NaN)."""
-        j, u = self._pj(p)
-        return (1.0 - u) * values[..., j] + u * values[..., j + 1]
-
-    def at(self, values: np.ndarray, h: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """Bilinear interpolation at points ``(h, p)`` (NaN where h is NaN)."""
-        hg = self.h_grid
-        hh = np.where(np.isfinite(h), h, hg[0])
-        i = np.clip(np.searchsorted(hg, hh, side="right") - 1, 0, len(hg) - 2)
-        w = (hh - hg[i]) / (hg[i + 1] - hg[i])
-        j, u = self._pj(p)
-        v = (
-            (1 - w) * (1 - u) * values[i, j]
-            + w * (1 - u) * values[i + 1, j]
-            + (1 - w) * u * values[i, j + 1]
-            + w * u * values[i + 1, j + 1]
-        )
-        return np.where(np.isfinite(h), v, np.nan)
+    def lift_force(self, h, p, top_mm: float) -> jax.Array:
+        """Upward force [N] on a free plate at true height ``h`` [mm]: the membrane's, with the
+        plate between its support (0) and the rig's top ``top_mm``, plus the reaction of
+        either (stiff springs, :data:`STOP_N_PER_MM`) when ``h`` is pushed past it."""
+        stops = STOP_N_PER_MM * (jnp.maximum(-h, 0.0) - jnp.maximum(h - top_mm, 0.0))
+        return self.force(jnp.clip(h, 0.0, top_mm), p) + stops
 
     def lift_height(self, load_n: float) -> np.ndarray:
         """Plate height at each grid pressure under ``load_n``: the first crossing of
@@ -191,7 +256,7 @@ class TruthPlane:
         to the rig's top: a snap-through); NaN where the lowest usable height is not 0 and
         already below the load (unknown).
         """
-        F, hg = self.force_n, self.h_grid
+        F, hg = np.asarray(self.force_n), np.asarray(self.h_grid)
         out = np.full(F.shape[1], np.nan)
         for j in range(F.shape[1]):
             col = F[:, j]
@@ -217,21 +282,13 @@ class TruthPlane:
     # -- storage -------------------------------------------------------------------------
     def to_npz(self, path: Path) -> None:
         tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez(
-            tmp,
-            h_grid=self.h_grid,
-            p_grid=self.p_grid,
-            force_n=self.force_n,
-            locking=self.locking,
-            rise_mm=self.rise_mm,
-            status=self.status,
-        )
+        np.savez(tmp, **{k: np.asarray(getattr(self, k)) for k in _PLANE_FIELDS})
         os.replace(tmp, path)
 
     @classmethod
     def from_npz(cls, path: Path) -> "TruthPlane":
         with np.load(path) as z:
-            return cls(**{k: z[k] for k in ("h_grid", "p_grid", "force_n", "locking", "rise_mm", "status")})
+            return cls(**{k: z[k] for k in _PLANE_FIELDS})
 
 
 def _force_plane(design, h_grid, p_grid, params):
@@ -290,6 +347,33 @@ def _quantise(x: np.ndarray, step: float) -> np.ndarray:
     return np.round(x / step) * step + 0.0 if step > 0 else x + 0.0
 
 
+# -- recording through the effects' hooks (jitted; every trial padded to one length, so that
+# a rig compiles once per list of measurement effects) ----------------------------------------
+@eqx.filter_jit
+def _plane_at(plane: TruthPlane, values: jax.Array, h: jax.Array, p: jax.Array) -> jax.Array:
+    """The plane of ``values`` at set-points ``(h, p)``."""
+    return plane.at(values, h, p)
+
+
+@eqx.filter_jit
+def _recorded_force(effects: tuple, theta: dict, plane: TruthPlane, rows: fx.Rows) -> jax.Array:
+    """Recorded force [N] of a force trial at its set-points ``rows`` (before sensor noise)."""
+    return fx.apply_expected_force(effects, theta, plane.force, rows)
+
+
+@eqx.filter_jit
+def _recorded_height(effects: tuple, theta: dict, plane: TruthPlane, rows: fx.Rows, weight, start, top_mm: float):
+    """Recorded plate height [mm] of a lift at its pressure set-points ``rows.p_pa``."""
+    force_fn = lambda h, p: plane.lift_force(h, p, top_mm)  # noqa: E731
+    return fx.recorded_lift_height(effects, theta, force_fn, rows, weight, start)
+
+
+def _pad(a, size: int, dtype=float) -> jax.Array:
+    """``a`` (or a scalar, broadcast) padded to ``size`` by repeating its last value."""
+    a = np.atleast_1d(np.asarray(a))
+    return jnp.asarray(np.pad(a, (0, size - len(a)), mode="edge"), dtype)
+
+
 # -- the rig ---------------------------------------------------------------------------------
 class VirtualRig:
     """The paper's rig in software: :meth:`characterise`, :meth:`mass_lift`, :meth:`run`.
@@ -329,6 +413,9 @@ class VirtualRig:
         self.cache_dir = Path(cache_dir) if cache_dir is not None else None
         self.events: list[dict] = []
         self._planes: dict[str, TruthPlane] = {}
+        # every trial's arrays are padded to the longest ramp of the programme (one compile)
+        top = max(*protocol.ringed_limits_pa, protocol.ringless_limit_pa, protocol.lift_limit_pa)
+        self._size = len(self._ramp(top)[0])
 
     # -- truth -------------------------------------------------------------------------------
     def _theta(self, design: Membrane) -> dict:
@@ -387,7 +474,7 @@ class VirtualRig:
         return np.random.default_rng(np.random.SeedSequence(words))
 
     def _ramp(self, p_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(time, true pressure, deflating?) of one inflation (and deflation) to ``p_end``."""
+        """(time, pressure set-point, deflating?) of one inflation (and deflation) to ``p_end`` [Pa]."""
         pr = self.protocol
         dt = 1.0 / pr.sample_hz
         n_up = int(np.floor(p_end / pr.ramp_pa_per_s * pr.sample_hz + 1e-9)) + 1
@@ -401,25 +488,59 @@ class VirtualRig:
             down = np.concatenate([down, np.ones(len(td), bool)])
         return t, p, down
 
-    def _observe(self, design, experiment, trial_index, t, h_true, p_true, f_true, down, dF_dh, rng):
-        ctx = fx.Context(
-            experiment=experiment,
-            trial_index=trial_index,
-            phase=np.where(down, "deflate", "inflate"),
-            time_s=t,
-            dF_dh=dF_dh,
-            design=design,
-            rng=rng,
+    def _measurement(self, design: Membrane) -> tuple[tuple, dict]:
+        """The measurement effects (static for JIT) and their theta as JAX scalars (traced)."""
+        per = fx.split_theta(self.effects, self._theta(design))
+        effects = tuple(e for e in self.effects if e.acts_on_measurement)
+        theta = {e.name: {k: jnp.asarray(v, float) for k, v in per[e.name].items()} for e in effects}
+        return effects, theta
+
+    def _lookup(self, plane: TruthPlane, values, h, p) -> np.ndarray:
+        """``values`` of the truth plane at set-points ``(h, p)`` (NumPy)."""
+        n, size = len(p), self._size
+        return np.asarray(_plane_at(plane, values, _pad(np.broadcast_to(h, (n,)), size), _pad(p, size)))[:n]
+
+    def _branch(self, plane: TruthPlane, h_star: np.ndarray, p) -> np.ndarray:
+        """Height [mm] of the truth's quasi-static lift branch at pressures ``p`` (from ``h_star``
+        on the plane's pressures, :meth:`TruthPlane.lift_height`)."""
+        return np.asarray(plane.along_p(h_star, _pad(p, self._size)))[: len(p)]
+
+    def _rows(self, experiment: str, trial: int, h, p, down) -> fx.Rows:
+        """Set-point rows of one trial, padded to the rig's one length."""
+        n, size = len(p), self._size
+        return fx.Rows(
+            h_mm=_pad(np.broadcast_to(h, (n,)), size),
+            p_pa=_pad(p, size),
+            is_force=jnp.full(size, experiment == "force"),
+            is_deflate=_pad(down, size, bool),
+            is_first_trial=jnp.full(size, trial == 0),
+            membrane=jnp.zeros(size, jnp.int32),
         )
-        s = fx.apply_observe(self.effects, self._theta(design), fx.Sample(h_true, p_true, f_true), ctx)
-        nz, n = self.noise, len(t)
-        h = _quantise(s.height_mm + nz.height_sd_mm * rng.standard_normal(n), nz.height_step_mm)
-        p = _quantise(s.pressure_pa + nz.pressure_sd_pa * rng.standard_normal(n), nz.pressure_step_pa)
+
+    def _record_force(self, design, trial, plane, h_set, p_set, down) -> np.ndarray:
+        effects, theta = self._measurement(design)
+        f = _recorded_force(effects, theta, plane, self._rows("force", trial, h_set, p_set, down))
+        return np.asarray(f)[: len(p_set)]
+
+    def _record_lift(self, design, trial, plane, load, h_branch, p_set, down) -> np.ndarray:
+        # Start each root find on the truth's branch; a resting (pinned) plate starts 1 mm
+        # into its support (top stop), where the spring, not a flat force, sets the slope.
+        top = float(self.protocol.lift_height_max_mm)
+        start = np.where(h_branch <= 0.0, -1.0, np.where(h_branch >= top, top + 1.0, h_branch))
+        effects, theta = self._measurement(design)
+        rows = self._rows("lift", trial, start, p_set, down)
+        h = _recorded_height(effects, theta, plane, rows, jnp.asarray(load, float), rows.h_mm, top)
+        return np.asarray(h)[: len(p_set)]
+
+    def _noisy(self, experiment, h, p, f, rng) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sensor noise and quantisation on the recorded values (a lift's force is the known
+        weight of the mass, not a reading)."""
+        nz, n = self.noise, len(p)
+        h = _quantise(h + nz.height_sd_mm * rng.standard_normal(n), nz.height_step_mm)
+        p = _quantise(p + nz.pressure_sd_pa * rng.standard_normal(n), nz.pressure_step_pa)
         if experiment == "force":
-            f = _quantise(s.force_n + nz.force_sd_n * rng.standard_normal(n), nz.force_step_n)
-        else:
-            f = np.asarray(s.force_n, float)  # the known weight of the mass, not a reading
-        return h, p, f
+            f = _quantise(f + nz.force_sd_n * rng.standard_normal(n), nz.force_step_n)
+        return h, p, np.asarray(f, float)
 
     @staticmethod
     def _frame(design, trial, experiment, t, h_set, h, p, f, down) -> pd.DataFrame:
@@ -458,6 +579,7 @@ class VirtualRig:
     def _burst(self, event, lock, p, threshold) -> bool:
         # Only a usable locking value bursts a membrane; a non-finite one (the simulator
         # failed at that point) is unknown, not a burst.
+        lock = np.asarray(lock)
         over = np.nonzero(np.isfinite(lock) & (lock > threshold))[0]
         if not over.size:
             return False
@@ -474,6 +596,21 @@ class VirtualRig:
         )
         return True
 
+    def _complete(self, frames, event, end, p_set, keep, frame_args) -> None:
+        """Log a trial that ran to its end and keep its usable samples (``frame_args``:
+        design, trial, experiment, t, h_set, h, p, f, down)."""
+        event.update(
+            status="complete",
+            end_reason=end,
+            n_samples=int(keep.sum()),
+            n_omitted=int((~keep).sum()),
+            peak_pa=float(np.max(p_set)),
+        )
+        self.events.append(event)
+        if keep.any():
+            design, trial, experiment, t, h_set, *arrays = frame_args
+            frames.append(self._frame(design, trial, experiment, t[keep], h_set, *(a[keep] for a in arrays)))
+
     # -- experiments -------------------------------------------------------------------------
     def characterise(self, design: Membrane, first_trial: int = 0) -> Measurements:
         """The force characterisation of one membrane (see the module doc)."""
@@ -488,15 +625,14 @@ class VirtualRig:
             for h_set in pr.heights_mm:
                 for _ in range(pr.trials_per_height):
                     plane = self.truth_plane(design, self.sim_params(design, "force", trial))
-                    i = plane.row(h_set)
-                    t, p_true, down = self._ramp(p_limit)
+                    t, p_set, down = self._ramp(p_limit)
                     end = "pressure_limit"
                     if not design.n_rings:  # ringless: until contact with the rig
-                        rise = plane.along_p(plane.rise_mm[i], p_true)
+                        rise = self._lookup(plane, plane.rise_mm, h_set, p_set)
                         hit = np.nonzero(~down & (rise >= pr.ringless_contact_rise_mm))[0]
                         if hit.size:
                             end = "contact"
-                            t, p_true, down = self._ramp(float(p_true[hit[0]]))
+                            t, p_set, down = self._ramp(float(p_set[hit[0]]))
                     event = dict(
                         design_key=design.key(),
                         experiment="force",
@@ -505,27 +641,12 @@ class VirtualRig:
                         pressure_limit_pa=float(p_limit),
                         pass_index=k,
                     )
-                    lock = plane.along_p(plane.locking[i], p_true)
-                    if self._burst(event, lock, p_true, threshold):
+                    if self._burst(event, self._lookup(plane, plane.locking, h_set, p_set), p_set, threshold):
                         return self._measurements(frames), {"next_trial": trial + 1, "burst": True}
-                    f_true = plane.along_p(plane.force_n[i], p_true)
-                    slope = plane.along_p(plane.dF_dh[i], p_true)
-                    h, p, f = self._observe(
-                        design, "force", trial, t, np.full(len(t), float(h_set)), p_true, f_true, down, slope, rng
-                    )
+                    f = self._record_force(design, trial, plane, float(h_set), p_set, down)
+                    h, p, f = self._noisy("force", np.full(len(t), float(h_set)), p_set, f, rng)
                     keep = np.isfinite(f)
-                    event.update(
-                        status="complete",
-                        end_reason=end,
-                        n_samples=int(keep.sum()),
-                        n_omitted=int((~keep).sum()),
-                        peak_pa=float(np.max(p_true)),
-                    )
-                    self.events.append(event)
-                    if keep.any():
-                        frames.append(
-                            self._frame(design, trial, "force", t[keep], h_set, h[keep], p[keep], f[keep], down[keep])
-                        )
+                    self._complete(frames, event, end, p_set, keep, (design, trial, "force", t, h_set, h, p, f, down))
                     trial += 1
         return self._measurements(frames), {"next_trial": trial, "burst": False}
 
@@ -546,35 +667,22 @@ class VirtualRig:
             for _ in range(pr.lift_trials):
                 plane = self.truth_plane(design, self.sim_params(design, "lift", trial))
                 h_star = plane.lift_height(load)
-                t, p_true, down = self._ramp(pr.lift_limit_pa)
-                h_true = plane.along_p(h_star, p_true)
+                t, p_set, down = self._ramp(pr.lift_limit_pa)
+                h_branch = self._branch(plane, h_star, p_set)
                 end = "pressure_limit"
-                top = np.nonzero(~down & (h_true >= pr.lift_height_max_mm))[0]
+                top = np.nonzero(~down & (h_branch >= pr.lift_height_max_mm))[0]
                 if top.size:  # the plate reached the top of the rig
                     end = "height_limit"
-                    t, p_true, down = self._ramp(float(p_true[top[0]]))
-                    h_true = np.minimum(plane.along_p(h_star, p_true), pr.lift_height_max_mm)
+                    t, p_set, down = self._ramp(float(p_set[top[0]]))
+                    h_branch = self._branch(plane, h_star, p_set)
                 event = dict(design_key=design.key(), experiment="lift", trial=trial, mass_kg=float(mass))
-                lock = plane.at(plane.locking, h_true, p_true)
-                if self._burst(event, lock, p_true, threshold):
+                lock = self._lookup(plane, plane.locking, np.minimum(h_branch, pr.lift_height_max_mm), p_set)
+                if self._burst(event, lock, p_set, threshold):
                     return self._measurements(frames), {"next_trial": trial + 1, "burst": True}
-                slope = plane.at(plane.dF_dh, h_true, p_true)
-                h, p, f = self._observe(
-                    design, "lift", trial, t, h_true, p_true, np.full(len(t), load), down, slope, rng
-                )
+                h = self._record_lift(design, trial, plane, load, h_branch, p_set, down)
+                h, p, f = self._noisy("lift", h, p_set, np.full(len(t), load), rng)
                 keep = np.isfinite(h) & np.isfinite(p)
-                event.update(
-                    status="complete",
-                    end_reason=end,
-                    n_samples=int(keep.sum()),
-                    n_omitted=int((~keep).sum()),
-                    peak_pa=float(np.max(p_true)),
-                )
-                self.events.append(event)
-                if keep.any():
-                    frames.append(
-                        self._frame(design, trial, "lift", t[keep], np.nan, h[keep], p[keep], f[keep], down[keep])
-                    )
+                self._complete(frames, event, end, p_set, keep, (design, trial, "lift", t, np.nan, h, p, f, down))
                 trial += 1
         return self._measurements(frames), {"next_trial": trial, "burst": False}
 

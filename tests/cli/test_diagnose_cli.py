@@ -17,22 +17,15 @@ runner = CliRunner()
 KEYS = ("[2.0, 25.4, nan, nan, nan, nan]", "[1.5, 30.0, 45.0, 6.0, nan, nan]")
 
 USER_EFFECT = """
-from dataclasses import dataclass
 import jax.numpy as jnp
 from mfdesign.physics.effects import MeasurementEffect, Normal, Parameter, register_effect
 
 
 @register_effect
-@dataclass(frozen=True)
 class ForceGainTest(MeasurementEffect):
     name = "force_gain_test"
     story = "the load cell reads a few per cent high"
     parameters = (Parameter("gain", "1", Normal(1.0, 0.05, 0.5, 1.5), 1.0, 1.05),)
-
-    def observe(self, theta, sample, context):
-        if context.experiment != "force":
-            return sample
-        return sample.replace(force_n=theta["gain"] * sample.force_n)
 
     def observed_force_fn(self, theta, force_fn, rows):
         return lambda h, p: jnp.where(rows.is_force, theta["gain"], 1.0) * force_fn(h, p)

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -16,11 +17,12 @@ from mfdesign.physics.effects import (
     MechanicalEffect,
     Normal,
     Parameter,
-    Sample,
+    Rows,
     Uniform,
     LogNormal,
-    apply_observe,
+    apply_expected_force,
     apply_sim_params,
+    recorded_lift_height,
     neutral_theta,
     register_effect,
     split_theta,
@@ -42,20 +44,26 @@ EXPECTED = {
 }
 
 
-def _sample(n=5):
-    return Sample(height_mm=np.full(n, 30.0), pressure_pa=np.linspace(0, 4000, n), force_n=np.linspace(0, 40, n))
-
-
-def _ctx(n=5, **kw):
-    base = dict(
-        experiment="force",
-        trial_index=np.zeros(n, int),
-        phase=np.array(["inflate"] * n),
-        time_s=np.arange(n) * 0.1,
-        dF_dh=np.full(n, -1.5),
+def _rows(n=5, experiment="force", deflate=False, h=30.0, p=None):
+    """Recorded rows: plate at ``h`` mm, pressures 0..4 kPa (or ``p``), one kind and phase."""
+    p = np.linspace(0, 4000, n) if p is None else p
+    return Rows(
+        h_mm=jnp.full(n, h),
+        p_pa=jnp.asarray(p, float),
+        is_force=jnp.full(n, experiment == "force"),
+        is_deflate=jnp.broadcast_to(jnp.asarray(deflate), (n,)),
+        is_first_trial=jnp.ones(n, bool),
+        membrane=jnp.zeros(n, jnp.int32),
     )
-    base.update(kw)
-    return Context(**base)
+
+
+def _law(h, p):
+    """A force law [N]: rises with pressure, falls with height (slope -1.5 N/mm)."""
+    return 0.01 * p - 1.5 * (h - 30.0)
+
+
+def _ctx(**kw):
+    return Context(**{"experiment": "force", "trial_index": np.zeros(5, int), **kw})
 
 
 def test_registry_has_the_candidates():
@@ -74,24 +82,21 @@ def test_registry_has_the_candidates():
 def test_neutral_does_nothing(name):
     e = fx.effect(name)
     base = SimParams()
-    ctx = _ctx()
-    assert apply_sim_params([e], neutral_theta([e]), base, ctx) == base
-    s = _sample()
-    out = apply_observe([e], neutral_theta([e]), s, ctx)
-    for f in ("height_mm", "pressure_pa", "force_n"):
-        np.testing.assert_array_equal(getattr(out, f), getattr(s, f))
+    assert apply_sim_params([e], neutral_theta([e]), base, _ctx()) == base
+    for kind in ("force", "lift"):
+        rows = _rows(experiment=kind, deflate=True)
+        out = apply_expected_force([e], neutral_theta([e]), _law, rows)
+        np.testing.assert_array_equal(out, _law(rows.h_mm, rows.p_pa))
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_typical_does_something(name):
     e = fx.effect(name)
     theta = typical_theta([e])
-    n = 5
-    ctx = _ctx(n, phase=np.array(["deflate"] * n))
-    changed = apply_sim_params([e], theta, SimParams(), ctx) != SimParams()
-    s = _sample(n)
-    out = apply_observe([e], theta, s, ctx)
-    changed |= any(not np.array_equal(getattr(out, f), getattr(s, f)) for f in ("height_mm", "pressure_pa", "force_n"))
+    changed = apply_sim_params([e], theta, SimParams(), _ctx()) != SimParams()
+    rows = _rows(deflate=True)
+    out = apply_expected_force([e], theta, _law, rows)
+    changed |= not np.array_equal(out, _law(rows.h_mm, rows.p_pa))
     assert changed, f"{name} at its typical value changed nothing"
 
 
@@ -123,47 +128,52 @@ def test_stress_softening_only_first_trial():
 
 
 def test_pressure_sensor_and_load_cell():
-    s = _sample()
-    out = apply_observe(
-        ["pressure_sensor", "load_cell_offset"],
-        {"pressure_sensor.offset_pa": 100.0, "pressure_sensor.gain": 1.02, "load_cell_offset.offset_n": 0.5},
-        s,
-        _ctx(),
+    """A sample at true pressure p is recorded at 1.02 p + 100 Pa with the force + 0.5 N."""
+    p_true = np.linspace(0, 4000, 5)
+    theta = {"pressure_sensor.offset_pa": 100.0, "pressure_sensor.gain": 1.02, "load_cell_offset.offset_n": 0.5}
+    effects = ["pressure_sensor", "load_cell_offset"]
+    rows = _rows(p=1.02 * p_true + 100.0)
+    out = apply_expected_force(effects, theta, _law, rows)
+    np.testing.assert_allclose(out, _law(30.0, p_true) + 0.5)
+    lift = apply_expected_force(
+        ["load_cell_offset"], {"load_cell_offset.offset_n": 0.5}, _law, _rows(experiment="lift", p=p_true)
     )
-    np.testing.assert_allclose(out.pressure_pa, 1.02 * s.pressure_pa + 100.0)
-    np.testing.assert_allclose(out.force_n, s.force_n + 0.5)
-    lift = apply_observe(["load_cell_offset"], {"load_cell_offset.offset_n": 0.5}, s, _ctx(experiment="lift"))
-    np.testing.assert_array_equal(lift.force_n, s.force_n)  # weight of the mass, not a reading
+    np.testing.assert_array_equal(lift, _law(30.0, p_true))  # weight of the mass, not a reading
 
 
 def test_rig_compliance_sign_and_self_consistency():
     """Linear F(h) = F0 + s h: the exact fixed point F = F(h_set + F c) is F(h_set) / (1 - s c)."""
     c, slope = 0.05, -2.0
     f_stiff = np.array([10.0, 40.0])
-    out = apply_observe(
-        ["rig_compliance"],
-        {"rig_compliance.compliance_mm_per_n": c},
-        Sample(np.full(2, 20.0), np.full(2, 3000.0), f_stiff),
-        _ctx(2, dF_dh=np.full(2, slope)),
+    law = lambda h, p: f_stiff + slope * (h - 20.0)  # noqa: E731
+    out = np.asarray(
+        apply_expected_force(["rig_compliance"], {"rig_compliance.compliance_mm_per_n": c}, law, _rows(2, h=20.0))
     )
-    assert np.all(out.force_n < f_stiff)  # the plate yields upwards: less force
+    assert np.all(out < f_stiff)  # the plate yields upwards: less force
     # self-consistency with a linear force law
-    np.testing.assert_allclose(out.force_n, f_stiff + slope * out.force_n * c)
-    with pytest.raises(ValueError, match="dF_dh"):
-        apply_observe(["rig_compliance"], {"rig_compliance.compliance_mm_per_n": c}, _sample(), _ctx(dF_dh=None))
+    np.testing.assert_allclose(out, f_stiff + slope * out * c)
+    # a force rising with height is never amplified more than 5x; a lift's frame is not loaded
+    rising = lambda h, p: 10.0 + 100.0 * h  # noqa: E731
+    theta = {"rig_compliance.compliance_mm_per_n": c}
+    np.testing.assert_allclose(apply_expected_force(["rig_compliance"], theta, rising, _rows(2, h=0.0)), 50.0)
+    lift = apply_expected_force(["rig_compliance"], theta, law, _rows(2, experiment="lift", h=20.0))
+    np.testing.assert_array_equal(lift, f_stiff)
 
 
 def test_hysteresis_force_and_lift():
     n = 4
-    phase = np.array(["inflate", "inflate", "deflate", "deflate"])
-    s = Sample(np.full(n, 30.0), np.full(n, 3000.0), np.full(n, 20.0))
-    out = apply_observe(["hysteresis"], {"hysteresis.loss": 0.1}, s, _ctx(n, phase=phase))
-    np.testing.assert_allclose(out.force_n, [20, 20, 18, 18])
-    lift = apply_observe(
-        ["hysteresis"], {"hysteresis.loss": 0.1}, s, _ctx(n, phase=phase, experiment="lift", dF_dh=np.full(n, -2.0))
-    )
-    np.testing.assert_allclose(lift.height_mm, [30, 30, 29, 29])  # 0.1 * 20 N / -2 N/mm = -1 mm
-    np.testing.assert_array_equal(lift.force_n, s.force_n)
+    deflate = np.array([False, False, True, True])
+    flat = lambda h, p: jnp.full(jnp.shape(h), 20.0)  # noqa: E731
+    out = apply_expected_force(["hysteresis"], {"hysteresis.loss": 0.1}, flat, _rows(n, deflate=deflate))
+    np.testing.assert_allclose(out, [20, 20, 18, 18])
+    # a lift: the plate of F = 80 - 2 h N carries W = 20 N at 30 mm; on deflation it sinks to
+    # where 0.9 F = W (exactly: 28.89 mm; the first-order step gave 29 = 30 + 0.1 W / dF_dh)
+    law = lambda h, p: 80.0 - 2.0 * h  # noqa: E731
+    rows = _rows(n, experiment="lift", deflate=deflate)
+    h = np.asarray(recorded_lift_height(["hysteresis"], {"hysteresis.loss": 0.1}, law, rows, 20.0, 30.0))
+    np.testing.assert_allclose(h[:2], 30.0)
+    np.testing.assert_allclose(0.9 * law(h[2:], 0.0), 20.0)
+    np.testing.assert_allclose(h[2:], 30.0 + 0.1 * 20.0 / -2.0, atol=0.12)  # first order: within 0.12 mm
 
 
 def test_theta_forms_and_typos():
@@ -200,7 +210,6 @@ def test_priors():
 def test_user_defined_effect_in_a_few_lines():
     """A user writes a new effect in one short file and the whole machinery takes it."""
 
-    @dataclass(frozen=True)
     class MouldShrink(MechanicalEffect):
         name = "test_mould_shrink"
         story = "the cured rubber shrinks, so the clamp pre-stretches it"
@@ -209,16 +218,13 @@ def test_user_defined_effect_in_a_few_lines():
         def sim_params(self, base, theta, context=None):
             return dataclasses.replace(base, clamp_prestretch=base.clamp_prestretch / (1 - theta["shrink"]))
 
-    @dataclass(frozen=True)
     class HeightOffset(MeasurementEffect):
         name = "test_height_offset"
         story = "the time-of-flight sensors read the lifted plate a fixed distance high"
         parameters = (Parameter("offset_mm", "mm", Normal(0.0, 2.0), 0.0, 1.5),)
 
-        def observe(self, theta, sample, context):
-            if context.experiment != "lift":
-                return sample
-            return sample.replace(height_mm=sample.height_mm + theta["offset_mm"])
+        def observed_force_fn(self, theta, force_fn, rows):
+            return lambda h, p: force_fn(jnp.where(rows.is_force, h, h - theta["offset_mm"]), p)
 
     try:
         register_effect(MouldShrink)
@@ -228,19 +234,46 @@ def test_user_defined_effect_in_a_few_lines():
         theta = typical_theta(effects)
         p = apply_sim_params(effects, theta)
         assert p.clamp_prestretch == pytest.approx(1 / 0.99)
-        s = apply_observe(effects, theta, _sample(), _ctx(experiment="lift"))
-        np.testing.assert_allclose(s.height_mm, 31.5)
+        # a plate lifted to 30 mm (F = 100 - h N, W = 70 N, any pressure) is recorded at 31.5 mm
+        law = lambda h, p: 100.0 - h  # noqa: E731
+        h = recorded_lift_height(effects, theta, law, _rows(experiment="lift"), 70.0, 30.0)
+        np.testing.assert_allclose(h, 31.5)
         with pytest.raises(ValueError, match="already registered"):
 
             @register_effect
-            @dataclass(frozen=True)
             class Clash(MechanicalEffect):
                 name = "pressure_sensor"
                 story = "a clash"
                 parameters = (Parameter("x", "1", Uniform(0, 1), 0.0, 0.5),)
+
+                def sim_params(self, base, theta, context=None):
+                    return base
+
+        with pytest.raises(TypeError, match="no likelihood hook"):
+
+            @register_effect
+            class NoHook(MeasurementEffect):
+                name = "test_no_hook"
+                story = "changes readings, says not how"
+                parameters = (Parameter("x", "1", Uniform(0, 1), 0.0, 0.5),)
+
+        assert "test_no_hook" not in EFFECTS
     finally:
         EFFECTS.pop("test_mould_shrink", None)
         EFFECTS.pop("test_height_offset", None)
+
+
+def test_effects_are_frozen_modules():
+    e = fx.effect("pressure_sensor")
+    assert (
+        isinstance(e, eqx.Module)
+        and e == fx.effect("pressure_sensor")
+        and hash(e) == hash(fx.effect("pressure_sensor"))
+    )
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        e.x = 1.0
+    with pytest.raises(TypeError):
+        fx.MeasurementEffect()
 
 
 def test_user_effect_in_the_virtual_rig():
@@ -249,16 +282,13 @@ def test_user_effect_in_the_virtual_rig():
     from mfdesign.models.standin import standin_plane
     from mfdesign.rig.virtual import Noise, Protocol, VirtualRig
 
-    @dataclass(frozen=True)
     class LiftHeightOffset(MeasurementEffect):
         name = "lift_height_offset"
         story = "the time-of-flight sensors read the lifted plate a fixed distance high"
         parameters = (Parameter("offset_mm", "mm", Normal(0.0, 2.0), 0.0, 1.5),)
 
-        def observe(self, theta, sample, context):
-            if context.experiment != "lift":
-                return sample
-            return sample.replace(height_mm=sample.height_mm + theta["offset_mm"])
+        def observed_force_fn(self, theta, force_fn, rows):
+            return lambda h, p: force_fn(jnp.where(rows.is_force, h, h - theta["offset_mm"]), p)
 
     design = Membrane(2.0, 25.4)
     kw = dict(seed=3, noise=Noise.none(), protocol=Protocol(lift_trials=1), simulator=standin_plane)

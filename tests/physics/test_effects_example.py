@@ -23,6 +23,18 @@ def _load():
     return mod.LiftHeightOffset
 
 
+def _rows(h, p, is_force):
+    n = len(h)
+    return fx.Rows(
+        jnp.asarray(h, float),
+        jnp.asarray(p, float),
+        jnp.asarray(is_force),
+        jnp.zeros(n, bool),
+        jnp.zeros(n, bool),
+        jnp.zeros(n, jnp.int32),
+    )
+
+
 def test_the_docs_show_the_file_as_it_is():
     doc = (ROOT / "docs" / "effects.md").read_text()
     assert EXAMPLE.read_text() in doc
@@ -32,23 +44,16 @@ def test_the_docs_show_the_file_as_it_is():
 def test_the_example_registers_and_acts_on_both_sides():
     cls = _load()
     e = fx.effect("lift_height_offset")
-    assert isinstance(e, cls) and e.acts_on_measurement and e.has_likelihood and not e.acts_on_mechanics
-    h, p, f = np.array([10.0, 20.0]), np.array([3000.0, 4000.0]), np.array([14.715, 14.715])
-    sample = fx.Sample(h, p, f)
-    lift = fx.Context(experiment="lift", trial_index=0, phase=np.array(["inflate"] * 2))
-    force = fx.Context(experiment="force", trial_index=0, phase=np.array(["inflate"] * 2))
-    # the virtual rig: lifts read high by the offset, force trials untouched; neutral: identity
-    assert np.allclose(e.observe({"offset_mm": 1.5}, sample, lift).height_mm, h + 1.5)
-    assert np.array_equal(e.observe({"offset_mm": 1.5}, sample, force).height_mm, h)
-    assert np.array_equal(e.observe(e.neutral(), sample, lift).height_mm, h)
-    # the likelihood: a lift row recorded at h sees the force of h - offset
-    rows = fx.Rows(
-        jnp.asarray(h),
-        jnp.asarray(p),
-        jnp.array([False, True]),
-        jnp.zeros(2, bool),
-        jnp.zeros(2, bool),
-        jnp.zeros(2, jnp.int32),
-    )
-    expected = e.expected_force({"offset_mm": 1.5}, lambda hh, pp: 100.0 - hh, rows)
+    assert isinstance(e, cls) and e.acts_on_measurement and not e.acts_on_mechanics
+    h, p = np.array([10.0, 20.0]), np.array([3000.0, 4000.0])
+    # the virtual rig: a plate in equilibrium at a true 30 mm (F = 100 - h N under W = 70 N)
+    # is recorded 1.5 mm high in a lift; neutral: where it is
+    law = lambda hh, pp: 100.0 - hh  # noqa: E731
+    lift = _rows(h, p, [False, False])
+    recorded = fx.recorded_lift_height([e], {"lift_height_offset.offset_mm": 1.5}, law, lift, 70.0, 20.0)
+    assert np.allclose(recorded, 31.5)
+    assert np.allclose(fx.recorded_lift_height([e], fx.neutral_theta([e]), law, lift, 70.0, 20.0), 30.0)
+    # the likelihood: a lift row recorded at h sees the force of h - offset; force rows untouched
+    expected = e.expected_force({"offset_mm": 1.5}, law, _rows(h, p, [False, True]))
     assert np.allclose(expected, [100.0 - 8.5, 100.0 - 20.0])
+    np.testing.assert_array_equal(e.expected_force(e.neutral(), law, lift), law(h, p))

@@ -1,17 +1,21 @@
 """Physical effects that the plain membrane model lacks: the candidates for "what is missing".
 
 One effect per module of this package (the template: ``contact_offset.py``). An
-effect is a small class: a ``name``, a one-line physical ``story``, its ``parameters``
-(each with a unit, a prior, the ``neutral`` value at which the effect does nothing and a
-``typical`` realistic magnitude) and two hooks that :class:`Effect` declares abstract;
-a :class:`MechanicalEffect` implements the first, a :class:`MeasurementEffect` the second
-(the other is the identity):
+effect is a small frozen :class:`equinox.Module` without fields: class-level ``name``, a
+one-line physical ``story`` and its ``parameters`` (each with a unit, a prior, the
+``neutral`` value at which the effect does nothing and a ``typical`` realistic magnitude),
+and two hooks that :class:`Effect` declares abstract; a :class:`MechanicalEffect`
+implements the first, a :class:`MeasurementEffect` the second (the other is the identity):
 
 * ``sim_params(base, theta, context) -> SimParams``: effects on the *mechanics* act only
-  through the simulator's inputs (:class:`~mfdesign.physics.params.SimParams`).
-* ``observe(theta, sample, context) -> Sample``: effects of the *measurement chain*
-  (sensors, rig, rate-dependence of the rubber) turn the true values of a
-  :class:`Sample` into what the rig records.
+  through the simulator's inputs (:class:`~mfdesign.physics.params.SimParams`);
+  ``row_sim_params(base, theta, rows)`` is its row-wise form for a jitted likelihood.
+* ``observed_force_fn(theta, force_fn, rows) -> force_fn``: effects of the *measurement
+  chain* (sensors, rig, rate-dependence of the rubber), in JAX: the expected recorded
+  force at a row's recorded height and pressure. It is the effect's only implementation:
+  the likelihood evaluates it at the recorded rows (:func:`apply_expected_force`) and
+  the virtual rig records with it (a force trial at its set-points; a mass lift where it
+  equals the weight, :func:`recorded_lift_height`).
 
 ``theta`` handed to a hook is the effect's own ``{parameter name: value}``; a missing
 name means the neutral value. Across several effects, a flat dict with qualified names
@@ -20,16 +24,14 @@ name means the neutral value. Across several effects, a flat dict with qualified
 Writing a new effect (see ``docs/effects.md``)::
 
     @register_effect
-    @dataclass(frozen=True)
-    class HeightSensorOffset(MeasurementEffect):
-        name = "height_offset"
+    class LiftHeightOffset(MeasurementEffect):
+        name = "lift_height_offset"
         story = "the time-of-flight sensors read the lifted plate a fixed distance high"
         parameters = (Parameter("offset_mm", "mm", Normal(0.0, 2.0), 0.0, 1.5),)
 
-        def observe(self, theta, sample, context):
-            if context.experiment != "lift":
-                return sample
-            return sample.replace(height_mm=sample.height_mm + theta["offset_mm"])
+        def observed_force_fn(self, theta, force_fn, rows):
+            # a lift row recorded at h had the plate at h - offset
+            return lambda h, p: force_fn(jnp.where(rows.is_force, h, h - theta["offset_mm"]), p)
 
 Sign conventions: heights are of the plate above the membrane plane (mm), the membrane
 pushes the plate *up* (positive force), the force falls with height at fixed pressure, so
@@ -46,16 +48,15 @@ from mfdesign.physics.effects._base import (
     MeasurementEffect,
     MechanicalEffect,
     Parameter,
-    Sample,
-    apply_observe,
     apply_sim_params,
+    recorded_lift_height,
     effect,
     neutral_theta,
     register_effect,
     split_theta,
     typical_theta,
 )
-from mfdesign.physics.effects._priors import LogNormal, Normal, Uniform
+from mfdesign.physics.effects._priors import Bijection, LogNormal, Normal, Prior, Uniform, bijection
 from mfdesign.physics.effects._rows import Rows
 
 # The library: importing a module registers its effect (mechanics first, then the
@@ -73,6 +74,7 @@ from mfdesign.physics.effects.hysteresis import Hysteresis
 
 __all__ = [
     "EFFECTS",
+    "Bijection",
     "Context",
     "Effect",
     "LogNormal",
@@ -80,17 +82,18 @@ __all__ = [
     "MechanicalEffect",
     "Normal",
     "Parameter",
+    "Prior",
     "Rows",
-    "Sample",
     "Uniform",
     "apply_expected_force",
-    "apply_observe",
     "apply_row_sim_params",
     "apply_sim_params",
     "effect",
     "neutral_theta",
     "observed_force_fn",
+    "recorded_lift_height",
     "register_effect",
+    "bijection",
     "split_theta",
     "typical_theta",
     "ThicknessDeviation",

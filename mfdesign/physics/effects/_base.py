@@ -1,4 +1,4 @@
-"""The effect base class, its parameters and the registry (see the package doc)."""
+"""The effect base classes, their parameters and the registry (see the package doc)."""
 
 from __future__ import annotations
 
@@ -6,9 +6,13 @@ import abc
 import dataclasses
 import inspect
 from dataclasses import dataclass
-from typing import Any, ClassVar, Iterable, Mapping
+from typing import Any, Callable, ClassVar, Iterable, Mapping
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 from mfdesign.physics.effects._rows import Rows
 from mfdesign.physics.params import SimParams
@@ -17,83 +21,58 @@ __all__ = [
     "EFFECTS",
     "Context",
     "Effect",
+    "MeasurementEffect",
+    "MechanicalEffect",
     "Parameter",
-    "Sample",
-    "apply_observe",
+    "apply_expected_force",
+    "apply_row_sim_params",
     "apply_sim_params",
     "effect",
     "neutral_theta",
+    "observed_force_fn",
+    "recorded_lift_height",
     "register_effect",
     "split_theta",
     "typical_theta",
-    "apply_row_sim_params",
-    "observed_force_fn",
-    "apply_expected_force",
 ]
 
+ForceFn = Callable[[jax.Array, jax.Array], jax.Array]
 
-# -- parameters, samples, context -------------------------------------------------------------
+
+# -- parameters and context ---------------------------------------------------------------------
 @dataclass(frozen=True)
 class Parameter:
     """One named parameter of an effect: unit, prior, value that switches it off, realistic size."""
 
     name: str
     unit: str
-    prior: Any  # Uniform | Normal | LogNormal | anything with logpdf / sample / bounds
+    prior: Any  # a Prior (Uniform | Normal | LogNormal) or anything with logpdf / sample / bounds
     neutral: float
     typical: float
     doc: str = ""
 
 
 @dataclass(frozen=True)
-class Sample:
-    """Arrays of one shape: plate height [mm], gauge pressure [Pa], force on the plate [N].
-
-    True values go into :meth:`Effect.observe`, observed values come out.
-    """
-
-    height_mm: np.ndarray
-    pressure_pa: np.ndarray
-    force_n: np.ndarray
-
-    def replace(self, **changes) -> "Sample":
-        return dataclasses.replace(self, **changes)
-
-
-@dataclass(frozen=True)
 class Context:
-    """What an effect may need to know about the samples (arrays broadcast with the sample).
+    """What a mechanical effect's :meth:`Effect.sim_params` may need to know about a trial.
 
-    * ``experiment``: ``"force"`` (plate held at a set height) or ``"lift"`` (mass on a free
-      plate; ``force_n`` is then the weight of the mass, not a load-cell reading).
-    * ``trial_index``: order of the trial within the membrane's life (0 = first inflation).
-    * ``phase``: ``"inflate"`` / ``"deflate"`` per sample (``is_deflate`` as a bool mask).
-    * ``time_s``: time since the trial started.
-    * ``dF_dh``: slope of the true force with plate height at fixed pressure [N/mm] (from
-      the simulator; usually negative), for effects that move the plate.
-    * ``design``: the :class:`~mfdesign.design.Membrane`, ``rng``: a NumPy Generator for
-      effects with their own randomness (the virtual rig passes a seeded one).
+    * ``experiment``: ``"force"`` (plate held at a set height) or ``"lift"`` (mass on a free plate);
+    * ``trial_index``: order of the trial within the membrane's life (0 = first inflation);
+    * ``design``: the :class:`~mfdesign.design.Membrane`.
     """
 
     experiment: str = "force"
     trial_index: Any = 0
-    phase: Any = "inflate"
-    time_s: Any = None
-    dF_dh: Any = None
     design: Any = None
-    rng: Any = None
-
-    @property
-    def is_deflate(self) -> np.ndarray:
-        return np.asarray(self.phase) == "deflate"
 
 
-# -- the effect base class and the registry -----------------------------------------------------
-class Effect(abc.ABC):
-    """An effect: ``name``, ``story``, ``parameters`` and two hooks (the interface, as
-    diffrax's ``AbstractSolver`` declares its own). Subclass :class:`MechanicalEffect` (it
-    implements ``sim_params``) or :class:`MeasurementEffect` (``observe``); the other hook
-    is then the identity. Instances carry no state (use frozen dataclasses)."""
+# -- the effect base classes -------------------------------------------------------------------
+class Effect(eqx.Module):
+    """An effect: class-level ``name``, ``story`` and ``parameters``, and two hooks declared
+    abstract here (the interface, as diffrax's ``AbstractSolver`` declares its own).
+    Subclass :class:`MechanicalEffect` (it implements ``sim_params``) or
+    :class:`MeasurementEffect` (``observed_force_fn``); the other hook is then the identity.
+    An effect is a frozen module without fields: everything it knows is its class."""
 
     name: ClassVar[str] = ""
     story: ClassVar[str] = ""
@@ -101,12 +80,25 @@ class Effect(abc.ABC):
 
     # -- hooks ----------------------------------------------------------------------------
     @abc.abstractmethod
-    def sim_params(self, base: SimParams, theta: Mapping[str, float], context: Context | None = None) -> SimParams:
+    def sim_params(self, base: SimParams, theta: Mapping[str, Any], context: Context | None = None) -> SimParams:
         """Simulator inputs with the effect on the mechanics (``dataclasses.replace(base, ...)``)."""
 
     @abc.abstractmethod
-    def observe(self, theta: Mapping[str, float], sample: Sample, context: Context) -> Sample:
-        """True height, pressure and force arrays -> what the rig records (the virtual rig)."""
+    def observed_force_fn(self, theta: Mapping[str, Any], force_fn: ForceFn, rows: Rows) -> ForceFn:
+        """Map ``force_fn(h, p) -> F`` (the expected recorded force [N] at recorded height h
+        [mm] and pressure p [Pa], with the effects applied so far) to the same with this
+        effect applied. JAX, traceable in ``theta``.
+
+        ``force_fn`` is element-wise over the rows (row i depends on ``h[i], p[i]`` only), which
+        lets an effect take ``dF/dh`` with one ``jax.jvp``. The likelihood evaluates the result
+        at the recorded ``(h, p)``; the virtual rig uses the same function to record (a force
+        trial: at its set-points; a mass lift: where it equals the weight).
+        """
+
+    def row_sim_params(self, base: SimParams, theta: Mapping[str, Any], rows: Rows) -> SimParams:
+        """Row-wise simulator inputs (fields scalar or ``[N]``) for a jitted likelihood; default:
+        ``sim_params`` without a context. Override when the mechanics depend on the row."""
+        return self.sim_params(base, theta, None)
 
     # -- helpers --------------------------------------------------------------------------
     @property
@@ -124,7 +116,7 @@ class Effect(abc.ABC):
     def qualified(self, pname: str) -> str:
         return f"{self.name}.{pname}"
 
-    def full_theta(self, theta: Mapping[str, float] | None = None) -> dict[str, float]:
+    def full_theta(self, theta: Mapping[str, Any] | None = None) -> dict[str, Any]:
         """The effect's own theta with every parameter present (missing -> neutral)."""
         theta = dict(theta or {})
         unknown = set(theta) - set(self.parameter_names)
@@ -143,7 +135,7 @@ class Effect(abc.ABC):
 
     def log_prior(self, theta: Mapping[str, float]) -> float:
         th = self.full_theta(theta)
-        return float(sum(np.sum(p.prior.logpdf(th[p.name])) for p in self.parameters))
+        return float(sum(np.sum(np.asarray(p.prior.logpdf(th[p.name]))) for p in self.parameters))
 
     def sample_prior(self, rng: np.random.Generator) -> dict[str, float]:
         return {p.name: float(p.prior.sample(rng)) for p in self.parameters}
@@ -152,63 +144,36 @@ class Effect(abc.ABC):
         pars = ", ".join(f"{p.name} [{p.unit}] (neutral {p.neutral:g}, typical {p.typical:g})" for p in self.parameters)
         return f"{self.name}: {self.story} -- {pars}"
 
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}()"
-
-    # -- the likelihood side (JAX): every effect inside a jitted log-likelihood ------------------
-    # The hooks above turn true values into recorded ones (NumPy, for the virtual rig); these
-    # give, for a recorded row, the EXPECTED recorded force at the row's RECORDED height and
-    # pressure as a pure JAX function of theta (traced), so that emcee / optimistix can
-    # differentiate and vectorise it.
-    def row_sim_params(self, base: SimParams, theta, rows: "Rows") -> SimParams:
-        """Row-wise simulator inputs (fields scalar or ``[N]``); default: ``sim_params`` without
-        a context. Override when the mechanics depend on the row (trial, phase)."""
-        return self.sim_params(base, theta, None)
-
-    def observed_force_fn(self, theta, force_fn, rows: "Rows"):
-        """Map ``force_fn(h_rec, p_rec) -> F`` (the expected recorded force of the effects applied
-        so far) to the same with this effect applied; default: identity (no measurement effect).
-
-        ``force_fn`` is element-wise over the rows (row i depends on ``h[i], p[i]`` only), which
-        lets effects take ``dF/dh`` with one ``jax.jvp``.
-        """
-        return force_fn
-
-    def expected_force(self, theta, force_fn, rows: "Rows"):
+    def expected_force(self, theta: Mapping[str, Any], force_fn: ForceFn, rows: Rows) -> jax.Array:
         """Expected recorded force [N] of every row at its recorded (h, p) with this effect alone."""
         return self.observed_force_fn(theta, force_fn, rows)(rows.h_mm, rows.p_pa)
-
-    @property
-    def has_likelihood(self) -> bool:
-        """False for a measurement effect without a JAX likelihood hook (calibration refuses it)."""
-        return (not self.acts_on_measurement) or type(self).observed_force_fn is not Effect.observed_force_fn
 
 
 class MechanicalEffect(Effect):
     """An effect on the mechanics: it acts only through the simulator's inputs
-    (:class:`~mfdesign.physics.params.SimParams`); the likelihood gets it for free."""
+    (:class:`~mfdesign.physics.params.SimParams`); the recording is the identity."""
 
     @abc.abstractmethod
-    def sim_params(self, base: SimParams, theta: Mapping[str, float], context: Context | None = None) -> SimParams:
+    def sim_params(self, base: SimParams, theta: Mapping[str, Any], context: Context | None = None) -> SimParams:
         """Simulator inputs with the effect (``dataclasses.replace(base, ...)``)."""
 
-    def observe(self, theta: Mapping[str, float], sample: Sample, context: Context) -> Sample:
-        return sample
+    def observed_force_fn(self, theta: Mapping[str, Any], force_fn: ForceFn, rows: Rows) -> ForceFn:
+        return force_fn
 
 
 class MeasurementEffect(Effect):
-    """An effect of the measurement chain (sensors, rig, rate-dependence): ``observe`` for
-    the virtual rig and, for calibration and diagnosis, ``observed_force_fn`` (without it the
-    effect works as hidden truth only, ``has_likelihood`` False)."""
+    """An effect of the measurement chain (sensors, rig, rate-dependence): one JAX hook,
+    ``observed_force_fn``, for the virtual rig and the likelihood alike."""
 
-    def sim_params(self, base: SimParams, theta: Mapping[str, float], context: Context | None = None) -> SimParams:
+    def sim_params(self, base: SimParams, theta: Mapping[str, Any], context: Context | None = None) -> SimParams:
         return base
 
     @abc.abstractmethod
-    def observe(self, theta: Mapping[str, float], sample: Sample, context: Context) -> Sample:
-        """True height, pressure and force arrays -> what the rig records."""
+    def observed_force_fn(self, theta: Mapping[str, Any], force_fn: ForceFn, rows: Rows) -> ForceFn:
+        """``force_fn`` with the effect applied (see :meth:`Effect.observed_force_fn`)."""
 
 
+# -- the registry -----------------------------------------------------------------------------
 EFFECTS: dict[str, type[Effect]] = {}
 
 
@@ -230,10 +195,12 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
         raise ValueError(f"an effect named {cls.name!r} is already registered ({other.__qualname__})")
     if inspect.isabstract(cls):
         missing = sorted(getattr(cls, "__abstractmethods__", ()))
-        raise TypeError(
-            f"effect {cls.__name__} does not implement {missing}: subclass MechanicalEffect "
-            "(implement sim_params) or MeasurementEffect (implement observe)"
+        hint = (
+            "it has no likelihood hook: implement observed_force_fn(theta, force_fn, rows) (docs/effects.md)"
+            if "observed_force_fn" in missing and issubclass(cls, MeasurementEffect)
+            else "subclass MechanicalEffect (implement sim_params) or MeasurementEffect (implement observed_force_fn)"
         )
+        raise TypeError(f"effect {cls.__name__} does not implement {missing}: {hint}")
     EFFECTS[cls.name] = cls
     return cls
 
@@ -256,13 +223,13 @@ def _as_effects(effects: Iterable[str | Effect]) -> list[Effect]:
     return out
 
 
-def split_theta(effects: Iterable[str | Effect], theta: Mapping[str, Any] | None) -> dict[str, dict[str, float]]:
+def split_theta(effects: Iterable[str | Effect], theta: Mapping[str, Any] | None) -> dict[str, dict[str, Any]]:
     """Per-effect thetas from a flat ``{"effect.param": value}`` or a nested
     ``{"effect": {"param": value}}`` dict; missing parameters take their neutral value;
     a name that belongs to no listed effect is an error (a typo must not pass silently)."""
     effects = _as_effects(effects)
     theta = dict(theta or {})
-    per: dict[str, dict[str, float]] = {e.name: {} for e in effects}
+    per: dict[str, dict[str, Any]] = {e.name: {} for e in effects}
     for key, value in theta.items():
         if isinstance(value, Mapping):
             if key not in per:
@@ -286,6 +253,11 @@ def typical_theta(effects: Iterable[str | Effect]) -> dict[str, float]:
     return {e.qualified(p.name): p.typical for e in _as_effects(effects) for p in e.parameters}
 
 
+def _replace(params: SimParams, **changes) -> SimParams:
+    return dataclasses.replace(params, **changes)
+
+
+# -- composition ------------------------------------------------------------------------------
 def apply_sim_params(
     effects: Iterable[str | Effect],
     theta: Mapping[str, Any] | None,
@@ -303,27 +275,6 @@ def apply_sim_params(
     return params
 
 
-def apply_observe(
-    effects: Iterable[str | Effect],
-    theta: Mapping[str, Any] | None,
-    sample: Sample,
-    context: Context,
-) -> Sample:
-    """True values -> observed values through every measurement effect, in list order."""
-    effects = _as_effects(effects)
-    per = split_theta(effects, theta)
-    for e in effects:
-        sample = e.observe(per[e.name], sample, context)
-        if not isinstance(sample, Sample):
-            raise TypeError(f"effect {e.name!r}.observe returned {type(sample).__name__}, not Sample")
-    return sample
-
-
-def _replace(params: SimParams, **changes) -> SimParams:
-    return dataclasses.replace(params, **changes)
-
-
-# -- the likelihood side: every effect on the rows of a jitted log-likelihood ---------------
 def apply_row_sim_params(effects, theta, base: SimParams, rows: Rows) -> SimParams:
     """Row-wise simulator inputs with every mechanical effect applied, in list order (JAX)."""
     effects = _as_effects(effects)
@@ -334,20 +285,54 @@ def apply_row_sim_params(effects, theta, base: SimParams, rows: Rows) -> SimPara
     return params
 
 
-def observed_force_fn(effects, theta, force_fn, rows: Rows):
-    """``force_fn`` wrapped by every measurement effect in list order (as ``apply_observe``)."""
+def observed_force_fn(effects, theta, force_fn: ForceFn, rows: Rows) -> ForceFn:
+    """``force_fn`` wrapped by every effect's ``observed_force_fn`` in list order (JAX)."""
     effects = _as_effects(effects)
     per = split_theta(effects, theta)
     for e in effects:
-        if not e.has_likelihood:
-            raise NotImplementedError(
-                f"effect {e.name!r} changes measurements (observe) but has no likelihood hook "
-                "observed_force_fn(theta, force_fn, rows); add one to use it in calibration"
-            )
         force_fn = e.observed_force_fn(per[e.name], force_fn, rows)
     return force_fn
 
 
-def apply_expected_force(effects, theta, force_fn, rows: Rows):
-    """Expected recorded force [N] of every row at its recorded (h, p), all effects applied."""
+def apply_expected_force(effects, theta, force_fn: ForceFn, rows: Rows) -> jax.Array:
+    """Expected recorded force [N] of every row at its recorded (h, p), all effects applied.
+
+    The likelihood's mean; the virtual rig records a force trial with it (``force_fn`` the
+    truth, ``rows`` the rig's set-points)."""
     return observed_force_fn(effects, theta, force_fn, rows)(rows.h_mm, rows.p_pa)
+
+
+def recorded_lift_height(
+    effects,
+    theta,
+    force_fn: ForceFn,
+    rows: Rows,
+    weight_n,
+    start_mm,
+    atol: float = 1e-7,
+    max_steps: int = 64,
+) -> jax.Array:
+    """Recorded plate height [mm] of each mass-lift row: where the expected recorded force at
+    the row's recorded pressure equals the weight, ``F_obs(h, p) = W`` (JAX).
+
+    The inverse of what the likelihood assumes for a lift row (its expected "force" at the
+    recorded (h, p) is W), so a virtual lift is recorded by the same hooks. One Newton root
+    find per row (``optimistix``, vmapped), from ``start_mm`` (the branch the plate is on):
+    exact, where the first-order shift ``dh = (W - F_obs) / dF_dh`` of a single step is not.
+    NaN where it does not converge. ``force_fn`` should be defined below and above the
+    plate's range (the virtual rig adds its support and top stop as stiff springs).
+    """
+    effects = _as_effects(effects)
+    solver: optx.AbstractRootFinder = optx.Newton(rtol=1e-12, atol=atol)
+
+    def one(row: Rows, weight, start):
+        fn = observed_force_fn(effects, theta, force_fn, row)
+        sol: optx.Solution = optx.root_find(
+            lambda h, _: fn(h, row.p_pa) - weight, solver, start, max_steps=max_steps, throw=False
+        )
+        return jnp.where(sol.result == optx.RESULTS.successful, sol.value, jnp.nan)
+
+    n = rows.h_mm.shape[0]
+    weight_n = jnp.broadcast_to(jnp.asarray(weight_n, float), (n,))
+    start_mm = jnp.broadcast_to(jnp.asarray(start_mm, float), (n,))
+    return jax.vmap(one)(rows, weight_n, start_mm)

@@ -1,25 +1,161 @@
-"""Priors of effect parameters: ``logpdf`` (NumPy, for reports and the virtual rig),
-``logpdf_jax`` (inside a jitted log-posterior), ``sample`` and the support ``bounds``."""
+"""Priors of effect and model parameters, and the bijections that sampling uses.
+
+A prior (:class:`Prior`) has ONE log-density, :meth:`Prior.logpdf`, written in JAX: a
+jitted log-posterior traces it, and a NumPy caller converts the result (``float(...)``,
+``np.asarray(...)``). ``sample`` draws with a NumPy Generator, ``bounds`` is the support
+and ``center`` a starting point inside it.
+
+Samplers work in an unconstrained coordinate ``u``: :func:`bijection` maps a support
+``(lo, hi)`` to the transform (:class:`Interval`: ``lo + (hi - lo) sigmoid(u)``,
+:class:`LowerBound`: ``lo + exp(u)``, :class:`UpperBound`: ``hi - exp(u)``,
+:class:`Unbounded`: ``u``), each with ``to_physical``, ``log_jacobian`` (``log |dx/du|``)
+and ``to_unconstrained``. It is keyed on the bounds alone, so any prior with ``bounds``
+works (``models.hierarchical.ParamSpec`` delegates to it).
+"""
 
 from __future__ import annotations
 
+import abc
 import math
-from dataclasses import dataclass
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["LogNormal", "Normal", "Uniform"]
+__all__ = [
+    "Bijection",
+    "Interval",
+    "LogNormal",
+    "LowerBound",
+    "Normal",
+    "Prior",
+    "Unbounded",
+    "Uniform",
+    "UpperBound",
+    "bijection",
+]
 
 
-@dataclass(frozen=True)
-class Uniform:
+# -- bijections: unconstrained u <-> physical x ------------------------------------------------
+class Bijection(eqx.Module):
+    """A smooth map from the real line onto a prior's support."""
+
+    @abc.abstractmethod
+    def to_physical(self, u):
+        """Unconstrained ``u`` -> physical value inside the support."""
+
+    @abc.abstractmethod
+    def log_jacobian(self, u):
+        """``log |dx/du|`` at ``u`` (enters a log-density sampled in ``u``)."""
+
+    @abc.abstractmethod
+    def to_unconstrained(self, x):
+        """Physical ``x`` -> ``u`` (values on or outside a bound are pulled just inside)."""
+
+
+class Interval(Bijection):
+    """``[lo, hi]``: ``x = lo + (hi - lo) sigmoid(u)``."""
+
+    lo: float
+    hi: float
+
+    def to_physical(self, u):
+        return self.lo + (self.hi - self.lo) * jax.nn.sigmoid(u)
+
+    def log_jacobian(self, u):
+        return math.log(self.hi - self.lo) + jax.nn.log_sigmoid(u) + jax.nn.log_sigmoid(-u)
+
+    def to_unconstrained(self, x):
+        q = jnp.clip((jnp.asarray(x, float) - self.lo) / (self.hi - self.lo), 1e-12, 1 - 1e-12)
+        return jnp.log(q) - jnp.log1p(-q)
+
+
+class LowerBound(Bijection):
+    """``[lo, inf)``: ``x = lo + exp(u)``."""
+
+    lo: float
+
+    def to_physical(self, u):
+        return self.lo + jnp.exp(u)
+
+    def log_jacobian(self, u):
+        return jnp.asarray(u, float)
+
+    def to_unconstrained(self, x):
+        return jnp.log(jnp.maximum(jnp.asarray(x, float) - self.lo, 1e-300))
+
+
+class UpperBound(Bijection):
+    """``(-inf, hi]``: ``x = hi - exp(u)``."""
+
+    hi: float
+
+    def to_physical(self, u):
+        return self.hi - jnp.exp(u)
+
+    def log_jacobian(self, u):
+        return jnp.asarray(u, float)
+
+    def to_unconstrained(self, x):
+        return jnp.log(jnp.maximum(self.hi - jnp.asarray(x, float), 1e-300))
+
+
+class Unbounded(Bijection):
+    """The real line: ``x = u``."""
+
+    def to_physical(self, u):
+        return jnp.asarray(u, float)
+
+    def log_jacobian(self, u):
+        return jnp.zeros_like(jnp.asarray(u, float))
+
+    def to_unconstrained(self, x):
+        return jnp.asarray(x, float)
+
+
+def bijection(bounds: tuple[float, float]) -> Bijection:
+    """The transform onto the support ``bounds = (lo, hi)`` (infinite ends allowed)."""
+    lo, hi = bounds
+    if math.isfinite(lo) and math.isfinite(hi):
+        return Interval(lo, hi)
+    if math.isfinite(lo):
+        return LowerBound(lo)
+    if math.isfinite(hi):
+        return UpperBound(hi)
+    return Unbounded()
+
+
+# -- priors ---------------------------------------------------------------------------------------
+class Prior(eqx.Module):
+    """A prior: JAX ``logpdf``, NumPy ``sample``, support ``bounds``, a ``center`` inside it."""
+
+    @abc.abstractmethod
+    def logpdf(self, x):
+        """Log-density at ``x`` (any shape; -inf outside the support), a JAX array."""
+
+    @abc.abstractmethod
+    def sample(self, rng: np.random.Generator, size=None):
+        """Draws (a float when ``size`` is None)."""
+
+    @property
+    @abc.abstractmethod
+    def bounds(self) -> tuple[float, float]:
+        """The support ``(lo, hi)``."""
+
+    @property
+    @abc.abstractmethod
+    def center(self) -> float:
+        """A starting point inside the support."""
+
+
+class Uniform(Prior):
     """Uniform on ``[low, high]``."""
 
     low: float
     high: float
 
-    def __post_init__(self):
+    def __check_init__(self):
         if not (math.isfinite(self.low) and math.isfinite(self.high) and self.low < self.high):
             raise ValueError(f"Uniform needs finite low < high, got {self.low}, {self.high}")
 
@@ -29,25 +165,19 @@ class Uniform:
 
     @property
     def center(self) -> float:
-        """A starting point inside the support: the midpoint."""
+        """The midpoint."""
         return 0.5 * (self.low + self.high)
 
     def logpdf(self, x):
-        x = np.asarray(x, float)
+        x = jnp.asarray(x, float)
         inside = (x >= self.low) & (x <= self.high)
-        return np.where(inside, -math.log(self.high - self.low), -np.inf)
+        return jnp.where(inside, -math.log(self.high - self.low), -jnp.inf)
 
     def sample(self, rng: np.random.Generator, size=None):
         return rng.uniform(self.low, self.high, size=size)
 
-    def logpdf_jax(self, x):
-        """JAX log-density (same maths as :meth:`logpdf`), for jitted log-posteriors."""
-        inside = (x >= self.low) & (x <= self.high)
-        return jnp.where(inside, -math.log(self.high - self.low), -jnp.inf)
 
-
-@dataclass(frozen=True)
-class Normal:
+class Normal(Prior):
     """Normal ``N(mean, sd)``, optionally truncated to ``[low, high]`` (renormalised)."""
 
     mean: float
@@ -55,7 +185,7 @@ class Normal:
     low: float = -math.inf
     high: float = math.inf
 
-    def __post_init__(self):
+    def __check_init__(self):
         if not (self.sd > 0 and self.low < self.high):
             raise ValueError(f"Normal needs sd > 0 and low < high, got sd={self.sd}, [{self.low}, {self.high}]")
 
@@ -65,18 +195,19 @@ class Normal:
 
     @property
     def center(self) -> float:
-        """A starting point inside the support: the mean, clipped to the bounds."""
+        """The mean, clipped to the bounds."""
         return min(max(self.mean, self.low), self.high)
 
-    def _mass(self) -> float:
-        cdf = lambda x: 0.5 * (1.0 + math.erf((x - self.mean) / (self.sd * math.sqrt(2.0))))
-        return cdf(self.high) - cdf(self.low)
+    def _log_mass(self) -> float:
+        """log of the probability mass inside ``[low, high]`` (a Python float: a constant)."""
+        cdf = lambda x: 0.5 * (1.0 + math.erf((x - self.mean) / (self.sd * math.sqrt(2.0))))  # noqa: E731
+        return math.log(cdf(self.high) - cdf(self.low))
 
     def logpdf(self, x):
-        x = np.asarray(x, float)
+        x = jnp.asarray(x, float)
         z = (x - self.mean) / self.sd
-        lp = -0.5 * z**2 - math.log(self.sd * math.sqrt(2.0 * math.pi)) - math.log(self._mass())
-        return np.where((x >= self.low) & (x <= self.high), lp, -np.inf)
+        lp = -0.5 * z**2 - math.log(self.sd * math.sqrt(2.0 * math.pi)) - self._log_mass()
+        return jnp.where((x >= self.low) & (x <= self.high), lp, -jnp.inf)
 
     def sample(self, rng: np.random.Generator, size=None):
         n = 1 if size is None else int(np.prod(size))
@@ -87,15 +218,8 @@ class Normal:
         out = out[:n]
         return float(out[0]) if size is None else out.reshape(size)
 
-    def logpdf_jax(self, x):
-        """JAX log-density (same maths as :meth:`logpdf`), for jitted log-posteriors."""
-        z = (x - self.mean) / self.sd
-        lp = -0.5 * z**2 - math.log(self.sd * math.sqrt(2.0 * math.pi)) - math.log(self._mass())
-        return jnp.where((x >= self.low) & (x <= self.high), lp, -jnp.inf)
 
-
-@dataclass(frozen=True)
-class LogNormal:
+class LogNormal(Prior):
     """``log x ~ N(log median, sigma)``, optionally truncated to ``[low, high]`` (x > 0)."""
 
     median: float
@@ -103,7 +227,7 @@ class LogNormal:
     low: float = 0.0
     high: float = math.inf
 
-    def __post_init__(self):
+    def __check_init__(self):
         if not (self.median > 0 and self.sigma > 0 and 0 <= self.low < self.high):
             raise ValueError("LogNormal needs median > 0, sigma > 0 and 0 <= low < high")
 
@@ -113,7 +237,7 @@ class LogNormal:
 
     @property
     def center(self) -> float:
-        """A starting point inside the support: the median, clipped to the bounds."""
+        """The median, clipped to the bounds."""
         return min(max(self.median, self.low), self.high)
 
     def _log_normal(self) -> Normal:
@@ -122,18 +246,10 @@ class LogNormal:
         return Normal(math.log(self.median), self.sigma, lo, hi)
 
     def logpdf(self, x):
-        x = np.asarray(x, float)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lx = np.log(np.where(x > 0, x, np.nan))
-            lp = self._log_normal().logpdf(lx) - lx
-        return np.where(x > 0, lp, -np.inf)
+        x = jnp.asarray(x, float)
+        pos = x > 0
+        lx = jnp.log(jnp.where(pos, x, 1.0))  # a safe log: x <= 0 is masked below
+        return jnp.where(pos, self._log_normal().logpdf(lx) - lx, -jnp.inf)
 
     def sample(self, rng: np.random.Generator, size=None):
         return np.exp(self._log_normal().sample(rng, size))
-
-    def logpdf_jax(self, x):
-        """JAX log-density (same maths as :meth:`logpdf`), for jitted log-posteriors."""
-        pos = x > 0
-        lx = jnp.log(jnp.where(pos, x, 1.0))
-        lp = self._log_normal().logpdf_jax(lx) - lx
-        return jnp.where(pos, lp, -jnp.inf)

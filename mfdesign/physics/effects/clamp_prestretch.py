@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
 from mfdesign.physics.effects._priors import Uniform
 
@@ -11,7 +9,6 @@ __all__ = ["ClampPrestretch"]
 
 
 @register_effect
-@dataclass(frozen=True)
 class ClampPrestretch(MechanicalEffect):
     name = "clamp_prestretch"
     story = "clamping the membrane stretches it radially before inflation"

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
 from mfdesign.physics.effects._priors import Uniform
 
@@ -11,7 +9,6 @@ __all__ = ["ContactOffset"]
 
 
 @register_effect
-@dataclass(frozen=True)
 class ContactOffset(MechanicalEffect):
     name = "contact_offset"
     story = "the membrane sticks to the plate beyond the rigid disk, so the effective contact radius is larger"

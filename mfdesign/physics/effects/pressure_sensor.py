@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from mfdesign.physics.effects._base import MeasurementEffect, Parameter, register_effect
 from mfdesign.physics.effects._priors import Normal
 
@@ -11,8 +9,9 @@ __all__ = ["PressureSensor"]
 
 
 @register_effect
-@dataclass(frozen=True)
 class PressureSensor(MeasurementEffect):
+    """The transducer reads ``p_rec = gain p_true + offset`` [Pa], in force trials and lifts alike."""
+
     name = "pressure_sensor"
     story = "the pressure transducer has a zero offset and a gain error"
     parameters = (
@@ -20,9 +19,6 @@ class PressureSensor(MeasurementEffect):
         Parameter("gain", "1", Normal(1.0, 0.03, 0.8, 1.2), 1.0, 1.0, "reading / true pressure"),
     )
 
-    def observe(self, theta, sample, context):
-        return sample.replace(pressure_pa=theta["gain"] * sample.pressure_pa + theta["offset_pa"])
-
     def observed_force_fn(self, theta, force_fn, rows):
-        # recorded p = gain * p_true + offset  =>  p_true = (p - offset) / gain
+        # a row recorded at p was at the true pressure (p - offset) / gain
         return lambda h, p: force_fn(h, (p - theta["offset_pa"]) / theta["gain"])

@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from mfdesign.physics.effects._base import MeasurementEffect, Parameter, register_effect
 from mfdesign.physics.effects._priors import Uniform
@@ -15,7 +12,6 @@ __all__ = ["RigCompliance"]
 
 
 @register_effect
-@dataclass(frozen=True)
 class RigCompliance(MeasurementEffect):
     """The frame that holds the plate at its set height is a spring of stiffness ``k``.
 
@@ -25,7 +21,7 @@ class RigCompliance(MeasurementEffect):
     ``F_obs = F(h_set + F_obs / k)``; to first order ``F_obs = F + dF_dh F_obs / k``, so
     ``F_obs = F / (1 - dF_dh / k)``. With ``dF_dh < 0`` (force falls with height) the rig
     reads less than the stiff-rig force. Parameterised by the compliance ``1 / k`` so that
-    0 is the neutral value.
+    0 is the neutral value. A lift's free plate does not load the frame.
     """
 
     name = "rig_compliance"
@@ -34,23 +30,13 @@ class RigCompliance(MeasurementEffect):
         Parameter("compliance_mm_per_n", "mm/N", Uniform(0.0, 0.1), 0.0, 0.02, "1 / k, plate displacement per newton"),
     )
 
-    def observe(self, theta, sample, context):
-        c = theta["compliance_mm_per_n"]
-        if context.experiment != "force" or c == 0.0:
-            return sample
-        if context.dF_dh is None:
-            raise ValueError("rig_compliance needs context.dF_dh (N/mm) from the simulator")
-        slope = np.nan_to_num(np.asarray(context.dF_dh, float), nan=0.0)
-        denom = np.maximum(1.0 - slope * c, 0.2)  # guard a rising F(h): never amplify > 5x
-        return sample.replace(force_n=sample.force_n / denom)
-
     def observed_force_fn(self, theta, force_fn, rows):
         c = theta["compliance_mm_per_n"]
 
         def fn(h, p):
             f, slope = jax.jvp(lambda hh: force_fn(hh, p), (h,), (jnp.ones_like(h),))
-            slope = jnp.nan_to_num(slope, nan=0.0)
-            denom = jnp.maximum(1.0 - slope * c, 0.2)
+            slope = jnp.nan_to_num(slope, nan=0.0)  # unknown slope (next to an unsolved cell): no correction
+            denom = jnp.maximum(1.0 - slope * c, 0.2)  # guard a rising F(h): never amplify > 5x
             return jnp.where(rows.is_force, f / denom, f)
 
         return fn

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
 from mfdesign.physics.effects._priors import LogNormal
 
@@ -11,7 +9,6 @@ __all__ = ["RingSoftening"]
 
 
 @register_effect
-@dataclass(frozen=True)
 class RingSoftening(MechanicalEffect):
     name = "ring_softening"
     story = "the fabric rings partly delaminate from the rubber, so they are less stiff than assumed"

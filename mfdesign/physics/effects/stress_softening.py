@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
@@ -13,7 +11,6 @@ __all__ = ["StressSoftening"]
 
 
 @register_effect
-@dataclass(frozen=True)
 class StressSoftening(MechanicalEffect):
     name = "stress_softening"
     story = "Mullins effect: the virgin rubber of the first inflation is stiffer than in every later trial"
@@ -30,10 +27,12 @@ class StressSoftening(MechanicalEffect):
 
     def sim_params(self, base, theta, context=None):
         first = context is not None and int(np.min(context.trial_index)) == 0
-        if not first:
-            return base
-        return _replace(base, mu_pa=base.mu_pa * (1.0 + theta["stiffening"]))
+        return self._stiffen(base, theta, float(first))
 
     def row_sim_params(self, base, theta, rows):
-        factor = 1.0 + theta["stiffening"] * rows.is_first_trial.astype(float)
-        return _replace(base, mu_pa=base.mu_pa * factor)
+        return self._stiffen(base, theta, rows.is_first_trial.astype(float))
+
+    @staticmethod
+    def _stiffen(base, theta, first):
+        """mu times ``1 + stiffening`` where ``first`` is 1 (the first trial), unchanged where 0."""
+        return _replace(base, mu_pa=base.mu_pa * (1.0 + theta["stiffening"] * first))

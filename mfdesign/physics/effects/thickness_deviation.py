@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
 from mfdesign.physics.effects._priors import Normal
 
@@ -11,7 +9,6 @@ __all__ = ["ThicknessDeviation"]
 
 
 @register_effect
-@dataclass(frozen=True)
 class ThicknessDeviation(MechanicalEffect):
     name = "thickness_deviation"
     story = "gravity moulding leaves a membrane thicker or thinner than its nominal thickness"

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
 from mfdesign.physics.effects._priors import Normal
 
@@ -11,7 +9,6 @@ __all__ = ["ThicknessGradient"]
 
 
 @register_effect
-@dataclass(frozen=True)
 class ThicknessGradient(MechanicalEffect):
     name = "thickness_gradient"
     story = "the uncured rubber flows outwards in the mould: the membrane thins (or thickens) towards the clamp"
