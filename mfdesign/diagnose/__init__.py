@@ -1,8 +1,9 @@
 """Diagnosis: compare a model with measurements, see where it fails, find the missing effect.
 
-* :mod:`~mfdesign.diagnose.emulated`: the forward model: a JAX force model (exact simulator
-  planes, the emulator or the stand-in; :func:`forward_model`) + the effects' likelihood
-  hooks, exact autodiff (:class:`EmulatorModel`);
+* :mod:`~mfdesign.diagnose.emulated`: the forward model, one interface
+  (:class:`ForwardModel`) on two back ends (:class:`ExactForwardModel`: exact simulator planes;
+  :class:`EmulatorForwardModel`: the emulator or the stand-in; :func:`forward_model` by name):
+  a JAX force model + the effects' likelihood hooks, exact autodiff;
 * :mod:`~mfdesign.diagnose.expected`: query heights, usable rows, trial order;
 * :mod:`~mfdesign.diagnose.refit`: the full check's nonlinear refit (optimistix);
 * :mod:`~mfdesign.diagnose.residuals`: residuals, breakdowns, noise floor, worst regions in words;
@@ -16,14 +17,22 @@ See ``docs/diagnose.md``.
 """
 
 from mfdesign.diagnose.check import CheckResult, calibrate_effects, full_check, verdict
-from mfdesign.diagnose.emulated import EmulatorModel, emulator_plane, forward_model
+from mfdesign.diagnose.emulated import (
+    EmulatorForwardModel,
+    ExactForwardModel,
+    ForwardModel,
+    emulator_plane,
+    forward_model,
+)
 from mfdesign.diagnose.expected import query_heights, trial_order, usable_rows
 from mfdesign.diagnose.residuals import Residuals, breakdowns, compute_residuals, noise_floor, worst_regions
 from mfdesign.diagnose.screen import ScreenResult, screen
 
 __all__ = [
     "CheckResult",
-    "EmulatorModel",
+    "EmulatorForwardModel",
+    "ExactForwardModel",
+    "ForwardModel",
     "emulator_plane",
     "forward_model",
     "Residuals",

@@ -2,7 +2,7 @@
 
 For a set of effects the model becomes ``F(theta) = base + [E(theta) - E(theta0)]`` with
 ``E`` the expected observed force of the forward model with the effects
-(:meth:`~mfdesign.diagnose.emulated.EmulatorModel.expected_force`) and ``base`` the model
+(:meth:`~mfdesign.diagnose.emulated.ForwardModel.expected_force`) and ``base`` the model
 under diagnosis (for the plain simulator ``base = E(theta0)``, so ``F = E``).
 
 Every parameter of the set is refitted nonlinearly (:mod:`mfdesign.diagnose.refit`:
@@ -22,23 +22,15 @@ part".
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
-
-from mfdesign.diagnose.refit import CheckResult, calibrate_exact, full_check_exact
+# The refits themselves live in :mod:`mfdesign.diagnose.refit` (nonlinear, exact lattice).
+from mfdesign.diagnose.refit import CheckResult, calibrate_effects, full_check
 from mfdesign.diagnose.residuals import Residuals
-
-if TYPE_CHECKING:
-    pass
 
 __all__ = ["CheckResult", "calibrate_effects", "full_check", "verdict"]
 
 FLOOR_FACTOR = 1.2
-
-
-# The refits themselves live in :mod:`mfdesign.diagnose.refit` (nonlinear, exact lattice).
-calibrate_effects = calibrate_exact
-full_check = full_check_exact
 
 
 def verdict(
@@ -85,7 +77,7 @@ def verdict(
             ),
         }
     best = min(good, key=lambda c: (c.heldout_rmse_n, c.delta_bic))
-    floor = max(floor, best.noise_floor_n)  # the floor under the candidate (refit.full_check_exact)
+    floor = max(floor, best.noise_floor_n)  # the floor under the candidate (refit.full_check)
     full = floor > 0 and best.heldout_rmse_n <= floor_factor * floor
     th = ", ".join(f"{k} = {v:.4g} +- {best.stderr.get(k, float('nan')):.2g}" for k, v in best.theta.items())
     return {

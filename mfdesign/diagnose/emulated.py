@@ -1,13 +1,19 @@
 """Differentiable forward model of diagnosis: a JAX force model + the effects.
 
-:class:`EmulatorModel` (``expected_force(meas, effects, theta) -> F [N] per row``, ``predict``,
-``jacobian``, ``fit``) evaluates a pure JAX ``force_model(design [N, 6] mm, h_mm [N], p_pa [N],
-SimParams) -> F [N]`` at every row: the exact model (simulator planes of the measured
-membranes, :mod:`mfdesign.models.exact`; the default of ``mfdesign diagnose``), the
-simulator's emulator (:func:`mfdesign.models.emulator.load_default`), or
-:class:`~mfdesign.models.standin.StandinForceModel` (the closed-form stand-in, for tests;
-the virtual rig's truth with ``simulator=standin_plane`` is the same formula).
-:func:`forward_model` builds one.
+:class:`ForwardModel` is the one interface diagnosis calls (screen, refit, check, pipeline):
+``expected_force(meas, effects, theta, rows) -> F [N] per row``, its exact derivative
+``jacobian`` and the batched refit ``fit``. It evaluates a pure JAX force model
+(:class:`~mfdesign.models.force.ForceModel`: ``(design [N, 6] mm, h_mm [N], p_pa [N],
+SimParams) -> F [N]``) at every row. Two back ends, built by name with :func:`forward_model`:
+
+* :class:`ExactForwardModel`: simulator planes of the measured membranes
+  (:mod:`mfdesign.models.exact`; the default of ``mfdesign diagnose``), whose lattice grows
+  where the fits go (kept in a :class:`GrowingLattice`, the one state that changes while a
+  diagnosis runs);
+* :class:`EmulatorForwardModel`: a force model that holds every simulator constant by
+  itself: the simulator's emulator (:func:`mfdesign.models.emulator.load_default`) or
+  :class:`~mfdesign.models.standin.StandinForceModel` (the closed-form stand-in, for tests;
+  the virtual rig's truth with ``simulator=standin_plane`` is the same formula).
 
 The expected recorded force of a row recorded at ``(h, p)`` with effects ``theta`` is the
 calibration's likelihood model (:mod:`mfdesign.physics.effects`, "the likelihood side")::
@@ -16,7 +22,8 @@ calibration's likelihood model (:mod:`mfdesign.physics.effects`, "the likelihood
     F      = apply_expected_force(effects, theta, force_model(., params), rows)   # measurement chain
 
 with the query height of :func:`~mfdesign.diagnose.expected.query_heights` (set-point in force
-trials) and ``h``, ``p`` clipped to the force model's range (``h_range_mm``, ``p_range_pa``).
+trials) and ``h``, ``p`` clipped to the force model's input range
+(:class:`ClippedForceModel`).
 
 Every registered effect with a likelihood hook is applied in one fixed order
 (:func:`canonical_order`; effects not in the model sit at their neutral values, which are
@@ -28,7 +35,8 @@ with a Gaussian prior as extra residuals, for all candidates and folds in one co
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import abc
+from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
 import equinox as eqx
@@ -39,12 +47,27 @@ import numpy as np
 from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
 from mfdesign.diagnose.expected import query_heights, trial_order
+from mfdesign.models.force import ForceModel
 from mfdesign.physics import effects as fx
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.solve import SimResult
 from mfdesign.physics.status import Status
 
-__all__ = ["EmulatorModel", "emulator_plane", "forward_model", "likelihood_effects"]
+__all__ = [
+    "ClippedForceModel",
+    "EmulatorForwardModel",
+    "ExactForwardModel",
+    "ForwardModel",
+    "GrowingLattice",
+    "RowTable",
+    "canonical_order",
+    "effect_order",
+    "emulator_plane",
+    "forward_model",
+    "likelihood_effects",
+    "parameter_names",
+    "theta_vector",
+]
 
 LATTICE_ROUNDS = 4  # refits while the exact model's lattice grows around the optima
 CHUNK = 4096  # rows per compiled call (bounds the memory of the emulator's activations)
@@ -56,7 +79,7 @@ class emulator_plane:  # noqa: N801 -- used like a function: VirtualRig(simulato
 
     Locking is reported as 0 (no bursts) and the membrane's rise as ``p / 250 - h / 2`` mm
     (as :func:`~mfdesign.models.standin.standin_plane`; it ends ringless force trials at the
-    rig's contact limit). With it the virtual rig's truth and :class:`EmulatorModel` share
+    rig's contact limit). With it the virtual rig's truth and :class:`EmulatorForwardModel` share
     the same physics, so a sweep tests the diagnosis logic alone.
     """
 
@@ -104,45 +127,69 @@ def canonical_order() -> tuple[str, ...]:
     return tuple(mech + chain + sorted(n for n in names if n not in mech and n not in chain))
 
 
+# -- layout: which parameters, in which order ------------------------------------------------------
+def effect_order(effects: Sequence[str | fx.Effect] = ()) -> tuple[str, ...]:
+    """The canonical order (:func:`canonical_order`): every effect with a likelihood hook, the
+    mechanical ones first, then the measurement chain from the inputs outwards (pressure
+    sensor, losses, frame, load-cell tare), others by name. ``effects`` are only validated: a
+    neutral effect is an exact identity, so one order (and one compiled function) serves every
+    model."""
+    likelihood_effects([fx.effect(e).name for e in effects])
+    return canonical_order()
+
+
+def parameter_names(order: Sequence[str]) -> tuple[str, ...]:
+    """Qualified parameter names (``"effect.param"``) of the effects of ``order``, in order."""
+    return tuple(fx.neutral_theta(order))
+
+
+def theta_vector(order: Sequence[str], theta: Mapping[str, Any] | None) -> np.ndarray:
+    """``theta`` (``{"effect.param": value}``, others neutral) as a vector over :func:`parameter_names`."""
+    names = parameter_names(order)
+    per = fx.split_theta(order, theta)  # validates the names
+    flat = {f"{k}.{p}": v for k, d in per.items() for p, v in d.items()}
+    return np.array([float(flat[n]) for n in names])
+
+
 # -- the compiled core ------------------------------------------------------------------------------
+class ClippedForceModel(ForceModel):
+    """A force model asked at plate heights clipped to ``[0, h_max_mm]`` mm and pressures
+    clipped to ``[0, p_max_pa]`` Pa (its input range: effects may push a row's query past
+    it, and diagnosis must not ask the model where it does not vouch for a number)."""
+
+    force_model: ForceModel
+    h_max_mm: float = eqx.field(static=True)
+    p_max_pa: float = eqx.field(static=True)
+    name = "clipped"
+
+    def __call__(self, design, h_mm, p_pa, params: SimParams = SimParams()):
+        h = jnp.clip(h_mm, 0.0, self.h_max_mm)
+        return self.force_model(design, h, jnp.clip(p_pa, 0.0, self.p_max_pa), params)
+
+
 @eqx.filter_jit
-def _forward(
-    force_model,
-    order: tuple,
-    names: tuple,
-    base: SimParams,
-    t0,
-    P,
-    x,
-    design,
-    rows: fx.Rows,
-    h_max: float,
-    p_max: float,
-):
+def _forward(force_model: ClippedForceModel, order: tuple, names: tuple, base: SimParams, t0, P, x, design, rows):
     """Expected recorded force [N] of ``rows`` at ``theta = t0 + P @ x`` (all effects of ``order``)."""
     th = t0 + P @ x
     theta = {n: th[i] for i, n in enumerate(names)}
     params = fx.apply_row_sim_params(order, theta, base, rows)
-    fn = lambda h, p: force_model(design, jnp.clip(h, 0.0, h_max), jnp.clip(p, 0.0, p_max), params)  # noqa: E731
-    return fx.apply_expected_force(order, theta, fn, rows)
+    return fx.apply_expected_force(order, theta, lambda h, p: force_model(design, h, p, params), rows)
 
 
 @eqx.filter_jit
-def _jacobian(force_model, order, names, base, t0, P, x, design, rows, h_max, p_max):
-    return jax.jacfwd(lambda xx: _forward(force_model, order, names, base, t0, P, xx, design, rows, h_max, p_max))(x)
+def _jacobian(force_model, order, names, base, t0, P, x, design, rows):
+    return jax.jacfwd(lambda xx: _forward(force_model, order, names, base, t0, P, xx, design, rows))(x)
 
 
 @eqx.filter_jit
-def _fit_batch(
-    force_model, order, names, base, h_max, p_max, design, rows, obs, sigma, t0, P, w, tau, x0, max_steps: int
-):
+def _fit_batch(force_model, order, names, base, design, rows, obs, sigma, t0, P, w, tau, x0, max_steps: int):
     """Levenberg-Marquardt (optimistix) for a batch of problems (leading axis of t0, P, w, tau, x0), in turn:
     residuals ``[sqrt(w) (obs - F(t0 + P x)) / sigma, x / tau]`` (Gaussian-prior MAP)."""
     import optimistix as optx
 
     def resid(x, args):
         t0_, P_, w_, tau_ = args
-        f = _forward(force_model, order, names, base, t0_, P_, x, design, rows, h_max, p_max)
+        f = _forward(force_model, order, names, base, t0_, P_, x, design, rows)
         r = jnp.sqrt(w_) * jnp.nan_to_num(obs - f) / sigma
         return jnp.concatenate([r, x / tau_])
 
@@ -180,110 +227,106 @@ def _rows_of(meas: Measurements) -> tuple[jax.Array, fx.Rows]:
     return jnp.asarray(design), rows
 
 
-def _take(design, rows, idx):
-    idx = jnp.asarray(idx)
-    return design[idx], rows.take(idx)
+# -- caches: the state that changes while a diagnosis runs, kept out of the (immutable) models ------
+class RowTable:
+    """``(design [N, 6] mm, Rows)`` of measurement tables, memoised per table object (a table
+    is not modified once read). An explicit cache: the forward model holding it stays immutable."""
 
+    def __init__(self) -> None:
+        self._memo: dict[int, tuple[Measurements, tuple[jax.Array, fx.Rows]]] = {}
 
-@dataclass
-class EmulatorModel:
-    """Expected observed force per row from a JAX force model and the effects (module doc).
-
-    ``force_model``: ``(design, h_mm, p_pa, SimParams) -> F [N]`` (default: the bundled
-    emulator, :func:`~mfdesign.models.emulator.load_default`); ``base_params``: the simulator
-    constants of the plain model (authors'); ``h_range_mm`` / ``p_range_pa``: inputs are
-    clipped to these (default: the emulator's training ranges, else 0-80 mm, 0-10 kPa).
-    """
-
-    force_model: Any = None
-    base_params: SimParams = field(default_factory=SimParams)
-    h_range_mm: tuple[float, float] | None = None
-    p_range_pa: tuple[float, float] | None = None
-    progress: bool = False
-    _memo: dict = field(default_factory=dict, repr=False)
-
-    def __post_init__(self):
-        if self.force_model is None:
-            from mfdesign.models.emulator import load_default
-
-            self.force_model = load_default()
-        from mfdesign.models.force import ForceModel
-
-        rng = self.force_model.input_ranges() if isinstance(self.force_model, ForceModel) else {}
-        self.h_range_mm = self.h_range_mm or tuple(rng.get("height_mm", (0.0, 80.0)))
-        self.p_range_pa = self.p_range_pa or tuple(rng.get("pressure_pa", (0.0, 1.0e4)))
-        self.base_params = jax.tree.map(lambda a: jnp.asarray(a, float), self.base_params)
-
-    @property
-    def name(self) -> str:
-        return getattr(self.force_model, "name", "") or type(self.force_model).__name__.lower()
-
-    def _cover(self, meas: Measurements, order, thetas: np.ndarray, rows=None) -> None:
-        """Grow the force model to hold the constants of every row at each of ``thetas``
-        [B, n_params] (the exact model solves the simulator planes it lacks; others hold
-        everything already). Called before every evaluation and after every fit."""
-        from mfdesign.models.force import ForceModel
-
-        if not isinstance(self.force_model, ForceModel):
-            return
-        _, rws = self.data(meas)
-        if rows is not None:
-            rws = rws.take(jnp.asarray(rows))
-        params = _row_params(order, self.names(order), self.base_params, rws, thetas)
-        self.force_model = self.force_model.covering(params, progress=self.progress)
-
-    # -- layout ---------------------------------------------------------------------------------
-    def order(self, effects: Sequence[str | fx.Effect] = ()) -> tuple[str, ...]:
-        """The canonical order: every effect with a likelihood hook, the mechanical ones first,
-        then the measurement chain from the inputs outwards (pressure sensor, losses, frame,
-        load-cell tare), others by name. ``effects`` are only validated: a neutral effect is an
-        exact identity, so one order (and one compiled function) serves every model."""
-        likelihood_effects([fx.effect(e).name for e in effects])
-        return canonical_order()
-
-    @staticmethod
-    def names(order: Sequence[str]) -> tuple[str, ...]:
-        return tuple(fx.neutral_theta(order))
-
-    def theta_vector(self, order, theta: Mapping[str, Any] | None) -> np.ndarray:
-        names = self.names(order)
-        per = fx.split_theta(order, theta)  # validates the names
-        flat = {f"{k}.{p}": v for k, d in per.items() for p, v in d.items()}
-        return np.array([float(flat[n]) for n in names])
-
-    def data(self, meas: Measurements):
-        """``(design [N, 6], Rows)`` of a table (memoised per table object)."""
+    def __call__(self, meas: Measurements) -> tuple[jax.Array, fx.Rows]:
         memo = self._memo.get(id(meas))
-        if memo is None or memo[0] is not meas:
+        if memo is None or memo[0] is not meas:  # an id reused by a new table
             memo = (meas, _rows_of(meas))
             self._memo[id(meas)] = memo
         return memo[1]
 
-    # -- evaluation -----------------------------------------------------------------------------
-    def _chunks(self, n: int):
-        for a in range(0, n, CHUNK):
-            idx = np.arange(a, a + CHUNK)
-            yield a, min(a + CHUNK, n), np.minimum(idx, n - 1)
 
+class GrowingLattice:
+    """The exact force model as diagnosis grows it. Fits go where the lattice has no planes
+    yet; the planes solved for them must stay for every later call of the diagnosis (the
+    screen, each candidate's refit, the BIC, the next round), so the grown model is kept
+    here, in an explicit cache object, and the forward model holding it stays immutable."""
+
+    def __init__(self, model: ForceModel, progress: bool = False) -> None:
+        self.model = model
+        self.progress = progress
+
+    def cover(self, params: SimParams) -> bool:
+        """Grow the model to hold every constant of ``params`` (fields of any shape); whether it grew."""
+        grown = self.model.covering(params, progress=self.progress)
+        changed = grown is not self.model
+        self.model = grown
+        return changed
+
+
+def _float_params(params: SimParams) -> SimParams:
+    return jax.tree.map(lambda a: jnp.asarray(a, float), params)
+
+
+def _input_max(force_model: ForceModel) -> tuple[float, float]:
+    """Highest plate height [mm] and gauge pressure [Pa] ``force_model`` vouches for."""
+    rng = force_model.input_ranges()
+    return float(rng["height_mm"][1]), float(rng["pressure_pa"][1])
+
+
+# -- the interface ----------------------------------------------------------------------------------
+class ForwardModel(eqx.Module):
+    """Expected recorded force per row of a measurement table from a JAX force model and the
+    effects (module doc): what the screen, the refit, the check and the pipeline call.
+
+    A back end provides the force model, the plain model's constants ``base_params``
+    (authors'), the force model's input range (``h_max_mm`` mm, ``p_max_pa`` Pa: queries are
+    clipped to it), a :class:`RowTable`, and :meth:`cover`: how its force model comes to
+    hold the simulator constants a call needs. Evaluation, derivatives and fits are here, once.
+
+    Not a :class:`~mfdesign.models.force.ForceModel`: a force model answers for (design, h,
+    p, simulator constants); this answers for the rows of a measurement table through the
+    effects (mechanics per row, then the measurement chain), and is built on a force model.
+    """
+
+    force_model: eqx.AbstractVar[ForceModel]
+    base_params: eqx.AbstractVar[SimParams]
+    h_max_mm: eqx.AbstractVar[float]
+    p_max_pa: eqx.AbstractVar[float]
+    tables: eqx.AbstractVar[RowTable]
+
+    @abc.abstractmethod
+    def cover(self, meas: Measurements, order: tuple, thetas: np.ndarray, rows: np.ndarray | None = None) -> bool:
+        """Make the force model hold the simulator constants of the rows ``rows`` of ``meas``
+        (default: all) at each parameter vector of ``thetas`` [B, n_params] (over
+        :func:`parameter_names` of ``order``); returns whether the force model changed.
+        Called before every evaluation and after every fit."""
+
+    # -- data -----------------------------------------------------------------------------------
+    @property
+    def clipped(self) -> ClippedForceModel:
+        """The current force model with its inputs clipped to its range (what every row is asked)."""
+        return ClippedForceModel(self.force_model, self.h_max_mm, self.p_max_pa)
+
+    def table(self, meas: Measurements, rows: np.ndarray | None = None) -> tuple[jax.Array, fx.Rows]:
+        """``(design [N, 6] mm, Rows)`` of ``meas`` (or of its rows ``rows``)."""
+        design, rws = self.tables(meas)
+        if rows is None:
+            return design, rws
+        idx = jnp.asarray(rows)
+        return design[idx], rws.take(idx)
+
+    # -- evaluation -----------------------------------------------------------------------------
     def _eval(self, fn, design, rows, order, t0, P, x) -> np.ndarray:
+        """``fn`` (:func:`_forward` or :func:`_jacobian`) on chunks of :data:`CHUNK` rows."""
         n = int(design.shape[0])
-        names = self.names(order)
+        names = parameter_names(order)
+        fm = self.clipped
+        args = tuple(jnp.asarray(np.asarray(a, float)) for a in (t0, P, x))
         out = []
-        args = (np.asarray(t0, float), np.asarray(P, float), np.asarray(x, float))
-        for a, b, idx in self._chunks(n):
-            d, r = (design, rows) if n == CHUNK else _take(design, rows, idx)
-            val = fn(
-                self.force_model,
-                order,
-                names,
-                self.base_params,
-                *map(jnp.asarray, args),
-                d,
-                r,
-                float(self.h_range_mm[1]),
-                float(self.p_range_pa[1]),
-            )
-            out.append(np.asarray(val)[: b - a])
+        for a in range(0, n, CHUNK):
+            b = min(a + CHUNK, n)
+            # the last chunk repeats its last row up to CHUNK: every chunk shares one compile
+            idx = jnp.asarray(np.minimum(np.arange(a, a + CHUNK), n - 1))
+            d, r = (design, rows) if n == CHUNK else (design[idx], rows.take(idx))
+            out.append(np.asarray(fn(fm, order, names, self.base_params, *args, d, r))[: b - a])
         return np.concatenate(out, axis=0)
 
     def expected_force(
@@ -293,18 +336,17 @@ class EmulatorModel:
         theta: Mapping[str, Any] | None = None,
         rows: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Expected observed force [N] per row of ``meas`` (or of its rows ``rows``)."""
-        order = self.order(effects)
+        """Expected observed force [N] per row of ``meas`` (or of its rows ``rows``) with
+        ``effects`` at ``theta`` (``{"effect.param": value}``; parameters not given neutral)."""
+        order = effect_order(effects)
         fx.split_theta([fx.effect(e) for e in effects], theta)  # a name outside ``effects`` is an error
-        t = self.theta_vector(order, theta)
-        self._cover(meas, order, t[None], rows)
-        design, rws = self.data(meas)
-        if rows is not None:
-            design, rws = _take(design, rws, rows)
+        t = theta_vector(order, theta)
+        self.cover(meas, order, t[None], rows)
+        design, rws = self.table(meas, rows)
         return self._eval(_forward, design, rws, order, t, np.zeros((len(t), 1)), np.zeros(1))
 
     def predict(self, meas: Measurements) -> np.ndarray:
-        """The plain model (no effects): ``expected_force(meas)``."""
+        """The plain model (no effects): ``expected_force(meas)`` [N] per row."""
         return self.expected_force(meas)
 
     def jacobian(
@@ -320,12 +362,12 @@ class EmulatorModel:
         with respect to the parameters ``free`` (``"effect.param"``) at ``theta`` (others neutral).
         ``pad_cols``: compute at least this many columns (zeros beyond ``free``; equal shapes
         share one compile)."""
-        order = self.order(effects)
-        names = self.names(order)
+        order = effect_order(effects)
+        names = parameter_names(order)
         missing = [f for f in free if f not in names]
         if missing:
             raise KeyError(f"no parameter(s) {missing}; known: {list(names)}")
-        t = self.theta_vector(order, theta)
+        t = theta_vector(order, theta)
         k = max(len(free), pad_cols)
         P = np.zeros((len(names), k))
         for j, f in enumerate(free):
@@ -336,10 +378,8 @@ class EmulatorModel:
         # suffices (a one-node axis differentiates as a forward difference) and halves the
         # planes a cold screen solves; a fit that goes the other way grows the axis there.
         steps = JACOBIAN_COVER_STEP * P[:, : len(free)].T
-        self._cover(meas, order, np.vstack([t[None], t + steps]), rows)
-        design, rws = self.data(meas)
-        if rows is not None:
-            design, rws = _take(design, rws, rows)
+        self.cover(meas, order, np.vstack([t[None], t + steps]), rows)
+        design, rws = self.table(meas, rows)
         return self._eval(_jacobian, design, rws, order, t, P, np.zeros(k))[:, : len(free)]
 
     def fit(
@@ -358,26 +398,25 @@ class EmulatorModel:
         pad_rows: int | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Batch of Gaussian-prior MAP fits ``x [B, k]`` (see :func:`_fit_batch`) on ``rows`` of ``meas``
-        against ``target`` [len(rows)]; returns ``(x, converged [B])``. ``pad_rows``: pad the rows
+        against ``target`` [N] (one per row of ``rows``); returns ``(x, converged [B])``. ``pad_rows``: pad the rows
         (weight 0) to this many, so that data sets of other sizes reuse the compiled fit."""
         n, pad = len(rows), max(pad_rows or 0, len(rows))
         rows = np.concatenate([rows, np.full(pad - n, rows[0])])  # weight 0: equal shapes share one compile
         target = np.concatenate([np.asarray(target, float), np.zeros(pad - n)])
         w = np.concatenate([np.asarray(w, float), np.zeros((len(w), pad - n))], axis=1)
-        design, rws = _take(*self.data(meas), rows)
+        design, rws = self.table(meas, rows)
         t0, P = np.asarray(t0, float), np.asarray(P, float)
+        names = parameter_names(order)
         # The exact model's lattice grows where the fits go: fit with the model held at the
         # lattice's edge, grow it around the optima (and the start), refit from there.
         x = np.asarray(x0, float)
-        self._cover(meas, order, t0 + np.einsum("bij,bj->bi", P, x), rows)
+        self.cover(meas, order, t0 + np.einsum("bij,bj->bi", P, x), rows)
         for _ in range(LATTICE_ROUNDS):
             x, ok = _fit_batch(
-                self.force_model,
+                self.clipped,
                 order,
-                self.names(order),
+                names,
                 self.base_params,
-                float(self.h_range_mm[1]),
-                float(self.p_range_pa[1]),
                 design,
                 rws,
                 jnp.asarray(target, float),
@@ -386,9 +425,7 @@ class EmulatorModel:
                 int(max_steps),
             )
             x, ok = np.asarray(x), np.asarray(ok)
-            before = self.force_model
-            self._cover(meas, order, t0 + np.einsum("bij,bj->bi", P, x), rows)
-            if self.force_model is before:
+            if not self.cover(meas, order, t0 + np.einsum("bij,bj->bi", P, x), rows):
                 break
         return x, ok
 
@@ -396,7 +433,65 @@ class EmulatorModel:
 JACOBIAN_COVER_STEP = 1e-3  # parameter units: a step that reaches the first lattice node of its axis
 
 
-def forward_model(physics: str, meas: Measurements, *, cache=None, progress: bool = False) -> EmulatorModel:
+# -- the back ends ----------------------------------------------------------------------------------
+class EmulatorForwardModel(ForwardModel):
+    """A force model that holds every simulator constant by itself (its ``covering`` returns
+    it unchanged): the emulator inside its training ranges, the stand-in. Nothing grows.
+
+    ``force_model``: e.g. :func:`~mfdesign.models.emulator.load_default` or
+    :class:`~mfdesign.models.standin.StandinForceModel`; ``base_params``: the simulator
+    constants of the plain model (default: authors').
+    """
+
+    force_model: ForceModel
+    base_params: SimParams
+    h_max_mm: float = eqx.field(static=True)
+    p_max_pa: float = eqx.field(static=True)
+    tables: RowTable = eqx.field(static=True, repr=False)
+
+    def __init__(self, force_model: ForceModel, base_params: SimParams = SimParams()):
+        self.force_model = force_model
+        self.base_params = _float_params(base_params)
+        self.h_max_mm, self.p_max_pa = _input_max(force_model)
+        self.tables = RowTable()
+
+    def cover(self, meas: Measurements, order: tuple, thetas: np.ndarray, rows: np.ndarray | None = None) -> bool:
+        return False  # the force model holds every constant already
+
+
+class ExactForwardModel(ForwardModel):
+    """Simulator planes of the measured membranes (:class:`~mfdesign.models.exact.ExactForceModel`,
+    mechanical effects on additive lattice axes): the lattice grows where the calls and fits
+    go (:class:`GrowingLattice`; planes are solved once, then come from memory or disk).
+
+    ``force_model``: the starting model (:func:`forward_model` builds it); ``base_params``:
+    the simulator constants of the plain model (the planes' reference); ``progress``:
+    progress bars while planes are solved.
+    """
+
+    lattice: GrowingLattice = eqx.field(static=True, repr=False)
+    base_params: SimParams
+    h_max_mm: float = eqx.field(static=True)
+    p_max_pa: float = eqx.field(static=True)
+    tables: RowTable = eqx.field(static=True, repr=False)
+
+    def __init__(self, force_model: ForceModel, base_params: SimParams = SimParams(), progress: bool = False):
+        self.lattice = GrowingLattice(force_model, progress)
+        self.base_params = _float_params(base_params)
+        self.h_max_mm, self.p_max_pa = _input_max(force_model)  # the grid, which growth keeps
+        self.tables = RowTable()
+
+    @property
+    def force_model(self) -> ForceModel:
+        """The lattice as grown so far."""
+        return self.lattice.model
+
+    def cover(self, meas: Measurements, order: tuple, thetas: np.ndarray, rows: np.ndarray | None = None) -> bool:
+        _, rws = self.table(meas, rows)
+        return self.lattice.cover(_row_params(order, parameter_names(order), self.base_params, rws, thetas))
+
+
+def forward_model(physics: str, meas: Measurements, *, cache=None, progress: bool = False) -> ForwardModel:
     """Diagnosis' forward model on ``physics`` (:data:`~mfdesign.models.force.FORCE_MODELS`).
 
     Arguments:
@@ -408,41 +503,31 @@ def forward_model(physics: str, meas: Measurements, *, cache=None, progress: boo
         cache: plane cache folder (exact; default ``$MFDESIGN_CACHE_DIR/planes``).
         progress: progress bars while planes are solved.
     """
-    from mfdesign.models.force import FORCE_MODELS
+    from mfdesign.models.backends import force_model_for
 
-    if physics == "exact":
-        from mfdesign.models.exact import build_exact
-
-        df = meas._df
-        if len(df) == 0:
-            raise ValueError("no rows to diagnose")
-        h = query_heights(meas)
-        # The screen differentiates every candidate at neutral (a step of each parameter,
-        # :meth:`EmulatorModel.jacobian`): its planes are solved with the reference ones.
-        order = canonical_order()
-        names = EmulatorModel.names(order)
-        t0 = np.array([fx.neutral_theta(order)[n] for n in names], float)
-        steps = t0 + JACOBIAN_COVER_STEP * np.eye(len(names))
-        base = SimParams()
-        _, rows = _rows_of(meas)
-        some = np.unique(np.linspace(0, len(df) - 1, min(len(df), 256)).astype(int))  # per-row effects vary
-        also = _row_params(order, names, base, rows.take(jnp.asarray(some)), steps)
-        fm = build_exact(
-            tuple(dict.fromkeys(df["design_key"])),
-            h_max_mm=float(np.nanmax(h)),
-            p_max_pa=float(df["pressure_pa"].max()),
-            outside="clamp",
-            grow="additive",
-            cache=cache,
-            progress=progress,
-            base=base,
-            also=also,
-        )
-        return EmulatorModel(fm, base_params=base, progress=progress)
-    if physics == "emulator":
-        return EmulatorModel(None, progress=progress)
-    if physics == "standin":
-        from mfdesign.models.standin import StandinForceModel
-
-        return EmulatorModel(StandinForceModel(), progress=progress)
-    raise ValueError(f"--physics must be one of {list(FORCE_MODELS)}, got {physics!r}")
+    if physics != "exact":
+        return EmulatorForwardModel(force_model_for(physics))
+    df = meas._df
+    if len(df) == 0:
+        raise ValueError("no rows to diagnose")
+    # The screen differentiates every candidate at neutral (a step of each parameter,
+    # :meth:`ForwardModel.jacobian`): its planes are solved with the reference ones.
+    order = canonical_order()
+    names = parameter_names(order)
+    t0 = np.array([fx.neutral_theta(order)[n] for n in names], float)
+    steps = t0 + JACOBIAN_COVER_STEP * np.eye(len(names))
+    base = SimParams()
+    _, rows = _rows_of(meas)
+    some = np.unique(np.linspace(0, len(df) - 1, min(len(df), 256)).astype(int))  # per-row effects vary
+    fm = force_model_for(
+        "exact",
+        tuple(dict.fromkeys(df["design_key"])),
+        h_max_mm=float(np.nanmax(query_heights(meas))),
+        p_max_pa=float(df["pressure_pa"].max()),
+        base=base,
+        progress=progress,
+        cache=cache,
+        grow="additive",
+        also=_row_params(order, names, base, rows.take(jnp.asarray(some)), steps),
+    )
+    return ExactForwardModel(fm, base_params=base, progress=progress)

@@ -15,8 +15,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -26,11 +26,16 @@ from mfdesign.diagnose.residuals import Residuals, breakdowns, compute_residuals
 from mfdesign.diagnose.screen import screen
 from mfdesign.physics import effects as fx
 
+if TYPE_CHECKING:
+    from mfdesign.diagnose.emulated import ForwardModel
+
 __all__ = ["Diagnosis", "diagnose"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class Diagnosis:
+    """What :func:`diagnose` found (residuals [N], effects, parameters, every round's search)."""
+
     before: Residuals
     after: Residuals | None = None
     effects: list = field(default_factory=list)
@@ -75,7 +80,7 @@ class Diagnosis:
 
 def diagnose(
     meas: Measurements,
-    sim=None,
+    sim: ForwardModel | None = None,
     model: Callable[[Measurements], np.ndarray] | None = None,
     model_name: str = "simulator",
     effects: Sequence[str | fx.Effect] = (),
@@ -98,7 +103,7 @@ def diagnose(
     **Arguments:**
 
     - `meas`: the measurements (:class:`~mfdesign.data.measurements.Measurements`).
-    - `sim`: the forward model, an :class:`~mfdesign.diagnose.emulated.EmulatorModel` (build
+    - `sim`: the forward model, a :class:`~mfdesign.diagnose.emulated.ForwardModel` (build
       one with :func:`~mfdesign.diagnose.emulated.forward_model`: `"exact"` simulator planes
       of the measured designs, `"emulator"` or `"standin"`); default the bundled emulator.
     - `model`: the model under diagnosis, `predict(meas) -> force [N] per row` (default: the
@@ -121,9 +126,9 @@ def diagnose(
     :func:`~mfdesign.report.diagnosis.write_report` for HTML.
     """
     if sim is None:
-        from mfdesign.diagnose.emulated import EmulatorModel
+        from mfdesign.diagnose.emulated import forward_model
 
-        sim = EmulatorModel(progress=progress)
+        sim = forward_model("emulator", meas, progress=progress)
     effects = [fx.effect(e) for e in effects]
     e0 = sim.expected_force(meas)
     base_pred = e0 if model is None else np.asarray(model(meas), float)
@@ -140,7 +145,7 @@ def diagnose(
         else:
             th, pred = calibrate_effects(sim, meas, before, effects, given, offset)
         cur_res, cur_effects, cur_theta = compute_residuals(meas, pred), effects, th
-        out.after, out.effects, out.theta = cur_res, [e.name for e in effects], th
+        out = replace(out, after=cur_res, effects=[e.name for e in effects], theta=th)
     if not search:
         return out
     if candidates is not None:
@@ -180,7 +185,7 @@ def diagnose(
         pred = sim.expected_force(meas, cur_effects, cur_theta) + (0.0 if offset is None else offset)
         cur_res = compute_residuals(meas, pred)
         if not effects:  # no user effects: "after" is the model with what the search found
-            out.after, out.effects, out.theta = cur_res, [e.name for e in cur_effects], cur_theta
+            out = replace(out, after=cur_res, effects=[e.name for e in cur_effects], theta=cur_theta)
         if v["status"] == "explained":
             break
     return out

@@ -1,4 +1,5 @@
-"""Full check on an exact (JAX) back end: nonlinear refit, held-out error, calibration's BIC.
+"""Full check on the forward model (:class:`~mfdesign.diagnose.emulated.ForwardModel`): nonlinear refit,
+held-out error, calibration's BIC.
 
 For each candidate set of effects (the effects already in the model plus one candidate):
 
@@ -26,17 +27,16 @@ import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from mfdesign.data.measurements import Measurements
-from mfdesign.diagnose.emulated import EmulatorModel, _take
+from mfdesign.diagnose.emulated import ForwardModel, effect_order, parameter_names, theta_vector
 from mfdesign.diagnose.residuals import Residuals, noise_floor, subsample
 from mfdesign.diagnose.screen import lag1_autocorrelation, parameter_scale, parameter_step
 from mfdesign.physics import effects as fx
 
-__all__ = ["CheckResult", "calibrate_exact", "full_check_exact"]
+__all__ = ["CheckResult", "calibrate_effects", "full_check"]
 
 MAX_ROWS = (
     1000  # rows per refit, evenly within trials (the bundled data ranks alike and fits the same offset as with 2,500)
@@ -68,32 +68,21 @@ class CheckResult:
         return d
 
 
-class _Clipped(eqx.Module):
-    """The back end's force model with inputs clipped to its range (a calibration force model)."""
-
-    force_model: object
-    h_max: float = eqx.field(static=True)
-    p_max: float = eqx.field(static=True)
-
-    def __call__(self, design, h_mm, p_pa, params):
-        return self.force_model(design, jnp.clip(h_mm, 0.0, self.h_max), jnp.clip(p_pa, 0.0, self.p_max), params)
-
-
-def _bic(sim: EmulatorModel, meas, rows, target, effects, theta, resid) -> float:
+def _bic(sim: ForwardModel, meas, rows, target, effects, theta, resid) -> float:
     """``k ln n - 2 ln L`` at ``theta`` with the calibration's likelihood (mu, J_m fixed; k =
     effect parameters + noise)."""
     from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
 
     n = len(rows)
-    design, rws = _take(*sim.data(meas), rows)
+    design, rws = sim.table(meas, rows)
     data = CalibrationData(design, rws, jnp.asarray(target, float), jnp.ones(n), ("all",))
     base = sim.base_params
     mu, jm = float(base.mu_pa), float(base.jm)
     # Every likelihood effect in the canonical order, those outside the set at their neutral
     # values (exact identities): one compiled log-likelihood serves every candidate set.
-    order = sim.order(effects)
+    order = effect_order(effects)
     model = HierarchicalModel(
-        force_model=_Clipped(sim.force_model, float(sim.h_range_mm[1]), float(sim.p_range_pa[1])),
+        force_model=sim.clipped,
         effects=tuple(order),
         n_membranes=0,
         membrane_latents=False,
@@ -115,10 +104,10 @@ def _bic(sim: EmulatorModel, meas, rows, target, effects, theta, resid) -> float
     return k * math.log(n) - 2.0 * ll
 
 
-def _layout(sim: EmulatorModel, order, sets, theta0):
-    names = sim.names(order)
+def _layout(order, sets, theta0):
+    names = parameter_names(order)
     kmax = max(KMAX, *(sum(len(fx.effect(e).parameters) for e in s) for s in sets))
-    t0 = sim.theta_vector(order, {})
+    t0 = theta_vector(order, {})
     out = []
     for s in sets:
         pars = [(fx.effect(e), p) for e in s for p in fx.effect(e).parameters]
@@ -159,8 +148,8 @@ def _prefix(sets):
     return first[:n]
 
 
-def full_check_exact(
-    sim: EmulatorModel,
+def full_check(
+    sim: ForwardModel,
     meas: Measurements,
     res: Residuals,
     candidates: Sequence[Sequence[str]],
@@ -191,8 +180,8 @@ def full_check_exact(
     )
     sigma = res.noise_floor_n if res.noise_floor_n > 0 else float(np.std(r0))
     prefix = _prefix(sets)
-    order = sim.order(prefix)
-    t0, lay = _layout(sim, order, sets, theta0)
+    order = effect_order(prefix)
+    t0, lay = _layout(order, sets, theta0)
     folds = _folds(keys, n_folds, seed)
     weights = [np.ones(len(rows))] + [(~np.isin(keys, f)).astype(float) for f in folds]
     B = len(weights)
@@ -272,8 +261,8 @@ def full_check_exact(
     return out
 
 
-def calibrate_exact(
-    sim: EmulatorModel,
+def calibrate_effects(
+    sim: ForwardModel,
     meas: Measurements,
     res: Residuals,
     effects: Sequence[str | fx.Effect],
@@ -288,8 +277,8 @@ def calibrate_exact(
     rows = res.frame["row"].to_numpy()[pos]
     off = np.zeros(len(meas)) if base_offset is None else np.asarray(base_offset, float)
     target = res.frame["observed_n"].to_numpy(float)[pos] - off[rows]
-    order = sim.order(names)
-    t0, [(pars, P, tau, x0)] = _layout(sim, order, [names], theta0)
+    order = effect_order(names)
+    t0, [(pars, P, tau, x0)] = _layout(order, [names], theta0)
     sigma = res.noise_floor_n if res.noise_floor_n > 0 else float(np.std(res.residual))
     x, _ = sim.fit(
         meas,

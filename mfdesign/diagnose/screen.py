@@ -3,7 +3,7 @@
 For a candidate effect with parameters ``theta`` (neutral ``theta0``), the sensitivity of
 the expected observed force at every recorded (h, p) is the derivative
 ``J[:, j] = dF/dtheta_j (theta0)`` of the forward model
-(:meth:`~mfdesign.diagnose.emulated.EmulatorModel.jacobian`: forward-mode autodiff,
+(:meth:`~mfdesign.diagnose.emulated.ForwardModel.jacobian`: forward-mode autodiff,
 ``jax.jacfwd``, one call for every candidate's parameters at once; a mechanical effect
 differentiates through the exact model's lattice).
 
@@ -30,7 +30,7 @@ from mfdesign.diagnose.residuals import Residuals, subsample
 from mfdesign.physics import effects as fx
 
 if TYPE_CHECKING:
-    from mfdesign.diagnose.emulated import EmulatorModel
+    from mfdesign.diagnose.emulated import ForwardModel
 
 SCREEN_ROWS = 10000  # rows the screen differentiates at most
 
@@ -133,7 +133,7 @@ def _fit_one(res: Residuals, J: np.ndarray, e: fx.Effect) -> ScreenResult:
 def screen(
     res: Residuals,
     meas: Measurements,
-    sim: EmulatorModel,
+    sim: ForwardModel,
     candidates: Sequence[str | fx.Effect] | None = None,
     base_effects: Sequence[str | fx.Effect] = (),
     base_theta: Mapping[str, Any] | None = None,

@@ -18,6 +18,8 @@ def force_model_for(
     base: SimParams = SimParams(),
     progress: bool = False,
     cache=None,
+    grow: str = "tensor",
+    also: SimParams | None = None,
 ) -> ForceModel:
     """The force model called ``name`` (one of :data:`FORCE_MODELS`).
 
@@ -29,6 +31,10 @@ def force_model_for(
         base: the reference simulator constants (exact only).
         progress: progress bars while planes are solved.
         cache: plane cache folder (exact only; default ``$MFDESIGN_CACHE_DIR/planes``).
+        grow: where the exact model's lattice puts a constant it does not vary yet
+            (``"tensor"``: calibration; ``"additive"``: diagnosis, one effect at a time).
+        also: constants (fields of any shape) the exact model holds from the start (their
+            planes are solved with the reference ones).
     """
     if name == "exact":
         from mfdesign.models.exact import build_exact
@@ -43,6 +49,8 @@ def force_model_for(
             outside="clamp",
             cache=cache,
             progress=progress,
+            grow=grow,
+            also=also,
         )
     if name == "emulator":
         from mfdesign.models.emulator import load_default

@@ -2,7 +2,7 @@
 
 Fast versions on the analytic stand-in simulator: the virtual rig measures with
 ``mfdesign.rig.virtual.standin_plane`` and diagnosis runs on its JAX twin
-(``EmulatorModel(StandinForceModel())``: autodiff screen, nonlinear refit); 4 membranes, 1 Hz sampling,
+(``EmulatorForwardModel(StandinForceModel())``: autodiff screen, nonlinear refit); 4 membranes, 1 Hz sampling,
 deflation on. One test runs the emulator back end on a small random emulator. The full
 sweep is ``experiments/hidden_effects.py``.
 """
@@ -17,7 +17,7 @@ import pytest
 
 from mfdesign.design import Membrane
 from mfdesign.diagnose import compute_residuals, noise_floor, worst_regions
-from mfdesign.diagnose.emulated import EmulatorModel, emulator_plane
+from mfdesign.diagnose.emulated import EmulatorForwardModel, emulator_plane
 from mfdesign.models.standin import StandinForceModel
 from mfdesign.diagnose.pipeline import diagnose
 from mfdesign.physics import effects as fx
@@ -51,9 +51,9 @@ _SIM: dict = {}
 
 
 def sim():
-    """The exact back end on the analytic stand-in (one instance: compiled code is shared)."""
+    """The forward model on the analytic stand-in (one instance: compiled code is shared)."""
     if "s" not in _SIM:
-        _SIM["s"] = EmulatorModel(StandinForceModel())
+        _SIM["s"] = EmulatorForwardModel(StandinForceModel())
     return _SIM["s"]
 
 
@@ -78,7 +78,7 @@ def _random_emulator_data():
             simulator=emulator_plane(emu),
             protocol=Protocol(sample_hz=0.5, height_step_mm=2.0, pressure_step_pa=50.0),
         )
-        _SIM["emu"] = (EmulatorModel(emu), rig.run([Membrane.from_key(k) for k in KEYS[:3]], progress=False))
+        _SIM["emu"] = (EmulatorForwardModel(emu), rig.run([Membrane.from_key(k) for k in KEYS[:3]], progress=False))
     return _SIM["emu"]
 
 

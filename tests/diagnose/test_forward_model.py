@@ -1,0 +1,97 @@
+"""The diagnosis forward model's interface: an abstract module, two immutable back ends, growth in an explicit cache."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import numpy as np
+import pytest
+
+from mfdesign.design import Membrane
+from mfdesign.diagnose.emulated import (
+    EmulatorForwardModel,
+    ExactForwardModel,
+    ForwardModel,
+    GrowingLattice,
+    forward_model,
+)
+from mfdesign.models.force import ForceModel
+from mfdesign.models.standin import StandinForceModel, standin_force, standin_plane
+from mfdesign.physics.params import SimParams
+from mfdesign.rig.virtual import Protocol, VirtualRig
+
+KEYS = ("[2.0, 25.4, nan, nan, nan, nan]", "[1.5, 30.0, 45.0, 6.0, nan, nan]")
+THETA = {"contact_offset.offset_mm": 0.5}
+
+
+@pytest.fixture(scope="module")
+def meas():
+    rig = VirtualRig(simulator=standin_plane, seed=1, protocol=Protocol(sample_hz=0.5, pressure_step_pa=500.0))
+    return rig.run([Membrane.from_key(k) for k in KEYS], progress=False)
+
+
+class _Growing(ForceModel):
+    """The stand-in, 'holding' contact offsets up to ``reach`` mm: ``covering`` returns a wider
+    copy when asked for more (as the exact model's lattice does), itself otherwise."""
+
+    reach: float = eqx.field(static=True, default=0.0)
+    name = "growing"
+
+    def __call__(self, design, h_mm, p_pa, params: SimParams = SimParams()):
+        return standin_force(design, h_mm, p_pa, params)
+
+    def covering(self, params: SimParams, progress: bool = False, margin: int = 0) -> "_Growing":
+        need = float(np.max(np.abs(np.asarray(params.contact_offset_mm))))
+        return self if need <= self.reach else _Growing(need)
+
+
+def test_the_interface_is_abstract_and_the_back_ends_immutable():
+    with pytest.raises(TypeError):
+        ForwardModel()  # type: ignore[abstract]
+    for sim in (EmulatorForwardModel(StandinForceModel()), ExactForwardModel(StandinForceModel())):
+        assert isinstance(sim, ForwardModel) and isinstance(sim, eqx.Module)
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            sim.base_params = SimParams()  # type: ignore[misc]
+
+
+def test_forward_model_by_name():
+    assert type(forward_model("standin", None)) is EmulatorForwardModel  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="--physics must be one of"):
+        forward_model("nope", None)  # type: ignore[arg-type]
+
+
+def test_back_ends_agree_where_nothing_grows(meas):
+    """The two back ends share every evaluation: on a force model that holds every constant
+    they give the same forces and derivatives, bit for bit."""
+    emu, exact = EmulatorForwardModel(StandinForceModel()), ExactForwardModel(StandinForceModel())
+    rows = np.arange(0, len(meas), 3)
+    for kw in ({}, {"effects": ["contact_offset", "pressure_sensor"], "theta": THETA}):
+        np.testing.assert_array_equal(emu.expected_force(meas, **kw), exact.expected_force(meas, **kw))
+        np.testing.assert_array_equal(
+            emu.jacobian(meas, ["contact_offset.offset_mm"], rows=rows, **kw),
+            exact.jacobian(meas, ["contact_offset.offset_mm"], rows=rows, **kw),
+        )
+
+
+def test_the_exact_back_end_grows_its_lattice_in_the_cache(meas):
+    """Growth happens in the GrowingLattice (an explicit cache), never in the model; the
+    emulator back end never grows its force model."""
+    exact = ExactForwardModel(_Growing())
+    assert isinstance(exact.lattice, GrowingLattice)
+    plain = exact.expected_force(meas)
+    assert exact.force_model.reach == 0.0
+    shifted = exact.expected_force(meas, ["contact_offset"], THETA)
+    grown = exact.force_model
+    assert grown.reach == pytest.approx(0.5)
+    exact.expected_force(meas, ["contact_offset"], THETA)
+    assert exact.force_model is grown  # covered: no new model
+    np.testing.assert_array_equal(
+        shifted, EmulatorForwardModel(StandinForceModel()).expected_force(meas, ["contact_offset"], THETA)
+    )
+    assert not np.array_equal(plain, shifted)
+
+    emu = EmulatorForwardModel(_Growing())
+    start = emu.force_model
+    emu.expected_force(meas, ["contact_offset"], THETA)
+    assert emu.force_model is start
