@@ -18,6 +18,11 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from mfdesign import outputs
+from mfdesign._x64 import enable_x64
+
+# Every experiment measures float64 physics: switch JAX to 64-bit here, explicitly, before
+# a script creates its first array (importing mfdesign never does).
+enable_x64()
 
 OUT = Path(__file__).resolve().parent / "out"
 PLANE_CACHE = OUT / "plane_cache"  # simulator planes of the virtual rig (git-ignored)

@@ -519,7 +519,6 @@ def main() -> None:
 
     import jax
 
-    import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
     from mfdesign.cli._app import enable_compilation_cache
     from mfdesign.models.ensemble import EnsembleConfig
 

@@ -51,7 +51,6 @@ def main() -> None:
 
     import jax
 
-    import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
     from mfdesign.acquire import EnsemblePredictor, Grid, propose
     from mfdesign.data.measurements import Measurements
     from mfdesign.models.ensemble import EnsembleConfig, Normaliser, fit_ensemble, init_ensemble

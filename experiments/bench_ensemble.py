@@ -17,7 +17,6 @@ import json
 
 import jax
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign.data.spa_design import load_mass_lift
 from mfdesign.models.ensemble import EnsembleConfig, fit_ensemble
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign import optimize as opt
 from mfdesign.design import DesignSpace
 

@@ -20,7 +20,6 @@ import json
 
 import numpy as np
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.physics.solve import force_plane
 from mfdesign.physics.status import Status, summarize

@@ -17,7 +17,6 @@ from types import SimpleNamespace
 
 import numpy as np
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 
 from _common import parser, timed, write_json  # experiments/ is on a script's path
 

@@ -34,7 +34,6 @@ def main() -> None:
     ap.add_argument("--rows", type=int, default=800)
     args = ap.parse_args()
 
-    import mfdesign._x64  # noqa: F401  (float64)
     from active_learning import Lab, initial_designs  # experiments/ is on the path of a script run from it
     from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named
     from mfdesign.cli._app import enable_compilation_cache

@@ -24,7 +24,6 @@ import json
 import pandas as pd
 from tqdm.auto import tqdm
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign.data.spa_design import load_mass_lift, shared_data_dir
 from mfdesign.models.cv import cross_validate
 from mfdesign.models.ensemble import EnsembleConfig

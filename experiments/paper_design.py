@@ -32,7 +32,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign import optimize as opt
 from mfdesign.data.spa_design import load_mass_lift
 from mfdesign.design import Membrane

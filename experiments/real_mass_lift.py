@@ -31,7 +31,6 @@ import warnings
 
 import numpy as np
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 
 from _common import Timing, parser, write_json  # experiments/ is on a script's path
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign.data.spa_design import load_mass_lift
 from mfdesign.models.baselines import CurveFitConfig
 from mfdesign.models.cv import cross_validate

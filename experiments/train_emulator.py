@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 from mfdesign.models import emulator as em
 from mfdesign.models.emulator_data import load_training
 

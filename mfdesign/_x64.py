@@ -1,12 +1,24 @@
-"""Float64 for JAX. Every mfdesign module that uses JAX imports this first.
+"""Float64 for JAX, switched on explicitly by mfdesign's entry points.
 
-The physics runs in float64 (the shooting solver and the Gent energy near its lock need
-it). ``import mfdesign`` no longer imports JAX (``mfdesign --help`` stays fast), so the
-switch happens where JAX is actually used: importing any JAX-using module of the package
-(:mod:`mfdesign.design`, :mod:`mfdesign.materials`, the models, the calibration, ...)
-turns 64-bit mode on before that module creates an array.
+The physics runs in float64: the shooting solver and the Gent energy near its lock need
+it, and a float32 run would be silently less accurate. Importing an mfdesign module never
+changes JAX's configuration (a library must not flip a process-wide switch behind its
+user's back); instead every entry point that computes calls :func:`enable_x64` first:
+each CLI command (:mod:`mfdesign.cli._contract`), the public functions (``force_plane``,
+``height_at``, ``calibrate``, ``diagnose``, ``propose``, ``optimize``, ...), the solver's
+and the models' entry functions, the experiments' shared helper and the test suite's
+``conftest.py``. A caller of an internal function that creates JAX arrays before any of
+these ran calls :func:`enable_x64` itself.
 """
 
-import jax
+from __future__ import annotations
 
-jax.config.update("jax_enable_x64", True)
+__all__ = ["enable_x64"]
+
+
+def enable_x64() -> None:
+    """Switch JAX to 64-bit floats (idempotent). Arrays created before keep their dtype."""
+    import jax
+
+    if not jax.config.read("jax_enable_x64"):
+        jax.config.update("jax_enable_x64", True)

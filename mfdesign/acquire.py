@@ -47,12 +47,12 @@ design adds to ``U``, and the next slot goes to the most uncertain distinct desi
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import dataclasses
 import math
 import time
 from typing import Mapping, Sequence
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -121,6 +121,7 @@ def evaluate(
     Returns ``utility`` (N, the paper's number for an all-rig batch), ``cost``, ``score``
     = utility / cost and ``deviation`` ``[q, M]``.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     rows = np.stack([d.to_array() if isinstance(d, Membrane) else np.asarray(d, float) for d in designs])
     if len(fidelities) != len(rows):
         raise ValueError(f"one fidelity per design: {len(rows)} designs, {len(fidelities)} fidelities")
@@ -350,6 +351,7 @@ def propose(
     A :class:`Proposal`: the designs (mm), their fidelities, utilities and costs. Raises
     `ValueError` on bad arguments.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     t0 = time.perf_counter()
     if not isinstance(q, (int, np.integer)) or isinstance(q, bool) or q < 1:
         raise ValueError(f"q (batch size) must be an integer >= 1, got {q!r}")

@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 from typing import Sequence
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np

@@ -16,7 +16,6 @@ simulator turns that into the status "extension limit".
 
 from __future__ import annotations
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp

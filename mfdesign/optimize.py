@@ -55,13 +55,13 @@ reported as the uncertainty of the winner's lift heights and trajectories.
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import abc
 import dataclasses
 import math
 import time
 from typing import Callable, Sequence
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -458,6 +458,7 @@ def multistart(
     steps. Returns u (best), loss, per-refined-start final losses and wall times (s; the
     first call of a shape includes compilation).
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     for name, v, low in (
         ("n_starts", n_starts, 1),
         ("steps", steps, 0),
@@ -544,6 +545,7 @@ def check_with_simulator(
 ) -> dict:
     """Simulated lift heights (``mfdesign.physics.solve.height_at``) at the targets vs the
     model's; ``params``: calibrated :class:`SimParams` or the paper's defaults."""
+    enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.physics.params import SimParams
     from mfdesign.physics.solve import height_at
     from mfdesign.physics.status import Status
@@ -626,6 +628,7 @@ def optimize(
     A :class:`Result`: the winning design (mm), its loss and predictions with the members'
     spread, the runner-up per ring count, and the simulator check when asked.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     from tqdm.auto import tqdm
 
     rings = tuple(int(r) for r in rings)

@@ -4,6 +4,13 @@ import signal
 
 import pytest
 
+from mfdesign._x64 import enable_x64
+
+# The suite checks float64 physics; mfdesign's entry points switch 64-bit on themselves,
+# but tests also build JAX arrays directly before calling internals, so switch it on here,
+# explicitly, once (importing mfdesign never does: tests/test_x64.py).
+enable_x64()
+
 
 @pytest.fixture
 def ctrl_c():

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-import mfdesign  # noqa: F401  (float64)
 from mfdesign.acquire import EnsemblePredictor, FunctionPredictor, Grid, SplitPredictor, evaluate, propose
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.ensemble import EnsembleConfig, fit_ensemble

@@ -6,7 +6,6 @@ import jax
 import numpy as np
 import pytest
 
-import mfdesign  # noqa: F401
 from mfdesign.design import DesignError, DesignSpace, Membrane, Ring
 from mfdesign.materials import Gent, NeoHookean
 

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-import mfdesign  # noqa: F401  (float64)
 from mfdesign import optimize as opt
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.predictor import AbstractPredictor

@@ -27,6 +27,7 @@ Steps of :func:`calibrate`:
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import hashlib
 import json
 import math
@@ -35,7 +36,6 @@ import warnings
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -66,6 +66,7 @@ class ConvergenceWarning(UserWarning):
 
 def build_model(force_model, data: CalibrationData, effects: Sequence[str] = (), **kwargs) -> HierarchicalModel:
     """A :class:`HierarchicalModel` with one thickness latent per membrane of ``data``."""
+    enable_x64()  # float64 physics: mfdesign._x64
     return HierarchicalModel(
         force_model=force_model, effects=tuple(effects), n_membranes=len(data.design_keys), **kwargs
     )
@@ -149,6 +150,7 @@ def find_map(
     """MAP by ``optimistix.BFGS`` from ``starts`` points at once (``jax.vmap``): ``u0``
     (default: the prior-median start) and Gaussian perturbations of it (sd 0.3 in u); the
     best is kept."""
+    enable_x64()  # float64 physics: mfdesign._x64
     u0 = model.to_unconstrained(model.initial_physical()) if u0 is None else np.asarray(u0, float)
     rng = np.random.default_rng(seed)
     inits = u0 + np.vstack([np.zeros(model.dim), 0.3 * rng.standard_normal((max(starts, 1) - 1, model.dim))])
@@ -203,6 +205,7 @@ def fit_force_model(
     lattice, not the data). At most ``LATTICE_ROUNDS`` rounds; models valid everywhere
     return at once. Returns the model for sampling (strict: NaN outside the lattice) and
     the MAP."""
+    enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.models.force import ForceModel
 
     fm = model.force_model
@@ -465,6 +468,7 @@ def calibrate(
     convergence report (R-hat, ESS, tau; `converged` says whether to trust it) and
     `to_inference_data()` for ArviZ.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     import emcee
 
     if not isinstance(data, CalibrationData):

@@ -13,6 +13,7 @@ Shared by ``mfdesign calibrate`` / ``mfdesign fit-mf`` and the experiments:
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import dataclasses
 
 import equinox as eqx
@@ -36,6 +37,7 @@ __all__ = [
 def force_model_named(name: str, table=None, progress: bool = False):
     """The force model ``name`` (:data:`~mfdesign.models.force.FORCE_MODELS`) for the rows of
     ``table`` (Measurements; the exact model needs its designs, heights and pressures)."""
+    enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.models.backends import force_model_for
 
     if name == "exact":
@@ -108,6 +110,7 @@ def fit_multi_fidelity(
     """Calibrate on ``table`` (Measurements), fit delta on the residuals, build the predictive
     (``n_steps``: the most emcee steps; see :func:`~mfdesign.calibration.mcmc.calibrate` for
     ``stop_when_converged``)."""
+    enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.calibration.mcmc import calibrate
     from mfdesign.models.ensemble import EnsembleConfig
     from mfdesign.models.hierarchical import CalibrationData, fit_discrepancy
@@ -163,6 +166,7 @@ def load_multi_fidelity(folder) -> MFFit:
     """The fit saved by ``mfdesign fit-mf --out FOLDER`` (``mf.json``, ``posterior.*``,
     ``delta/``). Raises ``InputError`` (a ``ValueError``) saying what is missing, corrupt,
     non-finite or inconsistent."""
+    enable_x64()  # float64 physics: mfdesign._x64
     import json
     from pathlib import Path
     from types import SimpleNamespace

@@ -56,7 +56,12 @@ class ContractCommand(TyperCommand):
     """A command whose ``--out`` is validated and locked before its body runs."""
 
     def invoke(self, ctx):
+        from mfdesign._x64 import enable_x64
         from mfdesign.outputs import OutputLock, prepare_out_dir, prepare_out_file
+
+        # The one place the CLI switches JAX to float64: when a command really runs (never
+        # for --help), before it creates any array.
+        enable_x64()
 
         out = ctx.params.get("out")
         if out is None:

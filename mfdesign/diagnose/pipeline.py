@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
+from mfdesign._x64 import enable_x64
 import numpy as np
 
 from mfdesign.data.measurements import Measurements
@@ -125,6 +126,7 @@ def diagnose(
     verdict, the effects found with their parameters; `to_json()` for files and
     :func:`~mfdesign.report.diagnosis.write_report` for HTML.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     if sim is None:
         from mfdesign.diagnose.emulated import forward_model
 

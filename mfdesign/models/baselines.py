@@ -19,11 +19,11 @@ from __future__ import annotations
 import dataclasses
 import itertools
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from mfdesign._x64 import enable_x64
 from mfdesign.models.ensemble import check_inputs
 from mfdesign.models.predictor import RIG, AbstractPredictor
 
@@ -119,6 +119,7 @@ class CurveFit(AbstractPredictor):
 
 def fit_curve(config: CurveFitConfig, design, h_mm, p_pa, force_n, weight=None) -> CurveFit:
     """Fit the ringless and the ringed polynomial (pooled fallback for an empty group)."""
+    enable_x64()  # float64 physics: mfdesign._x64
     design, h, p, f, w = check_inputs(design, h_mm, p_pa, force_n, weight)
     w = np.ones_like(f) if w is None else w
     has_ring = ~np.isnan(design[:, 2])

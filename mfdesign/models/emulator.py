@@ -33,12 +33,12 @@ Training ranges (design space, h, p, every SimParams field) are stored with the 
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import dataclasses
 import json
 from pathlib import Path
 from typing import Any
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -267,6 +267,7 @@ class Emulator(ForceModel):
     @classmethod
     def load(cls, path=DEFAULT_DIR) -> "Emulator":
         """Inverse of :meth:`save`; checks the format version."""
+        enable_x64()  # float64 physics: mfdesign._x64
         path = Path(path)
         meta_file = path / "emulator.json"
         if not meta_file.exists():
@@ -299,6 +300,7 @@ _DEFAULT: Emulator | None = None
 
 def load_default() -> Emulator:
     """The trained artifact shipped in the package (``mfdesign/data/files/emulator``; loaded once, then cached)."""
+    enable_x64()  # float64 physics: mfdesign._x64
     global _DEFAULT
     if _DEFAULT is None:
         _DEFAULT = Emulator.load(DEFAULT_DIR)
@@ -340,6 +342,7 @@ def fit_emulator(
     force ``F_ref``, the RMS training force). Adam with a cosine learning-rate decay;
     each member draws its own minibatches.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     from tqdm.auto import tqdm
 
     keep = arrays["p"] > 0

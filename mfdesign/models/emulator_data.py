@@ -17,11 +17,11 @@ seeded by ``(seed, i)``, so a resumed run produces the same data).
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import argparse
 import math
 from pathlib import Path
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -85,6 +85,7 @@ def draw_sample(seed: int, i: int, space: DesignSpace = DesignSpace()):
 
 def solve_sample(seed: int, i: int) -> pd.DataFrame:
     """Run the simulator on sample ``i``; rows of the usable points (OK, NO_CONTACT)."""
+    enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.design import Membrane
     from mfdesign.physics.solve import force_plane
 

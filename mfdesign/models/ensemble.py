@@ -31,6 +31,7 @@ training |p|; forces are divided by their training standard deviation ``s_F``.
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import dataclasses
 import functools
 import json
@@ -38,7 +39,6 @@ import math
 from pathlib import Path
 from typing import Any
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -123,6 +123,7 @@ class EnsembleConfig:
     def fit(self, design, h_mm, p_pa, force_n, weight=None, *, key=None, progress=True) -> EnsemblePredictor:
         """:class:`~mfdesign.models.cv.ForceModelSpec` interface: :func:`fit_ensemble` with this
         config, as a predictor (its ``ensemble`` is the fitted :class:`Ensemble`)."""
+        enable_x64()  # float64 physics: mfdesign._x64
         return EnsemblePredictor(fit_ensemble(self, design, h_mm, p_pa, force_n, weight, key=key, progress=progress))
 
 
@@ -309,6 +310,7 @@ class Ensemble(eqx.Module):
         allocating anything) and that every weight is finite. A folder that is not a saved
         ensemble raises ``FileNotFoundError``; a corrupt or mismatched one ``InputError``
         saying what was wrong."""
+        enable_x64()  # float64 physics: mfdesign._x64
         from mfdesign.errors import InputError, one_line
 
         path = Path(path)
@@ -463,6 +465,7 @@ def fit_ensemble(
     monotone head), ``force_n`` [n] N, ``weight`` [n] per-sample weights (normalised to
     mean 1; default equal). ``key``: a ``jax.random`` key or an int seed (default 0).
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     design, h, p, f, w = check_inputs(design, h_mm, p_pa, force_n, weight)
     if config.monotone and np.any(p < 0):
         raise ValueError("the monotone head needs pressures p_pa >= 0")

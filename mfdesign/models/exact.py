@@ -30,6 +30,7 @@ covers a box of coordinates (the planes it adds are solved and cached; the rest 
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import dataclasses
 import math
 from typing import Mapping, Sequence
@@ -436,6 +437,7 @@ def build_exact(
     Axes: see :data:`mfdesign.physics.planes.AXES` (``jm``, ``ring``, ``gradient``,
     ``prestretch``, ``offset``). Coordinate 0 is the reference.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     if outside not in ("nan", "clamp"):
         raise ValueError(f"outside must be 'nan' or 'clamp', got {outside!r}")
     bad = [k for k in list(tensor or {}) + list(additive or {}) if k not in pl.AXES]

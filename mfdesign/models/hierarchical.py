@@ -35,6 +35,7 @@ the log-density so the posterior of the physical value is exact.
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import dataclasses
 import math
 from typing import Callable, Sequence
@@ -109,6 +110,7 @@ class CalibrationData(eqx.Module):
         Lift rows recorded below ``min_lift_height_mm`` are dropped: the plate still rests on
         its support there, so the membrane's force is only bounded (F <= W), not equal to W.
         """
+        enable_x64()  # float64 physics: mfdesign._x64
         df = table if isinstance(table, pd.DataFrame) else table.df
         df = df[~((df["experiment"] == "lift") & (df["height_mm"] < min_lift_height_mm))]
         if len(df) == 0:
@@ -376,6 +378,7 @@ def fit_discrepancy(
     calibration's order, so that each row gets its membrane's latent thickness), with
     ``x_ref`` the MAP or posterior median (physical). Use a non-monotone ``config``:
     residuals need not grow with pressure. Returns the fitted ensemble."""
+    enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.models.ensemble import fit_ensemble
 
     data = CalibrationData.from_measurements(table, max_rows=None, design_keys=design_keys)

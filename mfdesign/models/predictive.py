@@ -15,7 +15,7 @@ returns ``F_s`` as ``[S, N]`` so that every consumer of the ``ForceModel`` proto
 
 from __future__ import annotations
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
+from mfdesign._x64 import enable_x64
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -44,6 +44,7 @@ class MultiFidelity(eqx.Module):
     ) -> "MultiFidelity":
         """Thin the posterior to at most ``max_draws`` draws (``noise_n`` default: the
         posterior median noise scale)."""
+        enable_x64()  # float64 physics: mfdesign._x64
         idx = np.random.default_rng(seed).permutation(len(posterior.samples))[:max_draws]
         noise = float(np.median(posterior.samples[:, posterior.names.index("noise_n")])) if noise_n is None else noise_n
         return cls(model, jnp.asarray(posterior.samples[idx]), delta, float(noise), tuple(posterior.design_keys))

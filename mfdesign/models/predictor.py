@@ -14,7 +14,6 @@ import abc
 import dataclasses
 from typing import Any, Callable, Mapping
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
 import equinox as eqx
 import jax
 import jax.numpy as jnp

@@ -21,7 +21,7 @@ p).
 
 from __future__ import annotations
 
-import mfdesign._x64  # noqa: F401  (float64 before any JAX array)
+from mfdesign._x64 import enable_x64
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -50,6 +50,7 @@ def _formula(xp, softplus, design, h_mm, p_pa, params: SimParams):
 
 def standin_force(design, h_mm, p_pa, params: SimParams = SimParams()) -> jax.Array:
     """Stand-in force [N] at rows ``design`` [N, 6] (mm), ``h_mm`` [N], ``p_pa`` [N] (module doc)."""
+    enable_x64()  # float64 physics: mfdesign._x64
     design, h_mm, p_pa = (jnp.asarray(a, float) for a in (design, h_mm, p_pa))
     return _formula(jnp, jax.nn.softplus, design, h_mm, p_pa, params)[0]
 
@@ -62,6 +63,7 @@ def standin_plane(design, h_grid, p_grid, params: SimParams = SimParams()):
     ~0.9 only near the ringed membranes' pressure limits; ``rise = p / 250 - h / 2`` mm ends
     ringless force trials at the rig's contact limit.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     H, P = np.meshgrid(np.asarray(h_grid, float), np.asarray(p_grid, float), indexing="ij")
     d = np.broadcast_to(np.asarray(design.to_array(), float), (H.size, 6))
     params = jax.tree.map(lambda a: np.asarray(a, float), params)

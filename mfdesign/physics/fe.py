@@ -50,6 +50,7 @@ forces and shape are NaN.
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import math
 from typing import Callable
 
@@ -59,7 +60,6 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-import mfdesign._x64  # noqa: F401  (float64)
 from mfdesign.design import Membrane
 from mfdesign.materials import Gent
 from mfdesign.physics.params import SimParams
@@ -89,6 +89,7 @@ def build_mesh(design: Membrane, params: SimParams = SimParams(), n_elements: in
     ``r0 + L x^grading`` (x uniform), so the element next to the disk is small (used by
     the disk-balance force); the other segments are uniform.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     r0 = float(design.contact_radius_mm) + float(params.contact_offset_mm)
     r_out = float(design.outer_radius_mm)
     edges = [r0]
@@ -516,6 +517,7 @@ def fe_force(
     from ``init.p_pa``. Unconverged points (extension limit, minimiser failure,
     unstable state) have ``converged = False`` and NaN forces and shapes.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     mesh = build_mesh(design, params, n_elements)
     h, p = jnp.broadcast_arrays(jnp.asarray(h_mm, dtype=jnp.float64), jnp.asarray(p_pa, dtype=jnp.float64))
     mask = _plate_mask(mesh.r.shape[0])
@@ -551,6 +553,7 @@ def fe_free_inflation(
     pressure step ``p1 = p / n_steps`` (or ``h_guess_mm``), then raises the pressure in
     ``n_steps`` increments. ``force_n`` of the result is ``-dPi/dh`` ~ 0 (a check).
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     mesh = build_mesh(design, params, n_elements)
     p = jnp.asarray(p_pa, dtype=jnp.float64)
     a = float(design.outer_radius_mm)

@@ -18,6 +18,7 @@ change of the shooting Jacobian's determinant along the path; points beyond it a
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import dataclasses
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -351,6 +352,7 @@ def force_at(
     A :class:`SimResult` of the broadcast shape: force [N] (NaN where the status is not
     usable, never a silent number), status codes, locking, rise and wrinkling checks.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     h, p = np.broadcast_arrays(np.asarray(h_mm, float), np.asarray(p_pa, float))
     shape_ = h.shape
     hs, ps = _sanitize(h.ravel(), p.ravel())
@@ -483,6 +485,7 @@ def force_plane(
     A :class:`SimResult` of shape `(len(h_grid), len(p_grid))`: force [N] (NaN where not
     usable), status codes, locking, rise and wrinkling checks.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     h_grid = np.asarray(h_grid_mm, float).ravel()
     p_grid = np.asarray(p_grid_pa, float).ravel()
     if p_grid.size and np.any(np.diff(p_grid) <= 0):
@@ -561,6 +564,7 @@ def force_planes(
     over slices of the job list (e.g. one Dask or Ray task per slice); nothing here
     schedules work across machines.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     jobs = list(jobs)
     workers = n_workers()
     if len(jax.local_devices()) > 1 or workers < 2 or len(jobs) < 2:
@@ -703,6 +707,7 @@ def height_at(
     below the load; NaN with `BEYOND_GRID` past `h_max_mm` or where the solve failed) and
     status codes (:class:`~mfdesign.physics.status.Status`).
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     F, p = np.broadcast_arrays(np.asarray(force_n, float), np.asarray(p_pa, float))
     shape_ = F.shape
     F, p = F.ravel(), p.ravel()
@@ -762,6 +767,7 @@ def lift_curve(
     quasi-statically followed height jumps across such a dip gets ``SNAP_THROUGH`` (its
     height is the far branch's). Returns ``(height_mm, status)`` per pressure.
     """
+    enable_x64()  # float64 physics: mfdesign._x64
     p = np.asarray(p_grid_pa, float).ravel()
     if not (np.isfinite(force_n) and force_n >= 0):
         raise ValueError(f"force_n must be a finite load >= 0 N, got {force_n}")
@@ -838,6 +844,7 @@ def shape(
     design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimParams(), n_per_segment: int = 64
 ) -> Shape:
     """The deformed membrane at plate height ``h_mm`` [mm] and pressure ``p_pa`` [Pa]."""
+    enable_x64()  # float64 physics: mfdesign._x64
     h, p = np.array([float(h_mm)]), np.array([float(p_pa)])
     # The scattered-point kernel gives the state too: one compiled program, shared with
     # force_at and the plane repairs (a separate state kernel cost a cold

@@ -56,6 +56,7 @@ which other membranes run or in what order; the same seed gives the same table, 
 
 from __future__ import annotations
 
+from mfdesign._x64 import enable_x64
 import dataclasses
 import hashlib
 import json
@@ -614,6 +615,7 @@ class VirtualRig:
     # -- experiments -------------------------------------------------------------------------
     def characterise(self, design: Membrane, first_trial: int = 0) -> Measurements:
         """The force characterisation of one membrane (see the module doc)."""
+        enable_x64()  # float64 physics: mfdesign._x64
         return self._characterise(design, first_trial)[0]
 
     def _characterise(self, design: Membrane, first_trial: int = 0):
@@ -654,6 +656,7 @@ class VirtualRig:
         self, design: Membrane, mass_kg: float | Sequence[float] | None = None, first_trial: int = 0
     ) -> Measurements:
         """Mass-lift trials, ``lift_trials`` per mass (default masses: the protocol's)."""
+        enable_x64()  # float64 physics: mfdesign._x64
         return self._mass_lift(design, mass_kg, first_trial)[0]
 
     def _mass_lift(self, design: Membrane, mass_kg=None, first_trial: int = 0):
@@ -691,6 +694,7 @@ class VirtualRig:
     ) -> Measurements:
         """Each membrane: the force characterisation, then (if it did not burst) the mass lifts;
         trial ids continue across the two, so ``trial`` is the order in the membrane's life."""
+        enable_x64()  # float64 physics: mfdesign._x64
         from tqdm.auto import tqdm
 
         frames = []

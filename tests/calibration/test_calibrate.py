@@ -17,7 +17,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import mfdesign  # noqa: F401  (float64)
 from mfdesign.calibration.mcmc import ConvergenceWarning, LogPosterior, build_model, calibrate, find_map
 from mfdesign.calibration.plots import corner_plot
 from mfdesign.calibration.posterior import Posterior

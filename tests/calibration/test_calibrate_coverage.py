@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import mfdesign  # noqa: F401
 from mfdesign.models.standin import standin_force, standin_plane
 from mfdesign.calibration.validation import truth_trial
 

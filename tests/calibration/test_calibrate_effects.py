@@ -7,7 +7,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import mfdesign  # noqa: F401  (float64)
 from mfdesign.physics import effects as fx
 from mfdesign.physics.params import SimParams
 

@@ -6,7 +6,6 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import mfdesign  # noqa: F401
 from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
 from mfdesign.models.baselines import CurveFitConfig, monomials

@@ -7,7 +7,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import mfdesign  # noqa: F401
 from mfdesign.models.emulator import (
     PARAM_FIELDS,
     Emulator,

@@ -6,7 +6,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import mfdesign  # noqa: F401
 from mfdesign.models.ensemble import Ensemble, EnsembleConfig, fit_ensemble
 
 NAN = np.nan

@@ -4,7 +4,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import mfdesign  # noqa: F401  (float64)
 from mfdesign.models.baselines import CurveFitConfig
 from mfdesign.models.ensemble import EnsembleConfig
 from mfdesign.models.predictor import (

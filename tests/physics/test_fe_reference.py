@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_bvp
 
-import mfdesign  # noqa: F401  (float64)
 from hencky import hencky
 from mfdesign.design import Membrane
 from mfdesign.physics.fe import fe_force, fe_free_inflation

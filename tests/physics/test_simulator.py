@@ -11,7 +11,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import mfdesign  # noqa: F401  (float64)
 from hencky import hencky
 from mfdesign.design import Membrane
 from mfdesign.physics.fe import fe_force
