@@ -20,6 +20,7 @@ from typing import Annotated, List, Optional
 import typer
 
 from mfdesign.cli._app import ALLOW_OUTSIDE
+from mfdesign.cli._contract import effect_name, item_parser
 
 
 def _check_chain(chain: Path) -> None:
@@ -187,7 +188,9 @@ DATA = typer.Argument(
     ...,
     help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).",
 )
-EFFECTS = typer.Option(None, "--effects", help="Active effect (repeat for several).")
+EFFECTS = typer.Option(
+    None, "--effects", parser=item_parser(effect_name, "an effect name"), help="Active effect (repeat for several)."
+)
 PHYSICS = typer.Option(
     "exact",
     help="Force model where the model meets the data: exact (simulator planes of "
