@@ -20,7 +20,10 @@ __all__ = ["corner_plot", "pair_plot"]
 def corner_plot(
     samples, names: Sequence[str], path, truths: Sequence[float] | None = None, bins: int = 30, title: str | None = None
 ) -> Path:
-    """Write a pairwise plot of ``samples`` [S, d] to ``path`` (PNG) and return the path."""
+    """Write a pairwise plot of ``samples`` [S, d] to ``path`` (PNG) and return the path.
+
+    ``truths``: one value per parameter, drawn as red lines; None (or NaN) for a parameter
+    whose truth is unknown draws no line for it."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -30,9 +33,21 @@ def corner_plot(
     if samples.ndim != 2 or samples.shape[1] != len(names):
         raise ValueError(f"samples must be [S, {len(names)}], got {samples.shape}")
     d = samples.shape[1]
+    if truths is not None and len(truths) != d:
+        raise ValueError(f"{len(truths)} truths for {d} parameters {list(names)}")
+    truth = (
+        [None if t is None or not np.isfinite(t) else float(t) for t in truths] if truths is not None else [None] * d
+    )
     fig, axes = plt.subplots(d, d, figsize=(1.9 * d + 1, 1.9 * d + 1), squeeze=False)
     lims = [np.quantile(samples[:, i], [0.002, 0.998]) for i in range(d)]
     lims = [(lo, hi) if hi > lo else (lo - 1e-9 - abs(lo) * 1e-3, hi + 1e-9 + abs(hi) * 1e-3) for lo, hi in lims]
+    # A truth outside the posterior's bulk still shows: the axis reaches it (with a margin).
+    lims = [
+        (lo, hi)
+        if t is None or lo <= t <= hi
+        else (min(lo, t) - 0.05 * (max(hi, t) - min(lo, t)), max(hi, t) + 0.05 * (max(hi, t) - min(lo, t)))
+        for (lo, hi), t in zip(lims, truth)
+    ]
     for i in range(d):
         for j in range(d):
             ax = axes[i, j]
@@ -46,10 +61,10 @@ def corner_plot(
                 ax.set_yticks([])
             else:
                 ax.hist2d(samples[:, j], samples[:, i], bins=bins, range=[lims[j], lims[i]], cmap="Greys")
-                if truths is not None:
-                    ax.axhline(truths[i], color="C3", lw=0.8)
-            if truths is not None:
-                ax.axvline(truths[j], color="C3", lw=0.8)
+                if truth[i] is not None:
+                    ax.axhline(truth[i], color="C3", lw=0.8)
+            if truth[j] is not None:
+                ax.axvline(truth[j], color="C3", lw=0.8)
             ax.tick_params(labelsize=6)
             if i == d - 1:
                 ax.set_xlabel(names[j], fontsize=7)
