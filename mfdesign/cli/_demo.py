@@ -122,12 +122,22 @@ class _Log:
 
 
 def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
-    """Force vs pressure of a few membranes at their set heights: data and each model's mean."""
+    """Force vs pressure of a few membranes at their set heights: data, each model's mean and
+    the last model's 90 % posterior-predictive band.
+
+    ``fits``: name -> :class:`~mfdesign.models.predictive.MultiFidelity` (thinned). Each
+    measured membrane is predicted with its own posterior thickness (``predict``; the
+    population's spread of thicknesses belongs to new membranes, and drawn here it made
+    bands ten times the data). The band holds the last fit's draws (physics + discrepancy)
+    plus its Gaussian observation noise ``noise_n``: where the dots leave it, the model does
+    not know what it does not know."""
     plt = _plt()
+    rng = np.random.default_rng(0)  # noise draws for the band only: no demo number uses them
     df = meas.df
     df = df[df["experiment"] == "force"]
     keys = list(dict.fromkeys(df["design_key"]))[:n_membranes]
     fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6), squeeze=False, layout="constrained")
+    names = list(fits)
     for ax, key in zip(axes[0], keys):
         sub = df[df["design_key"] == key]
         heights = sorted(sub["height_set_mm"].dropna().unique())[::2]
@@ -137,14 +147,22 @@ def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
             ax.plot(s["pressure_pa"] / 1e3, s["force_n"], ".", ms=1.5, color=c, alpha=0.4)
             p = np.linspace(max(50.0, s["pressure_pa"].min()), s["pressure_pa"].max(), 40)
             design = np.tile(Membrane.from_key(key).to_array(), (p.size, 1))
-            for (name, fn), ls in zip(fits.items(), ("--", "-")):
-                f = np.asarray(fn(design, np.full(p.size, hs), p)).mean(0)
-                ax.plot(p / 1e3, f, ls, color=c, lw=1.2, label=f"{name}" if i == 0 else None)
+            for (name, mf), ls in zip(fits.items(), ("--", "-")):
+                draws = np.asarray(mf.predict(design, np.full(p.size, hs), p))
+                ax.plot(p / 1e3, draws.mean(0), ls, color=c, lw=1.2, label=f"{name}" if i == 0 else None)
+                if name == names[-1]:
+                    y = draws[None] + mf.noise_n * rng.standard_normal((8, *draws.shape))
+                    lo, hi = np.quantile(y.reshape(-1, p.size), [0.05, 0.95], axis=0)
+                    ax.fill_between(
+                        p / 1e3, lo, hi, color=c, alpha=0.15, lw=0, label=f"{name}: 90 % band" if i == 0 else None
+                    )
         ax.set_title(key, fontsize=8)
         ax.set_xlabel("pressure [kPa]")
         ax.set_ylabel("force [N]")
     axes[0][0].legend(fontsize=7)
-    fig.suptitle("data (dots) vs model means, one colour per plate height", fontsize=9)
+    fig.suptitle(
+        f"data (dots) vs model means, {names[-1]}: 90 % predictive band; one colour per plate height", fontsize=9
+    )
     outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
 
@@ -271,8 +289,8 @@ def run_demo(
     import dataclasses
 
     from mfdesign.acquire import Grid, propose
-    from mfdesign.calibration.plots import corner_plot
-    from mfdesign.calibration.posterior import save_inference_data
+    from mfdesign.calibration.plots import corner_plot, pit, pit_coverage, predictive_check_plot
+    from mfdesign.calibration.posterior import load_inference_data, save_inference_data
     from mfdesign.calibration.workflow import fit_multi_fidelity, for_search, force_model_named
     from mfdesign.data.store import read_parquet
     from mfdesign.diagnose.emulated import forward_model
@@ -428,7 +446,7 @@ def run_demo(
         fig_dir.mkdir(exist_ok=True)
         _plane_figure(
             meas,
-            {"plain": fit0.mf.thinned(16).members, "with effects": fit1.mf.thinned(16).members},
+            {"plain": fit0.mf.thinned(16), "with effects": fit1.mf.thinned(16)},
             fig_dir / "planes.png",
         )
         rep = Report("mfdesign demo: calibrate, diagnose, add the missing effect, propose, optimise")
@@ -444,9 +462,19 @@ def run_demo(
         ]
         rep.add(
             "Data and model",
-            ["Measured force against pressure, with the plain and the corrected model's means."],
+            [
+                "Measured force against pressure, with the plain and the corrected model's means and the "
+                "corrected model's 90 % posterior-predictive band (its draws plus observation noise)."
+            ],
             images=[(fig_dir / "planes.png", "data vs model planes")],
         )
+        pits = {
+            name: pit(load_inference_data(out / tag))
+            for name, tag in (("plain", "plain"), ("with effects", "with_effects"))
+            if (out / tag / "posterior.nc").is_file()
+        }
+        predictive_check_plot(pits, fig_dir / "predictive_check.png")
+        covered = {name: pit_coverage(u)[0.9] for name, u in pits.items()}
         rep.add(
             "Calibration (plain model)",
             ["Posterior of the global parameters (emcee)."],
@@ -472,6 +500,20 @@ def run_demo(
                 ],
                 images=[(dpaths[k], f"round {i + 1}: effect screen") for k in (f"screen_{i + 1}",) if k in dpaths],
             )
+        rep.add(
+            "Predictive check: are the calibrated model's intervals honest?",
+            [
+                "Each observed force (the rows the chain saw) against the calibrated model's replicated "
+                "forces (posterior draws plus observation noise, without the discrepancy ensemble; "
+                "posterior.nc). A calibrated model has a flat PIT histogram and a coverage curve on the "
+                "diagonal.",
+                "Share of observations inside the 90 % predictive interval: "
+                + ", ".join(f"{name} {c:.2f}" for name, c in covered.items())
+                + " (calibrated: 0.90).",
+            ],
+            images=[(fig_dir / "predictive_check.png", "PIT histogram and coverage curve")],
+            data={"coverage_90": covered},
+        )
         after_imgs = [(dpaths["maps_after"], "residual maps after")] if "maps_after" in dpaths else []
         rep.add(
             f"After adding {', '.join(found) if found else 'nothing'}",
