@@ -29,7 +29,7 @@ from mfdesign.data.shipped import bundled_card_path, bundled_path
 from mfdesign.design import Membrane
 from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
-__all__ = ["DemoSettings", "run_demo", "BUNDLED"]
+__all__ = ["DemoSettings", "run_demo", "BUNDLED", "card_truths"]
 
 BUNDLED = bundled_path()
 CARD = bundled_card_path()
@@ -191,7 +191,7 @@ def _proposal_figure(meas, proposal, path: Path) -> None:
     plt.close(fig)
 
 
-def _truths(card: dict) -> dict[str, float]:
+def card_truths(card: dict) -> dict[str, float]:
     """The parameters the bundled data were made with: the authors' rubber constants and the
     card's hidden effect."""
     return {"mu_pa": ECOFLEX_MU_PA, "jm": ECOFLEX_JM, **card["hidden_effect"]["theta"]}
@@ -200,7 +200,7 @@ def _truths(card: dict) -> dict[str, float]:
 def _truth_check(post, card: dict) -> dict:
     """Each parameter with a known truth (the authors' constants, the card's hidden effect):
     its 90 % interval and whether the truth lies inside."""
-    truth = _truths(card)
+    truth = card_truths(card)
     out = {}
     for name, value in truth.items():
         if name not in post.names:
@@ -329,7 +329,7 @@ def run_demo(
             progress=progress,
         )
 
-    truths = _truths(card) if card is not None else {}
+    truths = card_truths(card) if card is not None else {}
 
     def write_posterior(fit_, tag, max_rows):
         d = out / tag

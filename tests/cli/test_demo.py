@@ -96,3 +96,15 @@ def test_truth_table_puts_each_truth_beside_the_posterior():
             "inside": "yes",
         }
     ]
+
+
+def test_calibrate_draws_truth_lines_only_for_the_bundled_dataset():
+    from pathlib import Path
+
+    from mfdesign.cli.calibrate import _bundled_truths
+    from mfdesign.data.shipped import bundled_path
+
+    truths = _bundled_truths([Path("bundled")])
+    assert truths["mu_pa"] == 31700.0 and truths["pressure_sensor.offset_pa"] == 150.0
+    assert _bundled_truths([bundled_path()]) == truths
+    assert _bundled_truths([Path("mine.parquet")]) == {} and _bundled_truths([Path("bundled")] * 2) == {}
