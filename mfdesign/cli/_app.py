@@ -9,6 +9,7 @@ error prints one line naming a log file with the traceback and exits with status
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import typer
@@ -30,6 +31,13 @@ def enable_compilation_cache() -> Path:
     Folder: ``$MFDESIGN_CACHE_DIR`` (default ``~/.cache/mfdesign/jax``). Programs that
     compile in under 1 s are not stored (recompiling them is as fast as reading them).
 
+    Set through JAX's environment variables (``JAX_COMPILATION_CACHE_DIR``,
+    ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS``, ``JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES``;
+    jax reads them when it is first imported) rather than ``jax.config``: the group callback
+    calls this before click parses a sub-command's ``--help``, and importing jax there made
+    every ``mfdesign CMD --help`` take over 1 s. A caller that already imported jax (a
+    script, a test) gets the same settings through ``jax.config``.
+
     Why ``EQX_ON_ERROR=nan`` (unless already set): equinox's runtime checks inside the
     solvers (``eqx.error_if``, used by optimistix / diffrax / lineax even with
     ``throw=False``) are host callbacks by default, and XLA never stores an executable that
@@ -39,13 +47,18 @@ def enable_compilation_cache() -> Path:
     equinox is imported, i.e. here, before any command body runs.
     """
     os.environ.setdefault("EQX_ON_ERROR", "nan")
-    import jax
-
     cache = Path(os.environ.get("MFDESIGN_CACHE_DIR", Path.home() / ".cache" / "mfdesign" / "jax"))
     cache.mkdir(parents=True, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", str(cache))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    settings = {
+        "jax_compilation_cache_dir": str(cache),
+        "jax_persistent_cache_min_compile_time_secs": 1.0,
+        "jax_persistent_cache_min_entry_size_bytes": 0,
+    }
+    os.environ.update({name.upper(): str(value) for name, value in settings.items()})
+    if "jax" in sys.modules:  # already imported: it read its environment then, tell it now
+        jax = sys.modules["jax"]
+        for name, value in settings.items():
+            jax.config.update(name, value)
     return cache
 
 

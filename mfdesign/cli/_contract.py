@@ -26,7 +26,7 @@ from typer.core import TyperCommand, TyperGroup
 
 from mfdesign.errors import anticipated, one_line
 
-__all__ = ["ContractCommand", "ContractGroup", "apply", "item_parser", "log_dir"]
+__all__ = ["ContractCommand", "ContractGroup", "apply", "item_parser", "effect_name", "log_dir"]
 
 # Commands whose --out is one file, not a folder.
 FILE_OUTPUTS = {"cv", "import"}
@@ -123,6 +123,14 @@ def item_parser(convert, what: str):
 
     parse.__name__ = what.replace(" ", "_")
     return parse
+
+
+def effect_name(text: str) -> str:
+    """An item that is a name (an effect): a comma in it can only be an old-style list, so
+    :func:`item_parser` refuses it with its repeat-the-option hint."""
+    if "," in text:
+        raise ValueError(text)
+    return text
 
 
 def apply(app: typer.Typer) -> None:

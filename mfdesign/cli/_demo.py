@@ -29,7 +29,7 @@ from mfdesign.data.shipped import bundled_card_path, bundled_path
 from mfdesign.design import Membrane
 from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
-__all__ = ["DemoSettings", "run_demo", "BUNDLED"]
+__all__ = ["DemoSettings", "run_demo", "BUNDLED", "card_truths"]
 
 BUNDLED = bundled_path()
 CARD = bundled_card_path()
@@ -122,12 +122,22 @@ class _Log:
 
 
 def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
-    """Force vs pressure of a few membranes at their set heights: data and each model's mean."""
+    """Force vs pressure of a few membranes at their set heights: data, each model's mean and
+    the last model's 90 % posterior-predictive band.
+
+    ``fits``: name -> :class:`~mfdesign.models.predictive.MultiFidelity` (thinned). Each
+    measured membrane is predicted with its own posterior thickness (``predict``; the
+    population's spread of thicknesses belongs to new membranes, and drawn here it made
+    bands ten times the data). The band holds the last fit's draws (physics + discrepancy)
+    plus its Gaussian observation noise ``noise_n``: where the dots leave it, the model does
+    not know what it does not know."""
     plt = _plt()
+    rng = np.random.default_rng(0)  # noise draws for the band only: no demo number uses them
     df = meas.df
     df = df[df["experiment"] == "force"]
     keys = list(dict.fromkeys(df["design_key"]))[:n_membranes]
-    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6), squeeze=False)
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6), squeeze=False, layout="constrained")
+    names = list(fits)
     for ax, key in zip(axes[0], keys):
         sub = df[df["design_key"] == key]
         heights = sorted(sub["height_set_mm"].dropna().unique())[::2]
@@ -137,15 +147,22 @@ def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
             ax.plot(s["pressure_pa"] / 1e3, s["force_n"], ".", ms=1.5, color=c, alpha=0.4)
             p = np.linspace(max(50.0, s["pressure_pa"].min()), s["pressure_pa"].max(), 40)
             design = np.tile(Membrane.from_key(key).to_array(), (p.size, 1))
-            for (name, fn), ls in zip(fits.items(), ("--", "-")):
-                f = np.asarray(fn(design, np.full(p.size, hs), p)).mean(0)
-                ax.plot(p / 1e3, f, ls, color=c, lw=1.2, label=f"{name}" if i == 0 else None)
+            for (name, mf), ls in zip(fits.items(), ("--", "-")):
+                draws = np.asarray(mf.predict(design, np.full(p.size, hs), p))
+                ax.plot(p / 1e3, draws.mean(0), ls, color=c, lw=1.2, label=f"{name}" if i == 0 else None)
+                if name == names[-1]:
+                    y = draws[None] + mf.noise_n * rng.standard_normal((8, *draws.shape))
+                    lo, hi = np.quantile(y.reshape(-1, p.size), [0.05, 0.95], axis=0)
+                    ax.fill_between(
+                        p / 1e3, lo, hi, color=c, alpha=0.15, lw=0, label=f"{name}: 90 % band" if i == 0 else None
+                    )
         ax.set_title(key, fontsize=8)
         ax.set_xlabel("pressure [kPa]")
         ax.set_ylabel("force [N]")
     axes[0][0].legend(fontsize=7)
-    fig.suptitle("data (dots) vs model means, one colour per plate height", fontsize=9)
-    fig.tight_layout()
+    fig.suptitle(
+        f"data (dots) vs model means, {names[-1]}: 90 % predictive band; one colour per plate height", fontsize=9
+    )
     outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
 
@@ -174,10 +191,16 @@ def _proposal_figure(meas, proposal, path: Path) -> None:
     plt.close(fig)
 
 
+def card_truths(card: dict) -> dict[str, float]:
+    """The parameters the bundled data were made with: the authors' rubber constants and the
+    card's hidden effect."""
+    return {"mu_pa": ECOFLEX_MU_PA, "jm": ECOFLEX_JM, **card["hidden_effect"]["theta"]}
+
+
 def _truth_check(post, card: dict) -> dict:
     """Each parameter with a known truth (the authors' constants, the card's hidden effect):
     its 90 % interval and whether the truth lies inside."""
-    truth = {"mu_pa": ECOFLEX_MU_PA, "jm": ECOFLEX_JM, **card["hidden_effect"]["theta"]}
+    truth = card_truths(card)
     out = {}
     for name, value in truth.items():
         if name not in post.names:
@@ -186,6 +209,72 @@ def _truth_check(post, card: dict) -> dict:
         lo, hi = (float(v) for v in np.quantile(x, [0.05, 0.95]))
         out[name] = {"truth": value, "q05": lo, "q95": hi, "inside": bool(lo <= value <= hi)}
     return out
+
+
+def _verdict(diag) -> str:
+    """One sentence on what the diagnosis found, from every round together: the report's
+    summary and its diagnosis section both print this one (a round's own verdict speaks
+    only for that round: a last round that finds nothing more does not undo the first)."""
+    from mfdesign.diagnose.check import FLOOR_FACTOR  # the factor the verdicts use
+
+    found = list(diag.found)
+    b, floor = diag.before.rmse_n, diag.before.noise_floor_n
+    if not found or diag.after is None:
+        if floor > 0 and b <= FLOOR_FACTOR * floor:
+            return f"Diagnosis: the model already fits to the noise: RMSE {b:.2f} N, noise floor {floor:.2f} N."
+        return f"Diagnosis: no candidate effect explains the misfit: RMSE {b:.2f} N" + (
+            f", {b / floor:.1f}x the noise floor ({floor:.2f} N)." if floor > 0 else "."
+        )
+    a = diag.after.rmse_n
+    ratio = a / floor if floor > 0 else float("inf")
+    head = f"Diagnosis: adding {', '.join(found)} brings the residual RMSE from {b:.2f} N to {a:.2f} N"
+    if ratio <= FLOOR_FACTOR:
+        return head + f", {ratio:.2f}x the noise floor ({floor:.2f} N): it explains the misfit."
+    rest = (
+        "no further candidate effect explains the rest"
+        if diag.steps and diag.steps[-1]["verdict"].get("status") == "unexplained"
+        else "the rest stays unexplained"
+    )
+    return (
+        head + f", but that is still {ratio:.1f}x the noise floor ({floor:.2f} N): {', '.join(found)} "
+        f"explains only part of the misfit, and {rest}."
+    )
+
+
+def _banners(diag, convergence: dict) -> list[str]:
+    """Warnings for the top of the report: chains that have not converged, a model (after
+    the effects found) far above the noise floor."""
+    from mfdesign.report.diagnosis import floor_banner
+
+    out = []
+    for tag, c in convergence.items():
+        if not c.get("converged"):
+            why = "; ".join(c.get("problems") or []) or "see posterior.json"
+            out.append(
+                f"The {tag.replace('_', ' ')} model's chain has not converged ({why}): its intervals are not trustworthy."
+            )
+    floor = floor_banner(diag)
+    return out + ([floor] if floor else [])
+
+
+def _num(v: float) -> str:
+    """A number for people: whole numbers from 1000 up (Pa), 4 significant digits below."""
+    return f"{v:.0f}" if abs(v) >= 1000 else f"{v:.4g}"
+
+
+def _truth_table(check: dict, table: list[dict]) -> list[dict]:
+    """``_truth_check``'s rows beside the posterior medians (``table``: the posterior rows)."""
+    median = {r["parameter"]: r["median"] for r in table}
+    return [
+        {
+            "parameter": name,
+            "truth": c["truth"],
+            "median": median.get(name),
+            "90 % interval": f"{_num(c['q05'])} to {_num(c['q95'])}",
+            "inside": "yes" if c["inside"] else "NO",
+        }
+        for name, c in check.items()
+    ]
 
 
 def run_demo(
@@ -200,8 +289,8 @@ def run_demo(
     import dataclasses
 
     from mfdesign.acquire import Grid, propose
-    from mfdesign.calibration.plots import corner_plot
-    from mfdesign.calibration.posterior import save_inference_data
+    from mfdesign.calibration.plots import corner_plot, pit, pit_coverage, predictive_check_plot
+    from mfdesign.calibration.posterior import load_inference_data, save_inference_data
     from mfdesign.calibration.workflow import fit_multi_fidelity, for_search, force_model_named
     from mfdesign.data.store import read_parquet
     from mfdesign.diagnose.emulated import forward_model
@@ -240,18 +329,28 @@ def run_demo(
             progress=progress,
         )
 
-    def write_posterior(fit_, tag):
+    truths = card_truths(card) if card is not None else {}
+
+    def write_posterior(fit_, tag, max_rows):
         d = out / tag
         d.mkdir(parents=True, exist_ok=True)
         post = fit_.posterior
         table = post.summary()
         # posterior.json + .npz (``Posterior.load``) and posterior.nc (``az.from_netcdf``: the
-        # constrained parameters, chain x draw). The pointwise groups (log-likelihood,
-        # predictive) are left to ``mfdesign calibrate``: they would cost the demo ~10 s.
+        # constrained parameters, chain x draw, and as ``mfdesign calibrate`` writes it the
+        # pointwise groups on the rows the chain saw: log-likelihood, posterior predictive,
+        # observed data). 200 draws keep those cheap (draws x rows force evaluations).
         post.save(d / "posterior")
-        save_inference_data(post, d / "posterior.nc")
+        save_inference_data(post, d / "posterior.nc", fit_.model, meas, max_draws=200, seed=s.seed, max_rows=max_rows)
         keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
-        corner_plot(post.samples[:, keep], [post.names[i] for i in keep], d / "corner.png")
+        names = [post.names[i] for i in keep]
+        corner_plot(
+            post.samples[:, keep],
+            names,
+            d / "corner.png",
+            truths=[truths.get(n) for n in names] if truths else None,
+            title="red lines: the values the data were made with" if truths else None,
+        )
         rows = table  # with the per-membrane thickness rows: spurious latents show there
         return [
             {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
@@ -261,7 +360,7 @@ def run_demo(
     # 2. calibrate + multi-fidelity fit of the plain model
     with log.stage("calibrate mu, J_m (emcee) and fit the discrepancy: plain model"):
         fit0 = fit((), "plain", min(s.plain_max_rows, s.max_rows))
-        post0 = write_posterior(fit0, "plain")
+        post0 = write_posterior(fit0, "plain", min(s.plain_max_rows, s.max_rows))
 
     # 3. diagnose the plain simulator (the authors' constants), as docs/diagnose.md does.
     # Not the calibrated model at its posterior median: its per-membrane thickness latents
@@ -292,7 +391,7 @@ def run_demo(
     if found:
         with log.stage(f"add {', '.join(found)}: recalibrate and refit"):
             fit1 = fit(found, "with_effects", s.max_rows)
-            post1 = write_posterior(fit1, "with_effects")
+            post1 = write_posterior(fit1, "with_effects", s.max_rows)
     else:
         fit1, post1 = fit0, post0
 
@@ -347,18 +446,15 @@ def run_demo(
         fig_dir.mkdir(exist_ok=True)
         _plane_figure(
             meas,
-            {"plain": fit0.mf.thinned(16).members, "with effects": fit1.mf.thinned(16).members},
+            {"plain": fit0.mf.thinned(16), "with effects": fit1.mf.thinned(16)},
             fig_dir / "planes.png",
         )
         rep = Report("mfdesign demo: calibrate, diagnose, add the missing effect, propose, optimise")
+        verdict = _verdict(diag)
+        rep.banners = _banners(diag, summary["convergence"])
         rep.summary = [
             f"{len(meas)} rows of {len(meas.design_keys)} membranes from {Path(data_path).name}.",
-            f"Diagnosis found: {', '.join(found) if found else 'nothing beyond the noise'}"
-            + (f" (hidden truth: {card['hidden_effect']['name']})" if card else "")
-            + ".",
-            f"Residual RMSE {diag.before.rmse_n:.2f} N before, "
-            + (f"{diag.after.rmse_n:.2f} N after adding it" if diag.after is not None else "unchanged")
-            + f"; noise floor {diag.before.noise_floor_n:.2f} N.",
+            verdict + (f" (Hidden truth: {card['hidden_effect']['name']}.)" if card else ""),
             "Proposed next: "
             + "; ".join(f"{_short(m.key())} ({f})" for m, f in zip(proposal.designs, proposal.fidelities))
             + ".",
@@ -366,39 +462,82 @@ def run_demo(
         ]
         rep.add(
             "Data and model",
-            ["Measured force against pressure, with the plain and the corrected model's means."],
+            [
+                "Measured force against pressure, with the plain and the corrected model's means and the "
+                "corrected model's 90 % posterior-predictive band (its draws plus observation noise)."
+            ],
             images=[(fig_dir / "planes.png", "data vs model planes")],
         )
+        pits = {
+            name: pit(load_inference_data(out / tag))
+            for name, tag in (("plain", "plain"), ("with effects", "with_effects"))
+            if (out / tag / "posterior.nc").is_file()
+        }
+        predictive_check_plot(pits, fig_dir / "predictive_check.png")
+        covered = {name: pit_coverage(u)[0.9] for name, u in pits.items()}
         rep.add(
             "Calibration (plain model)",
             ["Posterior of the global parameters (emcee)."],
             table=post0,
             images=[(out / "plain" / "corner.png", "posterior, plain model")],
         )
-        imgs = [
-            (dpaths[k], k.replace("_", " ")) for k in ("maps_before", "parity", "breakdown", "screen_1") if k in dpaths
-        ]
-        screen = (
-            [{"effect": r.effect, "explained fraction": float(r.explained_fraction)} for r in diag.steps[0]["screen"]][
-                :6
-            ]
-            if diag.steps
-            else None
-        )
+        imgs = [(dpaths[k], k.replace("_", " ")) for k in ("maps_before", "parity", "breakdown") if k in dpaths]
         rep.add(
             "Diagnosis: where it fails, which effect is missing",
-            [w["words"] for w in diag.to_json()["before"]["worst_regions"]][:4]
-            + ([diag.steps[-1]["verdict"].get("words", "")] if diag.steps else []),
-            table=screen,
+            [w["words"] for w in diag.to_json()["before"]["worst_regions"]][:4] + [verdict],
             images=imgs,
+        )
+        # Every round of the forward selection: its screen and its own verdict (round 2 is
+        # asked with round 1's effect already in the model).
+        for i, step in enumerate(diag.steps):
+            base = step.get("base_effects") or []
+            rep.add(
+                f"Diagnosis round {i + 1}: "
+                + (f"what is missing besides {', '.join(base)}" if base else "which effect is missing"),
+                [f"Round {i + 1}'s verdict: {step['verdict'].get('words', '')}"],
+                table=[
+                    {"effect": r.effect, "explained fraction": float(r.explained_fraction)} for r in step["screen"][:6]
+                ],
+                images=[(dpaths[k], f"round {i + 1}: effect screen") for k in (f"screen_{i + 1}",) if k in dpaths],
+            )
+        rep.add(
+            "Predictive check: are the calibrated model's intervals honest?",
+            [
+                "Each observed force (the rows the chain saw) against the calibrated model's replicated "
+                "forces (posterior draws plus observation noise, without the discrepancy ensemble; "
+                "posterior.nc). A calibrated model has a flat PIT histogram and a coverage curve on the "
+                "diagonal.",
+                "Share of observations inside the 90 % predictive interval: "
+                + ", ".join(f"{name} {c:.2f}" for name, c in covered.items())
+                + " (calibrated: 0.90).",
+            ],
+            images=[(fig_dir / "predictive_check.png", "PIT histogram and coverage curve")],
+            data={"coverage_90": covered},
         )
         after_imgs = [(dpaths["maps_after"], "residual maps after")] if "maps_after" in dpaths else []
         rep.add(
             f"After adding {', '.join(found) if found else 'nothing'}",
-            ["Posterior with the effect(s)."],
+            ["Posterior with the effect(s)."]
+            + (
+                [
+                    f"Residual RMSE {diag.before.rmse_n:.2f} N before, {diag.after.rmse_n:.2f} N after; noise floor {floor:.2f} N."
+                ]
+                if diag.after is not None
+                else []
+            ),
             table=post1,
             images=after_imgs + ([(out / "with_effects" / "corner.png", "posterior with effects")] if found else []),
         )
+        if card is not None:
+            rep.add(
+                "Truths: does the posterior find the values the data were made with?",
+                [
+                    "The bundled data were simulated with the authors' rubber constants and the hidden effect of "
+                    "the data card; each truth beside the corrected model's posterior median and 90 % interval "
+                    "(red lines in the corner plots)."
+                ],
+                table=_truth_table(summary["truth_check"], post1),
+            )
         rep.add(
             "Next membranes",
             [f"{_short(m.key())}: {f}" for m, f in zip(proposal.designs, proposal.fidelities)],

@@ -20,6 +20,7 @@ from typing import Annotated, List, Optional
 import typer
 
 from mfdesign.cli._app import ALLOW_OUTSIDE
+from mfdesign.cli._contract import effect_name, item_parser
 
 
 def _check_chain(chain: Path) -> None:
@@ -142,11 +143,14 @@ def _run(
         max_rows=max_rows,
     )
     keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
+    names = [post.names[i] for i in keep]
+    truths = _bundled_truths(data)  # the bundled data's card knows what made them: red lines
     corner_plot(
         post.samples[:, keep],
-        [post.names[i] for i in keep],
+        names,
         out / "corner.png",
-        title=f"{data}: effects {effects or 'none'}",
+        truths=[truths.get(n) for n in names] if truths else None,
+        title=f"{data}: effects {effects or 'none'}" + (" (red: the values the data were made with)" if truths else ""),
     )
     written = {
         "chain": str(chain),
@@ -187,7 +191,28 @@ DATA = typer.Argument(
     ...,
     help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).",
 )
-EFFECTS = typer.Option(None, "--effects", help="Active effect (repeat for several).")
+
+
+def _bundled_truths(data) -> dict[str, float]:
+    """The parameters the bundled dataset was made with (its card), when DATA is exactly that
+    dataset (the ``bundled`` keyword or its file); else empty."""
+    import json
+
+    from mfdesign.cli._demo import card_truths
+    from mfdesign.data.shipped import BUNDLED_NAME, bundled_card_path, bundled_path
+
+    paths = list(data or [])
+    if len(paths) != 1 or not bundled_card_path().is_file():
+        return {}
+    only = Path(paths[0])
+    if str(only) != BUNDLED_NAME and not (only.is_file() and only.resolve() == bundled_path().resolve()):
+        return {}
+    return card_truths(json.loads(bundled_card_path().read_text()))
+
+
+EFFECTS = typer.Option(
+    None, "--effects", parser=item_parser(effect_name, "an effect name"), help="Active effect (repeat for several)."
+)
 PHYSICS = typer.Option(
     "exact",
     help="Force model where the model meets the data: exact (simulator planes of "

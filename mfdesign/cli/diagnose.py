@@ -22,6 +22,8 @@ from typing import List, Optional
 
 import typer
 
+from mfdesign.cli._contract import effect_name, item_parser
+
 PHYSICS = ("exact", "emulator", "standin")
 
 
@@ -66,11 +68,12 @@ def load_effects_module(path: Path) -> None:
         raise ValueError(f"--effects-module {path} failed to import: {type(err).__name__}: {err}") from None
 
 
-def _split(values) -> list[str]:
-    out = []
-    for v in values or []:
-        out += [s.strip() for s in str(v).split(",") if s.strip()]
-    return out
+def _items(values) -> list[str]:
+    """A list from the command line (a repeated option) or a config file (a list, or one
+    string for one item); no comma splitting: every list is written one way."""
+    if isinstance(values, str):
+        return [values]
+    return [str(v) for v in values or []]
 
 
 def register(app: typer.Typer) -> None:
@@ -83,7 +86,10 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(..., help="Folder for report.html, diagnosis.json and the PNGs."),
         model: Optional[Path] = typer.Option(None, help="Saved ensemble folder (default: the plain simulator)."),
         effects: Optional[List[str]] = typer.Option(
-            None, "--effects", help="Effects to add (repeat or comma-separate)."
+            None,
+            "--effects",
+            parser=item_parser(effect_name, "an effect name"),
+            help="Effects to add (repeat for several).",
         ),
         theta: Optional[str] = typer.Option(
             None, help="Effect parameters as JSON, e.g. '{\"pressure_sensor.offset_pa\": 150}'."
@@ -93,7 +99,10 @@ def register(app: typer.Typer) -> None:
             None, "--effects-module", help="Python file(s) registering new effects."
         ),
         candidates: Optional[List[str]] = typer.Option(
-            None, "--candidates", help="Effects the search may try (default: all)."
+            None,
+            "--candidates",
+            parser=item_parser(effect_name, "an effect name"),
+            help="Effects the search may try (repeat; default: all).",
         ),
         physics: str = typer.Option(
             "exact",
@@ -116,12 +125,12 @@ def register(app: typer.Typer) -> None:
 
         try:
             cfg = load_config(config) if config is not None else {}
-            for f in _split(effects_module) or _split(cfg.get("effects_module", [])):
+            for f in _items(effects_module) or _items(cfg.get("effects_module", [])):
                 load_effects_module(Path(f))
             from mfdesign.physics import effects as fx
 
-            names = _split(effects) or _split(cfg.get("effects", []))
-            for n in names + _split(candidates or cfg.get("candidates", [])):
+            names = _items(effects) or _items(cfg.get("effects", []))
+            for n in names + _items(candidates or cfg.get("candidates", [])):
                 if n not in fx.EFFECTS:
                     raise ValueError(f"unknown effect {n!r}; registered: {sorted(fx.EFFECTS)}")
             th = cfg.get("theta", {})
@@ -164,7 +173,7 @@ def register(app: typer.Typer) -> None:
         from mfdesign.diagnose.emulated import forward_model, likelihood_effects
 
         try:
-            likelihood_effects(names + _split(candidates or cfg.get("candidates", [])))
+            likelihood_effects(names + _items(candidates or cfg.get("candidates", [])))
             sim = forward_model(sim_name, meas, cache=cache_dir, progress=True)
         except (ValueError, FileNotFoundError) as err:
             fail(str(err))
@@ -175,7 +184,7 @@ def register(app: typer.Typer) -> None:
             model_name=model_name,
             effects=names,
             theta=th,
-            candidates=_split(candidates) or _split(cfg.get("candidates", [])) or None,
+            candidates=_items(candidates) or _items(cfg.get("candidates", [])) or None,
             search=search,
             check_top=check_top,
             max_steps=max_steps,

@@ -23,10 +23,11 @@ from pathlib import Path
 import numpy as np
 
 from mfdesign import outputs  # atomic writes: a reader never sees a torn file
+from mfdesign.diagnose.check import FLOOR_FACTOR
 from mfdesign.diagnose.residuals import Residuals, breakdowns
 from mfdesign.report.render import write_html
 
-__all__ = ["write_report"]
+__all__ = ["floor_banner", "write_report"]
 
 
 def _plt():
@@ -45,6 +46,20 @@ def _save(fig, path: Path) -> None:
     _plt().close(fig)
 
 
+def floor_banner(diag) -> str | None:
+    """A warning when the final model (with the effects added, else the one diagnosed) sits
+    above ``FLOOR_FACTOR`` x the noise floor (the factor the verdicts use), else None."""
+    res = diag.after if diag.after is not None else diag.before
+    floor = diag.before.noise_floor_n
+    if not floor > 0 or res.rmse_n <= FLOOR_FACTOR * floor:
+        return None
+    which = f"after adding {', '.join(diag.effects)}" if diag.after is not None else "as diagnosed"
+    return (
+        f"The model {which} still sits at {res.rmse_n / floor:.1f}x the noise floor "
+        f"(RMSE {res.rmse_n:.2f} N vs {floor:.2f} N; more than {FLOOR_FACTOR:g}x): something is still missing."
+    )
+
+
 def residual_maps(res: Residuals, path: Path, title: str, vmax: float | None = None) -> float:
     """Per-membrane mean-residual maps on 5 mm x 500 Pa cells; returns the colour limit used."""
     plt = _plt()
@@ -53,7 +68,8 @@ def residual_maps(res: Residuals, path: Path, title: str, vmax: float | None = N
     n = max(len(keys), 1)
     cols = min(3, n)
     rows = math.ceil(n / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
+    # constrained layout: without it the top row's x labels ran into the bottom row's titles
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False, layout="constrained")
     he = np.arange(0.0, max(float(f["height_mm"].max()) + 5.0, 10.0), 5.0) if len(f) else np.arange(0, 10, 5.0)
     pe = (
         np.arange(0.0, max(float(f["pressure_pa"].max()) + 500.0, 1000.0), 500.0)
@@ -234,6 +250,7 @@ def write_report(diag, out_dir, shapes: bool = False, params=None) -> dict[str, 
         out / "report.html",
         "diagnosis.html.j2",
         title="mfdesign diagnosis",
+        banners=[b for b in (floor_banner(diag),) if b],
         data=data,
         images={k: p.name for k, p in paths.items() if p.suffix == ".png"},
     )

@@ -33,12 +33,17 @@ class Section:
 
 @dataclass
 class Report:
-    """Collects sections; :meth:`write` renders ``index.html`` and ``report.json``."""
+    """Collects sections; :meth:`write` renders ``index.html`` and ``report.json``.
+
+    ``banners``: warnings shown in red above everything else (a chain that has not
+    converged, a model far above the noise floor): what a reader must know before
+    trusting any number below."""
 
     title: str
     summary: list[str] = field(default_factory=list)
     sections: list[Section] = field(default_factory=list)
     meta: dict = field(default_factory=dict)
+    banners: list[str] = field(default_factory=list)
 
     def add(
         self,
@@ -65,6 +70,7 @@ class Report:
             "sections.html.j2",
             title=self.title,
             written=stamp,
+            banners=self.banners,
             summary=self.summary,
             sections=self.sections,
             root=out,
@@ -72,6 +78,7 @@ class Report:
         data = {
             "title": self.title,
             "written": stamp,
+            "banners": self.banners,
             "summary": self.summary,
             "meta": self.meta,
             "sections": [

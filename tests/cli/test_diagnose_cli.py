@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 from typer.testing import CliRunner
@@ -130,6 +131,20 @@ def test_bad_input_is_one_line_exit_2(data, tmp_path, args, words):
     assert r.exit_code == 2
     assert words in r.output
     assert len(r.output.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    "command, option", [("diagnose", "--effects"), ("diagnose", "--candidates"), ("calibrate", "--effects")]
+)
+def test_a_comma_list_of_effects_is_refused_with_the_repeat_hint(data, tmp_path, command, option):
+    """Every list option is written one way, repeated (as --rings): a comma list exits 2 and says so."""
+    r = runner.invoke(
+        app, [command, str(data), "--out", str(tmp_path / "x"), option, "pressure_sensor,load_cell_offset"]
+    )
+    assert r.exit_code == 2
+    words = " ".join(re.sub("[\u2500-\u257f]", " ", r.output).split())  # click may draw a box around it
+    assert "is not an effect name" in words and "repeat the option" in words
+    assert not (tmp_path / "x").exists() or not any((tmp_path / "x").iterdir())
 
 
 def test_missing_data_file(tmp_path):

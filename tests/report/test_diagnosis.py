@@ -108,3 +108,18 @@ def test_without_effects_or_search_the_page_has_no_after_or_rounds(tmp_path):
 def test_headless_chromium_sees_every_picture(tmp_path):
     page = check_page(_page(tmp_path, DATA), tmp_path / "shot.png")
     assert (page.images, page.broken_images) == (4, 0)
+
+
+def test_a_model_above_the_noise_floor_gets_a_banner(tmp_path):
+    from types import SimpleNamespace as NS
+
+    from mfdesign.report.diagnosis import floor_banner
+
+    diag = NS(before=NS(rmse_n=0.812, noise_floor_n=0.202), after=NS(rmse_n=0.4), effects=["load_cell_offset"])
+    words = floor_banner(diag)
+    assert "after adding load_cell_offset still sits at 2.0x the noise floor" in words
+    assert floor_banner(NS(before=diag.before, after=NS(rmse_n=0.22), effects=["x"])) is None
+    page = write_html(
+        tmp_path / "r.html", "diagnosis.html.j2", title="t", data=DATA, images={}, banners=[words]
+    ).read_text()
+    assert page.index('class="banner"') < page.index("Where it fails")

@@ -50,3 +50,15 @@ def test_headless_chromium_sees_pictures_and_broken_ones(tmp_path):
     bad.unlink()
     broken = check_page(paths["html"], tmp_path / "shot2.png")
     assert broken.broken_images == 1
+
+
+def test_banners_come_first_and_pictures_open_full_size(tmp_path):
+    rep = Report("demo", summary=["one line"], banners=["chain <not> converged"])
+    rep.add("plane", images=[(_png(tmp_path / "a.png"), "cap")])
+    paths = rep.write(tmp_path)
+    page = paths["html"].read_text()
+    assert page.index('class="banner"') < page.index("one line")
+    assert "chain &lt;not&gt; converged" in page
+    assert '<a href="a.png" target="_blank"><img src="a.png"' in page
+    assert "520px" not in page
+    assert json.loads(paths["json"].read_text())["banners"] == ["chain <not> converged"]
