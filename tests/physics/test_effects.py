@@ -37,6 +37,7 @@ EXPECTED = {
     "ring_softening",
     "contact_offset",
     "stress_softening",
+    "lift_preload",
     "pressure_sensor",
     "load_cell_offset",
     "rig_compliance",
@@ -94,9 +95,10 @@ def test_typical_does_something(name):
     e = fx.effect(name)
     theta = typical_theta([e])
     changed = apply_sim_params([e], theta, SimParams(), _ctx()) != SimParams()
-    rows = _rows(deflate=True)
-    out = apply_expected_force([e], theta, _law, rows)
-    changed |= not np.array_equal(out, _law(rows.h_mm, rows.p_pa))
+    for kind in ("force", "lift"):  # a lift-only effect acts on lift rows alone
+        rows = _rows(experiment=kind, deflate=True)
+        out = apply_expected_force([e], theta, _law, rows)
+        changed |= not np.array_equal(out, _law(rows.h_mm, rows.p_pa))
     assert changed, f"{name} at its typical value changed nothing"
 
 
@@ -139,6 +141,23 @@ def test_pressure_sensor_and_load_cell():
         ["load_cell_offset"], {"load_cell_offset.offset_n": 0.5}, _law, _rows(experiment="lift", p=p_true)
     )
     np.testing.assert_array_equal(lift, _law(30.0, p_true))  # weight of the mass, not a reading
+
+
+def test_lift_preload_acts_on_lifts_only_and_friction_opposes_motion():
+    """The membrane carries W + preload + friction on inflation, W + preload - friction on
+    deflation, so the expected recorded weight is F - preload -+ friction; force rows untouched."""
+    theta = {"lift_preload.preload_n": 3.0, "lift_preload.friction_n": 1.0}
+    up = apply_expected_force(["lift_preload"], theta, _law, _rows(experiment="lift"))
+    down = apply_expected_force(["lift_preload"], theta, _law, _rows(experiment="lift", deflate=True))
+    force = apply_expected_force(["lift_preload"], theta, _law, _rows())
+    base = _law(30.0, np.linspace(0, 4000, 5))
+    np.testing.assert_allclose(up, base - 4.0)
+    np.testing.assert_allclose(down, base - 2.0)
+    np.testing.assert_array_equal(force, base)
+    # the virtual rig records a preloaded lift where F(h, p) = W + preload + friction
+    rows = _rows(n=1, experiment="lift", p=[3000.0])
+    h = np.asarray(recorded_lift_height(["lift_preload"], theta, _law, rows, 20.0, 30.0))
+    np.testing.assert_allclose(_law(h, 3000.0), 20.0 + 4.0, atol=1e-8)
 
 
 def test_rig_compliance_sign_and_self_consistency():

@@ -71,6 +71,7 @@ from mfdesign.physics.effects.pressure_sensor import PressureSensor
 from mfdesign.physics.effects.load_cell_offset import LoadCellOffset
 from mfdesign.physics.effects.rig_compliance import RigCompliance
 from mfdesign.physics.effects.hysteresis import Hysteresis
+from mfdesign.physics.effects.lift_preload import LiftPreload
 
 __all__ = [
     "EFFECTS",
@@ -106,4 +107,5 @@ __all__ = [
     "LoadCellOffset",
     "RigCompliance",
     "Hysteresis",
+    "LiftPreload",
 ]
