@@ -47,7 +47,6 @@ design adds to ``U``, and the next slot goes to the most uncertain distinct desi
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import dataclasses
 import math
 import time
@@ -59,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from mfdesign._x64 import enable_x64
 from mfdesign.design import DesignError, DesignSpace, Membrane  # noqa: F401
 from mfdesign.models.predictor import (  # noqa: F401  (re-exported: acquisition's inputs)
     AbstractPredictor,

@@ -55,7 +55,6 @@ reported as the uncertainty of the winner's lift heights and trajectories.
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import abc
 import dataclasses
 import math
@@ -68,6 +67,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from mfdesign._x64 import enable_x64
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.predictor import RIG, AbstractPredictor
 from mfdesign.models.trajectory import P_MAX_PA

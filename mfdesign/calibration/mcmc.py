@@ -27,7 +27,6 @@ Steps of :func:`calibrate`:
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import hashlib
 import json
 import math
@@ -41,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mfdesign._x64 import enable_x64
 from mfdesign.calibration.posterior import Posterior
 from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
 

@@ -13,13 +13,15 @@ Shared by ``mfdesign calibrate`` / ``mfdesign fit-mf`` and the experiments:
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import dataclasses
+from typing import Sequence
 
 import equinox as eqx
 
 import numpy as np
 
+from mfdesign._x64 import enable_x64
+from mfdesign.models.hierarchical import HierarchicalModel
 from mfdesign.physics.effects import LogNormal
 from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
@@ -59,12 +61,11 @@ def force_model_named(name: str, table=None, progress: bool = False):
     return force_model_for(name)
 
 
-def model_for(force_model, data, effects=(), **kwargs):
-    """A hierarchical model with one thickness latent per membrane of ``data``; the priors
+def model_for(force_model, design_keys: Sequence[str], effects=(), **kwargs):
+    """A hierarchical model with one thickness latent per membrane of ``design_keys``; the priors
     of mu [Pa], J_m and the thickness spread stay inside the force model's support (an
     emulator extrapolates outside its training ranges; the exact model's planes reach a
     stated range of reduced pressure and J_m)."""
-    from mfdesign.calibration.mcmc import build_model
     from mfdesign.models.force import ForceModel
 
     ranges = force_model.support() if isinstance(force_model, ForceModel) else {}
@@ -75,7 +76,7 @@ def model_for(force_model, data, effects=(), **kwargs):
         kwargs.setdefault("mu_prior", LogNormal(ECOFLEX_MU_PA, 0.3, float(mu_lo), float(mu_hi)))
         kwargs.setdefault("jm_prior", LogNormal(ECOFLEX_JM, 0.5, float(jm_lo), float(jm_hi)))
         kwargs.setdefault("thickness_sd_prior", LogNormal(0.05, 0.8, 1e-3, float(min(1 - tf_lo, tf_hi - 1) / 3)))
-    return build_model(force_model, data, effects, **kwargs)
+    return HierarchicalModel(force_model=force_model, effects=tuple(effects), n_membranes=len(design_keys), **kwargs)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,7 +122,7 @@ def fit_multi_fidelity(
     data = CalibrationData.from_measurements(table, max_rows=max_rows, seed=seed)
     n_trials = table.df.groupby(["design_key", "trial"]).ngroups
     data = data.padded(max(len(data), max_rows + n_trials))  # equal shapes across folds: one compile
-    model = model_for(force_model, data, effects, likelihood=likelihood)
+    model = model_for(force_model, data.design_keys, effects, likelihood=likelihood)
     post = calibrate(
         data,
         model,
@@ -169,7 +170,6 @@ def load_multi_fidelity(folder) -> MFFit:
     enable_x64()  # float64 physics: mfdesign._x64
     import json
     from pathlib import Path
-    from types import SimpleNamespace
 
     from mfdesign.calibration.posterior import Posterior
     from mfdesign.models.ensemble import Ensemble
@@ -195,7 +195,7 @@ def load_multi_fidelity(folder) -> MFFit:
     try:
         model = model_for(
             force_model_named(simulator),
-            SimpleNamespace(design_keys=post.design_keys),
+            post.design_keys,
             effects,
             likelihood=meta.get("likelihood", "gaussian"),
         )

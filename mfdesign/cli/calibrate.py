@@ -109,7 +109,7 @@ def _run(
                 post = fit.posterior
             else:
                 cdata = CalibrationData.from_measurements(table, max_rows=max_rows, seed=seed)
-                model = model_for(force_model, cdata, effects, likelihood=likelihood)
+                model = model_for(force_model, cdata.design_keys, effects, likelihood=likelihood)
                 post = calibrate(
                     cdata,
                     model,

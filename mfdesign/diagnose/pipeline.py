@@ -18,9 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
-from mfdesign._x64 import enable_x64
 import numpy as np
 
+from mfdesign._x64 import enable_x64
 from mfdesign.data.measurements import Measurements
 from mfdesign.diagnose.check import calibrate_effects, full_check, verdict
 from mfdesign.diagnose.residuals import Residuals, breakdowns, compute_residuals, trend_words, worst_regions

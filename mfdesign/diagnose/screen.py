@@ -38,16 +38,8 @@ __all__ = ["ScreenResult", "parameter_scale", "parameter_step", "screen"]
 
 
 def parameter_scale(p: fx.Parameter) -> float:
-    """A prior's scale: sd of a Normal, sigma x median of a LogNormal, range / sqrt(12) of a Uniform."""
-    prior = p.prior
-    if isinstance(prior, fx.Normal):
-        return float(prior.sd)
-    if isinstance(prior, fx.LogNormal):
-        return float(prior.sigma * prior.median)
-    lo, hi = prior.bounds
-    if math.isfinite(lo) and math.isfinite(hi):
-        return float((hi - lo) / math.sqrt(12.0))
-    return max(abs(p.typical - p.neutral), 1.0)
+    """The prior's scale (:attr:`~mfdesign.physics.effects.Prior.scale`)."""
+    return float(p.prior.scale)
 
 
 def parameter_step(p: fx.Parameter) -> float:

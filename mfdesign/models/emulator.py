@@ -33,7 +33,6 @@ Training ranges (design space, h, p, every SimParams field) are stored with the 
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import dataclasses
 import json
 from pathlib import Path
@@ -45,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from mfdesign._x64 import enable_x64
 from mfdesign.data.shipped import emulator_dir
 from mfdesign.design import OUTER_RADIUS_MM, DesignSpace
 from mfdesign.models.emulator_data import PARAM_FIELDS  # the constants the emulator takes

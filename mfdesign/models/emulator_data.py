@@ -17,7 +17,6 @@ seeded by ``(seed, i)``, so a resumed run produces the same data).
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import argparse
 import math
 from pathlib import Path
@@ -27,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from mfdesign._x64 import enable_x64
 from mfdesign.design import DesignSpace
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status

@@ -31,7 +31,6 @@ training |p|; forces are divided by their training standard deviation ``s_F``.
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import dataclasses
 import functools
 import json
@@ -46,6 +45,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
+from mfdesign._x64 import enable_x64
 from mfdesign.models.predictor import EnsemblePredictor
 
 FORMAT_VERSION = 1

@@ -30,7 +30,6 @@ covers a box of coordinates (the planes it adds are solved and cached; the rest 
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import dataclasses
 import math
 from typing import Mapping, Sequence
@@ -40,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mfdesign._x64 import enable_x64
 from mfdesign.design import Membrane
 from mfdesign.models.force import ForceModel
 from mfdesign.physics import planes as pl

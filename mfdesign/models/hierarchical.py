@@ -35,7 +35,6 @@ the log-density so the posterior of the physical value is exact.
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import dataclasses
 import math
 from typing import Callable, Sequence
@@ -46,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from mfdesign._x64 import enable_x64
 from mfdesign.physics import effects as fx
 from mfdesign.physics.effects import LogNormal, Normal, Rows
 from mfdesign.physics.params import SimParams

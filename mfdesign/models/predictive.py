@@ -15,13 +15,13 @@ returns ``F_s`` as ``[S, N]`` so that every consumer of the ``ForceModel`` proto
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from mfdesign._x64 import enable_x64
 from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
 
 __all__ = ["MultiFidelity", "coverage"]

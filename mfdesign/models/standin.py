@@ -21,11 +21,11 @@ p).
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mfdesign._x64 import enable_x64
 from mfdesign.models.force import ForceModel
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.solve import SimResult

@@ -50,7 +50,6 @@ forces and shape are NaN.
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import math
 from typing import Callable
 
@@ -60,6 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from mfdesign._x64 import enable_x64
 from mfdesign.design import Membrane
 from mfdesign.materials import Gent
 from mfdesign.physics.params import SimParams

@@ -18,7 +18,6 @@ change of the shooting Jacobian's determinant along the path; points beyond it a
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import dataclasses
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -30,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from mfdesign._x64 import enable_x64
 from mfdesign.design import Membrane
 from mfdesign.physics import shooting as sh
 from mfdesign.physics.params import SimParams

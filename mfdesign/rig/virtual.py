@@ -56,7 +56,6 @@ which other membranes run or in what order; the same seed gives the same table, 
 
 from __future__ import annotations
 
-from mfdesign._x64 import enable_x64
 import dataclasses
 import hashlib
 import json
@@ -73,6 +72,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from mfdesign._x64 import enable_x64
 from mfdesign.data.measurements import COLUMNS, Measurements
 from mfdesign.design import Membrane
 from mfdesign.physics import effects as fx

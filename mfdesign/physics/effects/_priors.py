@@ -148,6 +148,11 @@ class Prior(eqx.Module):
     def center(self) -> float:
         """A starting point inside the support."""
 
+    @property
+    @abc.abstractmethod
+    def scale(self) -> float:
+        """A typical spread of the prior (the unit a parameter is screened and stepped in)."""
+
 
 class Uniform(Prior):
     """Uniform on ``[low, high]``."""
@@ -167,6 +172,11 @@ class Uniform(Prior):
     def center(self) -> float:
         """The midpoint."""
         return 0.5 * (self.low + self.high)
+
+    @property
+    def scale(self) -> float:
+        """The standard deviation, ``(high - low) / sqrt(12)``."""
+        return (self.high - self.low) / math.sqrt(12.0)
 
     def logpdf(self, x):
         x = jnp.asarray(x, float)
@@ -197,6 +207,11 @@ class Normal(Prior):
     def center(self) -> float:
         """The mean, clipped to the bounds."""
         return min(max(self.mean, self.low), self.high)
+
+    @property
+    def scale(self) -> float:
+        """``sd`` (of the untruncated normal)."""
+        return float(self.sd)
 
     def _log_mass(self) -> float:
         """log of the probability mass inside ``[low, high]`` (a Python float: a constant)."""
@@ -239,6 +254,11 @@ class LogNormal(Prior):
     def center(self) -> float:
         """The median, clipped to the bounds."""
         return min(max(self.median, self.low), self.high)
+
+    @property
+    def scale(self) -> float:
+        """``sigma x median``: the spread of x near its median."""
+        return float(self.sigma * self.median)
 
     def _log_normal(self) -> Normal:
         lo = math.log(self.low) if self.low > 0 else -math.inf
