@@ -100,21 +100,25 @@ def compare(meas: Measurements, sim=None) -> Residuals:
     return diagnose(meas, sim, search=False).before
 
 
-class _Facade(types.ModuleType):
-    """The package's module type: a submodule named like a public function
-    (``mfdesign.diagnose``, ``mfdesign.optimize``) does not hide that function.
+# Public functions that share their name with a subpackage: importing the subpackage
+# (``mfdesign.diagnose.residuals``, by anything) makes the import system set this package's
+# attribute ``diagnose`` to it, and ``mfdesign.diagnose(...)`` would then call a module.
+# Not ``optimize``: ``from mfdesign import optimize as opt`` means the module
+# mfdesign.optimize in mfdesign/cli/optimize.py, tests and experiments, so there the
+# function is ``mfdesign.optimize`` only until that module is imported (then it is
+# ``mfdesign.optimize.optimize``, or ``from mfdesign.optimize import optimize``).
+_FUNCTION_OVER_SUBMODULE = frozenset({"diagnose"})
 
-    Importing ``mfdesign.optimize`` (``from mfdesign.optimize import TARGET_SETS``, or any
-    module that uses it) makes the import system set the attribute ``optimize`` of this
-    package to the submodule; ``mfdesign.optimize(...)`` would then call a module. The
-    submodule stays in ``sys.modules`` (``from mfdesign.optimize import X`` works as ever);
-    the attribute stays the function, loaded by :func:`__getattr__`. Write
-    ``from mfdesign.diagnose import pipeline``, not ``import mfdesign.diagnose.pipeline as
-    pipeline`` (that one walks the attributes).
+
+class _Facade(types.ModuleType):
+    """The package's module type: a subpackage named in :data:`_FUNCTION_OVER_SUBMODULE`
+    does not hide the function of that name. The subpackage stays in ``sys.modules``
+    (``from mfdesign.diagnose.pipeline import diagnose`` works as ever); the attribute stays
+    the function, loaded by :func:`__getattr__`.
     """
 
     def __setattr__(self, name: str, value) -> None:
-        if name in _WHERE and isinstance(value, types.ModuleType):
+        if name in _FUNCTION_OVER_SUBMODULE and isinstance(value, types.ModuleType):
             return
         super().__setattr__(name, value)
 
