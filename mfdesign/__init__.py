@@ -7,10 +7,24 @@ Physics runs in float64 (JAX's 64-bit mode is on once a JAX-using module is impo
 
 * designs: :class:`Membrane`, :class:`Ring`, :class:`DesignSpace`;
 * physics: :class:`SimParams`, :func:`force_plane`, :func:`force_at`, :func:`height_at`;
-* data: :class:`Measurements`;
+* data: :class:`Measurements`, :func:`load`;
 * effects: :class:`Effect` (and :mod:`mfdesign.physics.effects` for the library);
-* the loop: :func:`calibrate`, :func:`diagnose`, :func:`propose`, :func:`optimize`.
+* the loop, one call a step (``notebooks/tutorial.ipynb``): :func:`load`, :func:`compare`,
+  :func:`diagnose`, :func:`fit_multi_fidelity` (calibrate + discrepancy),
+  :func:`calibrate` (the posterior alone), :func:`propose`, :func:`optimize`.
 """
+
+from __future__ import annotations
+
+import os
+import sys
+import types
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # names for the annotations only: importing them at run time would pull in JAX
+    from mfdesign.data.measurements import Measurements
+    from mfdesign.diagnose.residuals import Residuals
 
 __version__ = "0.1.0"
 
@@ -25,11 +39,91 @@ _WHERE = {
     "Measurements": "mfdesign.data.measurements",
     "Effect": "mfdesign.physics.effects",
     "calibrate": "mfdesign.calibration.mcmc",
+    "fit_multi_fidelity": "mfdesign.calibration.workflow",
     "diagnose": "mfdesign.diagnose.pipeline",
     "propose": "mfdesign.acquire",
     "optimize": "mfdesign.optimize",
 }
-__all__ = list(_WHERE)
+__all__ = [*_WHERE, "load", "compare"]
+
+
+def load(source: str | os.PathLike | Sequence[str | os.PathLike] = "bundled", fmt: str = "auto") -> Measurements:
+    """Read measurements: the bundled dataset, a file, a rig job folder, or several of them.
+
+    The same reader as the command line's ``DATA`` argument
+    (:func:`mfdesign.data.sources.load_sources`).
+
+    **Arguments:**
+
+    - `source`: `"bundled"` (six membranes measured on the virtual rig with one hidden
+      effect, `mfdesign/data/files/bundled_virtual.parquet`), `"mass-lift"` (the paper's
+      real data), a Measurements Parquet or CSV file, an SPA_Design pickle, a rig job
+      folder, or a list of these (concatenated; trial ids renumbered per membrane).
+    - `fmt`: `"auto"` (detected from the file) or a format name of
+      :data:`mfdesign.data.sources.FORMATS`.
+
+    **Returns:**
+
+    A :class:`Measurements` table (heights mm, pressures Pa, forces N; columns in
+    ``docs/data.md``). Raises :class:`mfdesign.errors.InputError` (a `ValueError`) naming
+    the source when it is missing or malformed.
+    """
+    from mfdesign.data.sources import load_sources
+
+    return load_sources(source, fmt)
+
+
+def compare(meas: Measurements, sim=None) -> Residuals:
+    """Compare the plain simulator (the authors' constants, no effects) with measurements.
+
+    The residuals that :func:`diagnose` starts from, without its effect search (it is
+    ``diagnose(meas, sim, search=False).before``).
+
+    **Arguments:**
+
+    - `meas`: the measurements (:class:`Measurements`, e.g. from :func:`load`).
+    - `sim`: the forward model, as in :func:`diagnose`: default the bundled neural emulator
+      (fast; about 1 N RMS off the simulator); for simulator accuracy
+      ``mfdesign.diagnose.emulated.forward_model("exact", meas)`` (simulator planes of the
+      measured membranes, solved once and cached; minutes the first time).
+
+    **Returns:**
+
+    A :class:`~mfdesign.diagnose.residuals.Residuals`: one row per usable measurement
+    (``frame`` with ``height_mm``, ``pressure_pa``, ``observed_n``, ``predicted_n``,
+    ``residual_n`` = observed - predicted [N], ...), the noise floor ``noise_floor_n`` [N]
+    estimated from the data alone, ``rmse_n`` and ``bias_n`` [N], ``summary()``, and the rows
+    left out with their reason (``dropped``: e.g. lift rows with the plate on its stop).
+    """
+    from mfdesign.diagnose.pipeline import diagnose
+
+    return diagnose(meas, sim, search=False).before
+
+
+# Public functions that share their name with a subpackage: importing the subpackage
+# (``mfdesign.diagnose.residuals``, by anything) makes the import system set this package's
+# attribute ``diagnose`` to it, and ``mfdesign.diagnose(...)`` would then call a module.
+# Not ``optimize``: ``from mfdesign import optimize as opt`` means the module
+# mfdesign.optimize in mfdesign/cli/optimize.py, tests and experiments, so there the
+# function is ``mfdesign.optimize`` only until that module is imported (then it is
+# ``mfdesign.optimize.optimize``, or ``from mfdesign.optimize import optimize``).
+_FUNCTION_OVER_SUBMODULE = frozenset({"diagnose"})
+
+
+class _Facade(types.ModuleType):
+    """The package's module type: a subpackage named in :data:`_FUNCTION_OVER_SUBMODULE`
+    does not hide the function of that name. The subpackage stays in ``sys.modules``
+    (``from mfdesign.diagnose.pipeline import diagnose`` works as ever); the attribute stays
+    the function, loaded by :func:`__getattr__`.
+    """
+
+    def __setattr__(self, name: str, value) -> None:
+        if name in _FUNCTION_OVER_SUBMODULE and isinstance(value, types.ModuleType):
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Facade
 
 
 def __getattr__(name: str):

@@ -43,7 +43,15 @@ def _check_number(name: str, value: float) -> float:
 
 
 class Ring(eqx.Module):
-    """A stiff fabric ring: the annulus ``[radius_mm - half_width_mm, radius_mm + half_width_mm]``."""
+    """A stiff fabric ring: the annulus ``[radius_mm - half_width_mm, radius_mm + half_width_mm]``.
+
+    **Arguments:**
+
+    - `radius_mm`: radius of the ring's centre line [mm].
+    - `half_width_mm`: half the ring's radial width [mm].
+
+    Raises :class:`DesignError` on a non-finite or non-positive number.
+    """
 
     radius_mm: float
     half_width_mm: float
@@ -66,6 +74,17 @@ class Membrane(eqx.Module):
 
     Rings are stored sorted by radius, so a design with its rings swapped is the same
     design (equal and with the same hash).
+
+    **Arguments:**
+
+    - `thickness_mm`: membrane thickness t [mm] (the paper's range 1-3 mm).
+    - `contact_radius_mm`: radius c of the rigid contact disk [mm].
+    - `rings`: up to two fabric rings, :class:`Ring` or `(radius_mm, half_width_mm)`.
+    - `outer_radius_mm`: clamped outer radius [mm] (70 mm on the rig).
+
+    ``Membrane.from_key("[t, c, r1, w1, r2, w2]")`` builds one from the public key (mm,
+    `nan` for an absent ring) and ``key()`` writes it. Raises :class:`DesignError` on a
+    design that does not fit (overlapping rings, a ring outside the clamp, ...).
     """
 
     thickness_mm: float
@@ -184,6 +203,14 @@ class DesignSpace(eqx.Module):
     widths first (each between ``half_width_min`` and what still fits), then the free
     radial slack is shared among the ``n_rings + 1`` gaps. Every point of the cube gives
     a valid design, and the map is piecewise linear in ``u``.
+
+    **Arguments:**
+
+    - `thickness_mm`: `(low, high)` thickness bounds [mm].
+    - `contact_radius_mm`: `(low, high)` contact-disk radius bounds [mm].
+    - `half_width_mm`: `(low, high)` ring half-width bounds [mm].
+    - `outer_radius_mm`: clamped outer radius [mm].
+    - `gap_mm`: the least gap between disk, rings and clamp [mm].
     """
 
     thickness_mm: tuple[float, float] = (1.0, 3.0)

@@ -1,12 +1,17 @@
-"""Every command in the README and docs/ is real.
+"""Every command and every Python block in the README and docs/ is real.
 
 Commands are the lines of ```bash blocks that start with ``mfdesign`` or ``python``
 (a trailing ``\\`` continues a line; ``#`` starts a comment).
 
 * fast: each ``mfdesign ...`` line parses against the real CLI (command, options and
-  their types), without running it;
+  their types), without running it; every ```python block compiles;
 * slow (``pytest -m slow tests/test_docs.py``): every command runs, in document order,
-  from the repository root, and must exit 0.
+  from the repository root, and must exit 0; the ```python blocks of each file run in
+  order as one script in a fresh folder (``docs/examples`` on the path) and must exit 0.
+
+A Python block that cannot run on its own (a serial port, a fragment of a class, a folder
+an earlier command wrote) says why on the line before it, ``<!-- not run: REASON -->``;
+it is still compiled.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import re
 import shlex
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -55,6 +61,16 @@ def _rest(ctx) -> list[str]:
 
 
 ALL = [(p, c) for p in DOCS for c in doc_commands(p)]
+
+_PY_BLOCK = re.compile(r"(?:<!-- not run: (.*?) -->\n)?```python\n(.*?)```", re.S)
+
+
+def doc_python_blocks(path: Path) -> list[tuple[str | None, str]]:
+    """``(reason it is not run or None, code)`` of every ```python block, in order."""
+    return [(reason or None, textwrap.dedent(code)) for reason, code in _PY_BLOCK.findall(path.read_text())]
+
+
+PY = {p: doc_python_blocks(p) for p in DOCS if doc_python_blocks(p)}
 
 
 def test_docs_have_commands():
@@ -97,6 +113,29 @@ def test_every_doc_command_runs(tmp_path):
         # Wall time per command (pytest -s shows it): how long a reader waits for each.
         print(f"[{time.perf_counter() - t0:7.1f} s] {path.name}: {command}", flush=True)
         assert r.returncode == 0, f"{path.name}: {command!r} failed:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
+
+
+def test_python_blocks_compile():
+    assert PY, "no ```python block found in the docs"
+    for path, blocks in PY.items():
+        for k, (reason, code) in enumerate(blocks):
+            assert reason is None or reason.strip(), f"{path.name}: python block {k + 1} is not run without a reason"
+            compile(code, f"{path.name}:block{k + 1}", "exec")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", [p for p, b in PY.items() if any(r is None for r, _ in b)], ids=lambda p: p.name)
+def test_python_blocks_run(path, tmp_path):
+    code = "\n".join(code for reason, code in PY[path] if reason is None)
+    env = dict(os.environ, JAX_PLATFORMS="cpu", MPLBACKEND="Agg")
+    # the package of this checkout, and docs/examples (effects.md imports its example effect)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "docs" / "examples"), env.get("PYTHONPATH", "")])
+    t0 = time.perf_counter()
+    r = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=1800
+    )
+    print(f"[{time.perf_counter() - t0:7.1f} s] {path.name}: python blocks", flush=True)
+    assert r.returncode == 0, f"{path.name}: python blocks failed:\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
 
 
 def test_cli_reference_is_in_sync():

@@ -108,9 +108,43 @@ def fit_multi_fidelity(
     pool=None,
     stop_when_converged: bool = True,
 ) -> MFFit:
-    """Calibrate on ``table`` (Measurements), fit delta on the residuals, build the predictive
-    (``n_steps``: the most emcee steps; see :func:`~mfdesign.calibration.mcmc.calibrate` for
-    ``stop_when_converged``)."""
+    """The multi-fidelity model: calibrate the physics, then fit the sim-to-real discrepancy.
+
+    emcee samples mu [Pa], J_m, the membranes' thickness latents and the parameters of
+    ``effects`` (:func:`~mfdesign.calibration.mcmc.calibrate`); an ensemble of randomised
+    prior networks (delta) is trained on the residuals at the posterior median; the
+    predictive combines posterior draws with the ensemble members.
+
+    **Arguments:**
+
+    - `table`: the measurements (:class:`~mfdesign.data.measurements.Measurements`).
+    - `force_model`: the physics, a name of :data:`~mfdesign.models.force.FORCE_MODELS`
+      (`"exact"`: simulator planes of the measured membranes, solved once and cached;
+      `"emulator"`: the bundled neural emulator, fast, about 1 N RMS off the simulator;
+      `"standin"`: tests) or a built force model.
+    - `effects`: names (or instances) of the effects to calibrate with the material, e.g.
+      what :func:`~mfdesign.diagnose.pipeline.diagnose` found (`Diagnosis.found`).
+    - `n_steps`: the most emcee steps (fewer when `stop_when_converged`).
+    - `n_walkers`: emcee walkers (default `max(32, 2 dim + 2)`).
+    - `max_rows`: rows the likelihood uses (evenly within trials).
+    - `chain_path`: HDF5 file of the chain (a rerun resumes it); `None`: in memory.
+    - `ensemble_config`: the discrepancy ensemble's
+      :class:`~mfdesign.models.ensemble.EnsembleConfig` (default 8 members, 3000 steps).
+    - `seed`: random seed (rows, walkers, ensemble).
+    - `progress`: progress bars.
+    - `likelihood`: `"student_t"` or `"gaussian"` noise [N].
+    - `pool`: anything with `map`, for emcee.
+    - `stop_when_converged`: stop once the chain is 50 autocorrelation times long
+      (:func:`~mfdesign.calibration.mcmc.calibrate`).
+
+    **Returns:**
+
+    An :class:`MFFit`: the hierarchical `model`, the `posterior`
+    (:class:`~mfdesign.calibration.posterior.Posterior`: `summary()`, `convergence`), the
+    discrepancy ensemble `delta`, the residual noise `noise_n` [N] and the predictive `mf`
+    (:class:`~mfdesign.models.predictive.MultiFidelity`; `mf.predictor(n_draws)` is what
+    :func:`~mfdesign.acquire.propose` and :func:`~mfdesign.optimize.optimize` take).
+    """
     enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.calibration.mcmc import calibrate
     from mfdesign.models.ensemble import EnsembleConfig

@@ -209,6 +209,14 @@ class Measurements:
     :class:`MeasurementError` naming the column, the first offending row and the rule.
     Design keys are re-canonicalised (``Membrane.from_key(k).key()``) so that equal designs
     have equal keys whatever their spelling.
+
+    **Arguments:**
+
+    - `df`: a pandas DataFrame with the columns of the module docstring (mm, Pa, N, s).
+    - `extra_ok`: keep columns beyond those (default: refuse them).
+
+    Read one with :func:`mfdesign.load` (``"bundled"``, a file, a rig job folder) or
+    :meth:`from_parquet`; ``df`` hands out a copy of the table.
     """
 
     __slots__ = ("_df",)
