@@ -24,7 +24,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from mfdesign import optimize as opt
+from mfdesign.optimize import MASSES_N, TARGET_SETS, Waypoints, height_loss, multistart, trajectory_loss
 from mfdesign.design import DesignSpace
 
 from _common import PAPER_DESIGN_MODEL, machine, parser, timed, write_json  # experiments/ is on a script's path
@@ -58,11 +58,11 @@ def main():
     args = ap.parse_args()
     ens, what = model(args.members)
     space = DesignSpace()
-    wp = opt.Waypoints(np.repeat(opt.MASSES_N, 3), np.tile([2500.0, 4500.0, 5200.0], 3), np.tile([5.0, 40.0, 50.0], 3))
+    wp = Waypoints(np.repeat(MASSES_N, 3), np.tile([2500.0, 4500.0, 5200.0], 3), np.tile([5.0, 40.0, 50.0], 3))
     cases = {
-        "height_screen_refine": (opt.height_loss(ens, opt.TARGET_SETS["A"], space, 2), 6, dict(steps=100, n_refine=64)),
-        "trajectory_screen_refine": (opt.trajectory_loss(ens, wp, space, 2), 6, dict(steps=60, n_refine=32)),
-        "height_refine_all": (opt.height_loss(ens, opt.TARGET_SETS["A"], space, 2), 6, dict(steps=25, n_refine=None)),
+        "height_screen_refine": (height_loss(ens, TARGET_SETS["A"], space, 2), 6, dict(steps=100, n_refine=64)),
+        "trajectory_screen_refine": (trajectory_loss(ens, wp, space, 2), 6, dict(steps=60, n_refine=32)),
+        "height_refine_all": (height_loss(ens, TARGET_SETS["A"], space, 2), 6, dict(steps=25, n_refine=None)),
     }
     host = machine()
     result = dict(
@@ -75,7 +75,7 @@ def main():
         cases={},
     )
     for name, (loss, dim, kw) in cases.items():
-        run = lambda: opt.multistart(loss, dim, n_starts=args.starts, seed=0, **kw)  # noqa: E731
+        run = lambda: multistart(loss, dim, n_starts=args.starts, seed=0, **kw)  # noqa: E731
         _, first = run_timed(run)
         res, t = run_timed(run)
         t.update(

@@ -32,14 +32,23 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mfdesign import optimize as opt
+from mfdesign.optimize import (
+    HeightTargets,
+    PAPER_WEIGHTS,
+    TARGET_SETS,
+    Waypoints,
+    lift_heights,
+    optimize,
+    plot as plot_optimum,
+    smooth_min,
+)
 from mfdesign.data.spa_design import load_mass_lift
 from mfdesign.design import Membrane
 from mfdesign.models.trajectory import P_MAX_PA, WAYPOINTS_MM, measured_waypoints, model_pressure
 
 from _common import PAPER_DESIGN_MODEL, Timing, load, parser, timed, write_json  # experiments/ is on a script's path
 
-NOTEBOOK_A = opt.HeightTargets((24.525,) * 3, (4137.0, 5516.0, 6895.0))  # the authors' notebook variant
+NOTEBOOK_A = HeightTargets((24.525,) * 3, (4137.0, 5516.0, 6895.0))  # the authors' notebook variant
 
 
 def get_model(path: Path | None, members: int, steps: int):
@@ -84,7 +93,7 @@ def real_lift_height(g: pd.DataFrame, p_target: float) -> tuple[float, bool]:
     return float(h[j - 1] + (p_target - p[j - 1]) / (p[j] - p[j - 1]) * (h[j] - h[j - 1])), False
 
 
-def real_scores(data, targets: opt.HeightTargets, tau: float) -> dict:
+def real_scores(data, targets: HeightTargets, tau: float) -> dict:
     df = data.df[data.df["experiment"] == "lift"]
     out = {}
     for key in data.design_keys:
@@ -95,17 +104,17 @@ def real_scores(data, targets: opt.HeightTargets, tau: float) -> dict:
             hs.append(float(np.mean([v[0] for v in vals])))
             cens.append(any(v[1] for v in vals))
         out[key] = dict(
-            h_mm=hs, censored=cens, score_mm=float(opt.smooth_min(np.asarray(hs), tau)), min_h_mm=float(min(hs))
+            h_mm=hs, censored=cens, score_mm=float(smooth_min(np.asarray(hs), tau)), min_h_mm=float(min(hs))
         )
     return out
 
 
-def model_scores(predictor, keys, targets: opt.HeightTargets, tau: float) -> dict:
+def model_scores(predictor, keys, targets: HeightTargets, tau: float) -> dict:
     import jax
     import jax.numpy as jnp
 
     f = jax.jit(
-        lambda d: opt.lift_heights(
+        lambda d: lift_heights(
             predictor,
             d,
             jnp.asarray(targets.force_n),
@@ -121,7 +130,7 @@ def model_scores(predictor, keys, targets: opt.HeightTargets, tau: float) -> dic
         out[key] = dict(
             h_mm=h.tolist(),
             h_std_mm=hm.std(0).tolist(),
-            score_mm=float(opt.smooth_min(h, tau)),
+            score_mm=float(smooth_min(h, tau)),
             min_h_mm=float(h.min()),
         )
     return out
@@ -147,9 +156,9 @@ def trajectory_study(model, data, args) -> dict:
     designed = {}
     for t in keys:
         ok = np.isfinite(measured[t])
-        problem = opt.Waypoints(Fg[ok], measured[t][ok], hg[ok])
+        problem = Waypoints(Fg[ok], measured[t][ok], hg[ok])
         with timed() as clock:  # (t is the target)
-            res = opt.optimize(
+            res = optimize(
                 model,
                 problem,
                 n_starts=args.starts,
@@ -191,10 +200,10 @@ def trajectory_study(model, data, args) -> dict:
 def height_study(model, data, args) -> dict:
     keys = data.design_keys
     prior, authors = keys[:5], {"A": keys[5], "B": keys[6]}
-    tau = opt.PAPER_WEIGHTS.temperature_mm
+    tau = PAPER_WEIGHTS.temperature_mm
     predictor = model
     out = {}
-    for name, targets in (("A", opt.TARGET_SETS["A"]), ("B", opt.TARGET_SETS["B"]), ("A_notebook", NOTEBOOK_A)):
+    for name, targets in (("A", TARGET_SETS["A"]), ("B", TARGET_SETS["B"]), ("A_notebook", NOTEBOOK_A)):
         real = real_scores(data, targets, tau)
         mod = model_scores(predictor, keys, targets, tau)
         entry = dict(
@@ -215,7 +224,7 @@ def height_study(model, data, args) -> dict:
         )
         if name in ("A", "B"):
             with timed() as t:
-                res = opt.optimize(
+                res = optimize(
                     model,
                     targets,
                     n_starts=args.starts,
@@ -228,7 +237,7 @@ def height_study(model, data, args) -> dict:
             entry["optimised"] = res.to_json()
             entry["optimised"]["seconds"] = t["wall_s"]
             args.out.mkdir(parents=True, exist_ok=True)
-            opt.plot(res, args.out / f"paper_design_{name}.png", title=f"set {name}: {res.design_key}")
+            plot_optimum(res, args.out / f"paper_design_{name}.png", title=f"set {name}: {res.design_key}")
             p = res.prediction
             sim = res.simulator
             print(

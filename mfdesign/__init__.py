@@ -103,11 +103,9 @@ def compare(meas: Measurements, sim=None) -> Residuals:
 # Public functions that share their name with a subpackage: importing the subpackage
 # (``mfdesign.diagnose.residuals``, by anything) makes the import system set this package's
 # attribute ``diagnose`` to it, and ``mfdesign.diagnose(...)`` would then call a module.
-# Not ``optimize``: ``from mfdesign import optimize as opt`` means the module
-# mfdesign.optimize in mfdesign/cli/optimize.py, tests and experiments, so there the
-# function is ``mfdesign.optimize`` only until that module is imported (then it is
-# ``mfdesign.optimize.optimize``, or ``from mfdesign.optimize import optimize``).
-_FUNCTION_OVER_SUBMODULE = frozenset({"diagnose"})
+# The package's own code imports names FROM these modules (``from mfdesign.optimize import
+# optimize``), never the module through the package, so the function always wins.
+_FUNCTION_OVER_SUBMODULE = frozenset({"diagnose", "optimize"})
 
 
 class _Facade(types.ModuleType):

@@ -9,7 +9,21 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from mfdesign import optimize as opt
+from mfdesign.optimize import (
+    HeightTargets,
+    MASSES_N,
+    TARGET_SETS,
+    Waypoints,
+    _refine,
+    first_crossing,
+    height_loss,
+    lift_heights,
+    model_pressures,
+    multistart,
+    optimize,
+    smooth_min,
+    trajectory_loss,
+)
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.predictor import AbstractPredictor
 from mfdesign.models.trajectory import first_crossing as np_first_crossing
@@ -47,7 +61,7 @@ def test_smooth_min_lower_bounds_min_and_converges():
     x = jnp.array([12.0, 30.0, 14.0])
     gaps = []
     for T in (15.0, 5.0, 1.0, 0.1):
-        s = float(opt.smooth_min(x, T))
+        s = float(smooth_min(x, T))
         assert s <= 12.0 + 1e-12
         assert s >= 12.0 - T * np.log(3) - 1e-12
         gaps.append(12.0 - s)
@@ -59,7 +73,7 @@ def test_first_crossing_matches_numpy_twin():
     x = np.linspace(0, 10, 21)
     y = np.cumsum(rng.uniform(-0.2, 1, size=(50, 21)), 1)
     level = rng.uniform(-1, 15, 50)
-    got, reached = opt.first_crossing(x, y, level)
+    got, reached = first_crossing(x, y, level)
     ref = np_first_crossing(x, y, level)
     np.testing.assert_allclose(np.asarray(got)[np.asarray(reached)], ref[np.asarray(reached)])
     assert np.all(np.isnan(ref[~np.asarray(reached)])) and np.all(np.asarray(got)[~np.asarray(reached)] == 10)
@@ -70,11 +84,11 @@ def test_lift_height_reproduces_forward_force():
     d = jnp.asarray(Membrane.from_key("[1.5, 30.0, nan, nan, nan, nan]").to_array())
     F = jnp.array([14.7, 24.5, 39.2])
     p = jnp.array([4000.0, 6000.0, 8000.0])
-    h, _ = jax.jit(opt.lift_heights, static_argnums=0)(toy, d, F, p, jnp.linspace(0, 80, 161))
+    h, _ = jax.jit(lift_heights, static_argnums=0)(toy, d, F, p, jnp.linspace(0, 80, 161))
     assert np.all((np.asarray(h) > 0) & (np.asarray(h) < 80))
     back = toy.members("rig", jnp.tile(d, (3, 1)), h, p).mean(0)
     np.testing.assert_allclose(np.asarray(back), np.asarray(F), atol=1e-9)  # linear in h: exact
-    pr, _ = jax.jit(opt.model_pressures, static_argnums=0)(toy, d, F, h, jnp.linspace(0, 2e4, 401))
+    pr, _ = jax.jit(model_pressures, static_argnums=0)(toy, d, F, h, jnp.linspace(0, 2e4, 401))
     np.testing.assert_allclose(np.asarray(pr), np.asarray(p), rtol=1e-9)
 
 
@@ -82,10 +96,10 @@ def test_lift_height_reproduces_forward_force():
 def test_losses_finite_and_differentiable(n_rings):
     toy = Toy()
     u = jnp.asarray(np.random.default_rng(1).uniform(size=(8, SPACE.dim(n_rings))))
-    wp = opt.Waypoints([14.7, 24.5], [3000.0, 5000.0], [5.0, 40.0])
+    wp = Waypoints([14.7, 24.5], [3000.0, 5000.0], [5.0, 40.0])
     for loss in (
-        opt.height_loss(toy, opt.TARGET_SETS["A"], SPACE, n_rings),
-        opt.trajectory_loss(toy, wp, SPACE, n_rings),
+        height_loss(toy, TARGET_SETS["A"], SPACE, n_rings),
+        trajectory_loss(toy, wp, SPACE, n_rings),
     ):
         f = jax.jit(lambda x: loss(x)[0])
         val, g = jax.jit(jax.vmap(jax.value_and_grad(f)))(u)
@@ -100,10 +114,10 @@ def test_losses_finite_and_differentiable(n_rings):
 
 def test_height_grid_inversion_matches_member_path():
     toy = Toy()
-    loss = opt.height_loss(toy, opt.TARGET_SETS["B"], SPACE, 1)
+    loss = height_loss(toy, TARGET_SETS["B"], SPACE, 1)
     for u in np.random.default_rng(2).uniform(size=(5, 4)):
         d = SPACE.decode_unit(jnp.asarray(u), 1)
-        ref, _ = jax.jit(opt.lift_heights, static_argnums=0)(toy, d, loss.force_n, loss.p_pa, loss.h_grid)
+        ref, _ = jax.jit(lift_heights, static_argnums=0)(toy, d, loss.force_n, loss.p_pa, loss.h_grid)
         np.testing.assert_allclose(np.asarray(eqx.filter_jit(loss)(jnp.asarray(u))[1]["heights_mm"]), np.asarray(ref))
 
 
@@ -114,10 +128,10 @@ def test_multistart_improves_every_start_and_finds_optimum():
 
     u0 = jax.random.uniform(jax.random.PRNGKey(0), (40, 2), dtype=jnp.float64)
     start = np.asarray(jax.vmap(lambda u: Bowl()(u)[0])(u0))
-    u, final = opt._refine(Bowl(), u0, 150, 0.03, 40)
+    u, final = _refine(Bowl(), u0, 150, 0.03, 40)
     assert np.all(np.asarray(final) <= start) and np.all((np.asarray(u) >= 0) & (np.asarray(u) <= 1))
     assert np.mean(np.asarray(final) < start - 1e-3) > 0.9
-    res = opt.multistart(Bowl(), 2, n_starts=40, steps=150, n_refine=8)
+    res = multistart(Bowl(), 2, n_starts=40, steps=150, n_refine=8)
     g = np.stack(np.meshgrid(np.linspace(0, 1, 401), np.linspace(0, 1, 401), indexing="ij"), -1).reshape(-1, 2)
     vals = np.asarray(jax.vmap(lambda u: Bowl()(u)[0])(jnp.asarray(g)))
     np.testing.assert_allclose(res["u"], g[np.argmin(vals)], atol=0.01)
@@ -125,32 +139,30 @@ def test_multistart_improves_every_start_and_finds_optimum():
 
 
 def test_height_loss_multistart_finds_thin_wide_membrane():
-    loss = opt.height_loss(Toy(), opt.TARGET_SETS["A"], SPACE, 0)
-    res = opt.multistart(loss, 2, n_starts=16, steps=40)  # no screening: one compile
+    loss = height_loss(Toy(), TARGET_SETS["A"], SPACE, 0)
+    res = multistart(loss, 2, n_starts=16, steps=40)  # no screening: one compile
     np.testing.assert_allclose(res["u"], [0.0, 1.0], atol=0.02)  # thinnest, widest disk lifts highest
 
 
 @pytest.mark.slow
 def test_height_maximisation_on_toy_picks_thin_wide_ringless():
-    res = opt.optimize(Toy(), opt.TARGET_SETS["A"], rings=(0, 1), n_starts=64, steps=40, n_refine=8, progress=False)
+    res = optimize(Toy(), TARGET_SETS["A"], rings=(0, 1), n_starts=64, steps=40, n_refine=8, progress=False)
     m = Membrane.from_key(res.design_key)
     assert m.n_rings == 0 and m.thickness_mm < 1.05 and m.contact_radius_mm > 38.0
     assert res.prediction["score_mm"] <= res.prediction["min_h_mm"]
-    assert set(res.curves) == {f"{F:.3f}" for F in opt.MASSES_N}
+    assert set(res.curves) == {f"{F:.3f}" for F in MASSES_N}
 
 
 @pytest.mark.slow
 def test_trajectory_targeting_recovers_the_generating_design():
     toy = Toy()
     truth = Membrane.from_key("[1.8, 31.0, nan, nan, nan, nan]")
-    F = np.repeat(opt.MASSES_N, 3)
+    F = np.repeat(MASSES_N, 3)
     h = np.tile([5.0, 40.0, 50.0], 3)
-    p, _ = opt.model_pressures(
+    p, _ = model_pressures(
         toy, jnp.asarray(truth.to_array()), jnp.asarray(F), jnp.asarray(h), jnp.linspace(0, 2e4, 801)
     )
-    res = opt.optimize(
-        toy, opt.Waypoints(F, np.asarray(p), h), rings=(0,), n_starts=64, steps=80, n_refine=16, progress=False
-    )
+    res = optimize(toy, Waypoints(F, np.asarray(p), h), rings=(0,), n_starts=64, steps=80, n_refine=16, progress=False)
     assert res.prediction["traj_rmse"] < 0.01
     m = Membrane.from_key(res.design_key)
     # the toy's force depends on t and c only through c / 25 and 2 t: both identifiable
@@ -159,11 +171,11 @@ def test_trajectory_targeting_recovers_the_generating_design():
 
 def test_problem_validation_messages():
     with pytest.raises(ValueError, match="p_pa needs 3"):
-        opt.HeightTargets([1.0, 2.0, 3.0], [1.0])
+        HeightTargets([1.0, 2.0, 3.0], [1.0])
     with pytest.raises(ValueError, match="force_n must be finite and > 0"):
-        opt.Waypoints([-1.0], [1.0], [1.0])
+        Waypoints([-1.0], [1.0], [1.0])
     with pytest.raises(ValueError, match="n_refine"):
-        opt.multistart(lambda u: (u.sum(), {}), 2, n_starts=4, n_refine=9)
+        multistart(lambda u: (u.sum(), {}), 2, n_starts=4, n_refine=9)
 
 
 def test_cli_bad_input_fails_with_one_line(tmp_path):
@@ -199,10 +211,10 @@ def test_cli_reads_targets_files(tmp_path):
     from mfdesign.cli.optimize import read_targets
 
     (tmp_path / "h.json").write_text(json.dumps({"targets": [{"force_n": 14.7, "pressure_pa": 6895}]}))
-    assert isinstance(read_targets(tmp_path / "h.json"), opt.HeightTargets)
+    assert isinstance(read_targets(tmp_path / "h.json"), HeightTargets)
     (tmp_path / "w.csv").write_text("force_n,pressure_pa,height_mm\n14.7,3000,5\n14.7,4000,40\n")
     wp = read_targets(tmp_path / "w.csv")
-    assert isinstance(wp, opt.Waypoints) and wp.h_mm == (5.0, 40.0)
+    assert isinstance(wp, Waypoints) and wp.h_mm == (5.0, 40.0)
 
 
 def test_losses_take_the_padded_cube_and_share_one_structure_across_ring_counts():
@@ -210,9 +222,9 @@ def test_losses_take_the_padded_cube_and_share_one_structure_across_ring_counts(
     scores as its cube coordinates do, and losses of different ring counts are one pytree
     structure (so the compiled screen and refinement are shared)."""
     toy = Toy()
-    wp = opt.Waypoints([14.7, 24.5], [3000.0, 5000.0], [5.0, 40.0])
+    wp = Waypoints([14.7, 24.5], [3000.0, 5000.0], [5.0, 40.0])
     u6 = np.random.default_rng(4).uniform(size=6)
-    for make, problem in ((opt.height_loss, opt.TARGET_SETS["A"]), (opt.trajectory_loss, wp)):
+    for make, problem in ((height_loss, TARGET_SETS["A"]), (trajectory_loss, wp)):
         losses = {n: make(toy, problem, SPACE, n) for n in (0, 1, 2)}
         for n, loss in losses.items():
             padded = float(eqx.filter_jit(loss)(jnp.asarray(u6))[0])
@@ -222,6 +234,6 @@ def test_losses_take_the_padded_cube_and_share_one_structure_across_ring_counts(
         statics = {jax.tree_util.tree_structure(eqx.partition(l, eqx.is_array)[1]) for l in losses.values()}
         assert len(structures) == 1 and len(statics) == 1
     with pytest.raises(ValueError, match="2, 4 or 6"):
-        opt.height_loss(toy, opt.TARGET_SETS["A"], SPACE, 1)(jnp.zeros(3))
+        height_loss(toy, TARGET_SETS["A"], SPACE, 1)(jnp.zeros(3))
     with pytest.raises(Exception, match="another ring count"):  # 2 coordinates: 0 rings, not 1
-        jax.block_until_ready(eqx.filter_jit(opt.height_loss(toy, opt.TARGET_SETS["A"], SPACE, 1))(jnp.zeros(2)))
+        jax.block_until_ready(eqx.filter_jit(height_loss(toy, TARGET_SETS["A"], SPACE, 1))(jnp.zeros(2)))

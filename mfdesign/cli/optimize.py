@@ -101,12 +101,12 @@ def register(app: typer.Typer) -> None:
             )
         if refine > starts:
             fail(f"--refine ({refine}) cannot exceed --starts ({starts})")
-        from mfdesign import optimize as opt
+        from mfdesign.optimize import TARGET_SETS, optimize, plot
 
         if target_set is not None:
-            if target_set.upper() not in opt.TARGET_SETS:
-                fail(f"--target-set must be one of {sorted(opt.TARGET_SETS)}, got {target_set!r}")
-            problem = opt.TARGET_SETS[target_set.upper()]
+            if target_set.upper() not in TARGET_SETS:
+                fail(f"--target-set must be one of {sorted(TARGET_SETS)}, got {target_set!r}")
+            problem = TARGET_SETS[target_set.upper()]
         else:
             try:
                 problem = read_targets(targets)
@@ -116,7 +116,7 @@ def register(app: typer.Typer) -> None:
             predictor = load_model(model)
         except ValueError as err:
             fail(str(err))
-        result = opt.optimize(
+        result = optimize(
             predictor,
             problem,
             rings=ring_list,
@@ -130,7 +130,7 @@ def register(app: typer.Typer) -> None:
         from mfdesign import outputs
 
         outputs.write_json(out / "optimize.json", result.to_json())
-        opt.plot(result, out / "optimize.png")
+        plot(result, out / "optimize.png")
         p = result.prediction
         what = (
             f"smooth-min height {p['score_mm']:.1f} mm (min {p['min_h_mm']:.1f} mm)"
