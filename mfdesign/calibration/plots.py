@@ -116,7 +116,6 @@ def pair_plot(
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     from mfdesign.calibration.posterior import Posterior
 
@@ -149,15 +148,7 @@ def pair_plot(
         title_kwargs={"fontsize": 8},
         label_kwargs={"fontsize": 8},
     )
-    if title:
-        fig.suptitle(title, fontsize=9)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    from mfdesign import outputs
-
-    outputs.savefig(fig, path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def pit(idata, var: str = "force_n") -> np.ndarray:
@@ -201,12 +192,19 @@ def predictive_check_plot(pits: dict, path, title: str | None = None, bins: int 
     ax1.set_ylabel("share of observations inside")
     ax1.set_title("coverage (diagonal = calibrated)", fontsize=9)
     ax1.legend(fontsize=7, loc="upper left")
+    return _save(fig, path, title)
+
+
+def _save(fig, path, title: str | None = None) -> Path:
+    """Title, write atomically (folder created), close: the end of every figure here."""
+    import matplotlib.pyplot as plt
+
+    from mfdesign import outputs
+
     if title:
         fig.suptitle(title, fontsize=9)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    from mfdesign import outputs
-
     outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
     return path
