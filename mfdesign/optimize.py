@@ -68,6 +68,7 @@ import numpy as np
 import optax
 
 from mfdesign._x64 import enable_x64
+from mfdesign.models.trajectory import first_crossing
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.predictor import RIG, AbstractPredictor
 from mfdesign.models.trajectory import P_MAX_PA
@@ -206,29 +207,6 @@ def smooth_min(x, temperature, axis: int = -1):
     Lower-bounds ``min(x)``, within ``T log n`` of it; tends to ``min(x)`` as ``T -> 0``.
     """
     return -temperature * jax.nn.logsumexp(-jnp.asarray(x) / temperature, axis=axis)
-
-
-def first_crossing(x, y, level):
-    """Where ``y`` first reaches ``level`` along the grid ``x`` (JAX, differentiable in ``y``).
-
-    ``x`` [G] increasing, ``y`` [..., G], ``level`` [...]. Linear interpolation between
-    the grid points that bracket the first ``y >= level``; ``x[0]`` if already there at
-    ``x[0]``; ``x[-1]`` and ``reached = False`` if never. Returns ``(x*, reached)``. The
-    NumPy twin (NaN when unreached) is :func:`mfdesign.models.trajectory.first_crossing`.
-    """
-    x, y = jnp.asarray(x), jnp.asarray(y)
-    level = jnp.asarray(level)
-    above = y >= level[..., None]
-    reached = above.any(-1)
-    j = jnp.argmax(above, axis=-1)
-    jm = jnp.maximum(j - 1, 0)
-    y0 = jnp.take_along_axis(y, jm[..., None], -1)[..., 0]
-    y1 = jnp.take_along_axis(y, j[..., None], -1)[..., 0]
-    dy = y1 - y0
-    frac = jnp.clip((level - y0) / jnp.where(dy != 0, dy, 1.0), 0.0, 1.0)
-    frac = jnp.where(dy != 0, frac, 0.0)
-    out = jnp.where(j == 0, x[0], x[jm] + frac * (x[j] - x[jm]))
-    return jnp.where(reached, out, x[-1]), reached
 
 
 def lift_heights(predictor, design, force_n, p_pa, h_grid, members: bool = False):

@@ -26,7 +26,7 @@ from mfdesign.optimize import (
 )
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.predictor import AbstractPredictor
-from mfdesign.models.trajectory import first_crossing as np_first_crossing
+from mfdesign.models.trajectory import crossing_or_nan as np_first_crossing
 
 SPACE = DesignSpace()
 

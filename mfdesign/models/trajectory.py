@@ -20,6 +20,7 @@ way-point to the model's trajectory curve in scaled coordinates::
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
@@ -31,21 +32,35 @@ WAYPOINTS_MM = (5.0, 40.0, 50.0)
 
 
 def first_crossing(x, y, level):
-    """Interpolated ``x`` where ``y`` first reaches ``level`` (rows of [k, G] arrays).
+    """Where ``y`` first reaches ``level`` along the grid ``x`` (JAX, differentiable in ``y``).
 
-    ``x`` [G] increasing, ``y`` [k, G], ``level`` [k]. Returns [k]; ``x[0]`` where
-    ``y[:, 0] >= level``; NaN where never reached.
+    ``x`` [G] increasing, ``y`` [..., G], ``level`` [...]. Linear interpolation between
+    the grid points that bracket the first ``y >= level``; ``x[0]`` if already there at
+    ``x[0]``; ``x[-1]`` and ``reached = False`` if never. Returns ``(x*, reached)``. NumPy
+    callers with NaN for unreached: :func:`crossing_or_nan`.
     """
-    y, level = np.atleast_2d(y), np.asarray(level, dtype=np.float64).reshape(-1)
-    above = y >= level[:, None]
-    j = np.argmax(above, axis=1)
-    hit = above.any(1)
-    jm = np.maximum(j - 1, 0)
-    rows = np.arange(len(level))
-    y0, y1 = y[rows, jm], y[rows, j]
-    frac = np.where(y1 != y0, (level - y0) / np.where(y1 != y0, y1 - y0, 1.0), 0.0)
-    out = np.where(j == 0, x[0], x[jm] + np.clip(frac, 0, 1) * (x[j] - x[jm]))
-    return np.where(hit, out, np.nan)
+    x, y = jnp.asarray(x), jnp.asarray(y)
+    level = jnp.asarray(level)
+    above = y >= level[..., None]
+    reached = above.any(-1)
+    j = jnp.argmax(above, axis=-1)
+    jm = jnp.maximum(j - 1, 0)
+    y0 = jnp.take_along_axis(y, jm[..., None], -1)[..., 0]
+    y1 = jnp.take_along_axis(y, j[..., None], -1)[..., 0]
+    dy = y1 - y0
+    frac = jnp.clip((level - y0) / jnp.where(dy != 0, dy, 1.0), 0.0, 1.0)
+    frac = jnp.where(dy != 0, frac, 0.0)
+    out = jnp.where(j == 0, x[0], x[jm] + frac * (x[j] - x[jm]))
+    return jnp.where(reached, out, x[-1]), reached
+
+
+def crossing_or_nan(x, y, level) -> np.ndarray:
+    """:func:`first_crossing` as NumPy, NaN where ``y`` never reaches ``level`` (rows of
+    ``y`` [k, G], ``level`` [k])."""
+    y = np.atleast_2d(np.asarray(y, np.float64))
+    level = np.asarray(level, np.float64).reshape(-1)
+    out, reached = first_crossing(np.asarray(x, np.float64), y, level)
+    return np.where(np.asarray(reached), np.asarray(out), np.nan)
 
 
 def measured_waypoints(lift, heights=WAYPOINTS_MM) -> pd.DataFrame:
@@ -98,7 +113,7 @@ def model_pressure(model, design, force_n, h_mm, p_hi: float = 20_000.0, n_grid:
     grid = np.linspace(0.0, p_hi, n_grid)
     d = np.broadcast_to(np.asarray(design, float), (k * n_grid, 6))
     f = np.asarray(model.members(RIG, d, np.repeat(h_mm.ravel(), n_grid), np.tile(grid, k))).mean(0)
-    return first_crossing(grid, f.reshape(k, n_grid), force_n.ravel())
+    return crossing_or_nan(grid, f.reshape(k, n_grid), force_n.ravel())
 
 
 def trajectory_errors(

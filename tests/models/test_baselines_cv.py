@@ -11,7 +11,7 @@ from mfdesign.design import Membrane
 from mfdesign.models.baselines import CurveFitConfig, monomials
 from mfdesign.models.cv import ForceModelSpec, cross_validate, metrics
 from mfdesign.models.predictor import AbstractPredictor
-from mfdesign.models.trajectory import first_crossing, model_pressure, trajectory_errors
+from mfdesign.models.trajectory import crossing_or_nan as first_crossing, model_pressure, trajectory_errors
 
 NAN = np.nan
 DESIGNS = [
