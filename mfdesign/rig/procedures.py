@@ -465,6 +465,83 @@ class TrialResult:
     peak_pa: float
 
 
+@dataclass
+class _TrialState:
+    """What a running trial has seen, and its decision on each new sample (the state
+    machine of :func:`run_trial`: inflate until a limit, then deflate to zero)."""
+
+    spec: TrialSpec
+    cfg: RigConfig
+    status: str = "complete"
+    reason: str = ""
+    peak: float = 0.0
+    phase: str = "inflate"
+    t0: float | None = None
+    t_rise: float | None = None
+    t_deflate: float = math.nan
+    held: float = math.nan
+
+    def see(self, smp: Sample) -> tuple[tuple, str | None, RigFault | None, bool]:
+        """``(journal row, action, fault, done)`` for one sample; action is ``"burst"``,
+        ``"deflate"`` or None; a fault or ``done`` ends the batch."""
+        self.t0 = smp.rig_time_s if self.t0 is None else self.t0
+        h, is_held = smp.height_mm, False
+        if self.spec.experiment == "force":  # the plate is fixed: hold the last height over dropouts
+            if math.isnan(h) and not math.isnan(self.held):
+                h, is_held = self.held, True
+            self.held = h
+        row = (self.phase, smp, h, is_held)
+        if self.phase == "inflate":
+            return (row, *self._inflating(smp))
+        fault, done = self._deflating(smp)
+        return row, None, fault, done
+
+    def _inflating(self, smp: Sample) -> tuple[str | None, RigFault | None, bool]:
+        cfg, spec, p, t = self.cfg, self.spec, smp.pressure_pa, smp.rig_time_s
+        self.peak = max(self.peak, p)
+        if self.t_rise is None and p > cfg.burst_min_peak_pa:
+            self.t_rise = t
+        if self.peak > cfg.burst_min_peak_pa and p < (1 - cfg.burst_drop_fraction) * self.peak:
+            self.status = self.reason = "burst"
+            log.error("BURST in trial %s: pressure fell from %.0f Pa to %.0f Pa while pumping", spec.key, self.peak, p)
+            return "burst", None, True
+        if p >= spec.pressure_limit_pa:
+            self.reason = "pressure_limit"
+        elif smp.contact:
+            self.reason = "contact"
+        elif spec.experiment == "lift" and smp.height_mm >= cfg.height_max_mm:
+            self.reason = "height_limit"
+        elif self.t_rise is None and t - self.t0 > cfg.pressurise_timeout_s:
+            why = f"pressure still {p:.0f} Pa after pumping {cfg.pressurise_timeout_s:g} s (leak, pump failure or burst membrane)"
+            return None, TrialTimeout(f"trial {spec.key}: {why}"), False
+        elif t - self.t0 > cfg.trial_timeout_s:
+            why = f"{spec.pressure_limit_pa:.0f} Pa not reached in {cfg.trial_timeout_s:g} s (at {p:.0f} Pa)"
+            return None, TrialTimeout(f"trial {spec.key}: {why}"), False
+        if not self.reason:
+            return None, None, False
+        self.phase, self.t_deflate = "deflate", t
+        log.info("trial %s: %s at %.0f Pa; deflating", spec.key, self.reason, p)
+        return "deflate", None, False
+
+    def _deflating(self, smp: Sample) -> tuple[RigFault | None, bool]:
+        if smp.pressure_pa < self.cfg.zero_pressure_pa:
+            return None, True
+        if smp.rig_time_s - self.t_deflate > self.cfg.trial_timeout_s:
+            return TrialTimeout(f"trial {self.spec.key}: not deflated in {self.cfg.trial_timeout_s:g} s"), False
+        return None, False
+
+
+def _act(conn: RigConnection, action: str | None, fault: RigFault | None) -> None:
+    """Drive the rig on a batch's decision: safe state first on a fault or a burst."""
+    if fault is not None:
+        conn.fail(fault)
+    elif action == "burst":
+        conn.safe_state("burst")
+    elif action == "deflate":
+        conn.send(Command.PUMP_OFF)
+        conn.send(Command.VALVE_OPEN)
+
+
 def run_trial(conn: RigConnection, journal: Journal, spec: TrialSpec, attempt: int) -> TrialResult:
     """One characterisation (plate held at ``height_set_mm``) or mass-lift trial.
 
@@ -479,8 +556,7 @@ def run_trial(conn: RigConnection, journal: Journal, spec: TrialSpec, attempt: i
         set_height(conn, spec.height_set_mm, cfg)
     journal.event(event="start", trial_key=spec.key, attempt=attempt, **asdict(spec))
     log.info("trial %s attempt %d: inflate to %.0f Pa", spec.key, attempt, spec.pressure_limit_pa)
-    status, reason, n, peak, t0 = "complete", "", 0, 0.0, None
-    held, phase, t_deflate, t_rise = math.nan, "inflate", math.nan, None
+    state, n = _TrialState(spec, cfg), 0
     try:
         conn.send(Command.VALVE_CLOSE)
         conn.send(Command.PUMP_ON)
@@ -488,62 +564,15 @@ def run_trial(conn: RigConnection, journal: Journal, spec: TrialSpec, attempt: i
         while not done:
             # Everything received so far: decide on the newest data first, then journal it all
             # (one flush + fsync per batch; a batch is one sample when the host keeps up).
-            batch = [conn.next_sample()] + conn.drain()
-            rows, act, fault = [], None, None
-            for smp in batch:
-                t0 = smp.rig_time_s if t0 is None else t0
-                h, is_held = smp.height_mm, False
-                if spec.experiment == "force":  # the plate is fixed: hold the last height over dropouts
-                    if math.isnan(h) and not math.isnan(held):
-                        h, is_held = held, True
-                    held = h
-                rows.append((phase, smp, h, is_held))
-                p = smp.pressure_pa
-                if phase == "inflate":
-                    peak = max(peak, p)
-                    t_rise = smp.rig_time_s if (t_rise is None and p > cfg.burst_min_peak_pa) else t_rise
-                    if peak > cfg.burst_min_peak_pa and p < (1 - cfg.burst_drop_fraction) * peak:
-                        status = reason = act = "burst"
-                        log.error(
-                            "BURST in trial %s: pressure fell from %.0f Pa to %.0f Pa while pumping", spec.key, peak, p
-                        )
-                        done = True
-                        break
-                    if p >= spec.pressure_limit_pa:
-                        reason = "pressure_limit"
-                    elif smp.contact:
-                        reason = "contact"
-                    elif spec.experiment == "lift" and smp.height_mm >= cfg.height_max_mm:
-                        reason = "height_limit"
-                    elif t_rise is None and smp.rig_time_s - t0 > cfg.pressurise_timeout_s:
-                        fault = TrialTimeout(
-                            f"trial {spec.key}: pressure still {p:.0f} Pa after pumping "
-                            f"{cfg.pressurise_timeout_s:g} s (leak, pump failure or burst membrane)"
-                        )
-                        break
-                    elif smp.rig_time_s - t0 > cfg.trial_timeout_s:
-                        fault = TrialTimeout(
-                            f"trial {spec.key}: {spec.pressure_limit_pa:.0f} Pa not "
-                            f"reached in {cfg.trial_timeout_s:g} s (at {p:.0f} Pa)"
-                        )
-                        break
-                    if reason:
-                        act, phase, t_deflate = "deflate", "deflate", smp.rig_time_s
-                        log.info("trial %s: %s at %.0f Pa; deflating", spec.key, reason, p)
-                elif p < cfg.zero_pressure_pa:
-                    done = True
+            rows, action, fault = [], None, None
+            for smp in [conn.next_sample()] + conn.drain():
+                row, act, fault, done = state.see(smp)
+                rows.append(row)
+                action = act or action
+                if fault is not None or done:
                     break
-                elif smp.rig_time_s - t_deflate > cfg.trial_timeout_s:
-                    fault = TrialTimeout(f"trial {spec.key}: not deflated in {cfg.trial_timeout_s:g} s")
-                    break
-            if fault is not None:
-                conn.fail(fault)  # safe state first
-            elif act == "burst":
-                conn.safe_state("burst")
-            elif act == "deflate":
-                conn.send(Command.PUMP_OFF)
-                conn.send(Command.VALVE_OPEN)
-            journal.samples(spec, attempt, t0, rows)
+            _act(conn, action, fault)
+            journal.samples(spec, attempt, state.t0, rows)
             n += len(rows)
             if fault is not None:
                 raise fault
@@ -564,13 +593,13 @@ def run_trial(conn: RigConnection, journal: Journal, spec: TrialSpec, attempt: i
         event="end",
         trial_key=spec.key,
         attempt=attempt,
-        status=status,
-        end_reason=reason,
-        burst=status == "burst",
+        status=state.status,
+        end_reason=state.reason,
+        burst=state.status == "burst",
         n_samples=n,
-        peak_pa=peak,
+        peak_pa=state.peak,
     )
-    return TrialResult(spec.key, attempt, status, reason, n, peak)
+    return TrialResult(spec.key, attempt, state.status, state.reason, n, state.peak)
 
 
 # -- jobs --------------------------------------------------------------------------------
