@@ -43,6 +43,7 @@ _WHERE = {
     "diagnose": "mfdesign.diagnose.pipeline",
     "propose": "mfdesign.acquire",
     "optimize": "mfdesign.optimize",
+    "enable_x64": "mfdesign._x64",
 }
 __all__ = [*_WHERE, "load", "compare"]
 

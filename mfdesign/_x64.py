@@ -17,7 +17,15 @@ __all__ = ["enable_x64"]
 
 
 def enable_x64() -> None:
-    """Switch JAX to 64-bit floats (idempotent). Arrays created before keep their dtype."""
+    """Switch JAX to 64-bit floats (idempotent); mfdesign's entry points call it themselves.
+
+    Call it first when you build JAX arrays for mfdesign's internals yourself (arrays made
+    before keep their float32 dtype).
+
+    **Arguments:** none.
+
+    **Returns:** None.
+    """
     import jax
 
     if not jax.config.read("jax_enable_x64"):
