@@ -253,10 +253,10 @@ def load_multi_fidelity(folder) -> MFFit:
 
 def lifted_rows(table, min_lift_height_mm: float = 2.0):
     """The rows calibration uses, as Measurements: force rows, and mass-lift rows with the
-    plate lifted (a lift row below ``min_lift_height_mm`` records the mass's weight while
-    the plate rests on its stop, not the membrane's force F(h, p))."""
+    plate floating (:func:`~mfdesign.data.lifts.floating_rows`; resting or pinned, a lift
+    row records the mass's weight, not the membrane's force F(h, p))."""
+    from mfdesign.data.lifts import floating_rows
     from mfdesign.data.measurements import Measurements
 
     df = table.df
-    df = df[~((df["experiment"] == "lift") & (df["height_mm"] < min_lift_height_mm))].reset_index(drop=True)
-    return Measurements(df)
+    return Measurements(df[floating_rows(df, resting_mm=min_lift_height_mm)].reset_index(drop=True))

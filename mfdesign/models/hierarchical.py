@@ -46,6 +46,7 @@ import numpy as np
 import pandas as pd
 
 from mfdesign._x64 import enable_x64
+from mfdesign.data.lifts import floating_rows
 from mfdesign.physics import effects as fx
 from mfdesign.physics.effects import LogNormal, Normal, Rows
 from mfdesign.physics.params import SimParams
@@ -107,12 +108,14 @@ class CalibrationData(eqx.Module):
         """From a Measurements table; at most ``max_rows`` rows, drawn evenly within each
         trial (the ramps are densely sampled: neighbouring rows carry little new information).
 
-        Lift rows recorded below ``min_lift_height_mm`` are dropped: the plate still rests on
-        its support there, so the membrane's force is only bounded (F <= W), not equal to W.
+        Lift rows where the plate does not float are dropped
+        (:func:`~mfdesign.data.lifts.floating_rows`, with ``min_lift_height_mm`` its resting
+        floor): resting on its support or pinned, the membrane's force is only bounded by W,
+        not equal to it.
         """
         enable_x64()  # float64 physics: mfdesign._x64
         df = table if isinstance(table, pd.DataFrame) else table.df
-        df = df[~((df["experiment"] == "lift") & (df["height_mm"] < min_lift_height_mm))]
+        df = df[floating_rows(df, resting_mm=min_lift_height_mm)]
         if len(df) == 0:
             raise ValueError("calibration data: no usable rows (empty table, or only unlifted lift rows)")
         if max_rows is not None and len(df) > max_rows:

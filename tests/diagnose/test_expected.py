@@ -44,3 +44,17 @@ def test_a_plate_resting_above_zero_or_pinned_below_the_top_is_not_used():
     assert use[floating].all()
     # a trial that floats all the way keeps its rows (only the global top stop is cut)
     assert usable_rows(meas)[401:].mean() > 0.9
+
+
+def test_sparse_samples_of_a_steady_rise_are_kept_and_a_snap_is_not():
+    """Samples 500 Pa apart (0.2 Hz on the virtual rig) move the plate 6-7 mm each: a
+    steady rise, not a jump; a 10 mm move within 20 Pa is a snap-through."""
+    p = np.arange(0.0, 10_001.0, 500.0)
+    h = np.clip((p - 4000.0) / 75.0, 0.0, 75.0)
+    sparse = usable_rows(Measurements(_lift(h, p)))
+    assert sparse[h > 2.0].all() and not sparse[h == 0.0].any()
+    p = np.linspace(3000.0, 4000.0, 101)
+    h = np.where(p < 3500.0, 10.0 + (p - 3000.0) / 100.0, 25.0 + (p - 3500.0) / 100.0)  # jumps 10 mm at 3.5 kPa
+    snap = usable_rows(Measurements(_lift(h, p)))
+    at = np.argmax(p >= 3500.0)
+    assert not snap[at - 1] and not snap[at] and snap[: at - 1].all()
