@@ -62,6 +62,12 @@ def main():
         help="force model of (a), (b) and (e): simulator planes (exact) or the emulator",
     )
     ap.add_argument(
+        "--effects",
+        nargs="*",
+        default=[],
+        help="effects calibrated with the material in (b) and (e), e.g. what `mfdesign diagnose mass-lift` found",
+    )
+    ap.add_argument(
         "--draws", type=int, default=32, help="posterior draws in the predictive (evaluation cost scales with it)"
     )
     args = ap.parse_args()
@@ -88,6 +94,9 @@ def main():
     # ``--only`` lets several processes share the folds, one core each).
     # (the output folder is where, not what: a checkpoint serves any --out)
     settings = {k: v for k, v in vars(args).items() if k not in ("only", "out")}
+    settings["lift_rows"] = (
+        "floating_rows"  # the equilibrium-row rule (data/lifts.py); older checkpoints used h >= 2 mm
+    )
 
     def ckpt(i):
         return args.out / "cache" / f"real_mass_lift_{args.physics}_fold{i}.json"
@@ -110,7 +119,7 @@ def main():
         fit = fit_multi_fidelity(
             train,
             emu,
-            (),
+            tuple(args.effects),
             n_steps=args.steps,
             n_walkers=args.walkers,
             max_rows=args.max_rows,
@@ -193,7 +202,7 @@ def main():
     full = fit_multi_fidelity(
         data,
         emu,
-        (),
+        tuple(args.effects),
         n_steps=args.steps,
         n_walkers=args.walkers,
         max_rows=args.max_rows,
@@ -214,7 +223,8 @@ def main():
         "jm_paper": 39.6,
         "seconds": clock.elapsed(),
         "notes": (
-            "held-out rows: lift rows with h >= 2 mm (force = lifted weight); likelihood rows subsampled "
+            "held-out rows: lift rows with the plate floating (data/lifts.floating_rows; force = lifted weight); "
+            f"effects calibrated in (b) and (e): {args.effects or 'none'}; likelihood rows subsampled "
             f"to {args.max_rows} per fit; emcee {args.walkers} walkers x {args.steps} steps; ensembles "
             f"{args.members} members x {args.ens_steps} steps; {args.draws} posterior draws in the predictive"
         ),
