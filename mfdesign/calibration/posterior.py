@@ -22,7 +22,7 @@ import pandas as pd
 
 from mfdesign.models.hierarchical import LATENT
 
-__all__ = ["Posterior", "arviz_diagnostics", "load_inference_data", "save_inference_data"]
+__all__ = ["Posterior", "arviz_diagnostics", "convergence_rows", "load_inference_data", "save_inference_data"]
 
 NETCDF_NAME = "posterior.nc"
 
@@ -424,6 +424,26 @@ def arviz_diagnostics(chain: np.ndarray, names) -> dict[str, Any]:
     out["ess_bulk_min"] = _agg(out["ess_bulk"].values(), np.min)
     out["ess_tail_min"] = _agg(out["ess_tail"].values(), np.min)
     return out
+
+
+def convergence_rows(convergence: dict[str, Any]) -> list[dict[str, Any]]:
+    """One row per parameter of a convergence report (``Posterior.convergence``, as
+    :func:`~mfdesign.calibration.mcmc.convergence_report` and :func:`arviz_diagnostics` fill
+    it): emcee's integrated autocorrelation time ``tau`` [steps] beside ArviZ's R-hat and
+    bulk / tail ESS [draws]. Nothing is recomputed (the report shows what the chain's check
+    saw); a number the report lacks (an old ``posterior.json``) is None."""
+    parts = {k: convergence.get(k) or {} for k in ("tau", "rhat", "ess_bulk", "ess_tail")}
+    names = list(dict.fromkeys(name for part in parts.values() for name in part))
+    return [
+        {
+            "parameter": name,
+            "tau [steps]": parts["tau"].get(name),
+            "R-hat": parts["rhat"].get(name),
+            "ESS bulk": parts["ess_bulk"].get(name),
+            "ESS tail": parts["ess_tail"].get(name),
+        }
+        for name in names
+    ]
 
 
 def save_inference_data(post: Posterior, path, model=None, data=None, **kwargs) -> Path:

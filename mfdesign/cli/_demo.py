@@ -29,7 +29,7 @@ from mfdesign.data.shipped import bundled_card_path, bundled_path
 from mfdesign.design import Membrane
 from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
-__all__ = ["DemoSettings", "run_demo", "BUNDLED", "card_truths"]
+__all__ = ["DemoSettings", "run_demo", "demo_report", "BUNDLED", "card_truths"]
 
 BUNDLED = bundled_path()
 CARD = bundled_card_path()
@@ -277,6 +277,144 @@ def _truth_table(check: dict, table: list[dict]) -> list[dict]:
     ]
 
 
+def _convergence_table(convergence: dict) -> list[dict]:
+    """Both chains' per-parameter rows (``summary["convergence"][tag]["parameters"]``: emcee's
+    tau, ArviZ's R-hat and ESS) in one table, model first."""
+    return [
+        {"model": tag.replace("_", " "), **row} for tag, c in convergence.items() for row in c.get("parameters") or []
+    ]
+
+
+def demo_report(out: str | Path, summary: dict):
+    """The demo's page (a :class:`~mfdesign.report.Report`, not yet written) from what the
+    stages left in ``out``: ``summary`` (``summary.json``'s content), the diagnosis's
+    ``diagnose/diagnosis.json`` and the pictures beside them. It computes nothing: every
+    number on the page is one of those files' (tests/cli/test_demo.py reads them back off
+    the page rendered by headless Chromium)."""
+    from mfdesign.report import Report
+
+    out = Path(out)
+    diagnosis = json.loads((out / "diagnose" / "diagnosis.json").read_text())
+    d = summary["diagnosis"]
+    found, verdict = list(d["found"]), d["verdict"]
+    post0, post1 = summary["posterior_plain"], summary["posterior_with_effects"]
+    proposals, covered = summary["proposals"], summary["coverage_90"]
+    hidden = summary.get("hidden_effect")
+
+    def figure(path: Path, caption: str) -> list[tuple[Path, str]]:
+        """A picture the stages may not have drawn (a diagnosis without a second round)."""
+        return [(path, caption)] if path.is_file() else []
+
+    rep = Report("mfdesign demo: calibrate, diagnose, add the missing effect, propose, optimise")
+    rep.banners = list(summary.get("banners") or [])
+    rep.summary = [
+        f"{summary['rows']} rows of {summary['membranes']} membranes from {Path(summary['data']).name}.",
+        verdict + (f" (Hidden truth: {hidden}.)" if hidden else ""),
+        "Proposed next: " + "; ".join(f"{_short(p['design'])} ({p['fidelity']})" for p in proposals) + ".",
+        f"Optimised for lift task A: {_short(summary['optimum']['design'])}.",
+    ]
+    rep.add(
+        "Data and model",
+        [
+            "Measured force against pressure, with the plain and the corrected model's means and the "
+            "corrected model's 90 % posterior-predictive band (its draws plus observation noise)."
+        ],
+        images=[(out / "figures" / "planes.png", "data vs model planes")],
+    )
+    rep.add(
+        "Calibration (plain model)",
+        ["Posterior of the global parameters (emcee)."],
+        table=post0,
+        images=[(out / "plain" / "corner.png", "posterior, plain model")],
+    )
+    rep.add(
+        "Convergence of the chains: autocorrelation time (emcee), R-hat and ESS (ArviZ)",
+        [
+            "Per parameter: the integrated autocorrelation time tau in steps (emcee; the chain must be at "
+            "least 50 tau long), R-hat over the walkers (want < 1.01) and the bulk / tail effective sample "
+            "sizes (ArviZ). The walkers of an ensemble sampler are not independent chains: tau is the "
+            "primary criterion, R-hat a check of mixing.",
+        ]
+        + [
+            f"{tag.replace('_', ' ')}: {c['steps_over_tau']:.1f} tau long, acceptance {c['acceptance']:.2f}, "
+            f"R-hat max {c['rhat_max']:.3f}, ESS bulk min {c['ess_bulk_min']:.0f}, tail min {c['ess_tail_min']:.0f}"
+            + ("." if c["converged"] else ": NOT converged.")
+            for tag, c in summary["convergence"].items()
+        ],
+        table=_convergence_table(summary["convergence"]),
+    )
+    diag_dir = out / "diagnose"
+    rep.add(
+        "Diagnosis: where it fails, which effect is missing",
+        [w["words"] for w in diagnosis["before"]["worst_regions"]][:4] + [verdict],
+        images=[
+            im
+            for k in ("maps_before", "parity", "breakdown")
+            for im in figure(diag_dir / f"{k}.png", k.replace("_", " "))
+        ],
+    )
+    # Every round of the forward selection: its screen and its own verdict (round 2 is
+    # asked with round 1's effect already in the model).
+    for i, step in enumerate(diagnosis["search"]):
+        base = step.get("base_effects") or []
+        rep.add(
+            f"Diagnosis round {i + 1}: "
+            + (f"what is missing besides {', '.join(base)}" if base else "which effect is missing"),
+            [f"Round {i + 1}'s verdict: {step['verdict'].get('words', '')}"],
+            table=[
+                {"effect": r["effect"], "explained fraction": float(r["explained_fraction"])}
+                for r in step["screen"][:6]
+            ],
+            images=figure(diag_dir / f"screen_{i + 1}.png", f"round {i + 1}: effect screen"),
+        )
+    rep.add(
+        "Predictive check: are the calibrated model's intervals honest?",
+        [
+            "Each observed force (the rows the chain saw) against the calibrated model's replicated "
+            "forces (posterior draws plus observation noise, without the discrepancy ensemble; "
+            "posterior.nc). A calibrated model has a flat PIT histogram and a coverage curve on the "
+            "diagonal.",
+            "Share of observations inside the 90 % predictive interval: "
+            + ", ".join(f"{name} {c:.2f}" for name, c in covered.items())
+            + " (calibrated: 0.90).",
+        ],
+        images=[(out / "figures" / "predictive_check.png", "PIT histogram and coverage curve")],
+        data={"coverage_90": covered},
+    )
+    rep.add(
+        f"After adding {', '.join(found) if found else 'nothing'}",
+        ["Posterior with the effect(s)."]
+        + (
+            [
+                f"Residual RMSE {d['rmse_before_n']:.2f} N before, {d['rmse_after_n']:.2f} N after; "
+                f"noise floor {d['noise_floor_n']:.2f} N."
+            ]
+            if d["rmse_after_n"] is not None
+            else []
+        ),
+        table=post1,
+        images=(figure(diag_dir / "maps_after.png", "residual maps after") if d["rmse_after_n"] is not None else [])
+        + (figure(out / "with_effects" / "corner.png", "posterior with effects") if found else []),
+    )
+    if "truth_check" in summary:
+        rep.add(
+            "Truths: does the posterior find the values the data were made with?",
+            [
+                "The bundled data were simulated with the authors' rubber constants and the hidden effect of "
+                "the data card; each truth beside the corrected model's posterior median and 90 % interval "
+                "(red lines in the corner plots)."
+            ],
+            table=_truth_table(summary["truth_check"], post1),
+        )
+    rep.add(
+        "Next membranes",
+        [f"{_short(p['design'])}: {p['fidelity']}" for p in proposals],
+        images=[(out / "propose" / "proposals.png", "proposals in the design space")],
+    )
+    rep.add("Optimised membrane for lift task A", [], images=[(out / "optimize" / "optimum.png", "predicted lift")])
+    return rep
+
+
 def run_demo(
     out: str | Path,
     settings: DemoSettings = DemoSettings(),
@@ -290,7 +428,7 @@ def run_demo(
 
     from mfdesign.acquire import Grid, propose
     from mfdesign.calibration.plots import corner_plot, pit, pit_coverage, predictive_check_plot
-    from mfdesign.calibration.posterior import load_inference_data, save_inference_data
+    from mfdesign.calibration.posterior import convergence_rows, load_inference_data, save_inference_data
     from mfdesign.calibration.workflow import fit_multi_fidelity, for_search, force_model_named
     from mfdesign.data.store import read_parquet
     from mfdesign.diagnose.emulated import forward_model
@@ -298,7 +436,6 @@ def run_demo(
     from mfdesign.report.diagnosis import write_report
     from mfdesign.models.ensemble import EnsembleConfig
     from mfdesign.optimize import TARGET_SETS, optimize, plot as plot_optimum
-    from mfdesign.report import Report
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -375,7 +512,7 @@ def run_demo(
             check_top=s.check_top,
             progress=progress,
         )
-        dpaths = write_report(diag, out / "diagnose")
+        write_report(diag, out / "diagnose")
     found = list(diag.found)
     floor = diag.before.noise_floor_n
     summary["diagnosis"] = {
@@ -395,11 +532,23 @@ def run_demo(
     else:
         fit1, post1 = fit0, post0
 
+    # The chains' own checks (emcee's tau, ArviZ's R-hat / ESS: posterior.json "convergence"),
+    # with one row per parameter for the report's convergence table.
     summary["convergence"] = {
         tag: {
             k: f.posterior.convergence.get(k)
-            for k in ("converged", "steps_over_tau", "tau_max", "acceptance", "problems")
+            for k in (
+                "converged",
+                "steps_over_tau",
+                "tau_max",
+                "acceptance",
+                "problems",
+                "rhat_max",
+                "ess_bulk_min",
+                "ess_tail_min",
+            )
         }
+        | {"parameters": convergence_rows(f.posterior.convergence)}
         for tag, f in (("plain", fit0), ("with_effects", fit1))
     }
     if card is not None:
@@ -423,6 +572,7 @@ def run_demo(
         (out / "propose").mkdir(exist_ok=True)
         outputs.write_text(out / "propose" / "proposal.json", json.dumps(proposal.to_json(), indent=1, default=str))
         _proposal_figure(meas, proposal, out / "propose" / "proposals.png")
+    summary["proposals"] = [{"design": m.key(), "fidelity": f} for m, f in zip(proposal.designs, proposal.fidelities)]
 
     # 6. optimise a membrane for a lift task
     with log.stage("optimise a membrane for lift task A (height maximisation)"):
@@ -439,8 +589,10 @@ def run_demo(
         (out / "optimize").mkdir(exist_ok=True)
         plot_optimum(result, out / "optimize" / "optimum.png", title="lift task A")
         outputs.write_text(out / "optimize" / "optimum.json", json.dumps(result.to_json(), indent=1, default=str))
+    summary["optimum"] = {"design": result.design_key, "task": "A"}
 
-    # 7. report
+    # 7. report: rendered from the stages' JSON (summary, diagnose/diagnosis.json) and the
+    # pictures on disk, so that every number on the page is one a sub-report holds.
     with log.stage("report"):
         fig_dir = out / "figures"
         fig_dir.mkdir(exist_ok=True)
@@ -449,101 +601,19 @@ def run_demo(
             {"plain": fit0.mf.thinned(16), "with effects": fit1.mf.thinned(16)},
             fig_dir / "planes.png",
         )
-        rep = Report("mfdesign demo: calibrate, diagnose, add the missing effect, propose, optimise")
-        verdict = _verdict(diag)
-        rep.banners = _banners(diag, summary["convergence"])
-        rep.summary = [
-            f"{len(meas)} rows of {len(meas.design_keys)} membranes from {Path(data_path).name}.",
-            verdict + (f" (Hidden truth: {card['hidden_effect']['name']}.)" if card else ""),
-            "Proposed next: "
-            + "; ".join(f"{_short(m.key())} ({f})" for m, f in zip(proposal.designs, proposal.fidelities))
-            + ".",
-            f"Optimised for lift task A: {_short(result.design_key)}.",
-        ]
-        rep.add(
-            "Data and model",
-            [
-                "Measured force against pressure, with the plain and the corrected model's means and the "
-                "corrected model's 90 % posterior-predictive band (its draws plus observation noise)."
-            ],
-            images=[(fig_dir / "planes.png", "data vs model planes")],
-        )
         pits = {
             name: pit(load_inference_data(out / tag))
             for name, tag in (("plain", "plain"), ("with effects", "with_effects"))
             if (out / tag / "posterior.nc").is_file()
         }
         predictive_check_plot(pits, fig_dir / "predictive_check.png")
-        covered = {name: pit_coverage(u)[0.9] for name, u in pits.items()}
-        rep.add(
-            "Calibration (plain model)",
-            ["Posterior of the global parameters (emcee)."],
-            table=post0,
-            images=[(out / "plain" / "corner.png", "posterior, plain model")],
-        )
-        imgs = [(dpaths[k], k.replace("_", " ")) for k in ("maps_before", "parity", "breakdown") if k in dpaths]
-        rep.add(
-            "Diagnosis: where it fails, which effect is missing",
-            [w["words"] for w in diag.to_json()["before"]["worst_regions"]][:4] + [verdict],
-            images=imgs,
-        )
-        # Every round of the forward selection: its screen and its own verdict (round 2 is
-        # asked with round 1's effect already in the model).
-        for i, step in enumerate(diag.steps):
-            base = step.get("base_effects") or []
-            rep.add(
-                f"Diagnosis round {i + 1}: "
-                + (f"what is missing besides {', '.join(base)}" if base else "which effect is missing"),
-                [f"Round {i + 1}'s verdict: {step['verdict'].get('words', '')}"],
-                table=[
-                    {"effect": r.effect, "explained fraction": float(r.explained_fraction)} for r in step["screen"][:6]
-                ],
-                images=[(dpaths[k], f"round {i + 1}: effect screen") for k in (f"screen_{i + 1}",) if k in dpaths],
-            )
-        rep.add(
-            "Predictive check: are the calibrated model's intervals honest?",
-            [
-                "Each observed force (the rows the chain saw) against the calibrated model's replicated "
-                "forces (posterior draws plus observation noise, without the discrepancy ensemble; "
-                "posterior.nc). A calibrated model has a flat PIT histogram and a coverage curve on the "
-                "diagonal.",
-                "Share of observations inside the 90 % predictive interval: "
-                + ", ".join(f"{name} {c:.2f}" for name, c in covered.items())
-                + " (calibrated: 0.90).",
-            ],
-            images=[(fig_dir / "predictive_check.png", "PIT histogram and coverage curve")],
-            data={"coverage_90": covered},
-        )
-        after_imgs = [(dpaths["maps_after"], "residual maps after")] if "maps_after" in dpaths else []
-        rep.add(
-            f"After adding {', '.join(found) if found else 'nothing'}",
-            ["Posterior with the effect(s)."]
-            + (
-                [
-                    f"Residual RMSE {diag.before.rmse_n:.2f} N before, {diag.after.rmse_n:.2f} N after; noise floor {floor:.2f} N."
-                ]
-                if diag.after is not None
-                else []
-            ),
-            table=post1,
-            images=after_imgs + ([(out / "with_effects" / "corner.png", "posterior with effects")] if found else []),
-        )
+        summary["diagnosis"]["verdict"] = _verdict(diag)
+        summary["banners"] = _banners(diag, summary["convergence"])
+        summary["coverage_90"] = {name: pit_coverage(u)[0.9] for name, u in pits.items()}
+        summary["posterior_plain"], summary["posterior_with_effects"] = post0, post1
         if card is not None:
-            rep.add(
-                "Truths: does the posterior find the values the data were made with?",
-                [
-                    "The bundled data were simulated with the authors' rubber constants and the hidden effect of "
-                    "the data card; each truth beside the corrected model's posterior median and 90 % interval "
-                    "(red lines in the corner plots)."
-                ],
-                table=_truth_table(summary["truth_check"], post1),
-            )
-        rep.add(
-            "Next membranes",
-            [f"{_short(m.key())}: {f}" for m, f in zip(proposal.designs, proposal.fidelities)],
-            images=[(out / "propose" / "proposals.png", "proposals in the design space")],
-        )
-        rep.add("Optimised membrane for lift task A", [], images=[(out / "optimize" / "optimum.png", "predicted lift")])
+            summary["hidden_effect"] = card["hidden_effect"]["name"]
+        rep = demo_report(out, summary)
         rep.meta = {"timings_s": log.times}
         paths = rep.write(out)
     summary.update(
@@ -551,9 +621,6 @@ def run_demo(
         json=str(paths["json"]),
         timings_s=log.times,
         total_s=round(time.perf_counter() - log.t0, 1),
-        posterior_plain=post0,
-        posterior_with_effects=post1,
-        proposals=[{"design": m.key(), "fidelity": f} for m, f in zip(proposal.designs, proposal.fidelities)],
     )
     outputs.write_text(out / "summary.json", json.dumps(summary, indent=1, default=str))
     echo(f"report: {paths['html']} ({summary['total_s']} s)")

@@ -126,6 +126,9 @@ def _run(
     typer.echo(
         f"chain {c['n_steps']} steps x {c['n_walkers']} walkers (resumed from {c['resumed_from']}); "
         f"tau_max {c['tau_max']:.1f} -> {c['steps_over_tau']:.1f} tau; acceptance {c['acceptance']:.2f}; "
+        # ArviZ's R-hat and ESS over the walkers (per parameter: posterior.json "convergence")
+        f"R-hat max {c.get('rhat_max', float('nan')):.3f}, ESS bulk min {c.get('ess_bulk_min', float('nan')):.0f}, "
+        f"tail min {c.get('ess_tail_min', float('nan')):.0f} (ArviZ); "
         f"BIC {post.bic:.1f}; Laplace log evidence {post.log_evidence_laplace:.1f}"
     )
     for w in caught:

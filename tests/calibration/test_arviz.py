@@ -6,6 +6,7 @@ as chains, log-likelihood terms that sum to the model's), not the posterior's qu
 
 from __future__ import annotations
 
+import json
 import warnings
 
 import arviz as az
@@ -15,7 +16,7 @@ from typer.testing import CliRunner
 
 from mfdesign.calibration.mcmc import ConvergenceWarning, build_model, calibrate
 from mfdesign.calibration.plots import pair_plot
-from mfdesign.calibration.posterior import Posterior, load_inference_data, save_inference_data
+from mfdesign.calibration.posterior import Posterior, convergence_rows, load_inference_data, save_inference_data
 from mfdesign.models.standin import standin_force
 
 GROUPS = {"posterior", "sample_stats", "log_likelihood", "posterior_predictive", "observed_data", "constant_data"}
@@ -42,6 +43,23 @@ def test_posterior_keeps_the_physical_chain_and_arviz_diagnostics(fitted):
     for key in ("tau", "tau_max", "acceptance", "rhat", "ess_bulk", "ess_tail", "rhat_max", "ess_bulk_min"):
         assert key in c
     assert set(c["rhat"]) == set(model.names) and c["rhat_max"] >= 0.99 and c["ess_bulk_min"] > 0
+
+
+def test_convergence_rows_put_emcee_tau_beside_arviz_rhat_and_ess(fitted):
+    """One row per parameter, the numbers the chain's check computed (nothing recomputed):
+    emcee's tau and ArviZ's R-hat / ESS (az.rhat / az.ess on the walkers as chains)."""
+    _, _, model, post = fitted
+    c = post.convergence
+    rows = convergence_rows(c)
+    assert [r["parameter"] for r in rows] == list(model.names)
+    i = model.names.index("mu_pa")
+    a = np.swapaxes(post.chain, 0, 1)[..., i]  # [chain = walker, draw]
+    mu = rows[i]
+    assert mu["tau [steps]"] == c["tau"]["mu_pa"] and mu["R-hat"] == float(az.rhat(a))
+    assert (mu["ESS bulk"], mu["ESS tail"]) == (float(az.ess(a, method="bulk")), float(az.ess(a, method="tail")))
+    assert max(r["R-hat"] for r in rows) == c["rhat_max"]
+    old = convergence_rows({"tau": {"mu_pa": 3.0}})  # a posterior.json from before ArviZ
+    assert old == [{"parameter": "mu_pa", "tau [steps]": 3.0, "R-hat": None, "ESS bulk": None, "ESS tail": None}]
 
 
 @pytest.mark.filterwarnings("ignore:Estimated shape parameter of Pareto")  # tiny chain: PSIS k is high
@@ -128,6 +146,12 @@ def test_calibrate_command_writes_posterior_nc(tmp_path):
         ],
     )
     assert r.exit_code == 0, r.output
+    # the terminal line carries ArviZ's diagnostics, as posterior.json holds them
+    conv = json.loads((out / "posterior.json").read_text())["convergence"]
+    assert (
+        f"R-hat max {conv['rhat_max']:.3f}, ESS bulk min {conv['ess_bulk_min']:.0f}, "
+        f"tail min {conv['ess_tail_min']:.0f} (ArviZ)" in r.output
+    )
     idata = az.from_netcdf(out / "posterior.nc")
     assert GROUPS <= set(idata.groups())
     assert idata.posterior["mu_pa"].dims == ("chain", "draw") and idata.posterior.sizes["chain"] == 16

@@ -1,12 +1,95 @@
 """The README's main job end to end (slow): the quick demo writes a report whose pictures
-all load in headless Chromium."""
+all load in headless Chromium and whose numbers, read off the rendered page, are those of
+its sub-reports (summary.json, posterior.json, diagnosis.json). The fast version renders
+the report from a stored quick demo's JSON (tests/cli/demo_report/) with stand-in pictures.
+
+``MFDESIGN_UPDATE_SCREENSHOTS=1 pytest -m slow tests/cli/test_demo.py`` also writes the
+screenshot of the whole page to docs/img/demo_report.png (the README shows it)."""
 
 import json
+import os
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from browser import check_page, chromium_path
+
+FIXTURE = Path(__file__).parent / "demo_report"
+SCREENSHOT = Path(__file__).parents[2] / "docs" / "img" / "demo_report.png"
+
+
+def assert_page_shows_the_numbers(lines: list[str], out: Path) -> None:
+    """Every headline number of the demo, as the sub-reports in ``out`` hold it, is on the
+    page ``lines`` (``browser.rendered_lines``), formatted as the page formats it: posterior
+    medians and 90 % intervals, convergence (tau, R-hat, ESS), RMSE before / after and the
+    noise floor, the verdict, the effects found and each round's screen, truths, proposals."""
+    from mfdesign.calibration.posterior import convergence_rows
+    from mfdesign.cli._demo import _num, _short
+    from mfdesign.report.render import cell
+
+    summary = json.loads((out / "summary.json").read_text())
+    diagnosis = json.loads((out / "diagnose" / "diagnosis.json").read_text())
+    text = "\n".join(lines)
+
+    def row(*cells) -> str:
+        return " | ".join(cell(c) for c in cells)
+
+    # The summary repeats the sub-reports (no number of its own) ...
+    d = summary["diagnosis"]
+    assert d["rmse_before_n"] == diagnosis["before"]["summary"]["rmse_n"]
+    assert d["noise_floor_n"] == diagnosis["before"]["summary"]["noise_floor_n"]
+    assert d["found"] == diagnosis["found"] == diagnosis["effects_added"]
+    if diagnosis["after"] is not None:
+        assert d["rmse_after_n"] == diagnosis["after"]["summary"]["rmse_n"]
+    # ... and the page shows them: RMSE before / after, noise floor, one verdict, effects.
+    b, floor = d["rmse_before_n"], d["noise_floor_n"]
+    assert f"{b:.2f} N" in d["verdict"] and f"{floor:.2f} N" in d["verdict"]
+    hidden = summary.get("hidden_effect")
+    assert d["verdict"] in lines  # the diagnosis section's, and the summary box's:
+    assert d["verdict"] + (f" (Hidden truth: {hidden}.)" if hidden else "") in lines
+    if d["rmse_after_n"] is not None:
+        assert f"Residual RMSE {b:.2f} N before, {d['rmse_after_n']:.2f} N after; noise floor {floor:.2f} N." in lines
+    assert f"After adding {', '.join(d['found']) if d['found'] else 'nothing'}" in lines
+    for i, step in enumerate(diagnosis["search"]):
+        assert f"Round {i + 1}'s verdict: {step['verdict']['words']}" in lines
+        for r in step["screen"][:6]:
+            assert row(r["effect"], float(r["explained_fraction"])) in lines
+    for w in diagnosis["before"]["worst_regions"][:4]:
+        assert w["words"] in lines
+    first = f"{summary['rows']} rows of {summary['membranes']} membranes from {Path(summary['data']).name}."
+    for banner in summary.get("banners") or []:
+        assert lines.index(banner) < lines.index(first)  # the warnings come before any number
+    # Posterior medians and 90 % intervals: the summary's rows are posterior.json's, rounded.
+    for tag in ("plain", "with_effects"):
+        rows = summary[f"posterior_{tag}"]
+        for r in rows:
+            assert row(r["parameter"], r["unit"], r["median"], r["q05"], r["q95"]) in lines
+        stored = out / tag / "posterior.json"
+        if not stored.is_file():
+            continue
+        post = json.loads(stored.read_text())
+        by_name = {p["parameter"]: p for p in post["parameters"]}
+        for r in rows:
+            for k in ("median", "q05", "q95"):
+                assert r[k] == round(by_name[r["parameter"]][k], 4)
+        # Convergence: emcee's tau and ArviZ's R-hat / ESS per parameter, as posterior.json has them.
+        conv = summary["convergence"][tag]
+        assert conv["parameters"] == convergence_rows(post["convergence"])
+        assert conv["rhat_max"] == post["convergence"]["rhat_max"]
+        for r in conv["parameters"]:
+            assert row(tag.replace("_", " "), *r.values()) in lines
+        assert (
+            f"{tag.replace('_', ' ')}: {conv['steps_over_tau']:.1f} tau long, acceptance {conv['acceptance']:.2f}, "
+            f"R-hat max {conv['rhat_max']:.3f}" in text
+        )
+    for name, c in (summary.get("truth_check") or {}).items():
+        assert f"{_num(c['q05'])} to {_num(c['q95'])}" in text and name in text
+    for p in summary["proposals"]:
+        assert f"{_short(p['design'])}: {p['fidelity']}" in lines
+    assert f"Optimised for lift task A: {_short(summary['optimum']['design'])}." in lines
+    assert ", ".join(f"{n} {c:.2f}" for n, c in summary["coverage_90"].items()) in text
 
 
 @pytest.mark.slow
@@ -47,6 +130,46 @@ def test_quick_demo_writes_a_report_chromium_can_show(tmp_path):
         pytest.skip("no Chromium installed (Debian package 'chromium')")
     page = check_page(tmp_path / "index.html", tmp_path / "screenshot.png")
     assert page.images >= 6 and page.broken_images == 0
+    assert_page_shows_the_numbers(page.lines, tmp_path)
+    if os.environ.get("MFDESIGN_UPDATE_SCREENSHOTS") == "1":
+        shutil.copyfile(page.screenshot, SCREENSHOT)
+
+
+def _stand_in_pictures(out: Path) -> None:
+    """A small PNG wherever the demo's stages draw one (the fast test has their JSON only)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = ["figures/planes.png", "figures/predictive_check.png", "plain/corner.png", "with_effects/corner.png"]
+    names += [f"diagnose/{k}.png" for k in ("maps_before", "maps_after", "parity", "breakdown", "screen_1", "screen_2")]
+    names += ["propose/proposals.png", "optimize/optimum.png"]
+    for name in names:
+        path = out / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig, ax = plt.subplots(figsize=(3, 2))
+        ax.set_title(name, fontsize=7)
+        fig.savefig(path, dpi=60)
+        plt.close(fig)
+
+
+@pytest.mark.skipif(chromium_path() is None, reason="no Chromium installed (Debian package 'chromium')")
+def test_the_report_shows_the_sub_reports_numbers(tmp_path):
+    """The demo's page rendered from a stored quick demo's JSON (summary.json, posterior.json,
+    diagnosis.json: tests/cli/demo_report/), read back from headless Chromium: every
+    headline number is the one those files hold."""
+    from mfdesign.cli._demo import demo_report
+
+    shutil.copytree(FIXTURE, tmp_path, dirs_exist_ok=True)
+    _stand_in_pictures(tmp_path)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    demo_report(tmp_path, summary).write(tmp_path)
+    page = check_page(tmp_path / "index.html", tmp_path / "screenshot.png")
+    assert page.broken_images == 0 and page.images >= 10
+    assert_page_shows_the_numbers(page.lines, tmp_path)
+    titles = [line for line in page.lines if line.startswith("Convergence of the chains")]
+    assert len(titles) == 1
 
 
 def _diag(before, after, floor, found, last_status):
