@@ -265,11 +265,11 @@ def test_screening_scores_random_batches_exactly_and_refines_the_best():
     """With ``n_refine < n_restarts`` the random batches are scored by a forward pass (the
     same deviations ``evaluate`` gives) and only the best are refined: with 0 L-BFGS steps
     the proposal is the best screened batch, and with steps it is at least as good."""
-    from mfdesign.acquire import _screen_fidelity
+    from mfdesign.acquire import BatchUncertainty, _screen
 
     u0 = jax.random.uniform(jax.random.PRNGKey(5), (2, 40, 2, 6))
     n_arr = jnp.asarray([0, 2])
-    dev = np.asarray(_screen_fidelity(PRED, u0, n_arr, "rig", GRID, SPACE))  # [A, R, q, M]
+    dev = np.asarray(_screen(BatchUncertainty(PRED, jnp.zeros(1), "rig", GRID), u0, n_arr, SPACE))  # [A, R, q, M]
     assert dev.shape == (2, 40, 2, M)
     for a, n in enumerate((0, 2)):
         for r in (0, 17, 39):
