@@ -488,7 +488,7 @@ def explain(predictor: AbstractPredictor, design, fidelity: str, grid: Grid = Gr
     """Where on the grid the members disagree most for ``design`` (Membrane or ``[6]`` mm)
     at ``fidelity``: the heights (mm) and pressures (Pa) whose member standard deviation
     is within ``REASON_FRACTION`` of its largest value, and that value (N). Returns the
-    phrase "at 40-60 mm, 4-6 kPa, where the members disagree most (member std up to 3.1 N)"
+    phrase "at 40-60 mm, 4-6 kPa where the members disagree most (member std up to 3.1 N)"
     and its numbers."""
     row = _rows([design])
     f = np.asarray(_grid_members(predictor, fidelity, jnp.asarray(row), grid))[:, 0]  # [M, G]
@@ -498,7 +498,7 @@ def explain(predictor: AbstractPredictor, design, fidelity: str, grid: Grid = Gr
     hs = [h for h, row_hot in zip(grid.h_mm, hot) if row_hot.any()]
     ps = [p for p, col_hot in zip(grid.p_pa, hot.T) if col_hot.any()]
     phrase = (
-        f"at {_span(hs, 'mm')}, {_span(ps, 'kPa', 1e3)}, where the members disagree most (member std up to {top:.2g} N)"
+        f"at {_span(hs, 'mm')}, {_span(ps, 'kPa', 1e3)} where the members disagree most (member std up to {top:.2g} N)"
     )
     return phrase, {"h_mm": hs, "p_pa": ps, "std_n": top}
 
@@ -510,8 +510,8 @@ def _reason(phrase: str, gain: float, alone: float, rank: int) -> str:
             f"adds no reduction beyond the runs ranked above and the pending membranes (alone {alone:.3g} N); "
             f"the most uncertain distinct design left, {phrase}"
         )
-    after = "" if rank == 1 else " after the runs ranked above"
-    return f"reduces the spread {phrase} by {gain:.3g} N{after}"
+    after = "" if rank == 1 else " beyond the runs ranked above"
+    return f"reduces the spread by {gain:.3g} N{after}, most {phrase}"
 
 
 def propose(
