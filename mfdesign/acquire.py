@@ -43,6 +43,16 @@ detection in networks"; ``U`` is a facility-location function, hence submodular)
 lets one batch mix ring counts and fidelities. A batch never holds one membrane twice
 (``MIN_SEPARATION``): when one design has the largest deviation for every member, no second
 design adds to ``U``, and the next slot goes to the most uncertain distinct design per cost.
+
+A lab's round: ``budget={"rig": Q, "sim": S}`` fixes the runs per fidelity (``Q``
+membranes to fabricate, ``S`` simulator planes the tool makes); ``pending`` membranes
+(being built) count as measured, ``U(B | P) = sum_m max(max_j d_m(x_j), P_m) - sum_m P_m``
+with ``P_m`` the largest deviation of member ``m`` over the pending membranes (BoTorch's
+``X_pending``); :attr:`Proposal.runs` ranks the batch by marginal reduction, each run with
+a reason computed from the grid (:func:`explain`). The acquisition
+(:class:`BatchUncertainty`) is apart from the optimiser's start heuristic
+(:func:`initial_batches`) and its L-BFGS, as BoTorch separates ``AcquisitionFunction``
+from ``optim.initializers``.
 """
 
 from __future__ import annotations
