@@ -9,6 +9,7 @@ has only 2 mm sheet). Bounds outside the product's space are refused unless
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import typer
 
@@ -29,7 +30,7 @@ def design_space(thickness, contact_radius, half_width, allow_outside: bool = Fa
     from mfdesign.design import PRODUCT_SPACE, RESEARCH_SPACE, WIDEN_OPTION, DesignError, DesignSpace
 
     outer = RESEARCH_SPACE if allow_outside else PRODUCT_SPACE
-    bounds = {}
+    bounds: dict[str, Any] = {}
     for option, field, given in (
         ("--thickness-mm", "thickness_mm", thickness),
         ("--contact-radius-mm", "contact_radius_mm", contact_radius),
