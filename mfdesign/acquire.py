@@ -43,11 +43,22 @@ detection in networks"; ``U`` is a facility-location function, hence submodular)
 lets one batch mix ring counts and fidelities. A batch never holds one membrane twice
 (``MIN_SEPARATION``): when one design has the largest deviation for every member, no second
 design adds to ``U``, and the next slot goes to the most uncertain distinct design per cost.
+
+A lab's round: ``budget={"rig": Q, "sim": S}`` fixes the runs per fidelity (``Q``
+membranes to fabricate, ``S`` simulator planes the tool makes); ``pending`` membranes
+(being built) count as measured, ``U(B | P) = sum_m max(max_j d_m(x_j), P_m) - sum_m P_m``
+with ``P_m`` the largest deviation of member ``m`` over the pending membranes (BoTorch's
+``X_pending``); :attr:`Proposal.runs` ranks the batch by marginal reduction, each run with
+a reason computed from the grid (:func:`explain`). The acquisition
+(:class:`BatchUncertainty`) is apart from the optimiser's start heuristic
+(:func:`initial_batches`) and its L-BFGS, as BoTorch separates ``AcquisitionFunction``
+from ``optim.initializers``.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import time
 from typing import Mapping, Sequence
@@ -76,10 +87,15 @@ __all__ = [
     "EnsemblePredictor",
     "SplitPredictor",
     "FunctionPredictor",
+    "BatchUncertainty",
     "Proposal",
+    "Run",
     "deviations",
     "batch_utility",
+    "pending_deviation",
+    "initial_batches",
     "evaluate",
+    "explain",
     "propose",
 ]
 
@@ -99,14 +115,70 @@ def deviations(members):
     return jnp.sqrt(jnp.sum(dev**2, axis=-1) + 1e-30)
 
 
-def batch_utility(dev):
-    """Paper's batch score ``sum_m max_j d[m, j]`` (N) from deviations ``[M, q]``."""
-    return jnp.sum(jnp.max(dev, axis=-1), axis=0)
+def batch_utility(dev, pending=None):
+    """Paper's batch score ``sum_m max_j d[m, j]`` (N) from deviations ``[M, q]``.
+
+    ``pending`` ``[M]`` (N): what designs already being built reach per member, ``max_p
+    d_m(x_p)``; the score is then the batch's reduction beyond them, ``sum_m max(max_j
+    d[m, j], pending_m) - sum_m pending_m`` (zero for a batch that only repeats them).
+    """
+    best = jnp.max(dev, axis=-1)  # [M, ...]
+    if pending is None:
+        return jnp.sum(best, axis=0)
+    pending = jnp.reshape(pending, jnp.shape(pending) + (1,) * (best.ndim - 1))
+    return jnp.sum(jnp.maximum(best, pending), axis=0) - jnp.sum(pending, axis=0)
+
+
+class BatchUncertainty(eqx.Module):
+    """The acquisition function, apart from any optimiser (BoTorch's split of
+    ``AcquisitionFunction`` and ``optim.initializers``): the batch utility ``U(B | P)`` (N)
+    of a batch of designs ``[q, 6]`` mm run at ``fidelity``, given the pending designs'
+    per-member deviations ``pending`` ``[M]`` (N; zeros when nothing is pending, which
+    gives the paper's ``U(B)`` exactly). Pending designs count as already measured (as
+    BoTorch's ``X_pending``): a member they already tell from the consensus adds nothing
+    when the batch tells it again. A pytree: one compilation serves any predictor of the
+    same structure and any pending set of the same member count."""
+
+    predictor: AbstractPredictor
+    pending: jax.Array  # [M] N
+    fidelity: str = eqx.field(static=True)
+    grid: Grid = eqx.field(static=True)
+
+    def deviation(self, design):
+        """Deviations ``[M, q]`` (N) of designs ``[q, 6]`` mm on the grid."""
+        return deviations(self.predictor.grid_members(self.fidelity, design, self.grid))
+
+    def __call__(self, design):
+        """``U(B | P)`` (N) of designs ``[q, 6]`` mm."""
+        return batch_utility(self.deviation(design), self.pending)
+
+
+@eqx.filter_jit
+def _grid_members(predictor, fidelity, design, grid):
+    return predictor.grid_members(fidelity, design, grid)
 
 
 @eqx.filter_jit
 def _deviation(predictor, fidelity, design, grid):
     return deviations(predictor.grid_members(fidelity, design, grid))
+
+
+def _rows(designs) -> np.ndarray:
+    """Membranes or ``[6]`` rows (mm) -> ``[n, 6]`` rows."""
+    return np.stack([d.to_array() if isinstance(d, Membrane) else np.asarray(d, float) for d in designs])
+
+
+def pending_deviation(predictor: AbstractPredictor, pending, grid: Grid = Grid()) -> np.ndarray:
+    """``max_p d_m^rig(x_p)`` ``[M]`` (N) of the pending membranes (Membranes or ``[6]``
+    rows, mm; being fabricated, so at the ``rig`` fidelity); ``[0.0]`` when none (it
+    broadcasts over the members, and every deviation is > 0, so the score is unchanged)."""
+    if len(pending) == 0:
+        return np.zeros(1)
+    return np.asarray(_deviation(predictor, _PENDING_FIDELITY, jnp.asarray(_rows(pending)), grid)).max(axis=1)
+
+
+# Pending designs are membranes being fabricated: their measurements will be rig data.
+_PENDING_FIDELITY = "rig"
 
 
 def evaluate(
@@ -115,14 +187,16 @@ def evaluate(
     fidelities: Sequence[str],
     grid: Grid = Grid(),
     costs: Mapping[str, float] | None = None,
+    pending: Sequence = (),
 ) -> dict:
     """Score a given batch: ``designs`` (Membranes or ``[q, 6]`` rows), one fidelity each.
 
-    Returns ``utility`` (N, the paper's number for an all-rig batch), ``cost``, ``score``
-    = utility / cost and ``deviation`` ``[q, M]``.
+    Returns ``utility`` (N, the paper's number for an all-rig batch; with ``pending``
+    membranes, the reduction beyond theirs, ``U(B | P)``), ``cost``, ``score`` = utility /
+    cost and ``deviation`` ``[q, M]``.
     """
     enable_x64()  # float64 physics: mfdesign._x64
-    rows = np.stack([d.to_array() if isinstance(d, Membrane) else np.asarray(d, float) for d in designs])
+    rows = _rows(designs)
     if len(fidelities) != len(rows):
         raise ValueError(f"one fidelity per design: {len(rows)} designs, {len(fidelities)} fidelities")
     costs = _check_costs(fidelities, costs)
@@ -133,7 +207,8 @@ def evaluate(
         for k, j in enumerate(idx):
             dev[j] = d[:, k]
     dev = np.stack(dev, axis=0)  # [q, M]
-    utility = float(dev.max(axis=0).sum())
+    base = pending_deviation(predictor, pending, grid)
+    utility = float(np.maximum(dev.max(axis=0), base).sum() - base.sum())
     cost = float(sum(costs[f] for f in fidelities))
     return {"utility": utility, "cost": cost, "score": utility / cost, "deviation": dev}
 
@@ -145,17 +220,31 @@ SCREEN_BLOCK = 128
 
 
 @eqx.filter_jit
-def _screen_fidelity(predictor, u0, n_rings, fidelity, grid, space):
+def _screen(acq: BatchUncertainty, u0, n_rings, space):
     """Forward pass only: ``u0 [A, R, q, 6]`` (unit cube) -> deviations ``[A, R, q, M]``
     of every random batch (``jax.lax.map`` over blocks of ``SCREEN_BLOCK`` restarts)."""
 
     def one(u, n):
-        return deviations(predictor.grid_members(fidelity, space.decode_any(u, n), grid)).T  # [q, M]
+        return acq.deviation(space.decode_any(u, n)).T  # [q, M]
 
     def arm(u, n):
         return jax.lax.map(lambda ui: one(ui, n), u, batch_size=SCREEN_BLOCK)
 
     return jax.vmap(arm)(u0, n_rings)
+
+
+def initial_batches(acq: BatchUncertainty, u0, n_rings, space: DesignSpace, n_best: int):
+    """The optimiser's start heuristic, apart from the acquisition (BoTorch's raw-sample
+    screen, ``optim.initializers``): random batches ``u0 [A, R, q, 6]`` (unit cube) of ring
+    counts ``n_rings [A]`` are scored by one forward pass of ``acq`` and the best ``n_best``
+    per ring count kept, ``[A, n_best, q, 6]`` (all of them when ``n_best >= R``)."""
+    if n_best >= u0.shape[1]:
+        return u0
+    dev0 = np.asarray(_screen(acq, u0, n_rings, space))  # [A, R, q, M]
+    util0 = np.asarray(batch_utility(np.moveaxis(dev0, -1, 0), acq.pending))  # [A, R]
+    util0 = np.nan_to_num(util0, nan=-np.inf)
+    order = np.argsort(-util0, axis=1, kind="stable")[:, :n_best]
+    return jnp.take_along_axis(u0, jnp.asarray(order)[:, :, None, None], axis=1)
 
 
 # Backtracking steps of L-BFGS's line search. Under vmap every restart waits for the one
@@ -166,9 +255,9 @@ LINESEARCH_STEPS = 4
 
 
 @eqx.filter_jit
-def _optimise_fidelity(predictor, z0, n_rings, fidelity, grid, space, n_steps):
+def _optimise(acq: BatchUncertainty, z0, n_rings, space, n_steps):
     """``z0 [A, R, q, 6]``, ring counts ``n_rings [A]`` -> ``(u [A, R, q, 6], dev [A, R, q, M])``:
-    every restart of every ring count runs ``n_steps`` L-BFGS iterations on ``-U``
+    every restart of every ring count runs ``n_steps`` L-BFGS iterations on ``-acq``
     (``jax.vmap`` over ring counts and restarts: one compiled call per fidelity, reused for
     any predictor of the same structure, e.g. a refitted ensemble). The ring count is data
     (:meth:`~mfdesign.design.DesignSpace.decode_any`), so it costs no extra compilation."""
@@ -178,11 +267,10 @@ def _optimise_fidelity(predictor, z0, n_rings, fidelity, grid, space, n_steps):
 
     def one(z, n):
         def dev_of(z):
-            design = space.decode_any(_to_unit(z), n)  # [q, 6]
-            return deviations(predictor.grid_members(fidelity, design, grid))  # [M, q]
+            return acq.deviation(space.decode_any(_to_unit(z), n))  # [M, q]
 
         def loss(z):
-            return -batch_utility(dev_of(z))
+            return -batch_utility(dev_of(z), acq.pending)
 
         value_and_grad = optax.value_and_grad_from_state(loss)
 
@@ -201,13 +289,46 @@ def _optimise_fidelity(predictor, z0, n_rings, fidelity, grid, space, n_steps):
 
 # --------------------------------------------------------------------------- proposal
 @dataclasses.dataclass(frozen=True)
+class Run:
+    """One run of a proposal, ranked: ``design`` (mm) at ``fidelity``.
+
+    ``rank``: 1 = the largest reduction; ``reduction_n``: what it adds to the batch's
+    utility after the runs ranked above it and the pending membranes (N; the runs' sum is
+    :attr:`Proposal.utility`); ``alone_n``: its reduction on its own beyond the pending
+    membranes (N); ``cost``; ``reason``: one sentence computed from the members on the grid.
+    """
+
+    rank: int
+    design: Membrane
+    fidelity: str
+    reduction_n: float
+    alone_n: float
+    cost: float
+    reason: str
+
+    def to_json(self) -> dict:
+        return {
+            "rank": self.rank,
+            "design": self.design.key(),
+            "fidelity": self.fidelity,
+            "reduction_n": self.reduction_n,
+            "alone_n": self.alone_n,
+            "cost": self.cost,
+            "reason": self.reason,
+        }
+
+
+@dataclasses.dataclass(frozen=True)
 class Proposal:
     """The chosen batch: ``designs[j]`` to run at ``fidelities[j]``.
 
     ``scores[j]``: design j alone, ``sum_m d_m(x_j) / c_j`` (N per cost unit);
-    ``utility``: ``U(B)`` in N (the paper's score for an all-rig batch); ``cost``; ``score`` =
-    utility / cost; ``deviation`` ``[q, M]``; ``arms``: per (ring count, fidelity) the best
-    joint batch found and its restarts' utilities; ``wall_s``.
+    ``utility``: ``U(B | P)`` in N (the paper's score ``U(B)`` for an all-rig batch with
+    nothing pending); ``cost``; ``score`` = utility / cost; ``deviation`` ``[q, M]``;
+    ``arms``: per (ring count, fidelity) the best joint batch found and its restarts'
+    utilities; ``wall_s``; ``runs``: the batch ranked (:class:`Run`); ``pending``: the
+    membranes being built that the batch counted as measured; ``budget``: runs per
+    fidelity when the batch was chosen for a fixed budget (None: a free mix of ``q``).
     """
 
     designs: tuple[Membrane, ...]
@@ -219,6 +340,19 @@ class Proposal:
     deviation: np.ndarray
     arms: tuple[dict, ...]
     wall_s: float
+    runs: tuple[Run, ...] = ()
+    pending: tuple[Membrane, ...] = ()
+    budget: dict | None = None
+
+    @property
+    def fabricate(self) -> tuple[Run, ...]:
+        """The membranes to fabricate and measure on the rig, ranked."""
+        return tuple(r for r in self.runs if r.fidelity == _PENDING_FIDELITY)
+
+    @property
+    def simulate(self) -> tuple[Run, ...]:
+        """The runs the tool makes itself (simulator planes), ranked."""
+        return tuple(r for r in self.runs if r.fidelity != _PENDING_FIDELITY)
 
     def to_json(self) -> dict:
         return {
@@ -229,6 +363,10 @@ class Proposal:
             "cost": self.cost,
             "score": self.score,
             "wall_s": self.wall_s,
+            "budget": self.budget,
+            "pending": [d.key() for d in self.pending],
+            "fabricate": [r.to_json() for r in self.fabricate],
+            "simulate": [r.to_json() | {"made_by": "the tool (a simulator plane)"} for r in self.simulate],
             "arms": [
                 {k: v for k, v in a.items() if k not in ("u", "dev", "restart_utility")}
                 | {"restart_utility_quantiles": np.quantile(a["restart_utility"], [0, 0.5, 0.9, 1]).tolist()}
@@ -257,17 +395,27 @@ def _check_costs(fidelities, costs):
 
 # Two designs of the same ring count closer than this in every unit-cube coordinate are
 # one membrane to the lab (0.1 mm of thickness, 0.6 mm of contact radius): a batch never
-# holds both. Without it, when one design has the largest deviation for every member, the
-# paper's score gains ~1e-5 relative from a near-copy and the greedy took it as the cheap
-# second slot (seen in the demo: two sim runs 0.001 mm apart).
+# holds both, nor a design near a pending one. Without it, when one design has the largest
+# deviation for every member, the paper's score gains ~1e-5 relative from a near-copy and
+# the greedy took it as the cheap second slot (seen in the demo: two sim runs 0.001 mm apart).
 MIN_SEPARATION = 0.05
+
+
+def _near_to(units, others) -> np.ndarray:
+    """Mask over ``units`` (``_unit_array`` form): which are one membrane with any of
+    ``others`` (same ring count, within ``MIN_SEPARATION`` in every coordinate)."""
+    (n, x), (m, y) = units, others
+    if len(m) == 0:
+        return np.zeros(len(n), bool)
+    close = (n[:, None] == m[None, :]) & (np.max(np.abs(x[:, None, :] - y[None, :, :]), axis=2) < MIN_SEPARATION)
+    return close.any(axis=1)
 
 
 def _near(units, j: int) -> np.ndarray:
     """Mask over ``units`` ``[(n_rings, unit-cube coordinates)]``: which are one membrane
-    with ``units[j]`` (same ring count, within ``MIN_SEPARATION`` in every coordinate)."""
+    with ``units[j]``."""
     n, x = units
-    return (n == n[j]) & (np.max(np.abs(x - x[j]), axis=1) < MIN_SEPARATION)
+    return _near_to(units, (n[j : j + 1], x[j : j + 1]))
 
 
 def _unit_array(units) -> tuple[np.ndarray, np.ndarray]:
@@ -276,42 +424,109 @@ def _unit_array(units) -> tuple[np.ndarray, np.ndarray]:
     x = np.zeros((len(units), 6))
     for i, (_, u) in enumerate(units):
         x[i, : len(u)] = u
-    return np.array([n for n, _ in units]), x
+    return np.array([n for n, _ in units], dtype=int), x
 
 
-def _greedy(dev, cost, q, units):
+def _greedy(dev, cost, q, units, base, blocked=None, fids=None, quota=None):
     """Cost-benefit greedy (Leskovec et al. 2007): add the candidate that maximises the
-    batch's ``U / cost`` among those that add to ``U``; ``dev`` [K, M] deviations, ``cost``
-    [K], ``units`` [K] ``(n_rings, cube coordinates)``. Candidates near a chosen one
-    (``MIN_SEPARATION``) are out. When no candidate left adds to ``U``, the slot goes to the
-    most uncertain one per cost (``sum_m d_m / c``). Returns indices [q]."""
-    chosen, best = [], np.zeros(dev.shape[1])
+    batch's ``U(B | P) / cost`` among those that add to ``U``; ``dev`` [K, M] deviations,
+    ``cost`` [K], ``units`` [K] ``(n_rings, cube coordinates)``, ``base`` [M] (or [1]) the
+    pending membranes' deviations. Candidates near a chosen one or a ``blocked`` one (the
+    pending membranes; ``MIN_SEPARATION``) are out. With ``quota`` (runs per fidelity) and
+    ``fids`` [K], each fidelity gets exactly its number of slots. When no candidate left
+    adds to ``U``, the slot goes to the most uncertain one per cost (``sum_m d_m / c``).
+    Returns indices [q]."""
+    chosen = []
+    best = np.broadcast_to(np.asarray(base, float), dev.shape[1:]).copy()
+    base_sum = best.sum()
     spent = 0.0
     own = dev.sum(1) / cost
-    allowed = np.ones(len(dev), bool)
     units = _unit_array(units)
+    allowed = np.ones(len(dev), bool) if blocked is None else ~_near_to(units, _unit_array(blocked))
+    left = None if quota is None else dict(quota)
     for _ in range(q):
+        quota_ok = np.ones(len(dev), bool) if left is None else np.isin(fids, [f for f, k in left.items() if k > 0])
+        now = allowed & quota_ok
         total = np.maximum(dev, best[None, :]).sum(1)
-        ratio = total / (spent + cost)
+        ratio = (total - base_sum) / (spent + cost)
         # A slot must add uncertainty reduction: with q fixed, a cheap candidate that adds
         # nothing would otherwise win as a filler (it lowers U / cost the least).
-        useful = allowed & (total - best.sum() > 1e-9 * max(best.sum(), 1e-300))
+        useful = now & (total - best.sum() > 1e-9 * max(best.sum(), 1e-300))
         if useful.any():
             score = np.where(useful, ratio, -np.inf)
         else:
-            score = np.where(allowed, own, -np.inf) if allowed.any() else ratio
+            score = np.where(now, own, -np.inf) if now.any() else np.where(quota_ok, ratio, -np.inf)
         j = int(np.argmax(score))
         chosen.append(j)
         best = np.maximum(best, dev[j])
         spent += cost[j]
         allowed &= ~_near(units, j)
         allowed[chosen] = False
+        if left is not None:
+            left[fids[j]] -= 1
     return chosen
+
+
+def _rank(dev, base) -> tuple[list[int], list[float], list[float]]:
+    """Order a batch by marginal reduction: the run that adds most to ``U(B | P)`` first,
+    then the one that adds most after it, ... ``dev`` [q, M], ``base`` [M] or [1]. Returns
+    the order, each run's marginal reduction in it (N, summing to ``U(B | P)``) and each
+    run's reduction alone (N)."""
+    best = np.broadcast_to(np.asarray(base, float), dev.shape[1:]).copy()
+    alone = [float(np.maximum(d, best).sum() - best.sum()) for d in dev]
+    order, gains, left = [], [], list(range(len(dev)))
+    while left:
+        g = [np.maximum(dev[j], best).sum() - best.sum() for j in left]
+        k = int(np.argmax(g))
+        order.append(left.pop(k))
+        gains.append(float(g[k]))
+        best = np.maximum(best, dev[order[-1]])
+    return order, gains, alone
+
+
+# Grid points whose member spread is at least this fraction of the largest make up the
+# region a run's reason names (where the members disagree most).
+REASON_FRACTION = 0.8
+
+
+def _span(values, unit: str, scale: float = 1.0) -> str:
+    lo, hi = min(values) / scale, max(values) / scale
+    return f"{lo:g} {unit}" if lo == hi else f"{lo:g}-{hi:g} {unit}"
+
+
+def explain(predictor: AbstractPredictor, design, fidelity: str, grid: Grid = Grid()) -> tuple[str, dict]:
+    """Where on the grid the members disagree most for ``design`` (Membrane or ``[6]`` mm)
+    at ``fidelity``: the heights (mm) and pressures (Pa) whose member standard deviation
+    is within ``REASON_FRACTION`` of its largest value, and that value (N). Returns the
+    phrase "at 40-60 mm, 4-6 kPa where the members disagree most (member std up to 3.1 N)"
+    and its numbers."""
+    row = _rows([design])
+    f = np.asarray(_grid_members(predictor, fidelity, jnp.asarray(row), grid))[:, 0]  # [M, G]
+    spread = f.std(axis=0).reshape(len(grid.h_mm), len(grid.p_pa))  # heights outer
+    top = float(np.nanmax(spread)) if np.isfinite(spread).any() else float("nan")
+    hot = spread >= REASON_FRACTION * top if np.isfinite(top) else np.ones_like(spread, bool)
+    hs = [h for h, row_hot in zip(grid.h_mm, hot) if row_hot.any()]
+    ps = [p for p, col_hot in zip(grid.p_pa, hot.T) if col_hot.any()]
+    phrase = (
+        f"at {_span(hs, 'mm')}, {_span(ps, 'kPa', 1e3)} where the members disagree most (member std up to {top:.2g} N)"
+    )
+    return phrase, {"h_mm": hs, "p_pa": ps, "std_n": top}
+
+
+def _reason(phrase: str, gain: float, alone: float, rank: int) -> str:
+    """One sentence for a ranked run (numbers from :func:`explain` and :func:`_rank`)."""
+    if gain <= 1e-9 * max(alone, 1e-300) or gain <= 0.0:
+        return (
+            f"adds no reduction beyond the runs ranked above and the pending membranes (alone {alone:.3g} N); "
+            f"the most uncertain distinct design left, {phrase}"
+        )
+    after = "" if rank == 1 else " beyond the runs ranked above"
+    return f"reduces the spread by {gain:.3g} N{after}, most {phrase}"
 
 
 def propose(
     predictor: AbstractPredictor,
-    q: int,
+    q: int | None = None,
     fidelities: Sequence[str] = ("rig",),
     costs: Mapping[str, float] | None = None,
     n_restarts: int = 1000,
@@ -322,46 +537,68 @@ def propose(
     n_steps: int = 20,
     progress: bool = False,
     n_refine: int = 32,
+    *,
+    budget: Mapping[str, int] | None = None,
+    pending: Sequence = (),
 ) -> Proposal:
     """Choose ``q`` (design, fidelity) pairs maximising expected uncertainty reduction per cost.
 
     The batch utility is the paper's (module docstring) over the height-pressure grid;
     ``n_restarts`` random joint batches per (ring count, fidelity) are scored, the best
     ``n_refine`` refined by ``n_steps`` L-BFGS iterations, all ring counts and restarts in
-    one vmapped, jitted call per fidelity (start heuristics apart from the utility, as in
-    BoTorch).
+    one vmapped, jitted call per fidelity. The acquisition (:class:`BatchUncertainty`) is
+    apart from the optimiser's start heuristic (:func:`initial_batches`), as in BoTorch.
 
     **Arguments:**
 
     - `predictor`: members per fidelity (:class:`~mfdesign.models.predictor.AbstractPredictor`).
-    - `q`: designs in the batch.
+    - `q`: designs in the batch, a free mix of `fidelities` (give `q` or `budget`).
     - `fidelities`: fidelities to choose from (`"rig"`, `"sim"`).
     - `costs`: cost per fidelity (default :data:`DEFAULT_COSTS`).
     - `n_restarts`: random batches scored per (ring count, fidelity).
     - `n_rings`: ring counts to search.
     - `grid`: the height [mm] x pressure [Pa] grid the uncertainty is measured on.
     - `key`: int seed or `jax.random` key.
-    - `space`: the design space (bounds, gaps).
+    - `space`: the design space (bounds; `low == high` fixes a feature).
     - `n_steps`: L-BFGS iterations of each refined batch.
     - `progress`: progress output.
     - `n_refine`: batches refined per (ring count, fidelity).
+    - `budget`: runs per fidelity, e.g. `{"rig": 2, "sim": 4}` (2 membranes to fabricate,
+      4 simulator planes): the batch holds exactly that many of each.
+    - `pending`: membranes already being built (Membranes or `[6]` rows, mm): counted as
+      measured on the rig (their members' deviations as if already reduced), so the batch
+      adds what they do not and never repeats one of them.
 
     **Returns:**
 
-    A :class:`Proposal`: the designs (mm), their fidelities, utilities and costs. Raises
-    `ValueError` on bad arguments.
+    A :class:`Proposal`: the designs (mm), their fidelities, utilities and costs, and the
+    runs ranked with a reason each. Raises `ValueError` on bad arguments.
     """
     enable_x64()  # float64 physics: mfdesign._x64
     t0 = time.perf_counter()
-    if not isinstance(q, (int, np.integer)) or isinstance(q, bool) or q < 1:
-        raise ValueError(f"q (batch size) must be an integer >= 1, got {q!r}")
+    if budget is None:
+        if not isinstance(q, (int, np.integer)) or isinstance(q, bool) or q < 1:
+            raise ValueError(f"q (batch size) must be an integer >= 1, got {q!r}")
+        fidelities = tuple(dict.fromkeys(fidelities))
+        sizes = {f: int(q) for f in fidelities}
+    else:
+        if q is not None:
+            raise ValueError("give q (a free mix of fidelities) or budget (runs per fidelity), not both")
+        budget = dict(budget)
+        for f, k in budget.items():
+            if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 0:
+                raise ValueError(f"budget[{f!r}] (runs at fidelity {f!r}) must be an integer >= 0, got {k!r}")
+        sizes = {f: int(k) for f, k in budget.items() if k > 0}
+        if not sizes:
+            raise ValueError(f"the budget holds no run: {budget}")
+        fidelities = tuple(sizes)
+        q = sum(sizes.values())
     if not isinstance(n_restarts, (int, np.integer)) or n_restarts < 1:
         raise ValueError(f"n_restarts must be an integer >= 1, got {n_restarts!r}")
     if not isinstance(n_refine, (int, np.integer)) or isinstance(n_refine, bool) or n_refine < 1:
         raise ValueError(f"n_refine must be an integer >= 1, got {n_refine!r}")
     if not isinstance(n_steps, (int, np.integer)) or n_steps < 0:
         raise ValueError(f"n_steps must be an integer >= 0, got {n_steps!r}")
-    fidelities = tuple(dict.fromkeys(fidelities))
     if not fidelities:
         raise ValueError(f"give at least one fidelity; allowed: {list(predictor.fidelities)}")
     for f in fidelities:
@@ -371,6 +608,9 @@ def propose(
     n_rings = tuple(dict.fromkeys(n_rings))
     if not n_rings or any(n not in (0, 1, 2) for n in n_rings):
         raise ValueError(f"n_rings must be a non-empty subset of (0, 1, 2), got {n_rings!r}")
+    pending = tuple(d if isinstance(d, Membrane) else Membrane.from_array(d) for d in pending)
+    base = pending_deviation(predictor, pending, grid)  # [M], or [1] zeros when none
+    blocked = [(d.n_rings, space.encode(d)) for d in pending]
     key = jax.random.PRNGKey(key) if isinstance(key, (int, np.integer)) else key
 
     from tqdm.auto import tqdm
@@ -380,20 +620,18 @@ def propose(
     for f, k in zip(
         tqdm(fidelities, desc="acquisition (fidelities)", disable=not progress), jax.random.split(key, len(fidelities))
     ):
-        u0 = jax.random.uniform(k, (len(n_rings), n_restarts, q, 6), minval=0.0, maxval=1.0)
+        qf = sizes[f]
+        acq = BatchUncertainty(predictor, jnp.asarray(base), f, grid)
+        u0 = jax.random.uniform(k, (len(n_rings), n_restarts, qf, 6), minval=0.0, maxval=1.0)
         ta = time.perf_counter()
         top = min(int(n_refine), n_restarts)
-        if top < n_restarts:  # screen, then refine the best starts
-            dev0 = np.asarray(_screen_fidelity(predictor, u0, n_arr, f, grid, space))  # [A, R, q, M]
-            util0 = np.nan_to_num(dev0.max(axis=2).sum(axis=2), nan=-np.inf)  # [A, R]
-            order = np.argsort(-util0, axis=1, kind="stable")[:, :top]
-            u0 = jnp.take_along_axis(u0, jnp.asarray(order)[:, :, None, None], axis=1)
-        u_all, dev_all = _optimise_fidelity(predictor, jnp.arcsin(2.0 * u0 - 1.0), n_arr, f, grid, space, int(n_steps))
+        u0 = initial_batches(acq, u0, n_arr, space, top)  # screen, then refine the best starts
+        u_all, dev_all = _optimise(acq, jnp.arcsin(2.0 * u0 - 1.0), n_arr, space, int(n_steps))
         u_all, dev_all = np.asarray(u_all), np.asarray(dev_all)  # [A, top, q, 6], [A, top, q, M]
         wall = time.perf_counter() - ta
         for i, n in enumerate(n_rings):
             u, dev = space.cube_of(u_all[i], n), dev_all[i]  # [top, q, dim], [top, q, M]
-            util = dev.max(axis=1).sum(axis=1)  # [top]
+            util = np.asarray(batch_utility(np.moveaxis(dev, -1, 0), base))  # [top]
             util = np.where(np.isfinite(util), util, -np.inf)
             r = int(np.argmax(util))
             arms.append(
@@ -401,7 +639,7 @@ def propose(
                     "n_rings": n,
                     "fidelity": f,
                     "best_utility_n": float(util[r]),
-                    "best_score": float(util[r] / (q * costs[f])),
+                    "best_score": float(util[r] / (qf * costs[f])),
                     "wall_s": wall / len(n_rings),
                     "screened": n_restarts,
                     "refined": top,
@@ -412,27 +650,63 @@ def propose(
             )
             pool_u += [(n, x) for x in u.reshape(-1, u.shape[-1])]
             pool_dev.append(dev.reshape(-1, dev.shape[-1]))
-            pool_cost.append(np.full(top * q, costs[f]))
-            pool_arm += [f] * (top * q)
+            pool_cost.append(np.full(top * qf, costs[f]))
+            pool_arm += [f] * (top * qf)
 
-    # (a) best joint batch of one arm, (b) cost-benefit greedy mix over the pool.
-    # An arm's joint batch whose designs coincide (MIN_SEPARATION) is one membrane twice: out.
+    # (a) best joint batches of the arms (one arm per fidelity: with a budget, every
+    # combination of one arm per fidelity), (b) cost-benefit greedy mix over the pool. A
+    # joint batch holding one membrane twice, or a pending one (MIN_SEPARATION), is out.
     cands = []
-    for a in arms:
-        units = [(a["n_rings"], x) for x in a["u"]]
+    by_fidelity = [[a for a in arms if a["fidelity"] == f] for f in fidelities]
+    combos = [(a,) for a in arms] if budget is None else itertools.product(*by_fidelity)
+    pending_units = _unit_array(blocked)
+    for combo in combos:
+        units = [(a["n_rings"], x) for a in combo for x in a["u"]]
         arr = _unit_array(units)
-        if not any(_near(arr, j)[:j].any() for j in range(q)):
-            cands.append((units, [a["fidelity"]] * q, a["dev"]))
+        if not any(_near(arr, j)[:j].any() for j in range(q)) and not _near_to(arr, pending_units).any():
+            fids = [a["fidelity"] for a in combo for _ in a["u"]]
+            cands.append((units, fids, np.concatenate([a["dev"] for a in combo])))
     dev_all = np.concatenate(pool_dev)
     dev_all = np.where(np.isfinite(dev_all), dev_all, 0.0)
-    idx = _greedy(dev_all, np.concatenate(pool_cost), q, pool_u)
+    idx = _greedy(
+        dev_all,
+        np.concatenate(pool_cost),
+        q,
+        pool_u,
+        base,
+        blocked,
+        np.asarray(pool_arm),
+        None if budget is None else sizes,
+    )
     cands.append(([pool_u[i] for i in idx], [pool_arm[i] for i in idx], dev_all[idx]))
-    best = max(cands, key=lambda c: c[2].max(axis=0).sum() / sum(costs[f] for f in c[1]))
+
+    def utility_of(dev):
+        return float(batch_utility(dev.T, base))
+
+    best = max(cands, key=lambda c: utility_of(c[2]) / sum(costs[f] for f in c[1]))
     units, fids, dev = best
     designs = tuple(space.decode(np.asarray(x), n) for n, x in units)
-    utility = float(dev.max(axis=0).sum())
+    utility = utility_of(dev)
     cost = float(sum(costs[f] for f in fids))
     scores = tuple(float(dev[j].sum() / costs[fids[j]]) for j in range(q))
+    order, gains, alone = _rank(np.where(np.isfinite(dev), dev, 0.0), base)
+    runs = []
+    for rank, (j, gain) in enumerate(zip(order, gains), start=1):
+        phrase, _ = explain(predictor, designs[j], fids[j], grid)
+        runs.append(
+            Run(rank, designs[j], fids[j], gain, alone[j], float(costs[fids[j]]), _reason(phrase, gain, alone[j], rank))
+        )
     return Proposal(
-        designs, tuple(fids), scores, utility, cost, utility / cost, dev, tuple(arms), time.perf_counter() - t0
+        designs,
+        tuple(fids),
+        scores,
+        utility,
+        cost,
+        utility / cost,
+        dev,
+        tuple(arms),
+        time.perf_counter() - t0,
+        tuple(runs),
+        pending,
+        None if budget is None else sizes,
     )

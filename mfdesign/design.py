@@ -295,6 +295,35 @@ class DesignSpace(eqx.Module):
         """The ``2 + 2 n_rings`` coordinates of a 6-d point that :meth:`decode_unit` reads."""
         return np.asarray(u6, float)[..., _CUBE_SLOTS[int(n_rings)]]
 
+    def encode(self, design: Membrane) -> np.ndarray:
+        """Inverse of :meth:`decode_unit`: the ``2 + 2 n_rings`` unit-cube coordinates of
+        ``design`` (NumPy). A design outside the bounds gets coordinates outside ``[0, 1]``;
+        a coordinate whose range is empty (a fixed feature, ``low == high``) is 0."""
+
+        def frac(x, lo, width):
+            return (x - lo) / width if width > _TOL else 0.0
+
+        n = design.n_rings
+        (t_lo, t_hi), (c_lo, c_hi), (w_lo, w_hi) = self.thickness_mm, self.contact_radius_mm, self.half_width_mm
+        c = design.contact_radius_mm
+        u6 = np.zeros(6)
+        u6[0] = frac(design.thickness_mm, t_lo, t_hi - t_lo)
+        u6[1] = frac(c, c_lo, c_hi - c_lo)
+        # The same walk as decode_any: widths against the room left, then the slack shares.
+        span = self.outer_radius_mm - c - (n + 1) * self.gap_mm
+        room = span - 2 * n * w_lo
+        for k, ring in enumerate(design.rings):
+            u6[2 + k] = frac(ring.half_width_mm, w_lo, min(w_hi - w_lo, room / 2.0))
+            room -= 2.0 * (ring.half_width_mm - w_lo)
+        left = span - 2.0 * sum(r.half_width_mm for r in design.rings)
+        edge = c + self.gap_mm
+        for k, ring in enumerate(design.rings):
+            take = ring.inner_mm - edge
+            u6[4 + k] = frac(take, 0.0, left)
+            left -= take
+            edge = ring.outer_mm + self.gap_mm
+        return self.cube_of(u6, n)
+
     def decode_array(self, u, n_rings: int) -> np.ndarray:
         """:meth:`decode_unit` as a NumPy array (batches of unit-cube points)."""
         return np.asarray(self.decode_unit(u, n_rings))

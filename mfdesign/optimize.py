@@ -72,6 +72,7 @@ from mfdesign.models.trajectory import first_crossing
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.predictor import RIG, AbstractPredictor
 from mfdesign.models.trajectory import P_MAX_PA
+from mfdesign.rig.config import RigConfig
 from mfdesign.units import G_M_S2
 
 __all__ = [
@@ -96,6 +97,9 @@ __all__ = [
     "lift_curves",
     "pressure_curves",
     "check_with_simulator",
+    "limit_flags",
+    "RIG_HEIGHT_MAX_MM",
+    "RIG_PRESSURE_MAX_PA",
 ]
 
 MASSES_N = (1.5 * G_M_S2, 2.5 * G_M_S2, 4.0 * G_M_S2)  # the paper's three masses: 14.715, 24.525, 39.24 N
@@ -433,8 +437,9 @@ def multistart(
     """Minimise ``loss(u)[0]`` over ``[0, 1]^dim`` from ``n_starts`` random starts.
 
     All starts are scored; the best ``n_refine`` (all if None) run ``steps`` projected Adam
-    steps. Returns u (best), loss, per-refined-start final losses and wall times (s; the
-    first call of a shape includes compilation).
+    steps. Returns u (best), loss, per-refined-start final losses and points
+    (``points`` [n_refine, dim]) and wall times (s; the first call of a shape includes
+    compilation).
     """
     enable_x64()  # float64 physics: mfdesign._x64
     for name, v, low in (
@@ -461,7 +466,8 @@ def multistart(
     final = np.asarray(final)
     t2 = time.perf_counter()
     k = int(np.nanargmin(np.where(np.isfinite(final), final, np.nan))) if np.isfinite(final).any() else 0
-    return dict(u=np.asarray(u[k]), loss=float(final[k]), losses=final, screen_s=t1 - t0, refine_s=t2 - t1)
+    u = np.asarray(u)
+    return dict(u=u[k], loss=float(final[k]), losses=final, points=u, screen_s=t1 - t0, refine_s=t2 - t1)
 
 
 # --------------------------------------------------------------------------- result
@@ -472,7 +478,11 @@ class Result:
     ``problem``: "height" or "trajectory"; ``per_rings``: best loss, design and timings per
     ring count; ``prediction``: the winner's targets with mean and member spread;
     ``curves``: predicted trajectories (per force: mean and 5/95 % member band);
-    ``simulator``: the winner checked by the simulator (None if not run).
+    ``simulator``: the winner checked by the simulator (None if not run); ``limits``: why
+    the winner may not be what it seems, in words (a height at the grid's top or above the
+    rig's travel, a pressure at the grid's top or above the rig's limit, a design-space
+    bound or minimum gap reached; :func:`limit_flags`); ``alternatives``: other designs
+    (other starts or ring counts) whose loss is within ``tie_tol`` of the winner's.
     """
 
     problem: str
@@ -484,6 +494,8 @@ class Result:
     curves: dict
     simulator: dict | None = None
     settings: dict = dataclasses.field(default_factory=dict)
+    limits: list = dataclasses.field(default_factory=list)
+    alternatives: list = dataclasses.field(default_factory=list)
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -558,6 +570,110 @@ def _param_dict(params) -> dict:
     return out
 
 
+# The rig's limits (mfdesign.rig.config defaults): the plate's travel and the pressure at
+# which the controller goes to its safe state.
+RIG_HEIGHT_MAX_MM = RigConfig().height_max_mm
+RIG_PRESSURE_MAX_PA = RigConfig().hard_pressure_limit_pa
+# How close (mm) a height, pressure (Pa / 1000) or design number must be to a limit to sit on it.
+_AT_LIMIT = 1e-6
+
+
+def _bound_flags(design: Membrane, space: DesignSpace) -> list[str]:
+    """Design-space bounds and minimum gaps the design sits on (a fixed feature, low ==
+    high, is the caller's choice and not flagged)."""
+    out = []
+    tol = 1e-6
+    for name, value, (lo, hi) in (
+        ("thickness", design.thickness_mm, space.thickness_mm),
+        ("contact radius", design.contact_radius_mm, space.contact_radius_mm),
+        *((f"ring {k} half-width", r.half_width_mm, space.half_width_mm) for k, r in enumerate(design.rings, 1)),
+    ):
+        if hi - lo <= tol:
+            continue
+        if value <= lo + tol * max(1.0, lo):
+            out.append(f"{name} {value:g} mm is at the design space's lower bound {lo:g} mm")
+        elif value >= hi - tol * max(1.0, hi):
+            out.append(f"{name} {value:g} mm is at the design space's upper bound {hi:g} mm")
+    edges = [("the contact disk", design.contact_radius_mm)]
+    for k, r in enumerate(design.rings, 1):
+        if r.inner_mm - edges[-1][1] <= space.gap_mm + tol:
+            out.append(f"ring {k} sits at the {space.gap_mm:g} mm minimum gap from {edges[-1][0]}")
+        edges.append((f"ring {k}", r.outer_mm))
+    if design.rings and space.outer_radius_mm - edges[-1][1] <= space.gap_mm + tol:
+        out.append(f"ring {design.n_rings} sits at the {space.gap_mm:g} mm minimum gap from the clamp")
+    return out
+
+
+def limit_flags(
+    problem: HeightTargets | Waypoints,
+    prediction: dict,
+    design: Membrane,
+    space: DesignSpace,
+    h_grid_top_mm: float = 80.0,
+    p_grid_top_pa: float = 2.0 * P_MAX_PA,
+) -> list[str]:
+    """Why an optimum may be an artefact of a limit, one sentence each: a lift height at the
+    top of the height grid (``h_grid_top_mm``: the force never fell to the load, the true
+    height may be higher) or above the rig's travel (75 mm: cannot be measured); a load not
+    lifted at all; a pressure at the top of the pressure grid (``p_grid_top_pa``: never
+    reached) or above the rig's hard limit (12 kPa); a design-space bound or minimum gap
+    (:func:`_bound_flags`). ``prediction`` is :attr:`Result.prediction`."""
+    out = []
+    F, p = prediction["force_n"], prediction["p_pa"]
+    if isinstance(problem, HeightTargets):
+        for f, pp, h in zip(F, p, prediction["h_mean_force_mm"]):
+            what = f"lift height of {f:.3g} N at {pp / 1e3:.3g} kPa"
+            if h >= h_grid_top_mm - _AT_LIMIT:
+                out.append(
+                    f"{what} is at the {h_grid_top_mm:g} mm top of the height grid "
+                    "(the force never falls to the load there: the true height may be higher)"
+                )
+            elif h > RIG_HEIGHT_MAX_MM:
+                out.append(
+                    f"{what} is {h:.3g} mm, above the rig's {RIG_HEIGHT_MAX_MM:g} mm travel (cannot be measured)"
+                )
+            elif h <= _AT_LIMIT:
+                out.append(f"{what} is 0 mm: the load is not lifted at all")
+    else:
+        for f, pp, h, pm in zip(F, p, problem.h_mm, prediction["p_model_pa"]):
+            what = f"way-point {f:.3g} N at {h:g} mm (target {pp / 1e3:.3g} kPa)"
+            if pm >= p_grid_top_pa - 1e3 * _AT_LIMIT:
+                out.append(f"{what} is never reached below {p_grid_top_pa / 1e3:g} kPa (the top of the pressure grid)")
+            elif pm > RIG_PRESSURE_MAX_PA:
+                out.append(
+                    f"{what} needs {pm / 1e3:.3g} kPa, above the rig's {RIG_PRESSURE_MAX_PA / 1e3:g} kPa pressure limit"
+                )
+            if h > RIG_HEIGHT_MAX_MM:
+                out.append(f"{what} is above the rig's {RIG_HEIGHT_MAX_MM:g} mm travel (cannot be measured)")
+    for pp in sorted(set(p)):
+        if pp > RIG_PRESSURE_MAX_PA:
+            out.append(f"target pressure {pp / 1e3:.3g} kPa is above the rig's {RIG_PRESSURE_MAX_PA / 1e3:g} kPa limit")
+    return out + _bound_flags(design, space)
+
+
+# Two designs of one ring count closer than this in every unit-cube coordinate are one
+# membrane (as acquisition's MIN_SEPARATION): an alternative must differ from the winner.
+ALTERNATIVE_SEPARATION = 0.05
+
+
+def _alternatives(found, best_loss: float, winner, tie_tol: float, limit: int) -> list[dict]:
+    """Other designs within ``tie_tol`` (relative) of the best loss, best first, each a
+    different membrane from the winner and from each other. ``found``: ``(loss, n_rings,
+    cube point, Membrane)`` of every refined start; ``winner``: ``(n_rings, cube point)``."""
+    tol = tie_tol * max(abs(best_loss), 1e-12)
+    kept = [winner]
+    out = []
+    for loss, n, u, design in sorted(found, key=lambda c: c[0]):
+        if not np.isfinite(loss) or loss - best_loss > tol or len(out) >= limit:
+            continue
+        if any(m == n and np.max(np.abs(u - v)) < ALTERNATIVE_SEPARATION for m, v in kept):
+            continue
+        kept.append((n, u))
+        gap = (loss - best_loss) / max(abs(best_loss), 1e-300)
+        out.append(dict(design_key=design.key(), n_rings=int(n), loss=float(loss), gap_pct=100.0 * float(gap)))
+    return out
+
+
 def optimize(
     predictor: AbstractPredictor,
     problem: HeightTargets | Waypoints,
@@ -573,6 +689,8 @@ def optimize(
     check: bool = False,
     sim_params=None,
     progress: bool = True,
+    tie_tol: float = 0.02,
+    n_alternatives: int = 5,
 ) -> Result:
     """Optimise a membrane design for a lift task (the paper's design study).
 
@@ -600,11 +718,15 @@ def optimize(
     - `check`: recompute the winner's lift heights with the simulator.
     - `sim_params`: simulator constants of the check (default the authors').
     - `progress`: progress bars.
+    - `tie_tol`: relative gap to the best loss within which other designs (other starts,
+      other ring counts) are reported as alternatives (default 2 %).
+    - `n_alternatives`: at most this many alternatives.
 
     **Returns:**
 
     A :class:`Result`: the winning design (mm), its loss and predictions with the members'
-    spread, the runner-up per ring count, and the simulator check when asked.
+    spread, the runner-up per ring count, the limits it sits on (:func:`limit_flags`), the
+    near-ties, and the simulator check when asked.
     """
     enable_x64()  # float64 physics: mfdesign._x64
     from tqdm.auto import tqdm
@@ -615,8 +737,10 @@ def optimize(
     height = isinstance(problem, HeightTargets)
     if not height and not isinstance(problem, Waypoints):
         raise TypeError(f"problem must be HeightTargets or Waypoints, got {type(problem).__name__}")
+    if not (isinstance(tie_tol, (int, float)) and math.isfinite(tie_tol) and tie_tol >= 0):
+        raise ValueError(f"tie_tol must be a finite number >= 0, got {tie_tol!r}")
     make = height_loss if height else trajectory_loss
-    per, best = {}, None
+    per, best, found = {}, None, []
     for r in tqdm(rings, desc="optimise (ring counts)", disable=not progress):
         loss = make(predictor, problem, space, r, weights)
         res = multistart(loss, 6, n_starts, steps, lr, n_refine, seed, batch_size)  # padded cube
@@ -629,9 +753,17 @@ def optimize(
             refine_s=res["refine_s"],
             n_finite=int(np.isfinite(res["losses"]).sum()),
         )
+        for loss_k, u_k in zip(res["losses"], res["points"]):
+            found.append((float(loss_k), r, space.cube_of(u_k, r), None if not np.isfinite(loss_k) else u_k))
         if best is None or res["loss"] < best[0]:
             best = (res["loss"], r, design, res["u"])
     loss_val, r, design, u = best
+    ties = [
+        (loss_k, n, cube, Membrane.from_array(np.asarray(space.decode_any(jnp.asarray(u6), n))))
+        for loss_k, n, cube, u6 in found
+        if u6 is not None and loss_k - loss_val <= tie_tol * max(abs(loss_val), 1e-12)
+    ]
+    alternatives = _alternatives(ties, float(loss_val), (r, space.cube_of(u, r)), tie_tol, n_alternatives)
     d = jnp.asarray(design.to_array())
     F = np.asarray(problem.force_n)
     p = np.asarray(problem.p_pa)
@@ -674,9 +806,21 @@ def optimize(
         seed=seed,
         weights=dataclasses.asdict(weights),
         rings=list(rings),
+        tie_tol=tie_tol,
     )
+    limits = limit_flags(problem, pred, design, space)
     return Result(
-        "height" if height else "trajectory", design.key(), r, float(loss_val), per, pred, curves, sim, settings
+        "height" if height else "trajectory",
+        design.key(),
+        r,
+        float(loss_val),
+        per,
+        pred,
+        curves,
+        sim,
+        settings,
+        limits,
+        alternatives,
     )
 
 

@@ -10,7 +10,15 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from mfdesign.acquire import EnsemblePredictor, FunctionPredictor, Grid, SplitPredictor, evaluate, propose
+from mfdesign.acquire import (
+    EnsemblePredictor,
+    FunctionPredictor,
+    Grid,
+    SplitPredictor,
+    evaluate,
+    explain,
+    propose,
+)
 from mfdesign.design import DesignSpace, Membrane
 from mfdesign.models.ensemble import EnsembleConfig, fit_ensemble
 from tiny_models import tiny_ensemble
@@ -265,11 +273,11 @@ def test_screening_scores_random_batches_exactly_and_refines_the_best():
     """With ``n_refine < n_restarts`` the random batches are scored by a forward pass (the
     same deviations ``evaluate`` gives) and only the best are refined: with 0 L-BFGS steps
     the proposal is the best screened batch, and with steps it is at least as good."""
-    from mfdesign.acquire import _screen_fidelity
+    from mfdesign.acquire import BatchUncertainty, _screen
 
     u0 = jax.random.uniform(jax.random.PRNGKey(5), (2, 40, 2, 6))
     n_arr = jnp.asarray([0, 2])
-    dev = np.asarray(_screen_fidelity(PRED, u0, n_arr, "rig", GRID, SPACE))  # [A, R, q, M]
+    dev = np.asarray(_screen(BatchUncertainty(PRED, jnp.zeros(1), "rig", GRID), u0, n_arr, SPACE))  # [A, R, q, M]
     assert dev.shape == (2, 40, 2, M)
     for a, n in enumerate((0, 2)):
         for r in (0, 17, 39):
@@ -283,3 +291,125 @@ def test_screening_scores_random_batches_exactly_and_refines_the_best():
     assert refined.arms[0]["best_utility_n"] >= util[0] - 1e-9
     with pytest.raises(ValueError, match="n_refine"):
         propose(PRED, 2, n_refine=0, **kw)
+
+
+# --------------------------------------------------------------------------- pending, budget, reasons
+SIGNS = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
+CENTRE = np.array([1.2, 1.2, 1.2, 2.8, 2.8, 2.8])
+
+
+def two_camps(d, h, p):
+    """Half the members disagree only at thin membranes (t ~ 1.2 mm), half at thick ones (2.8 mm)."""
+    t = d[:, 0]
+    bump = jnp.exp(-(((t[None, :] - jnp.asarray(CENTRE)[:, None]) / 0.25) ** 2))
+    return jnp.asarray(SIGNS)[:, None] * bump * (1.0 + 0.0 * h[None] + p[None] / 1e4)
+
+
+CAMPS = FunctionPredictor({"rig": two_camps, "sim": two_camps})
+
+
+def test_pending_membranes_count_as_measured():
+    """A thin membrane being built already tells the thin camp from the consensus: one more
+    membrane goes to the thick camp, and the batch utility is ``U(B + P) - U(P)``."""
+    thin = Membrane(1.2, 30.0)
+    prop = propose(CAMPS, 1, n_restarts=24, n_rings=(0,), grid=GRID, n_steps=15, key=0, pending=[thin])
+    assert prop.designs[0].thickness_mm > 2.4, prop.designs
+    assert prop.pending == (thin,) and prop.to_json()["pending"] == [thin.key()]
+    both = evaluate(CAMPS, [thin, prop.designs[0]], ["rig", "rig"], GRID)["utility"]
+    alone = evaluate(CAMPS, [thin], ["rig"], GRID)["utility"]
+    np.testing.assert_allclose(prop.utility, both - alone, rtol=1e-9)
+    np.testing.assert_allclose(evaluate(CAMPS, prop.designs, ["rig"], GRID, pending=[thin])["utility"], prop.utility)
+    assert evaluate(CAMPS, [thin], ["rig"], GRID, pending=[thin])["utility"] == pytest.approx(0.0, abs=1e-12)
+    # with both camps pending, nothing is left to gain and no slot repeats a pending membrane
+    thick = Membrane(2.8, 30.0)
+    prop = propose(CAMPS, 1, n_restarts=24, n_rings=(0,), grid=GRID, n_steps=15, key=0, pending=[thin, thick])
+    d = prop.designs[0]
+    assert min(abs(d.thickness_mm - 1.2), abs(d.thickness_mm - 2.8)) >= 0.1 or abs(d.contact_radius_mm - 30) >= 0.635
+    assert prop.utility == pytest.approx(0.0, abs=1e-6 * alone)
+
+
+def test_budget_gives_each_fidelity_its_runs_ranked_with_reasons():
+    prop = propose(PRED, budget={"rig": 1, "sim": 2}, n_rings=(0,), **SETTINGS)
+    assert sorted(prop.fidelities) == ["rig", "sim", "sim"] and prop.budget == {"rig": 1, "sim": 2}
+    assert prop.cost == pytest.approx(1.02)
+    assert len(prop.fabricate) == 1 and len(prop.simulate) == 2
+    assert [r.rank for r in prop.runs] == [1, 2, 3]
+    assert sum(r.reduction_n for r in prop.runs) == pytest.approx(prop.utility, rel=1e-9)
+    reductions = [r.reduction_n for r in prop.runs]
+    assert reductions[0] == max(r.alone_n for r in prop.runs)  # rank 1: the largest reduction alone
+    for r in prop.runs:
+        assert r.cost == COSTS[r.fidelity] and r.alone_n >= r.reduction_n - 1e-12
+        assert "mm" in r.reason and "kPa" in r.reason and " N" in r.reason
+    out = prop.to_json()
+    assert [r["fidelity"] for r in out["fabricate"]] == ["rig"]
+    assert all(r["made_by"].startswith("the tool") for r in out["simulate"])
+    with pytest.raises(ValueError, match="not both"):
+        propose(PRED, 2, budget={"rig": 1})
+    with pytest.raises(ValueError, match="no run"):
+        propose(PRED, budget={"rig": 0})
+    with pytest.raises(ValueError, match=r"budget\['sim'\]"):
+        propose(PRED, budget={"rig": 1, "sim": -1})
+    with pytest.raises(ValueError, match="not offered"):
+        propose(PRED, budget={"lab": 1})
+
+
+def test_reason_names_where_the_members_disagree():
+    """Members that disagree only at 40 mm and 5 kPa: the reason names that point."""
+
+    def members(d, h, p):
+        spot = (jnp.abs(h - 40.0) < 1e-9) & (jnp.abs(p - 5000.0) < 1e-9)
+        return jnp.asarray(SIGNS)[:, None] * (1.0 + 2.0 * spot[None]) * (d[None, :, 0] + 0.0 * h[None])
+
+    phrase, where = explain(FunctionPredictor({"rig": members}), Membrane(2.0, 30.0), "rig", GRID)
+    assert where["h_mm"] == [40.0] and where["p_pa"] == [5000.0]
+    assert where["std_n"] == pytest.approx(6.0)  # members +-(1 + 2) * 2 mm
+    assert phrase.startswith("at 40 mm, 5 kPa where the members disagree most (member std up to 6 N)")
+
+
+def _split_folder(path):
+    import mfdesign
+
+    mfdesign.enable_x64()
+    tiny_ensemble(seed=0).save(path / "sim")
+    tiny_ensemble(seed=1).save(path / "discrepancy")
+    return path
+
+
+def test_cli_budget_and_pending(tmp_path):
+    from mfdesign.cli import app
+
+    model = _split_folder(tmp_path / "split")
+    pending = "[2.0, 30.0, nan, nan, nan, nan]"
+    args = ["propose", "--model", str(model), "--membranes", "1", "--sim-runs", "1", "--pending", pending]
+    args += ["--rings", "0", "--thickness-mm", "2", "2", "--restarts", "4", "--refine", "2", "--opt-steps", "2"]
+    r = runner.invoke(app, [*args, "--out", str(tmp_path / "o")])
+    assert r.exit_code == 0, _text(r)
+    out = json.loads((tmp_path / "o" / "proposal.json").read_text())
+    assert out["budget"] == {"rig": 1, "sim": 1} and out["pending"] == [pending]
+    assert len(out["fabricate"]) == 1 and len(out["simulate"]) == 1
+    assert all(Membrane.from_key(k).thickness_mm == 2.0 for k in out["designs"])  # the fixed feature
+    text = _text(r)
+    assert "membranes to fabricate:" in text and "simulator runs (to be made by the tool):" in text
+    assert "expected reduction" in text
+
+
+def test_cli_budget_and_bounds_errors_are_one_line(tmp_path):
+    from mfdesign.cli import app
+
+    tiny_ensemble().save(tmp_path / "m")
+    m = ["--model", str(tmp_path / "m")]
+    cases = [
+        ([*m, "--membranes", "1", "--q", "2"], "not both"),
+        ([*m, "--membranes", "0"], "the budget holds no run"),
+        ([*m, "--membranes", "-1"], "--membranes must be an integer >= 0"),
+        ([*m, "--sim-runs", "1"], "offers fidelities ['rig'], not --sim-runs"),
+        ([*m, "--pending", "[2.0, 80.0, nan, nan, nan, nan]"], "--pending"),
+        ([*m, "--thickness-mm", "3", "1"], "--thickness-mm takes LO HI with LO <= HI"),
+        ([*m, "--contact-radius-mm", "20", "30"], "outside the allowed 25.4-38.1 mm"),
+        ([*m, "--contact-radius-mm", "50", "50", "--allow-outside-design-space"], "bounds do not fit"),
+    ]
+    for args, msg in cases:
+        r = runner.invoke(app, ["propose", *args, "--out", str(tmp_path / "o")])
+        text = _text(r).strip()
+        assert r.exit_code == 2, (args, text)
+        assert msg in text and len(text.splitlines()) == 1, (args, text)

@@ -110,3 +110,13 @@ def test_decode_any_reads_the_ring_count_as_data():
         )
     rows = jax.vmap(space.decode_any, in_axes=(None, 0))(jnp.asarray(u[0]), jnp.arange(3))
     assert [Membrane.from_array(np.asarray(r)).n_rings for r in rows] == [0, 1, 2]
+
+
+@pytest.mark.parametrize("n_rings", [0, 1, 2])
+def test_encode_inverts_decode(n_rings):
+    space = DesignSpace()
+    for u in np.random.default_rng(n_rings).uniform(size=(30, space.dim(n_rings))):
+        np.testing.assert_allclose(space.encode(space.decode(u, n_rings)), u, atol=1e-9)
+    fixed = DesignSpace(thickness_mm=(2.0, 2.0))  # a fixed feature has coordinate 0
+    assert fixed.encode(Membrane(2.0, 30.0))[0] == 0.0
+    assert DesignSpace().encode(Membrane(0.5, 30.0))[0] < 0  # outside the bounds: outside the cube

@@ -237,3 +237,99 @@ def test_losses_take_the_padded_cube_and_share_one_structure_across_ring_counts(
         height_loss(toy, TARGET_SETS["A"], SPACE, 1)(jnp.zeros(3))
     with pytest.raises(Exception, match="another ring count"):  # 2 coordinates: 0 rings, not 1
         jax.block_until_ready(eqx.filter_jit(height_loss(toy, TARGET_SETS["A"], SPACE, 1))(jnp.zeros(2)))
+
+
+# --------------------------------------------------------------------------- limits, ties, check
+def test_limit_flags_name_grid_rig_and_design_space_limits():
+    from mfdesign.optimize import limit_flags
+
+    design = Membrane.from_key("[1.0, 30.0, 40.0, 6.0, nan, nan]")  # ring 1 starts 1 mm past the gap
+    targets = HeightTargets([10.0, 20.0, 30.0, 40.0], [5000.0, 5000.0, 13000.0, 5000.0])
+    pred = {"force_n": list(targets.force_n), "p_pa": list(targets.p_pa), "h_mean_force_mm": [80.0, 77.0, 30.0, 0.0]}
+    flags = limit_flags(targets, pred, design, SPACE)
+    text = "\n".join(flags)
+    assert "10 N at 5 kPa is at the 80 mm top of the height grid" in text
+    assert "20 N at 5 kPa is 77 mm, above the rig's 75 mm travel" in text
+    assert "40 N at 5 kPa is 0 mm: the load is not lifted" in text
+    assert "target pressure 13 kPa is above the rig's 12 kPa limit" in text
+    assert "thickness 1 mm is at the design space's lower bound 1 mm" in text
+    assert not any("30 N" in f for f in flags) and not any("contact radius" in f for f in flags)
+    wp = Waypoints([10.0, 20.0], [5000.0, 5000.0], [10.0, 78.0])
+    pred = {"force_n": [10.0, 20.0], "p_pa": [5000.0, 5000.0], "p_model_pa": [20000.0, 12500.0]}
+    gap = Membrane.from_key("[2.0, 30.0, 39.0, 6.0, nan, nan]")  # inner edge 33 mm = disk + 3 mm
+    text = "\n".join(limit_flags(wp, pred, gap, SPACE))
+    assert "never reached below 20 kPa" in text and "needs 12.5 kPa, above the rig's 12 kPa" in text
+    assert "78 mm (target 5 kPa) is above the rig's 75 mm travel" in text
+    assert "ring 1 sits at the 3 mm minimum gap from the contact disk" in text
+    fixed = DesignSpace(thickness_mm=(1.0, 1.0))  # a fixed feature is the caller's choice, not a limit
+    assert not any("thickness" in f for f in limit_flags(wp, pred, design, fixed))
+
+
+def test_optimum_at_design_space_bounds_is_flagged():
+    res = optimize(Toy(), TARGET_SETS["A"], rings=(0,), n_starts=16, steps=20, n_refine=8, progress=False)
+    assert res.design_key == "[1.0, 38.1, nan, nan, nan, nan]"
+    assert res.limits == [
+        "thickness 1 mm is at the design space's lower bound 1 mm",
+        "contact radius 38.1 mm is at the design space's upper bound 38.1 mm",
+    ]
+    assert res.to_json()["limits"] == res.limits and res.alternatives == []
+
+
+class FlatInThickness(AbstractPredictor):
+    """Toy without a thickness effect: every thickness ties with the best."""
+
+    @property
+    def fidelities(self):
+        return ("rig",)
+
+    def members(self, fidelity, d, h, p):
+        f = (d[:, 1] / 25.0) * p / 100.0 - 2.3 * h + 0.0 * d[:, 0]
+        return jnp.stack([f, 1.1 * f])
+
+
+def test_near_ties_are_reported_as_alternatives():
+    res = optimize(FlatInThickness(), TARGET_SETS["A"], rings=(0,), n_starts=16, steps=20, n_refine=8, progress=False)
+    assert res.alternatives, "thickness does not matter: other starts tie"
+    t_best = Membrane.from_key(res.design_key).thickness_mm
+    seen = [t_best]
+    for alt in res.alternatives:
+        assert 0.0 <= alt["gap_pct"] <= 2.0 and alt["loss"] >= res.loss
+        t = Membrane.from_key(alt["design_key"]).thickness_mm
+        assert min(abs(t - s) for s in seen) >= 0.05 * 2.0 - 1e-9  # a different membrane each
+        seen.append(t)
+    assert len(res.alternatives) <= 5 and res.settings["tie_tol"] == 0.02
+    strict = optimize(
+        FlatInThickness(), TARGET_SETS["A"], rings=(0,), n_starts=16, steps=20, n_refine=8, progress=False, tie_tol=0.0
+    )
+    assert all(a["gap_pct"] == 0.0 for a in strict.alternatives)
+    with pytest.raises(ValueError, match="tie_tol"):
+        optimize(FlatInThickness(), TARGET_SETS["A"], rings=(0,), tie_tol=-1.0)
+
+
+def test_cli_checks_by_default_only_when_the_simulator_serves_the_model(tmp_path):
+    from mfdesign.cli.optimize import simulator_for_check
+
+    assert simulator_for_check(tmp_path) == (True, "")
+    (tmp_path / "mf.json").write_text(json.dumps({"physics": "standin", "search_physics": "standin"}))
+    ok, why = simulator_for_check(tmp_path)
+    assert not ok and "standin" in why
+
+
+def test_cli_prints_limits_and_writes_them(tmp_path):
+    import mfdesign
+    from mfdesign.cli import app
+    from tiny_models import tiny_ensemble
+
+    mfdesign.enable_x64()
+    tiny_ensemble().save(tmp_path / "m")
+    args = ["optimize", "--model", str(tmp_path / "m"), "--target-set", "A", "--rings", "0", "--starts", "4"]
+    args += ["--refine", "2", "--opt-steps", "2", "--no-check", "--thickness-mm", "1.5", "2", "--out", str(tmp_path)]
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0, r.output
+    out = json.loads((tmp_path / "optimize.json").read_text())
+    assert isinstance(out["limits"], list) and isinstance(out["alternatives"], list) and out["simulator"] is None
+    assert 1.5 <= Membrane.from_key(out["design_key"]).thickness_mm <= 2.0
+    assert all(f"limit: {f}" in r.output for f in out["limits"])
+    assert "simulator check: not run (asked with --no-check)" in r.output
+    bad = CliRunner().invoke(app, [*args[:-2], "--thickness-mm", "0.5", "2", "--out", str(tmp_path)])
+    assert bad.exit_code == 2 and "--thickness-mm 0.5 2 is outside the allowed 1-3 mm" in bad.output

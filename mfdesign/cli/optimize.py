@@ -4,16 +4,23 @@ Targets: ``--target-set A|B`` (the paper's height-maximisation sets: the three m
 6.9 / 8.3 kPa) or ``--targets FILE``, a CSV or JSON table with columns ``force_n`` and
 ``pressure_pa`` (height maximisation), plus ``height_mm`` (and optionally ``weight``) for
 trajectory targeting through way-points.
+
+The winner is checked by the simulator by default when the exact simulator can serve the
+model (:func:`simulator_for_check`); the output names the limits the winner sits on (grid
+tops, the rig's travel and pressure limit, design-space bounds) and the near-ties.
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Optional
 
 import typer
 
+from mfdesign.cli._app import ALLOW_OUTSIDE
 from mfdesign.cli._contract import item_parser
+from mfdesign.cli._space import CONTACT_RADIUS, HALF_WIDTH, THICKNESS, design_space
 
 
 def read_targets(path: Path):
@@ -70,6 +77,36 @@ def load_model(path: Path):
         raise ValueError(f"cannot load a model from {path}: {err}") from None
 
 
+def simulator_for_check(model: Path) -> tuple[bool, str]:
+    """Whether the exact simulator can check this model's winner, and why not. A model fitted
+    with ``--physics standin`` (``mf.json``) stands for no physics at all: checking its
+    designs against the simulator would compare two unrelated models (and take minutes)."""
+    try:
+        import mfdesign.physics.solve  # noqa: F401
+    except ImportError as err:  # a broken install: say so rather than fail after the search
+        return False, f"the simulator cannot be imported ({err})"
+    meta_path = Path(model) / "mf.json"
+    if meta_path.is_file():
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (ValueError, UnicodeDecodeError):
+            meta = {}
+        physics = meta.get("physics", meta.get("search_physics")) if isinstance(meta, dict) else None
+        if physics == "standin":
+            return False, "the model was fitted with --physics standin (no simulator behind it)"
+    return True, ""
+
+
+def _echo_check(sim: dict) -> None:
+    pairs = ", ".join(
+        f"{'-' if s is None else f'{s:.1f}'} vs {m:.1f}" for s, m in zip(sim["h_sim_mm"], sim["h_model_mm"])
+    )
+    mae = "n/a" if sim["mae_mm"] is None else f"{sim['mae_mm']:.2f} mm"
+    typer.echo(
+        f"simulator check (simulated vs model height, mm): {pairs}; MAE {mae}; status {', '.join(sim['status'])}"
+    )
+
+
 def register(app: typer.Typer) -> None:
     @app.command()
     def optimize(
@@ -86,7 +123,18 @@ def register(app: typer.Typer) -> None:
         refine: int = typer.Option(64, min=0, help="Starts refined by gradient steps (0 = all)."),
         steps: int = typer.Option(100, "--opt-steps", min=0, help="Projected Adam steps per refined start."),
         seed: int = typer.Option(0, help="Random seed of the starts."),
-        check: bool = typer.Option(True, help="Check the winner with the simulator (minutes)."),
+        check: Optional[bool] = typer.Option(
+            None,
+            "--check/--no-check",
+            help="Check the winner with the simulator (minutes). Default: check when the exact simulator can serve the model.",
+        ),
+        thickness_mm: Optional[tuple[float, float]] = THICKNESS,
+        contact_radius_mm: Optional[tuple[float, float]] = CONTACT_RADIUS,
+        half_width_mm: Optional[tuple[float, float]] = HALF_WIDTH,
+        allow_outside_design_space: bool = ALLOW_OUTSIDE,
+        tie_tol: float = typer.Option(
+            0.02, help="Report other designs within this fraction of the best loss as alternatives."
+        ),
     ) -> None:
         """Optimise a membrane: height maximisation or trajectory targeting; JSON + PNG."""
         from mfdesign.cli._app import fail
@@ -101,6 +149,9 @@ def register(app: typer.Typer) -> None:
             )
         if refine > starts:
             fail(f"--refine ({refine}) cannot exceed --starts ({starts})")
+        if not (tie_tol >= 0 and tie_tol < float("inf")):
+            fail(f"--tie-tol must be a finite number >= 0, got {tie_tol}")
+        space = design_space(thickness_mm, contact_radius_mm, half_width_mm, allow_outside_design_space)
         from mfdesign.optimize import TARGET_SETS, optimize, plot
 
         if target_set is not None:
@@ -116,15 +167,19 @@ def register(app: typer.Typer) -> None:
             predictor = load_model(model)
         except ValueError as err:
             fail(str(err))
+        available, why_not = simulator_for_check(model)
+        check = available if check is None else check
         result = optimize(
             predictor,
             problem,
             rings=ring_list,
+            space=space,
             n_starts=starts,
             steps=steps,
             n_refine=refine or None,
             seed=seed,
             check=check,
+            tie_tol=tie_tol,
         )
         out.mkdir(parents=True, exist_ok=True)
         from mfdesign import outputs
@@ -138,3 +193,14 @@ def register(app: typer.Typer) -> None:
             else f"scaled trajectory RMSE {p['traj_rmse']:.3f}"
         )
         typer.echo(f"{result.design_key}: {what}; wrote {out / 'optimize.json'} and {out / 'optimize.png'}")
+        for flag in result.limits:
+            typer.echo(f"limit: {flag}")
+        for alt in result.alternatives:
+            typer.echo(
+                f"alternative: {alt['design_key']} ({alt['n_rings']} ring(s)), loss {alt['loss']:.4g}, "
+                f"{alt['gap_pct']:.2g} % from the best"
+            )
+        if result.simulator is not None:
+            _echo_check(result.simulator)
+        else:
+            typer.echo(f"simulator check: not run ({why_not or 'asked with --no-check'})")

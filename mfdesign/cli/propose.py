@@ -2,17 +2,25 @@
 
 Reads a saved model folder (see :func:`load_predictor`), runs
 :func:`mfdesign.acquire.propose` and writes ``proposal.json`` and ``proposal.png`` (the
-designs' radial layouts and their place in the thickness / contact-radius plane).
+designs' radial layouts and their place in the thickness / contact-radius plane). A
+round's budget is ``--membranes Q --sim-runs S`` (or ``--q`` for a free mix of
+``--fidelity``); ``--pending KEY`` names membranes already being built; the design-space
+options narrow or fix thickness, contact radius and ring half-width. It prints the
+membranes to fabricate, ranked, each with its expected reduction (N), cost and a reason,
+and the simulator runs apart (to be made by the tool, not run here).
 """
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Optional
 
 import typer
 
+from mfdesign.cli._app import ALLOW_OUTSIDE
 from mfdesign.cli._contract import item_parser
+from mfdesign.cli._space import CONTACT_RADIUS, HALF_WIDTH, THICKNESS, design_space
 
 
 def load_predictor(model: Path):
@@ -108,24 +116,57 @@ def register(app: typer.Typer) -> None:
     @app.command()
     def propose(
         model: Path = typer.Option(..., help="Model folder: 'mfdesign fit' output, or sim/ + discrepancy/ ensembles."),
-        q: int = typer.Option(2, help="Batch size (designs to propose)."),
-        fidelity: list[str] = typer.Option(["rig"], help="Fidelities to choose from (repeat): rig, sim."),
+        q: Optional[int] = typer.Option(
+            None, help="Batch size, a free mix of --fidelity (default 2; or give --membranes / --sim-runs)."
+        ),
+        membranes: Optional[int] = typer.Option(
+            None, "--membranes", help="Budget: membranes to fabricate this round (rig runs)."
+        ),
+        sim_runs: Optional[int] = typer.Option(
+            None, "--sim-runs", help="Budget: simulator planes the tool makes this round (needs a sim fidelity)."
+        ),
+        pending: list[str] = typer.Option(
+            [],
+            "--pending",
+            help='A membrane already being built, "[t, c, r1, w1, r2, w2]" mm (repeat): counted as measured.',
+        ),
+        fidelity: Optional[list[str]] = typer.Option(
+            None, help="Fidelities to choose from with --q (repeat): rig, sim. Default: rig."
+        ),
         cost_rig: float = typer.Option(1.0, help="Cost of one rig membrane (e.g. days)."),
         cost_sim: float = typer.Option(0.01, help="Cost of one simulator plane, same unit."),
         rings: list[int] = typer.Option(
             [0, 1, 2], parser=item_parser(int, "a ring count"), help="Ring counts to search (repeat): 0, 1, 2."
         ),
+        thickness_mm: Optional[tuple[float, float]] = THICKNESS,
+        contact_radius_mm: Optional[tuple[float, float]] = CONTACT_RADIUS,
+        half_width_mm: Optional[tuple[float, float]] = HALF_WIDTH,
+        allow_outside_design_space: bool = ALLOW_OUTSIDE,
         restarts: int = typer.Option(1000, help="Random batches scored per ring count and fidelity."),
         refine: int = typer.Option(32, help="Best scored batches refined by L-BFGS."),
         steps: int = typer.Option(20, "--opt-steps", help="L-BFGS iterations per refined batch."),
         seed: int = typer.Option(0, help="Random seed of the restarts."),
         out: Path = typer.Option(Path("out/propose"), help="Output folder (proposal.json, proposal.png)."),
     ) -> None:
-        """Propose the next q membranes: max uncertainty reduction per cost (Campbell et al. 2025 for rig only)."""
+        """Propose the next membranes to fabricate (and simulator runs to make): max uncertainty reduction per cost."""
         from mfdesign.cli._app import fail
 
-        if q < 1:
-            fail(f"--q must be an integer >= 1, got {q}")
+        budget = None
+        if membranes is not None or sim_runs is not None:
+            if q is not None or fidelity is not None:
+                fail("give --q/--fidelity (a free mix) or --membranes/--sim-runs (a fixed budget), not both")
+            for name, k in (("membranes", membranes), ("sim-runs", sim_runs)):
+                if k is not None and k < 0:
+                    fail(f"--{name} must be an integer >= 0, got {k}")
+            budget = {"rig": membranes or 0, "sim": sim_runs or 0}
+            if sum(budget.values()) < 1:
+                fail("the budget holds no run: give --membranes >= 1 or --sim-runs >= 1")
+            fidelity = [f for f, k in budget.items() if k > 0]
+        else:
+            q = 2 if q is None else q
+            fidelity = ["rig"] if fidelity is None else fidelity
+            if q < 1:
+                fail(f"--q must be an integer >= 1, got {q}")
         if restarts < 1:
             fail(f"--restarts must be >= 1, got {restarts}")
         if refine < 1:
@@ -141,6 +182,15 @@ def register(app: typer.Typer) -> None:
         for name, c in (("cost-rig", cost_rig), ("cost-sim", cost_sim)):
             if not (math.isfinite(c) and c > 0):
                 fail(f"--{name} must be a positive finite number, got {c}")
+        space = design_space(thickness_mm, contact_radius_mm, half_width_mm, allow_outside_design_space)
+        from mfdesign.design import DesignError, Membrane
+
+        built = []
+        for key in pending:
+            try:
+                built.append(Membrane.from_key(key))
+            except DesignError as err:
+                fail(f"--pending {key!r}: {err}")
 
         from mfdesign.acquire import propose as run_propose
 
@@ -150,14 +200,15 @@ def register(app: typer.Typer) -> None:
             fail(str(err))
         missing = [f for f in fidelity if f not in predictor.fidelities]
         if missing:
+            what = "--sim-runs" if budget is not None else f"{missing[0]!r}"
             fail(
-                f"the model in {model} offers fidelities {list(predictor.fidelities)}, not {missing[0]!r} "
+                f"the model in {model} offers fidelities {list(predictor.fidelities)}, not {what} "
                 "(the sim fidelity needs a fit-mf folder or a sim/ + discrepancy/ model folder)"
             )
         try:
             proposal = run_propose(
                 predictor,
-                q,
+                q if budget is None else None,
                 fidelities=tuple(fidelity),
                 costs={"rig": cost_rig, "sim": cost_sim},
                 n_restarts=restarts,
@@ -166,14 +217,28 @@ def register(app: typer.Typer) -> None:
                 n_steps=steps,
                 key=seed,
                 progress=True,
+                space=space,
+                budget=budget,
+                pending=built,
             )
         except ValueError as err:
             fail(str(err))
         out.mkdir(parents=True, exist_ok=True)
         proposal.save(out / "proposal.json")
-        plot_proposal(proposal, out / "proposal.png")
-        for d, f, s in zip(proposal.designs, proposal.fidelities, proposal.scores):
-            typer.echo(f"{f}: {d.key()}  score {s:.4g}")
+        plot_proposal(proposal, out / "proposal.png", space)
+        for title, runs in (
+            ("membranes to fabricate", proposal.fabricate),
+            ("simulator runs (to be made by the tool)", proposal.simulate),
+        ):
+            if not runs:
+                continue
+            typer.echo(f"{title}:")
+            for r in runs:
+                typer.echo(
+                    f"  {r.rank}. {r.design.key()}  expected reduction {r.reduction_n:.4g} N, cost {r.cost:g}: {r.reason}"
+                )
+        if proposal.pending:
+            typer.echo(f"pending (counted as measured): {', '.join(d.key() for d in proposal.pending)}")
         typer.echo(
             f"utility {proposal.utility:.4g} N, cost {proposal.cost:g}, score {proposal.score:.4g}; "
             f"wrote {out / 'proposal.json'} and {out / 'proposal.png'}"
