@@ -137,7 +137,7 @@ def main():
         t_base = fold_clock.elapsed() - t_fit
         for name, model in zip(names, (paper, calibrated, ens, curve, fit.mf.thinned(args.draws))):
             if isinstance(model, MultiFidelity):
-                dat = model.data_for(None, None, None, table=te)
+                dat = model.data_for(None, None, None, table=test)  # the floating rule runs once, on whole trials
                 mean, lo, hi = model.interval(dat, 0.9, key=args.seed)
             else:
                 mu_tr, sd_tr = predict_mean_std(model, a["design"], a["height_mm"], a["pressure_pa"])

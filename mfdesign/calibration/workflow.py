@@ -174,7 +174,7 @@ def fit_multi_fidelity(
     x_ref = post.median()
     used = table.subset(list(data.design_keys))
     full = CalibrationData.from_measurements(used, max_rows=None, design_keys=data.design_keys)
-    delta = fit_discrepancy(model, x_ref, lifted_rows(used), data.design_keys, cfg, key=seed, progress=progress)
+    delta = fit_discrepancy(model, x_ref, used, data.design_keys, cfg, key=seed, progress=progress)
     resid = np.asarray(full.force_n - model.expected_force(x_ref, full))
     d_mean = np.asarray(delta.predict(full.design, full.rows.h_mm, full.rows.p_pa)).mean(0)
     w = np.asarray(full.weight)

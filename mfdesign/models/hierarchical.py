@@ -376,25 +376,26 @@ class HierarchicalModel(eqx.Module):
 def fit_discrepancy(
     model: HierarchicalModel, x_ref, table, design_keys: Sequence[str], config, *, key=0, progress=False
 ):
-    """The discrepancy delta: an RPN ensemble fitted to ``F - E(x_ref)`` over all rows of
-    ``table`` (Measurements of the calibrated membranes; ``design_keys`` in the
+    """The discrepancy delta: an RPN ensemble fitted to ``F - E(x_ref)`` over the rows of
+    ``table`` that calibration uses (Measurements of the calibrated membranes, as measured:
+    the floating-lift rule needs whole trials; ``design_keys`` in the
     calibration's order, so that each row gets its membrane's latent thickness), with
     ``x_ref`` the MAP or posterior median (physical). Use a non-monotone ``config``:
     residuals need not grow with pressure. Returns the fitted ensemble."""
     enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.models.ensemble import fit_ensemble
 
+    # the rows are the calibration's own (floating lift rows: the rule runs once, on whole trials)
     data = CalibrationData.from_measurements(table, max_rows=None, design_keys=design_keys)
     resid = np.asarray(data.force_n - model.expected_force(jnp.asarray(x_ref), data))
     ok = np.isfinite(resid)
-    a = table.arrays()
     return fit_ensemble(
         config,
-        a["design"][ok],
-        a["height_mm"][ok],
-        a["pressure_pa"][ok],
+        np.asarray(data.design)[ok],
+        np.asarray(data.rows.h_mm)[ok],
+        np.asarray(data.rows.p_pa)[ok],
         resid[ok],
-        a["weight"][ok],
+        np.asarray(data.weight)[ok],
         key=key,
         progress=progress,
     )
