@@ -167,6 +167,25 @@ def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
     plt.close(fig)
 
 
+def _because(p: dict) -> str:
+    """The one-sentence reason of a ranked run, with its expected reduction and cost."""
+    if "reason" not in p:  # a summary written before runs carried reasons
+        return "reason not recorded"
+    return f"because it {p['reason']} (cost {p['cost']:g})"
+
+
+def _run_json(run) -> dict:
+    """A ranked run of a proposal for summary.json (what the report shows)."""
+    return {
+        "design": run.design.key(),
+        "fidelity": run.fidelity,
+        "rank": run.rank,
+        "reduction_n": run.reduction_n,
+        "cost": run.cost,
+        "reason": run.reason,
+    }
+
+
 def _proposal_figure(meas, proposal, path: Path) -> None:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.5, 4))
@@ -310,7 +329,7 @@ def demo_report(out: str | Path, summary: dict):
     rep.summary = [
         f"{summary['rows']} rows of {summary['membranes']} membranes from {Path(summary['data']).name}.",
         verdict + (f" (Hidden truth: {hidden}.)" if hidden else ""),
-        "Proposed next: " + "; ".join(f"{_short(p['design'])} ({p['fidelity']})" for p in proposals) + ".",
+        "Build next (ranked): " + "; ".join(f"{_short(p['design'])} ({p['fidelity']})" for p in proposals) + ".",
         f"Optimised for lift task A: {_short(summary['optimum']['design'])}.",
     ]
     rep.add(
@@ -406,12 +425,33 @@ def demo_report(out: str | Path, summary: dict):
             ],
             table=_truth_table(summary["truth_check"], post1),
         )
+    sims = summary.get("simulator_runs") or []
     rep.add(
-        "Next membranes",
-        [f"{_short(p['design'])}: {p['fidelity']}" for p in proposals],
+        "Next membranes to build",
+        [
+            "Ranked by the expected reduction of the predictive spread over the height-pressure grid, "
+            "after the membranes ranked above them; each with why."
+        ]
+        + [line for p in proposals for line in (f"{_short(p['design'])}: {p['fidelity']}", _because(p))]
+        + (
+            ["Simulator runs the tool makes itself (no one builds these):"]
+            + [f"{_short(p['design'])}: {p['fidelity']} ({_because(p)})" for p in sims]
+            if sims
+            else []
+        ),
         images=[(out / "propose" / "proposals.png", "proposals in the design space")],
     )
-    rep.add("Optimised membrane for lift task A", [], images=[(out / "optimize" / "optimum.png", "predicted lift")])
+    opt = summary["optimum"]
+    rep.add(
+        "Optimised membrane for lift task A",
+        [f"At a limit: {why}" for why in opt.get("limits") or []]
+        + (
+            ["Near-ties (within 2 % of the best loss): " + "; ".join(map(_short, opt["alternatives"]))]
+            if opt.get("alternatives")
+            else []
+        ),
+        images=[(out / "optimize" / "optimum.png", "predicted lift")],
+    )
     return rep
 
 
@@ -557,12 +597,11 @@ def run_demo(
 
     # 5. propose the next membranes
     DEMO_GRID = Grid(h_mm=(0.0, 20.0, 40.0, 60.0), p_pa=(2000.0, 4000.0, 6000.0, 8000.0))
-    with log.stage("propose the next 2 membranes (rig or simulator)"):
+    with log.stage("propose 2 membranes to build and 1 simulator run"):
         predictor = search_mf.predictor(s.design_draws)
         proposal = propose(
             predictor,
-            2,
-            fidelities=("rig", "sim"),
+            budget={"rig": 2, "sim": 1},
             n_restarts=s.propose_restarts,
             n_steps=s.propose_steps,
             grid=DEMO_GRID,
@@ -572,7 +611,9 @@ def run_demo(
         (out / "propose").mkdir(exist_ok=True)
         outputs.write_text(out / "propose" / "proposal.json", json.dumps(proposal.to_json(), indent=1, default=str))
         _proposal_figure(meas, proposal, out / "propose" / "proposals.png")
-    summary["proposals"] = [{"design": m.key(), "fidelity": f} for m, f in zip(proposal.designs, proposal.fidelities)]
+    # membranes a person builds, ranked, each with why; simulator runs are the tool's own work
+    summary["proposals"] = [_run_json(r) for r in proposal.fabricate]
+    summary["simulator_runs"] = [_run_json(r) for r in proposal.simulate]
 
     # 6. optimise a membrane for a lift task
     with log.stage("optimise a membrane for lift task A (height maximisation)"):
@@ -589,7 +630,12 @@ def run_demo(
         (out / "optimize").mkdir(exist_ok=True)
         plot_optimum(result, out / "optimize" / "optimum.png", title="lift task A")
         outputs.write_text(out / "optimize" / "optimum.json", json.dumps(result.to_json(), indent=1, default=str))
-    summary["optimum"] = {"design": result.design_key, "task": "A"}
+    summary["optimum"] = {
+        "design": result.design_key,
+        "task": "A",
+        "limits": list(result.limits),
+        "alternatives": [a["design_key"] for a in result.alternatives],
+    }
 
     # 7. report: rendered from the stages' JSON (summary, diagnose/diagnosis.json) and the
     # pictures on disk, so that every number on the page is one a sub-report holds.

@@ -86,8 +86,13 @@ def assert_page_shows_the_numbers(lines: list[str], out: Path) -> None:
         )
     for name, c in (summary.get("truth_check") or {}).items():
         assert f"{_num(c['q05'])} to {_num(c['q95'])}" in text and name in text
-    for p in summary["proposals"]:
+    for p in summary["proposals"]:  # membranes to build, each with why
         assert f"{_short(p['design'])}: {p['fidelity']}" in lines
+        assert f"because it {p['reason']} (cost {p['cost']:g})" in lines
+    for p in summary.get("simulator_runs") or []:
+        assert f"{_short(p['design'])}: {p['fidelity']} (because it {p['reason']} (cost {p['cost']:g}))" in lines
+    for why in summary["optimum"].get("limits") or []:
+        assert f"At a limit: {why}" in lines
     assert f"Optimised for lift task A: {_short(summary['optimum']['design'])}." in lines
     assert ", ".join(f"{n} {c:.2f}" for n, c in summary["coverage_90"].items()) in text
 
@@ -110,7 +115,7 @@ def test_quick_demo_writes_a_report_chromium_can_show(tmp_path):
         assert [r["parameter"] for r in truths["table"]] == list(summary["truth_check"])
     if not all(c["converged"] for c in summary["convergence"].values()):
         assert any("has not converged" in b for b in report["banners"])
-    assert all(p["fidelity"] in ("rig", "sim") for p in summary["proposals"])
+    assert all(p["fidelity"] == "rig" and p["reason"] for p in summary["proposals"])  # to build, with why
     # Both fits reach ArviZ and Posterior.load in physical units (mu in Pa, J_m > 1).
     import arviz as az
 
