@@ -178,7 +178,12 @@ def fit_multi_fidelity(
     resid = np.asarray(full.force_n - model.expected_force(x_ref, full))
     d_mean = np.asarray(delta.predict(full.design, full.rows.h_mm, full.rows.p_pa)).mean(0)
     w = np.asarray(full.weight)
-    noise = float(np.sqrt(np.average((resid - d_mean) ** 2, weights=w)))
+    # rows the simulator has no value for (NOT_CONVERGED at the posterior's constants) carry
+    # no residual: one NaN row must not make the predictive's noise, hence every interval, NaN
+    ok = np.isfinite(resid) & np.isfinite(d_mean)
+    if not ok.any():
+        raise ValueError("no calibrated row has a finite residual: the force model has no value at the posterior")
+    noise = float(np.sqrt(np.average((resid[ok] - d_mean[ok]) ** 2, weights=w[ok])))
     mf = MultiFidelity.from_posterior(model, post, delta, noise_n=noise, seed=seed)
     return MFFit(model, post, delta, noise, mf, tuple(data.design_keys))
 
