@@ -1,0 +1,49 @@
+"""One calibrated row the force model has no value for must not make every interval NaN."""
+
+from __future__ import annotations
+
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+
+from mfdesign.models.force import ForceModel
+from mfdesign.models.standin import standin_force
+from mfdesign.physics.params import SimParams
+
+
+class _HoleAt60mm(ForceModel):
+    """The stand-in with no value above 60 mm (like the simulator's NOT_CONVERGED points)."""
+
+    name = "standin-with-a-hole"
+
+    def __call__(self, design, h_mm, p_pa, params: SimParams = SimParams()):
+        f = standin_force(design, h_mm, p_pa, params)
+        return jnp.where(jnp.asarray(h_mm) > 60.0, jnp.nan, f)
+
+
+def test_predictive_noise_and_intervals_stay_finite_beside_a_row_without_value():
+    from test_calibrate import virtual_data
+
+    from mfdesign.calibration.workflow import fit_multi_fidelity
+    from mfdesign.models.ensemble import EnsembleConfig
+
+    table, _ = virtual_data()
+    assert (table.df["height_mm"] > 60.0).any()  # the hole is hit by some calibrated rows
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = fit_multi_fidelity(
+            table,
+            _HoleAt60mm(),
+            ("pressure_sensor",),
+            n_steps=60,
+            max_rows=200,
+            ensemble_config=EnsembleConfig(n_members=2, steps=20, monotone=False),
+            progress=False,
+        )
+    assert np.isfinite(fit.noise_n) and fit.noise_n > 0
+    mf = fit.mf.thinned(4)
+    data = mf.data_for(None, None, None, table=table)
+    mean, lo, hi = (np.asarray(a) for a in mf.interval(data, 0.9, key=0))
+    low = np.asarray(data.rows.h_mm) <= 60.0
+    assert np.isfinite(mean[low]).all() and np.isfinite(lo[low]).all() and np.isfinite(hi[low]).all()
