@@ -204,7 +204,7 @@ def main():
         emu,
         tuple(args.effects),
         n_steps=args.steps,
-        n_walkers=args.walkers,
+        n_walkers=None,  # all seven membranes: one more latent than a fold; the default max(32, 2 dim + 2)
         max_rows=args.max_rows,
         ensemble_config=EnsembleConfig(n_members=2, steps=10, monotone=False),
         seed=args.seed,
