@@ -216,6 +216,12 @@ def _copy(src: Path, dst: Path) -> Path:
 
 
 # -- the cases --------------------------------------------------------------------------
+def _propose_case(label: str, model: Path, out: Path) -> tuple:
+    """A cheap ``propose`` on a (possibly corrupted) model folder: name, args, inputs, env, out."""
+    args = ["propose", "--model", model, "--q", 1, "--restarts", 2, "--refine", 1, "--opt-steps", 0, "--out", out]
+    return (label, args, [model], None, out)
+
+
 def category_cases(v: Path, w: Path):
     """(name, args, inputs, env, out) for each category the issue lists."""
     import pandas as pd
@@ -350,29 +356,7 @@ def category_cases(v: Path, w: Path):
                 w / f"od_{ens.name}",
             )
         )
-        cases.append(
-            (
-                f"{ens.name} -> propose",
-                [
-                    "propose",
-                    "--model",
-                    ens,
-                    "--q",
-                    1,
-                    "--restarts",
-                    2,
-                    "--refine",
-                    1,
-                    "--opt-steps",
-                    0,
-                    "--out",
-                    w / f"op_{ens.name}",
-                ],
-                [ens],
-                None,
-                w / f"op_{ens.name}",
-            )
-        )
+        cases.append(_propose_case(f"{ens.name} -> propose", ens, w / f"op_{ens.name}"))
         cases.append(
             (
                 f"{ens.name} -> optimize",
@@ -406,29 +390,7 @@ def category_cases(v: Path, w: Path):
     list_mf = _copy(v / "mf", w / "mf_list")
     (list_mf / "posterior.json").write_text("[]")
     for mf in (nan_mf, list_mf):
-        cases.append(
-            (
-                f"{mf.name} -> propose",
-                [
-                    "propose",
-                    "--model",
-                    mf,
-                    "--q",
-                    1,
-                    "--restarts",
-                    2,
-                    "--refine",
-                    1,
-                    "--opt-steps",
-                    0,
-                    "--out",
-                    w / f"op_{mf.name}",
-                ],
-                [mf],
-                None,
-                w / f"op_{mf.name}",
-            )
-        )
+        cases.append(_propose_case(f"{mf.name} -> propose", mf, w / f"op_{mf.name}"))
     bad_chain = _copy(v / "mf", w / "chain_bad")
     (bad_chain / "chain.h5").write_bytes((v / "mf" / "chain.h5").read_bytes()[:2000])
     cases.append(
@@ -485,29 +447,7 @@ def mutation_cases(v: Path, w: Path, n: int, seed: int = 0):
         for name, b in mutations((v / "mf" / fname).read_bytes(), rng, max(1, n // 2)):
             mf = _copy(v / "mf", w / f"mf_{fname}_{name}")
             (mf / fname).write_bytes(b)
-            cases.append(
-                (
-                    f"{fname} {name} -> propose",
-                    [
-                        "propose",
-                        "--model",
-                        mf,
-                        "--q",
-                        1,
-                        "--restarts",
-                        2,
-                        "--refine",
-                        1,
-                        "--opt-steps",
-                        0,
-                        "--out",
-                        w / f"opm_{fname}_{name}",
-                    ],
-                    [mf],
-                    None,
-                    w / f"opm_{fname}_{name}",
-                )
-            )
+            cases.append(_propose_case(f"{fname} {name} -> propose", mf, w / f"opm_{fname}_{name}"))
     for name, b in mutations((v / "mf" / "chain.h5").read_bytes(), rng, n):
         out = _copy(v / "mf", w / f"ch_{name}")
         (out / "chain.h5").write_bytes(b)
