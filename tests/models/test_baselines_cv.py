@@ -167,3 +167,18 @@ def test_trajectory_error_is_zero_for_an_exact_model():
     table_, summary = trajectory_errors(LinearForce(), wp)
     assert summary[key]["traj_rmse_p"] < 1e-9
     assert summary[key]["traj_rmse_dist"] < 1e-9
+
+
+def test_measured_waypoint_is_the_last_crossing_before_the_top_not_a_resting_spike():
+    from mfdesign.models.trajectory import measured_waypoints
+
+    # resting plate (1-3 mm) with one 6 mm spike at 2.0 kPa, lift-off at 4 kPa, top at 60 mm;
+    # stored top-down as the real files store some trials
+    p = np.array([1000, 1500, 2000, 2500, 3000, 4000, 4100, 4200, 4300], float)
+    h = np.array([1.0, 2.0, 6.0, 2.0, 3.0, 4.0, 20.0, 45.0, 60.0])
+    df = pd.DataFrame(
+        dict(design_key="k", trial=0, experiment="lift", force_n=14.715, height_mm=h[::-1], pressure_pa=p[::-1])
+    )
+    wp = measured_waypoints(df, heights=(5.0, 40.0, 70.0))
+    np.testing.assert_allclose(wp["p_pa"].to_numpy()[:2], [4000 + 100 / 16, 4100 + 100 * 20 / 25])
+    assert np.isnan(wp["p_pa"].iloc[2])  # never reached
