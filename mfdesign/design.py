@@ -393,3 +393,30 @@ def check_design_space(design: Membrane, allow_outside: bool = False, what: str 
             raise DesignError(f"{err} ({WIDEN_OPTION} widens this to {RESEARCH_SPACE.describe()})") from None
     RESEARCH_SPACE.check(design, what)
     return True
+
+
+# Scales of the geometry features: the product space's extents (thickness 1-3 mm, disk
+# 25.4-38.1 mm, a ring's centre anywhere from the disk to the clamp, half-width 5-13 mm),
+# so that one unit is "the whole range" of each feature.
+_FEATURE_SCALE_MM = (2.0, 12.7, 44.6, 8.0)
+
+
+def membrane_features(design):
+    """Geometry features [..., 8] of design arrays [..., 6] (mm, NaN = no ring; JAX,
+    traceable): thickness and disk radius over their product ranges, then per ring slot its
+    presence (0 or 1) and, when present, its centre radius and half-width over their
+    ranges. The Euclidean distance between two membranes' features is how far apart the
+    lab would call them: 1 is a ring more or less, or a feature moved over its whole range.
+    """
+    d = jnp.asarray(design, dtype=jnp.float64)
+    st, sc, sr, sw = _FEATURE_SCALE_MM
+    cols = [d[..., 0] / st, d[..., 1] / sc]
+    for k in range(MAX_RINGS):
+        r, w = d[..., 2 + 2 * k], d[..., 3 + 2 * k]
+        present = ~(jnp.isnan(r) | jnp.isnan(w))
+        cols += [
+            present.astype(d.dtype),
+            jnp.where(present, r, 0.0) / sr,
+            jnp.where(present, w, 0.0) / sw,
+        ]
+    return jnp.stack(cols, axis=-1)

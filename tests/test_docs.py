@@ -106,7 +106,7 @@ def test_every_doc_command_runs(tmp_path):
     bindir = str(Path(sys.executable).parent)
     env["PATH"] = bindir + os.pathsep + env.get("PATH", "")
     for path, command in ALL:
-        if "run by tests/" in command:  # needs a second terminal (rig + emulator): its own test runs it
+        if "run by tests/" in command:  # its own test runs it (a second terminal, or the real data)
             continue
         t0 = time.perf_counter()
         r = subprocess.run(command, shell=True, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1800)

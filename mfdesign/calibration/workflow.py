@@ -82,7 +82,7 @@ def model_for(force_model, design_keys: Sequence[str], effects=(), **kwargs):
 @dataclasses.dataclass(frozen=True)
 class MFFit:
     """A fitted multi-fidelity model: hierarchical ``model``, ``posterior``, discrepancy
-    ``delta`` (RPN ensemble), residual noise ``noise_n`` [N], predictive ``mf``."""
+    ``delta`` (gated RPN ensemble, :class:`~mfdesign.models.discrepancy.Discrepancy`), residual noise ``noise_n`` [N], predictive ``mf``."""
 
     model: object
     posterior: object
@@ -112,8 +112,10 @@ def fit_multi_fidelity(
 
     emcee samples mu [Pa], J_m, the membranes' thickness latents and the parameters of
     ``effects`` (:func:`~mfdesign.calibration.mcmc.calibrate`); an ensemble of randomised
-    prior networks (delta) is trained on the residuals at the posterior median; the
-    predictive combines posterior draws with the ensemble members.
+    prior networks (delta) is trained on the residuals at the posterior median, gated by
+    the distance to the training membranes with a length scale and a prior spread chosen
+    by leave-one-membrane-out (:mod:`mfdesign.models.discrepancy`); the predictive
+    combines posterior draws with the discrepancy's draws.
 
     **Arguments:**
 
@@ -176,7 +178,7 @@ def fit_multi_fidelity(
     full = CalibrationData.from_measurements(used, max_rows=None, design_keys=data.design_keys)
     delta = fit_discrepancy(model, x_ref, used, data.design_keys, cfg, key=seed, progress=progress)
     resid = np.asarray(full.force_n - model.expected_force(x_ref, full))
-    d_mean = np.asarray(delta.predict(full.design, full.rows.h_mm, full.rows.p_pa)).mean(0)
+    d_mean = np.asarray(delta.mean(full.design, full.rows.h_mm, full.rows.p_pa))
     w = np.asarray(full.weight)
     # rows the simulator has no value for (NOT_CONVERGED at the posterior's constants) carry
     # no residual: one NaN row must not make the predictive's noise, hence every interval, NaN
@@ -211,8 +213,8 @@ def load_multi_fidelity(folder) -> MFFit:
     from pathlib import Path
 
     from mfdesign.calibration.posterior import Posterior
-    from mfdesign.models.ensemble import Ensemble
     from mfdesign.errors import InputError, one_line
+    from mfdesign.models.discrepancy import Discrepancy
     from mfdesign.models.predictive import MultiFidelity
 
     folder = Path(folder)
@@ -249,7 +251,7 @@ def load_multi_fidelity(folder) -> MFFit:
             f"({list(model.names)}) of effects {effects} on {simulator!r}"
         )
     try:
-        delta = Ensemble.load(folder / "delta")
+        delta = Discrepancy.load(folder / "delta")
     except FileNotFoundError as err:
         raise InputError(f"{folder}: {err}") from None
     mf = MultiFidelity.from_posterior(model, post, delta, noise_n=noise)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import inspect
 import json
+import math
 from pathlib import Path
 from typing import Annotated, List, Optional
 
@@ -177,16 +178,22 @@ def _run(
                     "likelihood": likelihood,
                     "train_rmse_n": cov["rmse_n"],
                     "train_coverage90": cov["coverage"],
+                    # how far the discrepancy reaches beyond its membranes (leave-one-membrane-out)
+                    "discrepancy_gate": {"length": _finite_or_none(fit.delta.length), "sigma_n": fit.delta.sigma_n},
                 },
                 indent=2,
             ),
         )
         typer.echo(
             f"multi-fidelity: residual noise {fit.noise_n:.3f} N; training RMSE {cov['rmse_n']:.3f} N, "
-            f"90 % coverage {cov['coverage']:.2f}"
+            f"90 % coverage {cov['coverage']:.2f}; {fit.delta.describe()}"
         )
         written.update(delta=str(out / "delta"), mf=str(out / "mf.json"))
     typer.echo(json.dumps(written))
+
+
+def _finite_or_none(x: float):
+    return x if math.isfinite(x) else None
 
 
 # Options both commands take, declared once (typer reads them as parameter defaults).

@@ -412,7 +412,7 @@ def _optimiser(cfg: EnsembleConfig):
 def _loss(trainable, static_model, data, idx):
     """Sum over members of the weighted Huber loss on each member's own minibatch.
 
-    ``data`` = (features, prior outputs [members, n], F / s_F, weights): the features and
+    ``data`` = (features, prior outputs [members, n], F / s_F, weights [members, n]): the features and
     the frozen priors' outputs do not change in training, so they are computed once per fit
     (the prior's forward pass would otherwise cost a quarter of every step). ``idx``
     [members, batch]; the members' parameters are disjoint, so the gradient of the sum is
@@ -421,13 +421,13 @@ def _loss(trainable, static_model, data, idx):
     feats, prior_out, f, w = data
     delta = static_model.config.huber_delta_n / static_model.norm.f_scale
 
-    def member_loss(net, prior_row, rows):
+    def member_loss(net, prior_row, w_row, rows):
         x = jax.tree.map(lambda a: a[rows], feats)
         pred = jax.vmap(net)(*x) + prior_row[rows]
         err = optax.huber_loss(pred, f[rows], delta=delta)
-        return jnp.mean(w[rows] * err)
+        return jnp.mean(w_row[rows] * err)
 
-    losses = eqx.filter_vmap(member_loss)(trainable, prior_out, idx)
+    losses = eqx.filter_vmap(member_loss)(trainable, prior_out, w, idx)
     return losses.sum(), losses
 
 
@@ -457,13 +457,25 @@ def _train_chunk(trainable, opt_state, static_model, data, key, n_steps: int, op
 
 
 def fit_ensemble(
-    config: EnsembleConfig, design, h_mm, p_pa, force_n, weight=None, *, key=None, progress: bool = True
+    config: EnsembleConfig,
+    design,
+    h_mm,
+    p_pa,
+    force_n,
+    weight=None,
+    *,
+    member_weight=None,
+    key=None,
+    progress: bool = True,
 ) -> Ensemble:
     """Fit an RPN ensemble (Osband et al. 2018) to points ``(design, h, p) -> F``.
 
     ``design`` [n, 6] mm (NaN = no ring), ``h_mm`` [n], ``p_pa`` [n] (>= 0 for the
     monotone head), ``force_n`` [n] N, ``weight`` [n] per-sample weights (normalised to
-    mean 1; default equal). ``key``: a ``jax.random`` key or an int seed (default 0).
+    mean 1; default equal). ``member_weight`` [members, n] (>= 0, optional) multiplies the
+    weights member by member: members that never see some rows (weight 0) are held-out
+    fits sharing one compiled training run, e.g. every fold of a cross-validation at once.
+    ``key``: a ``jax.random`` key or an int seed (default 0).
     """
     enable_x64()  # float64 physics: mfdesign._x64
     design, h, p, f, w = check_inputs(design, h_mm, p_pa, force_n, weight)
@@ -472,7 +484,15 @@ def fit_ensemble(
     w = np.ones_like(f) if w is None else w
     if w.sum() <= 0:
         raise ValueError("weights sum to zero: nothing to fit")
-    w = w / w.mean()
+    w = np.broadcast_to(w, (config.n_members, len(w)))
+    if member_weight is not None:
+        mw = np.asarray(member_weight, dtype=np.float64)
+        if mw.shape != w.shape or not np.all(np.isfinite(mw)) or np.any(mw < 0):
+            raise ValueError(f"member_weight must be finite, >= 0, of shape {w.shape} (members, rows), got {mw.shape}")
+        w = w * mw
+        if np.any(w.sum(1) <= 0):
+            raise ValueError("a member's weights sum to zero: it has nothing to fit")
+    w = w / w.mean(1, keepdims=True)
     key = jax.random.PRNGKey(0 if key is None else key) if isinstance(key, (int, type(None))) else key
     k_init, k_train = jax.random.split(key)
     norm = Normaliser.fit(design, h, p, f)

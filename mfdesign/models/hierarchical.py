@@ -22,7 +22,9 @@ For row i of membrane m(i), recorded at height h_i [mm] and pressure p_i [Pa]::
   active ``thickness_deviation`` effect then acts as the population mean.
 * ``eps``: noise of scale ``noise_n`` [N] (fitted; Gaussian or Student-t with ``nu``).
 * ``delta``: the discrepancy, an RPN ensemble (:mod:`mfdesign.models.ensemble`) fitted to
-  the residuals ``F - E(theta_MAP)`` (:func:`fit_discrepancy`). Calibration of theta uses
+  the residuals ``F - E(theta_MAP)`` (:func:`fit_discrepancy`), gated so that it shrinks
+  to zero, and its spread grows, away from the training membranes
+  (:mod:`mfdesign.models.discrepancy`). Calibration of theta uses
   the likelihood without delta and delta is fitted afterwards: a modular ("cut")
   analysis (Liu, Bayarri & Berger 2009), which keeps the flexible ensemble from absorbing
   what the physical constants should explain.
@@ -376,26 +378,29 @@ class HierarchicalModel(eqx.Module):
 def fit_discrepancy(
     model: HierarchicalModel, x_ref, table, design_keys: Sequence[str], config, *, key=0, progress=False
 ):
-    """The discrepancy delta: an RPN ensemble fitted to ``F - E(x_ref)`` over the rows of
-    ``table`` that calibration uses (Measurements of the calibrated membranes, as measured:
-    the floating-lift rule needs whole trials; ``design_keys`` in the
-    calibration's order, so that each row gets its membrane's latent thickness), with
-    ``x_ref`` the MAP or posterior median (physical). Use a non-monotone ``config``:
-    residuals need not grow with pressure. Returns the fitted ensemble."""
+    """The discrepancy delta: a gated RPN ensemble (:mod:`mfdesign.models.discrepancy`)
+    fitted to ``F - E(x_ref)`` over the rows of ``table`` that calibration uses
+    (Measurements of the calibrated membranes, as measured: the floating-lift rule needs
+    whole trials; ``design_keys`` in the calibration's order, so that each row gets its
+    membrane's latent thickness), with ``x_ref`` the MAP or posterior median (physical).
+    Use a non-monotone ``config``: residuals need not grow with pressure. The gate's
+    length scale and prior spread come from leave-one-membrane-out on these rows. Returns
+    the fitted :class:`~mfdesign.models.discrepancy.Discrepancy`."""
     enable_x64()  # float64 physics: mfdesign._x64
-    from mfdesign.models.ensemble import fit_ensemble
+    from mfdesign.models.discrepancy import fit_gated
 
     # the rows are the calibration's own (floating lift rows: the rule runs once, on whole trials)
     data = CalibrationData.from_measurements(table, max_rows=None, design_keys=design_keys)
     resid = np.asarray(data.force_n - model.expected_force(jnp.asarray(x_ref), data))
     ok = np.isfinite(resid)
-    return fit_ensemble(
+    return fit_gated(
         config,
         np.asarray(data.design)[ok],
         np.asarray(data.rows.h_mm)[ok],
         np.asarray(data.rows.p_pa)[ok],
         resid[ok],
         np.asarray(data.weight)[ok],
+        np.asarray(data.rows.membrane)[ok],
         key=key,
         progress=progress,
     )

@@ -1,10 +1,12 @@
 """Predictive distribution of the multi-fidelity model: posterior theta x discrepancy ensemble.
 
 For posterior draw s (physical theta_s, a latent thickness t_s per row: the membrane's own
-if it was calibrated, else a draw from the population prior N(0, sigma_t,s)) and ensemble
-member m(s) = s mod M of the discrepancy delta::
+if it was calibrated, else a draw from the population prior N(0, sigma_t,s)) and draw s of
+the gated discrepancy (:class:`~mfdesign.models.discrepancy.Discrepancy`: ensemble member
+s mod M near the training membranes, shrinking to zero with a growing spread away from
+them)::
 
-    F_s(x) = E(x; theta_s, t_s) + delta_m(s)(x)          (x = design, h [mm], p [Pa])
+    F_s(x) = E(x; theta_s, t_s) + delta_s(x)             (x = design, h [mm], p [Pa])
     y_s    = F_s(x) + sigma_eps * e,  e ~ N(0, 1)
 
 ``sigma_eps`` [N] is the RMS of the training residuals after the discrepancy (fitted on
@@ -29,7 +31,7 @@ __all__ = ["MultiFidelity", "coverage"]
 
 class MultiFidelity(eqx.Module):
     """Posterior draws ``theta`` [S, dim] (physical) of ``model``, discrepancy ``delta``
-    (an RPN ``Ensemble`` or None), residual noise ``noise_n`` [N]; ``design_keys`` are the
+    (a :class:`~mfdesign.models.discrepancy.Discrepancy` or None), residual noise ``noise_n`` [N]; ``design_keys`` are the
     calibrated membranes in latent order."""
 
     model: HierarchicalModel
@@ -84,8 +86,9 @@ class MultiFidelity(eqx.Module):
         key = jax.random.PRNGKey(key) if isinstance(key, int) else key
         f = _sim_draws(self.model, self.theta, data, key)
         if self.delta is not None:
-            d = jnp.asarray(self.delta.predict(data.design, data.rows.h_mm, data.rows.p_pa))
-            f = f + d[jnp.arange(f.shape[0]) % d.shape[0]]
+            # its own stream: the physics draws stay what they were without a discrepancy
+            k_delta = jax.random.fold_in(key, 1)
+            f = f + self.delta.draws(data.design, data.rows.h_mm, data.rows.p_pa, f.shape[0], k_delta)
         return f
 
     def predict(self, design, h_mm, p_pa):

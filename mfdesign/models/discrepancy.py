@@ -1,0 +1,237 @@
+"""The sim-to-real discrepancy delta of the multi-fidelity model, and what it knows it does not know.
+
+An ensemble fitted to the residuals of a few membranes has no reason to be right on a
+membrane it never saw: on the real rig's seven membranes an ungated discrepancy made
+held-out membranes worse than the calibrated physics alone (issue 5: folds 3 and 4 by
+4-8 N; issue 18: pooled 7.9 vs 5.9 N). Here delta is read as a Gaussian-process-like
+posterior around the training membranes (Kennedy & O'Hagan 2001 use a GP; the ensemble
+carries the shape near the data)::
+
+    delta_s(x) = g(x) delta_m(s)(x) + sqrt(1 - g(x)^2) sigma z_s(design)
+    g(x)       = exp(-d(x)^2 / (2 l^2)),   d = distance to the nearest training membrane
+
+* ``delta_m`` is member ``m`` of the RPN ensemble (all training membranes);
+* ``d`` is measured in :func:`~mfdesign.design.membrane_features` (1 = a feature over its
+  whole product range, or one ring more); at a training membrane ``g = 1``;
+* far from every training membrane the mean shrinks to zero (the calibrated physics) and
+  the spread grows to ``sigma``, the discrepancy's prior scale;
+* ``z_s`` is a draw of a unit Gaussian process over the design features with the same
+  length scale ``l`` (random Fourier features, Rahimi & Recht 2007): one smooth random
+  offset per posterior draw, correlated between nearby designs, constant over (h, p).
+
+``l`` and ``sigma`` come from the training data by leave-one-membrane-out
+(:func:`fit_gated`): every fold's ensemble is trained at once (``member_weight`` masks the
+held-out membrane), ``l`` is the candidate with the smallest held-out RMSE of the
+residual (``0``: no transfer between membranes; ``inf``: the ungated ensemble), and
+``sigma^2`` the held-out excess variance per unit of ``1 - g^2`` (method of moments).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mfdesign._x64 import enable_x64
+from mfdesign.design import membrane_features
+
+__all__ = ["LENGTHS", "Discrepancy", "fit_gated"]
+
+# Candidate length scales (feature units). 0: the discrepancy stays on its own membranes;
+# inf: the ensemble everywhere (the model before the gate).
+LENGTHS = (0.0, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5, 2.5, math.inf)
+TIE_REL = 0.005  # held-out RMSEs this close are a tie
+N_FEATURES_RFF = 128  # random Fourier features of the prior draw z_s
+GATE_FILE = "gate.json"
+
+
+class Discrepancy(eqx.Module):
+    """Gated discrepancy (module docstring): ``ensemble`` (an RPN
+    :class:`~mfdesign.models.ensemble.Ensemble` of the residuals [N]), ``anchors`` [K, 6]
+    the training membranes (mm), ``length`` the gate's length scale (feature units; inf =
+    no gate), ``sigma_n`` the prior scale [N], ``report`` the selection's figures."""
+
+    ensemble: object
+    anchors: jax.Array
+    length: float = eqx.field(static=True)
+    sigma_n: float = eqx.field(static=True)
+    report: tuple = eqx.field(static=True, default=())
+
+    def gate(self, design) -> jax.Array:
+        """``g`` [N] in [0, 1] at design rows [N, 6] mm (1 at a training membrane)."""
+        f = membrane_features(design)
+        a = membrane_features(self.anchors)
+        d2 = jnp.min(jnp.sum((f[:, None, :] - a[None, :, :]) ** 2, -1), axis=1)
+        if math.isinf(self.length):
+            return jnp.ones_like(d2)
+        if self.length == 0.0:
+            return (d2 < 1e-12).astype(d2.dtype)
+        return jnp.exp(-0.5 * d2 / self.length**2)
+
+    def mean(self, design, h_mm, p_pa) -> jax.Array:
+        """The discrepancy's mean [N] in N (the gated ensemble mean)."""
+        return self.gate(design) * jnp.mean(self.ensemble.predict(design, h_mm, p_pa), axis=0)
+
+    def draws(self, design, h_mm, p_pa, n_draws: int, key) -> jax.Array:
+        """``delta_s`` [n_draws, N] in N at rows ``design`` [N, 6] mm, ``h_mm``, ``p_pa``:
+        draw ``s`` takes ensemble member ``s mod M`` (module docstring). Traceable."""
+        members = self.ensemble.predict(design, h_mm, p_pa)
+        g = self.gate(design)
+        out = g * members[jnp.arange(n_draws) % members.shape[0]]
+        if self.sigma_n > 0 and not math.isinf(self.length):
+            out = out + jnp.sqrt(jnp.clip(1 - g**2, 0.0, 1.0)) * self.sigma_n * self._prior_draws(design, n_draws, key)
+        return out
+
+    def _prior_draws(self, design, n_draws, key) -> jax.Array:
+        """Unit-variance GP draws [n_draws, N] over the design features (random Fourier
+        features of a squared-exponential kernel with the gate's length scale)."""
+        k_w, k_b, k_a = jax.random.split(key, 3)
+        ell = max(self.length, 1e-3)
+        f = membrane_features(design)
+        omega = jax.random.normal(k_w, (N_FEATURES_RFF, f.shape[-1]), f.dtype) / ell
+        phase = jax.random.uniform(k_b, (N_FEATURES_RFF,), f.dtype, 0.0, 2 * jnp.pi)
+        phi = jnp.sqrt(2.0 / N_FEATURES_RFF) * jnp.cos(f @ omega.T + phase)  # [N, F]
+        a = jax.random.normal(k_a, (n_draws, N_FEATURES_RFF), f.dtype)
+        return a @ phi.T
+
+    def save(self, path) -> Path:
+        """``path/ensemble.*`` (the ensemble) and ``path/gate.json`` (anchors, length, sigma)."""
+        from mfdesign import outputs
+
+        path = Path(path)
+        self.ensemble.save(path)
+        outputs.write_json(
+            path / GATE_FILE,
+            {
+                "kind": "gated_discrepancy",
+                "anchors_mm": np.asarray(self.anchors).tolist(),
+                "length": None if math.isinf(self.length) else self.length,
+                "sigma_n": self.sigma_n,
+                "report": [dict(r) for r in self.report],
+            },
+        )
+        return path
+
+    @classmethod
+    def load(cls, path) -> "Discrepancy":
+        """Read :meth:`save`'s folder. A folder without ``gate.json`` (fits before the gate)
+        loads as the ungated ensemble, as it was fitted. Raises ``InputError`` on a
+        malformed gate file."""
+        from mfdesign.errors import InputError
+        from mfdesign.models.ensemble import Ensemble
+
+        path = Path(path)
+        ens = Ensemble.load(path)
+        gate = path / GATE_FILE
+        if not gate.is_file():
+            return cls(ens, jnp.full((1, 6), jnp.nan), math.inf, 0.0)
+        try:
+            meta = json.loads(gate.read_text())
+            anchors = np.asarray(meta["anchors_mm"], dtype=np.float64).reshape(-1, 6)
+            length = math.inf if meta["length"] is None else float(meta["length"])
+            sigma = float(meta["sigma_n"])
+            report = tuple(tuple(sorted(r.items())) for r in meta.get("report", []))
+        except (ValueError, KeyError, TypeError) as err:
+            raise InputError(f"{gate} is not a valid gate file ({err!r}); rerun mfdesign fit-mf") from None
+        if not (len(anchors) and length >= 0 and math.isfinite(sigma) and sigma >= 0):
+            raise InputError(
+                f"{gate}: length {length}, sigma_n {sigma}, {len(anchors)} anchors; "
+                "allowed: length >= 0 or null, sigma_n >= 0, at least one anchor"
+            )
+        return cls(ens, jnp.asarray(anchors), length, sigma, report)
+
+    def selection(self) -> list[dict]:
+        """The leave-one-membrane-out table behind ``length``: one dict per candidate."""
+        return [dict(r) for r in self.report]
+
+    def describe(self) -> str:
+        """One sentence: how far the discrepancy reaches beyond its training membranes."""
+        rows = {r.get("length"): r for r in self.selection() if "heldout_rmse_n" in r}
+        if math.isinf(self.length):
+            if not rows:
+                return "discrepancy ungated (too few membranes to hold one out): it extrapolates to new designs"
+            return (
+                "discrepancy ungated: it transfers to held-out membranes "
+                f"(held-out RMSE {rows[None]['heldout_rmse_n']:.2f} N vs {rows[0.0]['heldout_rmse_n']:.2f} N without it)"
+            )
+        cv = rows.get(self.length)
+        extra = (
+            f", held-out RMSE {cv['heldout_rmse_n']:.2f} N (ungated {rows[None]['heldout_rmse_n']:.2f} N, "
+            f"none {rows[0.0]['heldout_rmse_n']:.2f} N)"
+            if cv and None in rows and 0.0 in rows
+            else ""
+        )
+        return (
+            f"discrepancy gated: length {self.length:g} (design-feature units), prior spread "
+            f"{self.sigma_n:.2f} N for a membrane far from the training ones{extra}"
+        )
+
+
+def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=None, *, key=0, progress=False):
+    """Fit the gated discrepancy to residuals ``resid_n`` [n] N at rows (``design`` [n, 6]
+    mm, ``h_mm``, ``p_pa``), ``weight`` [n], ``membrane`` [n] integer ids of the rows'
+    membranes.
+
+    One ensemble on every row (the discrepancy near the data). With three or more
+    membranes, one more training run holds ``K x M`` members, member block ``j`` blind to
+    membrane ``j`` (leave-one-membrane-out, one compile): each candidate of
+    :data:`LENGTHS` is scored by the held-out RMSE of ``resid - g delta_j``, the smallest
+    wins (the longest of near-ties), and ``sigma^2 = sum(w ((r - g delta_j)^2 - noise^2)) / sum(w (1 - g^2))`` (>= 0)
+    with ``noise`` the within-membrane residual scale after the full ensemble (or
+    ``noise_n``). With fewer membranes nothing can be held out: ``length`` = inf (the
+    ensemble everywhere), said in the report.
+    """
+    enable_x64()  # float64 physics: mfdesign._x64
+    import dataclasses
+
+    from mfdesign.models.ensemble import fit_ensemble
+
+    design = np.asarray(design, np.float64)
+    r, w = np.asarray(resid_n, np.float64), np.asarray(weight, np.float64)
+    membrane = np.asarray(membrane)
+    ids = np.unique(membrane)
+    first = np.array([np.flatnonzero(membrane == i)[0] for i in ids])
+    anchors = design[first]
+    k0, k1 = jax.random.split(jax.random.PRNGKey(key) if isinstance(key, int) else key)
+    full = fit_ensemble(config, design, h_mm, p_pa, r, w, key=k0, progress=progress)
+    if noise_n is None:
+        d_full = np.asarray(full.predict(design, h_mm, p_pa)).mean(0)
+        noise_n = float(np.sqrt(np.average((r - d_full) ** 2, weights=w)))
+    if len(ids) < 3:
+        report = ({"length": None, "note": f"{len(ids)} membrane(s): nothing to hold out, no gate"},)
+        return Discrepancy(full, jnp.asarray(anchors), math.inf, 0.0, tuple(tuple(sorted(x.items())) for x in report))
+    m = config.n_members
+    cv_cfg = dataclasses.replace(config, n_members=m * len(ids))
+    blind = np.repeat((membrane[None, :] != ids[:, None]).astype(float), m, axis=0)  # [K M, n]
+    cv = fit_ensemble(cv_cfg, design, h_mm, p_pa, r, w, member_weight=blind, key=k1, progress=progress)
+    pred = np.asarray(cv.predict(design, h_mm, p_pa)).reshape(len(ids), m, -1).mean(1)  # [K, n]
+    row_fold = np.searchsorted(ids, membrane)
+    d_held = pred[row_fold, np.arange(len(r))]  # each row by the fold blind to its membrane
+    feats = np.asarray(membrane_features(design))
+    fa = np.asarray(membrane_features(anchors))
+    d2 = np.sum((feats[:, None, :] - fa[None, :, :]) ** 2, -1)
+    d2[np.arange(len(r)), row_fold] = np.inf  # the nearest OTHER membrane
+    d2 = d2.min(1)
+    rows = []
+    for ell in LENGTHS:
+        g = np.ones_like(d2) if math.isinf(ell) else (np.zeros_like(d2) if ell == 0 else np.exp(-0.5 * d2 / ell**2))
+        e2 = (r - g * d_held) ** 2
+        rmse = float(np.sqrt(np.average(e2, weights=w)))
+        room = float(np.sum(w * (1 - g**2)))
+        s2 = float(np.sum(w * (e2 - noise_n**2)) / room) if room > 1e-9 * w.sum() else 0.0
+        rows.append({"length": None if math.isinf(ell) else ell, "heldout_rmse_n": rmse, "sigma_n": math.sqrt(max(s2, 0.0))})
+    # the smallest held-out error; among near-ties (membranes farther apart than every
+    # short length look alike) the longest length: the smoothest gate between designs
+    low = min(r["heldout_rmse_n"] for r in rows)
+    best = max(i for i, r in enumerate(rows) if r["heldout_rmse_n"] <= low * (1 + TIE_REL))
+    ell = LENGTHS[best]
+    sigma = rows[best]["sigma_n"] if not math.isinf(ell) else 0.0
+    for i, x in enumerate(rows):
+        x["chosen"] = i == best
+    report = tuple(tuple(sorted(x.items())) for x in rows)
+    return Discrepancy(full, jnp.asarray(anchors), ell, sigma, report)

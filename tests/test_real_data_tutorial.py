@@ -1,0 +1,73 @@
+"""docs/real_data.md is real: its commands run as written, and its tables quote their outputs.
+
+Slow (about 1.5 h on 2 cores) and it needs the authors' measurements
+(``../shared/data/spa_design``): skipped without them. It runs every ```bash command of
+the page in order from the repository root (they write ``out/real_diagnose`` and
+``experiments/out/``), then reads the numbers the page quotes back from the JSON the
+commands wrote: the diagnosis's before/after RMSE and the leave-one-membrane-out table.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.test_docs import doc_commands
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGE = ROOT / "docs" / "real_data.md"
+MODELS = ("a_sim_paper", "b_sim_calibrated", "c_ensemble", "d_curve_fit", "e_multi_fidelity")
+
+
+def _have_real_data() -> bool:
+    from mfdesign.data.spa_design import shared_data_dir
+
+    return (shared_data_dir(must_exist=False) / "mass_lift_data_dictionary_N_Pa.pkl").is_file()
+
+
+def _table_rows(text: str, first_cell: str) -> list[list[str]]:
+    return [
+        [c.strip() for c in line.strip().strip("|").split("|")]
+        for line in text.splitlines()
+        if line.startswith("| " + first_cell)
+    ]
+
+
+def _num(cell: str) -> float:
+    return float(re.sub(r"[^0-9.+-]", "", cell.split("/")[0]))
+
+
+def test_the_page_names_its_commands():
+    commands = doc_commands(PAGE)
+    assert any(c.startswith("mfdesign diagnose mass-lift") for c in commands)
+    assert any("experiments/real_mass_lift.py" in c for c in commands)
+    assert all("run by tests/test_real_data_tutorial.py" in c for c in commands)
+
+
+@pytest.mark.slow
+def test_the_tutorial_runs_and_quotes_its_outputs():
+    if not _have_real_data():
+        pytest.skip("needs the authors' measurements in ../shared/data/spa_design")
+    env = dict(os.environ, JAX_PLATFORMS="cpu", MPLBACKEND="Agg")
+    env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
+    for command in doc_commands(PAGE):
+        t0 = time.perf_counter()
+        r = subprocess.run(command, shell=True, cwd=ROOT, env=env, capture_output=True, text=True, timeout=3 * 3600)
+        print(f"[{time.perf_counter() - t0:7.1f} s] {command}", flush=True)
+        assert r.returncode == 0, f"{command!r} failed:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
+    text = PAGE.read_text()
+    diag = json.loads((ROOT / "out" / "real_diagnose" / "diagnosis.json").read_text())
+    before = re.search(r"before: RMSE ([0-9.]+) N", text)
+    assert before and float(before.group(1)) == pytest.approx(diag["before"]["summary"]["rmse_n"], abs=0.01)
+    lomo = json.loads((ROOT / "experiments" / "out" / "real_mass_lift.json").read_text())
+    pooled = _table_rows(text, "pooled force RMSE")
+    assert pooled, "the page has no pooled row"
+    for name, cell in zip(MODELS, pooled[0][1:]):
+        assert _num(cell) == pytest.approx(lomo["metrics_held_out"][name]["rmse_n"], abs=0.02), name
