@@ -224,7 +224,9 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
         rmse = float(np.sqrt(np.average(e2, weights=w)))
         room = float(np.sum(w * (1 - g**2)))
         s2 = float(np.sum(w * (e2 - noise_n**2)) / room) if room > 1e-9 * w.sum() else 0.0
-        rows.append({"length": None if math.isinf(ell) else ell, "heldout_rmse_n": rmse, "sigma_n": math.sqrt(max(s2, 0.0))})
+        rows.append(
+            {"length": None if math.isinf(ell) else ell, "heldout_rmse_n": rmse, "sigma_n": math.sqrt(max(s2, 0.0))}
+        )
     # the smallest held-out error; among near-ties (membranes farther apart than every
     # short length look alike) the longest length: the smoothest gate between designs
     low = min(r["heldout_rmse_n"] for r in rows)
