@@ -26,7 +26,7 @@ from typing import Sequence
 
 # The refits themselves live in :mod:`mfdesign.diagnose.refit` (nonlinear, exact lattice).
 from mfdesign.diagnose.refit import CheckResult, calibrate_effects, full_check
-from mfdesign.diagnose.residuals import Residuals
+from mfdesign.diagnose.residuals import Residuals, shape_words
 
 __all__ = ["CheckResult", "calibrate_effects", "full_check", "verdict"]
 
@@ -73,7 +73,7 @@ def verdict(
             "effects": [],
             "words": (
                 f"no candidate effect explains the residual structure: RMS {rms:.3f} N vs noise floor "
-                f"{floor:.3f} N{extra}; see the worst regions for what remains"
+                f"{floor:.3f} N{extra}; the residual's shape: {shape_words(res)}"
             ),
         }
     best = min(good, key=lambda c: (c.heldout_rmse_n, c.delta_bic))

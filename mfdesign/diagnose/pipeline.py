@@ -23,7 +23,14 @@ import numpy as np
 from mfdesign._x64 import enable_x64
 from mfdesign.data.measurements import Measurements
 from mfdesign.diagnose.check import calibrate_effects, full_check, verdict
-from mfdesign.diagnose.residuals import Residuals, breakdowns, compute_residuals, trend_words, worst_regions
+from mfdesign.diagnose.residuals import (
+    Residuals,
+    breakdowns,
+    compute_residuals,
+    residual_shape,
+    trend_words,
+    worst_regions,
+)
 from mfdesign.diagnose.screen import screen
 from mfdesign.physics import effects as fx
 
@@ -58,6 +65,7 @@ class Diagnosis:
                 "breakdowns": breakdowns(res),
                 "worst_regions": worst_regions(res),
                 "trends": trend_words(res),
+                "shape": residual_shape(res),
             }
 
         return {

@@ -29,7 +29,17 @@ from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
 from mfdesign.diagnose.expected import query_heights, trial_order, usable_rows
 
-__all__ = ["Residuals", "breakdowns", "compute_residuals", "noise_floor", "subsample", "worst_regions"]
+__all__ = [
+    "SHAPES",
+    "Residuals",
+    "breakdowns",
+    "compute_residuals",
+    "noise_floor",
+    "residual_shape",
+    "shape_words",
+    "subsample",
+    "worst_regions",
+]
 
 PRESSURE_BAND_PA = 2000.0
 HEIGHT_BAND_MM = 20.0
@@ -330,3 +340,61 @@ def trend_words(res: Residuals) -> list[str]:
                 f"(mean {big['mean_n']:+.2f} N) vs {small['rms_n']:.2f} N at {small['bin']}"
             )
     return out
+
+
+# The shapes a missing effect leaves in the residual, from the coarsest to the finest: a
+# constant (a sensor or load offset), one value per ring count (ring physics), per
+# membrane (fabrication: thickness, bonding), per lift (the plate, the mass stack, a
+# trial's friction), then trends within a lift with height and with pressure.
+SHAPES = ("constant", "per ring count", "per membrane", "per lift", "grows with height", "grows with pressure")
+
+
+def residual_shape(res: Residuals) -> list[dict]:
+    """Sequential decomposition of the residual's mean square into :data:`SHAPES`.
+
+    Each step explains what the steps before it left: the overall mean, then the means by
+    ring count, by membrane, by trial ("per lift"), then per-trial linear trends in height
+    and in pressure (one pooled slope each, on what the trial means leave). Returns
+    ``[{"shape", "share", "rms_n"}]`` with ``share`` the fraction of the residual's mean
+    square and ``rms_n`` its RMS [N], and a last entry ``"unstructured"`` for the rest.
+    """
+    f = res.frame
+    r = res.residual.astype(float)
+    total = float(np.mean(r**2)) if r.size else 0.0
+    if total <= 0:
+        return []
+    out = []
+    left = r.copy()
+
+    def take(name: str, fitted: np.ndarray):
+        nonlocal left
+        out.append(
+            {"shape": name, "share": float(np.mean(fitted**2) / total), "rms_n": float(np.sqrt(np.mean(fitted**2)))}
+        )
+        left = left - fitted
+
+    take("constant", np.full_like(r, left.mean()))
+    for name, keys in (
+        ("per ring count", [f["n_rings"]]),
+        ("per membrane", [f["design_key"]]),
+        ("per lift", [f["design_key"], f["trial"]]),
+    ):
+        take(name, pd.Series(left).groupby([k.to_numpy() for k in keys]).transform("mean").to_numpy())
+    for name, col in (("grows with height", "height_mm"), ("grows with pressure", "pressure_pa")):
+        x = f[col].to_numpy(float)
+        x = x - pd.Series(x).groupby([f["design_key"].to_numpy(), f["trial"].to_numpy()]).transform("mean").to_numpy()
+        slope = float(np.dot(x, left) / np.dot(x, x)) if np.dot(x, x) > 0 else 0.0
+        take(name, slope * x)
+    out.append(
+        {"shape": "unstructured", "share": float(np.mean(left**2) / total), "rms_n": float(np.sqrt(np.mean(left**2)))}
+    )
+    return out
+
+
+def shape_words(res: Residuals, min_share: float = 0.1) -> str:
+    """The residual's shape in words: the parts of :func:`residual_shape` holding at least
+    ``min_share`` of its mean square, largest first."""
+    parts = sorted((s for s in residual_shape(res) if s["share"] >= min_share), key=lambda s: -s["share"])
+    if not parts:
+        return "no dominant shape (no part holds 10 % of the mean square)"
+    return ", ".join(f"{s['shape']} {100 * s['share']:.0f} % (RMS {s['rms_n']:.2f} N)" for s in parts)
