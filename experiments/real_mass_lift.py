@@ -100,7 +100,7 @@ def main():
     # measured way-points at the last upward crossing before the top (models/trajectory.py),
     # and the discrepancy gated by leave-one-membrane-out (models/discrepancy.py)
     settings["waypoints"] = "last_crossing"
-    settings["discrepancy"] = "gated"
+    settings["discrepancy"] = "gated, antithetic prior draws; (b) shares (e)'s posterior draws"
 
     def ckpt(i):
         return args.out / "cache" / f"real_mass_lift_{args.physics}_fold{i}.json"
@@ -132,7 +132,11 @@ def main():
             progress=False,
         )
         t_fit = fold_clock.elapsed()
-        calibrated = MultiFidelity.from_posterior(fit.model, fit.posterior, None, seed=args.seed).thinned(args.draws)
+        # the same posterior draws as (e) (fit_multi_fidelity thins with seed + i): (b) and (e)
+        # differ only by the discrepancy
+        calibrated = MultiFidelity.from_posterior(fit.model, fit.posterior, None, seed=args.seed + i).thinned(
+            args.draws
+        )
         paper = _mean_predictor(lambda d, h, p: emu(d, h, p, SimParams()))  # the reference node of every lattice
         ens = EnsembleConfig(n_members=args.members, steps=args.ens_steps, monotone=True).fit(
             a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=args.seed + i, progress=False
