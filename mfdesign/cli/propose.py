@@ -215,7 +215,6 @@ def register(app: typer.Typer) -> None:
                 fail(f"--pending {key!r}: {err}")
 
         from mfdesign.acquire import propose as run_propose
-
         from mfdesign.cli.optimize import load_fit
 
         try:
