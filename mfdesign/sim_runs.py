@@ -12,7 +12,10 @@ else the authors'), and compares the model's ``sim``-fidelity members with each 
   points] -- the emulator's (or the simulator surrogate's) error at that design, what
   the run teaches;
 * ``predicted_std_n``: the members' spread there [N RMS of the member standard deviation
-  over the same points] -- the uncertainty the acquisition acted on.
+  over the same points] -- the uncertainty the acquisition acted on;
+* ``surrogate_rmse_n`` (when a ``surrogate`` is given, e.g. a fit-mf model's emulator at
+  the same constants): the surrogate alone against the simulator [N RMS] -- its error with
+  the parameter and thickness spread of the members taken out.
 
 A point the shooting did not solve (``NOT_CONVERGED``, ``ODE_FAILURE``) is counted and
 reported; a run whose simulator raised is reported as failed with the error. Nothing is
@@ -93,6 +96,7 @@ class MadeRun:
     predicted_std_n: float | None = None
     usable_points: int = 0
     error: str | None = None
+    surrogate_rmse_n: float | None = None
 
     @property
     def converged(self) -> bool:
@@ -121,9 +125,14 @@ class MadeRun:
             if ratio <= 2.0
             else "well beyond the predicted spread (the members under-state the error here)"
         )
+        surrogate = (
+            ""
+            if self.surrogate_rmse_n is None
+            else f"; the surrogate alone at the run's constants {self.surrogate_rmse_n:.3g} N RMS"
+        )
         return (
             f"model (sim fidelity) vs simulator {self.rmse_n:.3g} N RMS (max {self.max_error_n:.3g} N) over "
-            f"{self.usable_points} points; predicted spread {self.predicted_std_n:.3g} N RMS: {verdict}"
+            f"{self.usable_points} points; predicted spread {self.predicted_std_n:.3g} N RMS: {verdict}{surrogate}"
         )
 
     def to_json(self) -> dict:
@@ -139,6 +148,7 @@ class MadeRun:
             "rmse_n": self.rmse_n,
             "max_error_n": self.max_error_n,
             "predicted_std_n": self.predicted_std_n,
+            "surrogate_rmse_n": self.surrogate_rmse_n,
             "error_over_predicted": (
                 None if self.rmse_n is None or not self.predicted_std_n else float(self.rmse_n / self.predicted_std_n)
             ),
@@ -173,35 +183,37 @@ def _table(design: Membrane, spec: PlaneSpec, force, status, locking) -> pd.Data
     )
 
 
-def compare(predictor, fidelity: str, table: pd.DataFrame) -> dict:
+def compare(predictor, fidelity: str, table: pd.DataFrame, surrogate: Callable | None = None) -> dict:
     """The predictor's ``fidelity`` members against a simulated plane ``table`` at its
     usable points: ``rmse_n``, ``max_error_n`` (members' mean vs simulator), ``predicted_std_n``
-    (RMS of the member standard deviation), ``usable_points`` (all N)."""
+    (RMS of the member standard deviation), ``usable_points`` (all N); with ``surrogate(design
+    [n, 6], h_mm [n], p_pa [n]) -> [n]`` N, also ``surrogate_rmse_n`` (None without)."""
+    none = {"rmse_n": None, "max_error_n": None, "predicted_std_n": None, "usable_points": 0, "surrogate_rmse_n": None}
     ok = is_valid(table["status"].to_numpy()) & np.isfinite(table["force_n"].to_numpy())
     n = int(ok.sum())
     if n == 0:
-        return {"rmse_n": None, "max_error_n": None, "predicted_std_n": None, "usable_points": 0}
-    rows = np.tile(Membrane.from_key(str(table["design_key"].iloc[0])).to_array(), (n, 1))
-    members = np.asarray(
-        predictor.members(
-            fidelity,
-            jnp.asarray(rows),
-            jnp.asarray(table["height_mm"].to_numpy()[ok]),
-            jnp.asarray(table["pressure_pa"].to_numpy()[ok]),
-        ),
-        float,
-    )  # [M, n]
-    err = members.mean(axis=0) - table["force_n"].to_numpy()[ok]
+        return none
+    rows = jnp.asarray(np.tile(Membrane.from_key(str(table["design_key"].iloc[0])).to_array(), (n, 1)))
+    h, p = (jnp.asarray(table[c].to_numpy()[ok]) for c in ("height_mm", "pressure_pa"))
+    truth = table["force_n"].to_numpy()[ok]
+    members = np.asarray(predictor.members(fidelity, rows, h, p), float)  # [M, n]
+    err = members.mean(axis=0) - truth
     good = np.isfinite(err)
     if not good.any():  # the members are NaN there (outside their support): say so by None
-        return {"rmse_n": None, "max_error_n": None, "predicted_std_n": None, "usable_points": 0}
+        return none
     std = members.std(axis=0)[good]
-    return {
+    out = {
         "rmse_n": float(np.sqrt(np.mean(err[good] ** 2))),
         "max_error_n": float(np.max(np.abs(err[good]))),
         "predicted_std_n": float(np.sqrt(np.mean(std**2))),
         "usable_points": int(good.sum()),
+        "surrogate_rmse_n": None,
     }
+    if surrogate is not None:
+        s_err = np.asarray(surrogate(rows, h, p), float) - truth
+        if np.isfinite(s_err).any():
+            out["surrogate_rmse_n"] = float(np.sqrt(np.nanmean(s_err[np.isfinite(s_err)] ** 2)))
+    return out
 
 
 def make(
@@ -211,12 +223,15 @@ def make(
     spec: PlaneSpec = PlaneSpec(),
     fidelity: str = "sim",
     simulate: Callable | None = None,
+    surrogate: Callable | None = None,
 ) -> list[MadeRun]:
     """Make ``runs`` (:class:`~mfdesign.acquire.Run`, the proposal's simulator runs): their
     planes in one batch at ``params``, each compared with ``predictor``'s ``fidelity``
     members (:func:`compare`). ``simulate(designs, spec, params)`` (default
     :func:`simulate_planes`) returns ``(force, status, max_locking)`` per design. A batch
-    that raises is retried design by design, so that one failing design fails alone."""
+    that raises is retried design by design, so that one failing design fails alone.
+    ``surrogate(design, h_mm, p_pa) -> [N]`` (optional): the model's force model at the
+    same constants, scored alone (``surrogate_rmse_n``)."""
     enable_x64()  # float64 physics: mfdesign._x64
     simulate = simulate_planes if simulate is None else simulate
     runs = list(runs)
@@ -267,7 +282,7 @@ def make(
                 failed,
                 points,
                 secs,
-                **compare(predictor, fidelity, table),
+                **compare(predictor, fidelity, table, surrogate),
             )
         )
     return out

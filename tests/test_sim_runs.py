@@ -68,8 +68,13 @@ def test_made_run_reports_the_error_against_the_simulator_and_the_predicted_spre
     assert "within the predicted spread" in m.taught()
     out = m.to_json()
     assert out["made"] and out["error_over_predicted"] == pytest.approx(0.5 / np.sqrt(1.25))
+    assert m.surrogate_rmse_n is None  # no surrogate given
     data = sim_runs.as_measurements([m])
     assert len(data) == 12 and set(data.df["source"]) == {"simulated"} and set(data.df["design_key"]) == {A}
+    (m,) = sim_runs.make(
+        [_run(1, A)], PRED, spec=SPEC, simulate=stand_in(), surrogate=lambda d, h, p: truth(d, h, p) - 0.3
+    )
+    assert m.surrogate_rmse_n == pytest.approx(0.3) and "surrogate alone" in m.taught()
 
 
 def test_unconverged_points_and_a_failing_design_are_reported_not_dropped():

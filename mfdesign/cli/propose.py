@@ -306,7 +306,10 @@ def _make_sim_runs(proposal, predictor, model: Path, fit, spec, simulate: bool, 
     params, constants = simulator_constants(model, fit)
     what = describe_constants(constants)
     typer.echo(f"making {len(runs)} simulator run(s) at {what} ...", err=True)
-    done = sim_runs.make(runs, predictor, params, spec)
+    # A fit's force model (the emulator) at the runs' own constants, scored alone: its error
+    # without the members' parameter and thickness spread.
+    surrogate = None if fit is None else (lambda d, h, p: fit.model.force_model(d, h, p, params))
+    done = sim_runs.make(runs, predictor, params, spec, surrogate=surrogate)
     made, lines = {}, {}
     for m in done:
         folder = out / "sim_runs" / f"run{m.rank}"

@@ -140,3 +140,16 @@ def test_optimize_checks_a_fit_with_its_calibrated_constants(folder, tmp_path, m
     sim = json.loads((out / "optimize.json").read_text())["simulator"]
     assert sim["constants"]["constants"] == "calibrated" and sim["constants"]["model"] == str(folder)
     assert f"simulator check at calibrated constants (posterior median of {folder})" in r.output
+
+
+def test_propose_lists_but_does_not_make_sim_runs_of_a_standin_fit(folder, tmp_path):
+    """A stand-in fit has no simulator behind it: its sim runs are listed, with the reason."""
+    import json
+
+    out = tmp_path / "p"
+    args = ["propose", "--model", str(folder), "--sim-runs", "1", "--rings", "0", "--restarts", "4"]
+    r = runner.invoke(app, [*args, "--refine", "2", "--opt-steps", "2", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    (entry,) = json.loads((out / "proposal.json").read_text())["simulate"]
+    assert entry["made"] is False and "standin" in entry["why_not_made"]
+    assert "simulator runs (listed, not made: the model was fitted with --physics standin" in r.output
