@@ -163,7 +163,7 @@ def simulate_planes(designs: Sequence[Membrane], spec: PlaneSpec, params: SimPar
     one ``(force_n [H, P] N, status [H, P], max_locking [H, P])`` per design."""
     from mfdesign.physics.solve import force_planes
 
-    results = force_planes([(d, params) for d in designs], spec.h_mm, spec.p_pa)
+    results = force_planes([(d, params) for d in designs], spec.h_mm.tolist(), spec.p_pa.tolist())
     return [(np.asarray(r.force_n, float), np.asarray(r.status), np.asarray(r.max_locking, float)) for r in results]
 
 

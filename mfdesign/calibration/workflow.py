@@ -272,11 +272,16 @@ def calibrated_sim_params(fit: MFFit) -> tuple:
 
     from mfdesign.physics.params import SimParams
 
-    x = np.median(np.asarray(fit.posterior.samples, float), axis=0)
+    from mfdesign.calibration.posterior import Posterior
+    from mfdesign.models.predictive import MultiFidelity
+
+    post, mf, model = fit.posterior, fit.mf, fit.model
+    assert isinstance(post, Posterior) and isinstance(mf, MultiFidelity) and isinstance(model, HierarchicalModel)
+    x = np.median(np.asarray(post.samples, dtype=np.float64), axis=0)
     # One force row of a new membrane: any design serves (no effect reads the design).
     row = np.array([[2.0, 30.0, np.nan, np.nan, np.nan, np.nan]])
-    data = fit.mf.data_for(row, np.array([10.0]), np.array([4000.0]))
-    params = fit.model.sim_params(jnp.asarray(x), data, thickness_rel=jnp.zeros(1))
+    data = mf.data_for(row, np.array([10.0]), np.array([4000.0]))
+    params = model.sim_params(jnp.asarray(x), data, thickness_rel=jnp.zeros(1))
     params = jax.tree.map(lambda a: float(np.asarray(a).reshape(-1)[0]), params)
     authors = SimParams()
     fields = [f.name for f in dataclasses.fields(SimParams)]
