@@ -1,8 +1,9 @@
 """The paper's design study (Campbell et al. 2025) against the real mass-lift data.
 
 1. **Trajectories.** The five verification membranes lift 1.5 / 2.5 / 4.0 kg; way-points
-   at 5 / 40 / 50 mm (measured pressure where the plate first reaches each height, the two
-   trials of a mass averaged). Each membrane's way-points are a *target*. Error matrices
+   at 5 / 40 / 50 mm (measured pressure where the plate passes each height going up for
+   the last time before the trial's top -- a resting plate's spikes are not the lift;
+   ``mfdesign.models.trajectory.measured_waypoints`` -- the two trials of a mass averaged). Each membrane's way-points are a *target*. Error matrices
    (scaled trajectory RMSE, p_max 10 kPa; rows membranes, columns targets):
    ``measured`` (membrane m's measured pressures vs target t's) and ``model`` (the model's
    pressures for membrane m at target t's loads and heights vs target t's pressures; the
@@ -12,15 +13,24 @@
    the score is the LogSumExp smooth minimum (tau = 15 mm, the authors' setting) of the
    three lift heights. Real scores of all seven membranes from the data (lift height where
    the trial's pressure first reaches the target; a trial that tops out below the target
-   pressure is censored at its largest height), the model's scores of the same membranes,
-   and the model-optimised design (predicted, member spread, simulator check). The paper:
-   A 29.4 vs 14.4 (average of prior designs), B 40.8 vs 25.7.
+   pressure is censored at its largest height), the model's scores of the same membranes
+   (mean over members, and the members' spread), and the model-optimised design
+   (predicted, member spread, the limits it sits on, simulator check). The paper: A 29.4
+   vs 14.4 (average of prior designs), B 40.8 vs 25.7.
 
-    python experiments/paper_design.py [--model DIR] [--starts 2500] [--no-check]
+    python experiments/paper_design.py [--model DIR] [--starts 2500] [--no-check] [--name paper_design]
 
-``--model``: any saved model folder (default: an RPN ensemble fitted once on all seven
-membranes and cached in ``experiments/out/paper_design_model``). Writes
-``experiments/out/paper_design.{json,png}``.
+``--model``: any saved model folder (``mfdesign fit`` / ``mfdesign fit-mf``; default: an
+RPN ensemble fitted once on all seven membranes and cached in
+``experiments/out/paper_design_model``). A fit-mf model's winner is checked by the
+simulator at its calibrated constants (posterior median), any other at the authors'.
+Writes ``experiments/out/NAME.{json,png}`` and ``NAME_{A,B}.png``. The multi-fidelity
+re-run (``paper_design_mf``):
+
+    mfdesign fit-mf mass-lift --out experiments/out/paper_design_mf_model --physics emulator \
+        --effects lift_preload --mcmc-steps 2500 --max-rows 400 --members 8 --delta-steps 1500
+    python experiments/paper_design.py --model experiments/out/paper_design_mf_model \
+        --name paper_design_mf --starts 500 --refine 16 --traj-refine 8
 """
 
 from __future__ import annotations
@@ -52,18 +62,25 @@ NOTEBOOK_A = HeightTargets((24.525,) * 3, (4137.0, 5516.0, 6895.0))  # the autho
 
 
 def get_model(path: Path | None, members: int, steps: int):
-    from mfdesign.models.ensemble import Ensemble, EnsembleConfig
-    from mfdesign.models.predictor import EnsemblePredictor
+    """``(predictor, folder, (sim_params, constants))``: a saved model folder (any that
+    ``mfdesign optimize --model`` reads), or the cached ensemble, fitted here the first time.
+    The simulator check runs at the constants the model stands for: a fit-mf model's
+    calibrated ones, else the authors'."""
+    from mfdesign.cli.optimize import load_fit, load_model, simulator_constants
+    from mfdesign.models.ensemble import EnsembleConfig
 
     path = Path(path) if path else PAPER_DESIGN_MODEL
-    if (path / "ensemble.json").exists():
-        return EnsemblePredictor(Ensemble.load(path)), str(path)
+    if path.is_dir() and ((path / "ensemble.json").exists() or (path / "mf.json").exists()):
+        fit = load_fit(path)
+        return load_model(path, fit), str(path), simulator_constants(path, fit)
+    if path != PAPER_DESIGN_MODEL:
+        raise SystemExit(f"--model {path}: no ensemble.json nor mf.json there")
     data = load_mass_lift()
     a = data.arrays()
     cfg = EnsembleConfig(n_members=members, steps=steps, monotone=True)
     model = cfg.fit(a["design"], a["height_mm"], a["pressure_pa"], a["force_n"], a["weight"], key=0)
     model.ensemble.save(path)
-    return model, str(path)
+    return model, str(path), simulator_constants(path)
 
 
 def target_waypoints(data) -> pd.DataFrame:
@@ -125,12 +142,15 @@ def model_scores(predictor, keys, targets: HeightTargets, tau: float) -> dict:
     )
     out = {}
     for key in keys:
-        hm = np.asarray(f(jnp.asarray(Membrane.from_key(key).to_array())))
+        hm = np.asarray(f(jnp.asarray(Membrane.from_key(key).to_array())))  # [members, loads]
         h = hm.mean(0)
+        member_scores = np.asarray(smooth_min(hm, tau))  # each member's own score [members]
         out[key] = dict(
             h_mm=h.tolist(),
             h_std_mm=hm.std(0).tolist(),
             score_mm=float(smooth_min(h, tau)),
+            score_member_std_mm=float(member_scores.std()),
+            score_member_q05_q95_mm=np.quantile(member_scores, [0.05, 0.95]).tolist(),
             min_h_mm=float(h.min()),
         )
     return out
@@ -232,19 +252,29 @@ def height_study(model, data, args) -> dict:
                     n_refine=args.refine,
                     seed=args.seed,
                     check=args.check,
+                    sim_params=args.sim_params,
+                    sim_constants=args.sim_constants,
                     progress=False,
                 )
             entry["optimised"] = res.to_json()
             entry["optimised"]["seconds"] = t["wall_s"]
+            entry["optimised"]["model_scores"] = model_scores(predictor, [res.design_key], targets, tau)[
+                res.design_key
+            ]  # the same numbers as the membranes' (81-point grid, member spread of the score)
             args.out.mkdir(parents=True, exist_ok=True)
-            plot_optimum(res, args.out / f"paper_design_{name}.png", title=f"set {name}: {res.design_key}")
+            plot_optimum(res, args.out / f"{args.name}_{name}.png", title=f"set {name}: {res.design_key}")
             p = res.prediction
             sim = res.simulator
             print(
                 f"set {name}: optimised {res.design_key}: model score {p['score_mm']:.1f} mm (min {p['min_h_mm']:.1f}, "
                 f"member std {np.round(p['h_member_std_mm'], 1).tolist()} mm); ratio to prior model mean "
                 f"{p['score_mm'] / entry['prior_model_mean_score_mm']:.2f}"
-                + (f"; simulator heights {sim['h_sim_mm']} ({sim['status']})" if sim else ""),
+                + (
+                    f"; simulator heights {sim['h_sim_mm']} ({sim['status']}, {sim['constants']['constants']} constants)"
+                    if sim
+                    else ""
+                )
+                + "".join(f"\n  limit: {flag}" for flag in res.limits),
                 flush=True,
             )
         out[name] = entry
@@ -322,10 +352,11 @@ def main():
     ap.add_argument("--traj-refine", type=int, default=32)
     ap.add_argument("--traj-steps", type=int, default=60)
     ap.add_argument("--check", action=argparse.BooleanOptionalAction, default=True)
+    ap.add_argument("--name", default="paper_design", help="stem of the output files (NAME.json, NAME.png)")
     args = ap.parse_args()
     clock = Timing()
     data = load_mass_lift()
-    model, model_path = get_model(args.model, args.members, args.fit_steps)
+    model, model_path, (args.sim_params, args.sim_constants) = get_model(args.model, args.members, args.fit_steps)
     tr = trajectory_study(model, data, args)
     hs = height_study(model, data, args)
     summary = {
@@ -338,19 +369,38 @@ def main():
             f"{s} model opt/prior": f"{hs[s]['optimised']['prediction']['score_mm']:.1f}/{hs[s]['prior_model_mean_score_mm']:.1f}"
             for s in ("A", "B")
         },
+        **{
+            f"{s} authors' design model/real": "{:.1f} +- {:.1f} / {:.1f}".format(
+                hs[s]["model"][hs[s]["authors_design"]]["score_mm"],
+                hs[s]["model"][hs[s]["authors_design"]]["score_member_std_mm"],
+                hs[s]["authors_design_real_score_mm"],
+            )
+            for s in ("A", "B")
+        },
+        **{
+            f"{s} simulator check": (
+                "not run"
+                if not hs[s]["optimised"]["simulator"]
+                else f"{hs[s]['optimised']['simulator']['h_sim_mm']} mm "
+                f"({hs[s]['optimised']['simulator']['constants']['constants']} constants)"
+            )
+            for s in ("A", "B")
+        },
         "paper": "A 29.4/14.4, B 40.8/25.7",
     }
     result = dict(
         model=model_path,
-        settings={k: v for k, v in vars(args).items() if k != "out"} | {"model": model_path},
+        simulator_constants=args.sim_constants,
+        settings={k: v for k, v in vars(args).items() if k not in ("out", "sim_params", "sim_constants")}
+        | {"model": model_path},
         trajectories=tr,
         height=hs,
         summary=summary,
         seconds=clock.elapsed(),
         load_average=load(),
     )
-    write_json(args.out / "paper_design.json", result)
-    plot(result, args.out / "paper_design.png")
+    write_json(args.out / f"{args.name}.json", result)
+    plot(result, args.out / f"{args.name}.png")
     print(json.dumps(summary, indent=1), flush=True)
 
 

@@ -354,7 +354,10 @@ class Proposal:
         """The runs the tool makes itself (simulator planes), ranked."""
         return tuple(r for r in self.runs if r.fidelity != _PENDING_FIDELITY)
 
-    def to_json(self) -> dict:
+    def to_json(self, made: Mapping[int, dict] | None = None) -> dict:
+        """JSON-ready dict; ``made``: per simulator run's rank, what making it gave
+        (:meth:`mfdesign.sim_runs.MadeRun.to_json`); a run not in it is listed as not made."""
+        made = {} if made is None else made
         return {
             "designs": [d.key() for d in self.designs],
             "fidelities": list(self.fidelities),
@@ -366,7 +369,10 @@ class Proposal:
             "budget": self.budget,
             "pending": [d.key() for d in self.pending],
             "fabricate": [r.to_json() for r in self.fabricate],
-            "simulate": [r.to_json() | {"made_by": "the tool (a simulator plane)"} for r in self.simulate],
+            "simulate": [
+                r.to_json() | {"made_by": "the tool (a simulator plane)"} | made.get(r.rank, {"made": False})
+                for r in self.simulate
+            ],
             "arms": [
                 {k: v for k, v in a.items() if k not in ("u", "dev", "restart_utility")}
                 | {"restart_utility_quantiles": np.quantile(a["restart_utility"], [0, 0.5, 0.9, 1]).tolist()}
@@ -374,12 +380,12 @@ class Proposal:
             ],
         }
 
-    def save(self, path) -> None:
+    def save(self, path, made: Mapping[int, dict] | None = None) -> None:
         from pathlib import Path
 
         from mfdesign import outputs
 
-        outputs.write_json(Path(path), self.to_json())
+        outputs.write_json(Path(path), self.to_json(made))
 
 
 def _check_costs(fidelities, costs):

@@ -688,6 +688,7 @@ def optimize(
     batch_size: int = 250,
     check: bool = False,
     sim_params=None,
+    sim_constants: dict | None = None,
     progress: bool = True,
     tie_tol: float = 0.02,
     n_alternatives: int = 5,
@@ -716,7 +717,10 @@ def optimize(
     - `seed`: random seed.
     - `batch_size`: starts per `jax.lax.map` chunk (bounds memory).
     - `check`: recompute the winner's lift heights with the simulator.
-    - `sim_params`: simulator constants of the check (default the authors').
+    - `sim_params`: simulator constants of the check (default the authors'; a fit-mf
+      model's are its calibrated ones, :func:`~mfdesign.calibration.workflow.calibrated_sim_params`).
+    - `sim_constants`: what `sim_params` are, recorded with the check as ``constants``
+      (default ``{"constants": "authors"}`` without `sim_params`, else ``"given"``).
     - `progress`: progress bars.
     - `tie_tol`: relative gap to the best loss within which other designs (other starts,
       other ring counts) are reported as alternatives (default 2 %).
@@ -798,6 +802,9 @@ def optimize(
     if check:
         model_h = pred["h_mean_force_mm"] if height else list(problem.h_mm)
         sim = check_with_simulator(design, F, p, model_h, sim_params)
+        sim["constants"] = dict(
+            sim_constants or {"constants": "authors" if sim_params is None else "given"}
+        )  # the check's heights depend on them by mm: say which
     settings = dict(
         n_starts=n_starts,
         steps=steps,
@@ -851,7 +858,8 @@ def plot(result: Result, path, title: str = "") -> None:
     if result.simulator:
         s = result.simulator
         hs = [np.nan if v is None else v for v in s["h_sim_mm"]]
-        ax.plot(np.asarray(s["p_pa"]) / 1e3, hs, "kx", ms=9, label="simulator check")
+        which = s.get("constants", {}).get("constants", "authors")
+        ax.plot(np.asarray(s["p_pa"]) / 1e3, hs, "kx", ms=9, label=f"simulator check ({which} constants)")
     ax.set_xlabel("pressure [kPa]")
     ax.set_ylabel("lift height [mm]")
     ax.set_title(title or f"{result.problem}: {result.design_key}", fontsize=9)

@@ -381,6 +381,7 @@ def test_cli_budget_and_pending(tmp_path):
     model = _split_folder(tmp_path / "split")
     pending = "[2.0, 30.0, nan, nan, nan, nan]"
     args = ["propose", "--model", str(model), "--membranes", "1", "--sim-runs", "1", "--pending", pending]
+    args += ["--no-simulate"]  # making the run: tests/test_sim_runs.py
     args += ["--rings", "0", "--thickness-mm", "2", "2", "--restarts", "4", "--refine", "2", "--opt-steps", "2"]
     r = runner.invoke(app, [*args, "--out", str(tmp_path / "o")])
     assert r.exit_code == 0, _text(r)
@@ -389,7 +390,7 @@ def test_cli_budget_and_pending(tmp_path):
     assert len(out["fabricate"]) == 1 and len(out["simulate"]) == 1
     assert all(Membrane.from_key(k).thickness_mm == 2.0 for k in out["designs"])  # the fixed feature
     text = _text(r)
-    assert "membranes to fabricate:" in text and "simulator runs (to be made by the tool):" in text
+    assert "membranes to fabricate:" in text and "simulator runs (listed, not made: --no-simulate):" in text
     assert "expected reduction" in text
 
 

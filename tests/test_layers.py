@@ -21,7 +21,7 @@ LAYERS = (
     ("mfdesign.physics", "mfdesign.data", "mfdesign.rig"),  # physics, data and the rig's I/O
     ("mfdesign.models",),
     ("mfdesign.calibration", "mfdesign.diagnose"),
-    ("mfdesign.acquire", "mfdesign.optimize"),
+    ("mfdesign.acquire", "mfdesign.optimize", "mfdesign.sim_runs"),
     ("mfdesign.report", "mfdesign.cli"),
     ("mfdesign",),  # the package's own names: a facade over everything
 )

@@ -27,6 +27,8 @@ from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
 __all__ = [
     "MFFit",
+    "authors_sim_params",
+    "calibrated_sim_params",
     "for_search",
     "fit_multi_fidelity",
     "force_model_named",
@@ -256,6 +258,50 @@ def load_multi_fidelity(folder) -> MFFit:
         raise InputError(f"{folder}: {err}") from None
     mf = MultiFidelity.from_posterior(model, post, delta, noise_n=noise)
     return MFFit(model, post, delta, noise, mf, tuple(post.design_keys))
+
+
+def calibrated_sim_params(fit: MFFit) -> tuple:
+    """The simulator constants a fit stands for: :class:`~mfdesign.physics.params.SimParams`
+    at the posterior median of every parameter (mu [Pa], J_m and each effect's mechanical
+    constants), for a NEW membrane (nominal thickness: the population prior of the
+    thickness latents is centred at 0), on a plain force row (inflating, plate held);
+    effects that act only on the recorded force (``lift_preload``, sensor offsets) leave
+    the simulator's constants alone. Returns ``(params, description)``, the description a
+    JSON-ready dict (``constants``, ``rule``, the non-default fields)."""
+    enable_x64()  # float64 physics: mfdesign._x64
+    import jax
+    import jax.numpy as jnp
+
+    from mfdesign.physics.params import SimParams
+
+    from mfdesign.calibration.posterior import Posterior
+    from mfdesign.models.predictive import MultiFidelity
+
+    post, mf, model = fit.posterior, fit.mf, fit.model
+    assert isinstance(post, Posterior) and isinstance(mf, MultiFidelity) and isinstance(model, HierarchicalModel)
+    x = np.median(np.asarray(post.samples, dtype=np.float64), axis=0)
+    # One force row of a new membrane: any design serves (no effect reads the design).
+    row = np.array([[2.0, 30.0, np.nan, np.nan, np.nan, np.nan]])
+    data = mf.data_for(row, np.array([10.0]), np.array([4000.0]))
+    params = model.sim_params(jnp.asarray(x), data, thickness_rel=jnp.zeros(1))
+    params = jax.tree.map(lambda a: float(np.asarray(a).reshape(-1)[0]), params)
+    authors = SimParams()
+    fields = [f.name for f in dataclasses.fields(SimParams)]
+    description = {
+        "constants": "calibrated",
+        "rule": "posterior median of each parameter; a new membrane at nominal thickness",
+        **{k: getattr(params, k) for k in fields if k in ("mu_pa", "jm") or getattr(params, k) != getattr(authors, k)},
+    }
+    return params, description
+
+
+def authors_sim_params() -> tuple:
+    """The authors' constants (Ecoflex 00-30: mu 31.7 kPa, J_m 39.6) and their description,
+    in the form of :func:`calibrated_sim_params`."""
+    from mfdesign.physics.params import SimParams
+
+    params = SimParams()
+    return params, {"constants": "authors", "mu_pa": float(params.mu_pa), "jm": float(params.jm)}
 
 
 def lifted_rows(table, min_lift_height_mm: float = 2.0):

@@ -6,7 +6,9 @@ Targets: ``--target-set A|B`` (the paper's height-maximisation sets: the three m
 trajectory targeting through way-points.
 
 The winner is checked by the simulator by default when the exact simulator can serve the
-model (:func:`simulator_for_check`); the output names the limits the winner sits on (grid
+model (:func:`simulator_for_check`), at the constants the model stands for (a fit-mf
+model's calibrated ones, else the authors': :func:`simulator_constants`; the output says
+which); the output names the limits the winner sits on (grid
 tops, the rig's travel and pressure limit, design-space bounds) and the near-ties.
 """
 
@@ -57,10 +59,23 @@ def read_targets(path: Path):
         raise ValueError(f"bad targets in {path}: {err}") from None
 
 
-def load_model(path: Path):
+def load_fit(path: Path):
+    """The multi-fidelity fit (:class:`~mfdesign.calibration.workflow.MFFit`) of a
+    ``mfdesign fit-mf`` folder (``mf.json``), or None for any other folder. ``ValueError``
+    (``InputError``) when the folder holds a broken fit."""
+    path = Path(path)
+    if not (path / "mf.json").is_file():
+        return None
+    from mfdesign.calibration.workflow import load_multi_fidelity
+
+    return load_multi_fidelity(path)
+
+
+def load_model(path: Path, fit=None):
     """The predictor (:class:`~mfdesign.models.predictor.AbstractPredictor`) of a saved model
     folder: the RPN ensemble of ``mfdesign fit`` (``ensemble.json``) or the multi-fidelity fit
-    of ``mfdesign fit-mf`` (``mf.json``; 16 posterior draws)."""
+    of ``mfdesign fit-mf`` (``mf.json``; 16 posterior draws; ``fit``: that fit, already
+    loaded by :func:`load_fit`)."""
     from mfdesign.models.ensemble import Ensemble
     from mfdesign.models.predictor import EnsemblePredictor
 
@@ -68,9 +83,7 @@ def load_model(path: Path):
     if not path.is_dir():
         raise ValueError(f"model folder {path} does not exist (fit one with `mfdesign fit` or `mfdesign fit-mf`)")
     if (path / "mf.json").is_file():
-        from mfdesign.calibration.workflow import load_multi_fidelity
-
-        return load_multi_fidelity(path).mf.predictor(16)
+        return (load_fit(path) if fit is None else fit).mf.predictor(16)
     try:
         return EnsemblePredictor(Ensemble.load(path))
     except (FileNotFoundError, ValueError, KeyError) as err:
@@ -95,6 +108,38 @@ def simulator_for_check(model: Path) -> tuple[bool, str]:
         if physics == "standin":
             return False, "the model was fitted with --physics standin (no simulator behind it)"
     return True, ""
+
+
+def simulator_constants(model: Path, fit=None) -> tuple:
+    """The constants the simulator runs at for the model in folder ``model``: a fit-mf
+    model's calibrated ones (posterior median,
+    :func:`~mfdesign.calibration.workflow.calibrated_sim_params`; ``fit``: that fit, already
+    loaded), else the authors'. Returns ``(SimParams, description)``; the description
+    (JSON-ready) says which."""
+    from mfdesign.calibration.workflow import authors_sim_params, calibrated_sim_params
+
+    fit = load_fit(model) if fit is None else fit
+    if fit is None:
+        return authors_sim_params()
+    params, description = calibrated_sim_params(fit)
+    return params, description | {"model": str(model)}
+
+
+def describe_constants(description: dict) -> str:
+    """``"calibrated constants (posterior median of DIR): mu 29.4 kPa, J_m 45.7"`` or the authors'."""
+    which = (
+        f"calibrated constants (posterior median of {description.get('model', 'the fit')})"
+        if description.get("constants") == "calibrated"
+        else "the authors' constants"
+    )
+    others = ", ".join(
+        f"{k} {v:.4g}" for k, v in description.items() if k not in ("constants", "rule", "model", "mu_pa", "jm")
+    )
+    if "mu_pa" not in description or "jm" not in description:
+        return which
+    return f"{which}: mu {description['mu_pa'] / 1e3:.4g} kPa, J_m {description['jm']:.4g}" + (
+        f", {others}" if others else ""
+    )
 
 
 def _echo_check(sim: dict) -> None:
@@ -164,11 +209,15 @@ def register(app: typer.Typer) -> None:
             except ValueError as err:
                 fail(str(err))
         try:
-            predictor = load_model(model)
+            fit = load_fit(model)
+            predictor = load_model(model, fit)
         except ValueError as err:
             fail(str(err))
         available, why_not = simulator_for_check(model)
         check = available if check is None else check
+        # The check runs the simulator at the constants the model stands for: a fit-mf
+        # model's calibrated ones, not the authors' (their heights differ by mm).
+        sim_params, constants = simulator_constants(model, fit) if check else (None, None)
         result = optimize(
             predictor,
             problem,
@@ -179,6 +228,8 @@ def register(app: typer.Typer) -> None:
             n_refine=refine or None,
             seed=seed,
             check=check,
+            sim_params=sim_params,
+            sim_constants=constants,
             tie_tol=tie_tol,
         )
         out.mkdir(parents=True, exist_ok=True)
@@ -202,5 +253,6 @@ def register(app: typer.Typer) -> None:
             )
         if result.simulator is not None:
             _echo_check(result.simulator)
+            typer.echo(f"simulator check at {describe_constants(result.simulator['constants'])}")
         else:
             typer.echo(f"simulator check: not run ({why_not or 'asked with --no-check'})")

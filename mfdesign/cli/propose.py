@@ -7,7 +7,13 @@ round's budget is ``--membranes Q --sim-runs S`` (or ``--q`` for a free mix of
 ``--fidelity``); ``--pending KEY`` names membranes already being built; the design-space
 options narrow or fix thickness, contact radius and ring half-width. It prints the
 membranes to fabricate, ranked, each with its expected reduction (N), cost and a reason,
-and the simulator runs apart (to be made by the tool, not run here).
+and the simulator runs apart: the tool MAKES them (:mod:`mfdesign.sim_runs`; ``--no-simulate``
+only lists them) at the model's constants (a fit-mf model's calibrated ones, else the
+authors'), writes each plane to ``OUT/sim_runs/runK/`` (``plane.parquet``, ``plane.png``,
+``summary.json``) and their usable points to ``OUT/sim_runs.parquet`` (Measurements, source
+"simulated"), and reports per run its status, time and what it taught: the model's error
+against the simulator there next to the spread the acquisition predicted. A run the
+simulator could not solve (``NOT_CONVERGED`` points, or an error) is reported as such.
 """
 
 from __future__ import annotations
@@ -23,14 +29,15 @@ from mfdesign.cli._contract import item_parser
 from mfdesign.cli._space import CONTACT_RADIUS, HALF_WIDTH, THICKNESS, design_space
 
 
-def load_predictor(model: Path):
+def load_predictor(model: Path, fit=None):
     """A :class:`~mfdesign.models.predictor.AbstractPredictor` from a folder.
 
     * ``DIR/ensemble.json`` (``mfdesign fit``): the rig-only paper case;
     * ``DIR/sim/ensemble.json`` + ``DIR/discrepancy/ensemble.json``: a
       :class:`~mfdesign.acquire.SplitPredictor` offering ``rig`` and ``sim``;
     * ``DIR/mf.json`` (``mfdesign fit-mf``): the multi-fidelity model, ``rig`` and ``sim``
-      (:meth:`~mfdesign.models.predictive.MultiFidelity.predictor`, 16 posterior draws).
+      (:meth:`~mfdesign.models.predictive.MultiFidelity.predictor`, 16 posterior draws;
+      ``fit``: that fit, already loaded by :func:`mfdesign.cli.optimize.load_fit`).
 
     Raises ``ValueError`` with what was found when the folder is neither.
     """
@@ -41,9 +48,9 @@ def load_predictor(model: Path):
     if not model.is_dir():
         raise ValueError(f"--model {model} is not a folder (give the output folder of 'mfdesign fit')")
     if (model / "mf.json").is_file():
-        from mfdesign.calibration.workflow import load_multi_fidelity
+        from mfdesign.cli.optimize import load_fit
 
-        return load_multi_fidelity(model).mf.predictor(16)
+        return (load_fit(model) if fit is None else fit).mf.predictor(16)
     if (model / "ensemble.json").is_file():
         return EnsemblePredictor(Ensemble.load(model))
     if (model / "sim" / "ensemble.json").is_file() and (model / "discrepancy" / "ensemble.json").is_file():
@@ -146,7 +153,16 @@ def register(app: typer.Typer) -> None:
         refine: int = typer.Option(32, help="Best scored batches refined by L-BFGS."),
         steps: int = typer.Option(20, "--opt-steps", help="L-BFGS iterations per refined batch."),
         seed: int = typer.Option(0, help="Random seed of the restarts."),
-        out: Path = typer.Option(Path("out/propose"), help="Output folder (proposal.json, proposal.png)."),
+        simulate: bool = typer.Option(
+            True,
+            "--simulate/--no-simulate",
+            help="Make the chosen simulator runs and report what they taught (default), or only list them.",
+        ),
+        sim_heights: int = typer.Option(15, help="Heights of a made simulator plane (0-70 mm)."),
+        sim_pressures: int = typer.Option(17, help="Pressures of a made simulator plane (0-8 kPa)."),
+        out: Path = typer.Option(
+            Path("out/propose"), help="Output folder (proposal.json, proposal.png, sim_runs/, sim_runs.parquet)."
+        ),
     ) -> None:
         """Propose the next membranes to fabricate (and simulator runs to make): max uncertainty reduction per cost."""
         from mfdesign.cli._app import fail
@@ -183,6 +199,12 @@ def register(app: typer.Typer) -> None:
             if not (math.isfinite(c) and c > 0):
                 fail(f"--{name} must be a positive finite number, got {c}")
         space = design_space(thickness_mm, contact_radius_mm, half_width_mm, allow_outside_design_space)
+        from mfdesign.sim_runs import PlaneSpec
+
+        try:
+            spec = PlaneSpec(n_heights=sim_heights, n_pressures=sim_pressures)
+        except ValueError as err:
+            fail(f"--sim-heights / --sim-pressures: {err}")
         from mfdesign.design import DesignError, Membrane
 
         built = []
@@ -193,9 +215,11 @@ def register(app: typer.Typer) -> None:
                 fail(f"--pending {key!r}: {err}")
 
         from mfdesign.acquire import propose as run_propose
+        from mfdesign.cli.optimize import load_fit
 
         try:
-            predictor = load_predictor(model)
+            fit = load_fit(model) if Path(model).is_dir() else None
+            predictor = load_predictor(model, fit)
         except (ValueError, OSError) as err:
             fail(str(err))
         missing = [f for f in fidelity if f not in predictor.fidelities]
@@ -224,11 +248,17 @@ def register(app: typer.Typer) -> None:
         except ValueError as err:
             fail(str(err))
         out.mkdir(parents=True, exist_ok=True)
-        proposal.save(out / "proposal.json")
+        made, lines, sim_note = _make_sim_runs(proposal, predictor, model, fit, spec, simulate, out)
+        from mfdesign import outputs
+
+        report = proposal.to_json(made)
+        if proposal.simulate:
+            report["sim_runs"] = sim_note
+        outputs.write_json(out / "proposal.json", report)
         plot_proposal(proposal, out / "proposal.png", space)
         for title, runs in (
             ("membranes to fabricate", proposal.fabricate),
-            ("simulator runs (to be made by the tool)", proposal.simulate),
+            (sim_note["title"], proposal.simulate),
         ):
             if not runs:
                 continue
@@ -237,9 +267,71 @@ def register(app: typer.Typer) -> None:
                 typer.echo(
                     f"  {r.rank}. {r.design.key()}  expected reduction {r.reduction_n:.4g} N, cost {r.cost:g}: {r.reason}"
                 )
+                if r.rank in lines:
+                    typer.echo(f"     {lines[r.rank]}")
+        for r in proposal.simulate:
+            entry = made.get(r.rank, {})
+            if entry.get("made") and entry.get("state") != "converged":  # never silent: stderr too
+                typer.echo(
+                    f"warning: simulator run {r.rank} ({r.design.key()}): {entry['state']}, {entry['taught']}", err=True
+                )
         if proposal.pending:
             typer.echo(f"pending (counted as measured): {', '.join(d.key() for d in proposal.pending)}")
         typer.echo(
             f"utility {proposal.utility:.4g} N, cost {proposal.cost:g}, score {proposal.score:.4g}; "
             f"wrote {out / 'proposal.json'} and {out / 'proposal.png'}"
         )
+
+
+def _make_sim_runs(proposal, predictor, model: Path, fit, spec, simulate: bool, out: Path):
+    """Make (or only list) the proposal's simulator runs; write their planes. Returns the
+    per-rank JSON entries for ``proposal.json``, one console line per rank, and the
+    ``sim_runs`` note (title, constants, plane, files)."""
+    import dataclasses
+
+    from mfdesign.cli.optimize import describe_constants, simulator_constants, simulator_for_check
+
+    runs = proposal.simulate
+    if not runs:
+        return {}, {}, {"title": "simulator runs"}
+    available, why_not = simulator_for_check(model)
+    if not simulate or not available:
+        why = "--no-simulate" if not simulate else why_not
+        made = {r.rank: {"made": False, "why_not_made": why} for r in runs}
+        return made, {}, {"title": f"simulator runs (listed, not made: {why})", "made": False, "why_not_made": why}
+    from mfdesign import outputs, sim_runs
+    from mfdesign.cli._plane import write_plane
+    from mfdesign.data.store import write_parquet
+
+    params, constants = simulator_constants(model, fit)
+    what = describe_constants(constants)
+    typer.echo(f"making {len(runs)} simulator run(s) at {what} ...", err=True)
+    # A fit's force model (the emulator) at the runs' own constants, scored alone: its error
+    # without the members' parameter and thickness spread.
+    surrogate = None if fit is None else (lambda d, h, p: fit.model.force_model(d, h, p, params))
+    done = sim_runs.make(runs, predictor, params, spec, surrogate=surrogate)
+    made, lines = {}, {}
+    for m in done:
+        folder = out / "sim_runs" / f"run{m.rank}"
+        entry = m.to_json() | {"design": m.design.key(), "constants": constants, "folder": str(folder)}
+        if m.table is not None:
+            write_plane(m.table, m.design, folder, extra={"proposal_rank": m.rank, "run": entry})
+            entry["plane"] = str(folder / "plane.parquet")
+        else:
+            outputs.write_json(folder / "summary.json", {"design": m.design.key(), "run": entry})
+        made[m.rank] = entry
+        counts = ", ".join(f"{k} {v}" for k, v in m.status.items())
+        lines[m.rank] = f"made: {m.state} ({counts or 'no points'}), {m.seconds:.1f} s; {m.taught()}"
+    data = sim_runs.as_measurements(done)
+    files = {"folder": str(out / "sim_runs")}
+    if data is not None:
+        files["measurements"] = str(write_parquet(data, out / "sim_runs.parquet"))
+    note = {
+        "title": f"simulator runs (made by the tool at {what})",
+        "made": True,
+        "constants": constants,
+        "plane": dataclasses.asdict(spec),
+        "compared_fidelity": "sim",
+        **files,
+    }
+    return made, lines, note

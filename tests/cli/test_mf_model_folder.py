@@ -92,3 +92,64 @@ def test_a_folder_without_the_discrepancy_is_refused(folder, tmp_path):
         app, ["propose", "--model", str(broken), "--q", "1", "--restarts", "2", "--out", str(tmp_path / "p")]
     )
     assert r.exit_code == 2 and "delta" in r.output
+
+
+def test_optimize_checks_a_fit_with_its_calibrated_constants(folder, tmp_path, monkeypatch):
+    """The simulator check of a fit-mf model runs at the fit's posterior median, and the
+    output says so; a plain ensemble folder is checked at the authors' constants."""
+    import importlib
+    import json
+
+    from mfdesign.calibration.workflow import calibrated_sim_params
+    from mfdesign.cli.optimize import simulator_constants
+    from tiny_models import tiny_ensemble
+
+    fit = load_multi_fidelity(folder)
+    params, desc = calibrated_sim_params(fit)
+    names = list(fit.posterior.names)
+    median = np.median(fit.posterior.samples, axis=0)
+    assert params.mu_pa == pytest.approx(median[names.index("mu_pa")], rel=1e-12)
+    assert params.jm == pytest.approx(median[names.index("jm")], rel=1e-12)
+    assert params.thickness_factor == 1.0  # a new membrane: the population's centre
+    assert desc["constants"] == "calibrated" and desc["mu_pa"] == params.mu_pa
+    tiny_ensemble().save(tmp_path / "ens")
+    authors, adesc = simulator_constants(tmp_path / "ens")
+    assert adesc["constants"] == "authors" and authors.mu_pa == 31.7e3 and authors.mu_pa != params.mu_pa
+
+    seen = {}
+
+    def fake_check(design, force_n, p_pa, predicted_h_mm, params=None, **kw):
+        seen["params"] = params
+        n = len(force_n)
+        return dict(
+            force_n=list(force_n),
+            p_pa=list(p_pa),
+            h_sim_mm=[10.0] * n,
+            h_model_mm=list(predicted_h_mm),
+            status=["OK"] * n,
+            mae_mm=1.0,
+        )
+
+    # the module, not the function mfdesign.optimize that the package re-exports
+    monkeypatch.setattr(importlib.import_module("mfdesign.optimize"), "check_with_simulator", fake_check)
+    out = tmp_path / "o"
+    args = ["optimize", "--model", str(folder), "--target-set", "A", "--rings", "0", "--starts", "4"]
+    r = runner.invoke(app, [*args, "--refine", "2", "--opt-steps", "2", "--check", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert seen["params"].mu_pa == params.mu_pa and seen["params"].jm == params.jm
+    sim = json.loads((out / "optimize.json").read_text())["simulator"]
+    assert sim["constants"]["constants"] == "calibrated" and sim["constants"]["model"] == str(folder)
+    assert f"simulator check at calibrated constants (posterior median of {folder})" in r.output
+
+
+def test_propose_lists_but_does_not_make_sim_runs_of_a_standin_fit(folder, tmp_path):
+    """A stand-in fit has no simulator behind it: its sim runs are listed, with the reason."""
+    import json
+
+    out = tmp_path / "p"
+    args = ["propose", "--model", str(folder), "--sim-runs", "1", "--rings", "0", "--restarts", "4"]
+    r = runner.invoke(app, [*args, "--refine", "2", "--opt-steps", "2", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    (entry,) = json.loads((out / "proposal.json").read_text())["simulate"]
+    assert entry["made"] is False and "standin" in entry["why_not_made"]
+    assert "simulator runs (listed, not made: the model was fitted with --physics standin" in r.output
