@@ -624,9 +624,15 @@ def limit_flags(
         for f, pp, h in zip(F, p, prediction["h_mean_force_mm"]):
             what = f"lift height of {f:.3g} N at {pp / 1e3:.3g} kPa"
             if h >= h_grid_top_mm - _AT_LIMIT:
+                # both limits when the grid's top is above the rig's travel (80 vs 75 mm)
+                travel = (
+                    f", and above the rig's {RIG_HEIGHT_MAX_MM:g} mm travel (cannot be measured)"
+                    if h > RIG_HEIGHT_MAX_MM
+                    else ""
+                )
                 out.append(
                     f"{what} is at the {h_grid_top_mm:g} mm top of the height grid "
-                    "(the force never falls to the load there: the true height may be higher)"
+                    f"(the force never falls to the load there: the true height may be higher){travel}"
                 )
             elif h > RIG_HEIGHT_MAX_MM:
                 out.append(

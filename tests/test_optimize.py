@@ -249,6 +249,7 @@ def test_limit_flags_name_grid_rig_and_design_space_limits():
     flags = limit_flags(targets, pred, design, SPACE)
     text = "\n".join(flags)
     assert "10 N at 5 kPa is at the 80 mm top of the height grid" in text
+    assert "higher), and above the rig's 75 mm travel" in text  # the grid top (80 mm) is past the travel
     assert "20 N at 5 kPa is 77 mm, above the rig's 75 mm travel" in text
     assert "40 N at 5 kPa is 0 mm: the load is not lifted" in text
     assert "target pressure 13 kPa is above the rig's 12 kPa limit" in text
