@@ -186,6 +186,23 @@ def _run_json(run) -> dict:
     }
 
 
+def _make_sim_runs(proposal, predictor, fit, out: Path) -> list[dict]:
+    """Make the proposal's simulator runs at the fit's calibrated constants (planes in
+    ``out/propose/sim_runs/runK``); per run what it taught (:mod:`mfdesign.sim_runs`)."""
+    from mfdesign import sim_runs
+    from mfdesign.calibration.workflow import calibrated_sim_params
+    from mfdesign.cli._plane import write_plane
+
+    params, constants = calibrated_sim_params(fit)
+    made = []
+    for m in sim_runs.make(proposal.simulate, predictor, params):
+        entry = m.to_json() | {"taught": m.taught(), "constants": constants}
+        if m.table is not None:
+            write_plane(m.table, m.design, out / "propose" / "sim_runs" / f"run{m.rank}", extra={"run": entry})
+        made.append(entry)
+    return made
+
+
 def _proposal_figure(meas, proposal, path: Path) -> None:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.5, 4))
@@ -436,8 +453,12 @@ def demo_report(out: str | Path, summary: dict):
         ]
         + [line for p in proposals for line in (f"{_short(p['design'])}: {p['fidelity']}", _because(p))]
         + (
-            ["Simulator runs the tool makes itself (no one builds these):"]
-            + [f"{_short(p['design'])}: {p['fidelity']} ({_because(p)})" for p in sims]
+            ["Simulator runs the tool chose and made itself (no one builds these):"]
+            + [
+                f"{_short(p['design'])}: {p['fidelity']} ({_because(p)})"
+                + (f"; made, {p['state']}: {p['taught']}" if p.get("made") else "; not made")
+                for p in sims
+            ]
             if sims
             else []
         ),
@@ -617,6 +638,10 @@ def run_demo(
     # membranes a person builds, ranked, each with why; simulator runs are the tool's own work
     summary["proposals"] = [_run_json(r) for r in proposal.fabricate]
     summary["simulator_runs"] = [_run_json(r) for r in proposal.simulate]
+    if proposal.simulate and s.force_model != "standin":  # a stand-in's runs would teach nothing real
+        with log.stage(f"make the {len(proposal.simulate)} simulator run(s) the proposal chose"):
+            for entry, made in zip(summary["simulator_runs"], _make_sim_runs(proposal, predictor, fit1, out)):
+                entry.update(made)
 
     # 6. optimise a membrane for a lift task
     with log.stage("optimise a membrane for lift task A (height maximisation)"):

@@ -160,6 +160,11 @@ class Discrepancy(eqx.Module):
         if math.isinf(self.length):
             if not rows:
                 return "discrepancy ungated (too few membranes to hold one out): it extrapolates to new designs"
+            if rows[None]["heldout_rmse_n"] >= rows[0.0]["heldout_rmse_n"] * (1 - TIE_REL):
+                return (
+                    "discrepancy about zero: held-out membranes are predicted alike with or without it "
+                    f"({rows[None]['heldout_rmse_n']:.2f} N RMS)"
+                )
             return (
                 "discrepancy ungated: it transfers to held-out membranes "
                 f"(held-out RMSE {rows[None]['heldout_rmse_n']:.2f} N vs {rows[0.0]['heldout_rmse_n']:.2f} N without it)"
