@@ -693,8 +693,21 @@ def summarise(results, args) -> dict:
             "final_rmse_n": finals,
             "membranes_to_target": first,
             "final_cost_mean": float(np.mean([c[-1]["cost"] for c in runs])),
+            # does the members' spread track the error on held-out rows (every fit of every seed)?
+            "spearman_abs_err_std_mean": _mean_of(runs, "spearman_abs_err_std"),
+            "z2_median": _median_of(runs, "z2"),
         }
     return summary
+
+
+def _mean_of(runs, key):
+    v = [p[key] for c in runs for p in c if p.get(key) is not None]
+    return float(np.mean(v)) if v else None
+
+
+def _median_of(runs, key):
+    v = [p[key] for c in runs for p in c if p.get(key) is not None]
+    return float(np.median(v)) if v else None
 
 
 def _needed(curve, target) -> tuple[int, float]:
