@@ -100,7 +100,7 @@ median ratio in [1.78, 1.8], min 0.71, IQR from [1.29, 1.29] to [1.8, unbounded]
 at 7 membranes (mean) against 2.50 N for random. The data-only ``rig-protocol`` arm falls
 faster (8.9 N at 5 membranes, random 13.7) but stalls at 6-6.4 N and re-proposes built
 designs (12-14 membranes fabricated): median in [1.29, 1.86] at 5.97 N.
-The mf pair (``--arms mf-random mf-rig --iters 2``, 3,160 s, load 2-10): random fabrication
+The mf pair (``--arms mf-random mf-rig --iters 2``, 3,176 s, load 2-10): random fabrication
 makes the calibrated model WORSE on this truth (mean 6.22 N at 3 membranes, 7.18 N at 7:
 the global calibration bends to the ringed membranes' design-dependent misfit, and the
 held-out ringless [2.0, 25.4] membrane goes to 12-21 N); the acquisition picks ringless
