@@ -40,6 +40,7 @@ import numpy as np
 
 from mfdesign._x64 import enable_x64
 from mfdesign.design import membrane_features
+from mfdesign.models.ensemble import Ensemble
 
 __all__ = ["LENGTHS", "Discrepancy", "fit_gated"]
 
@@ -57,7 +58,7 @@ class Discrepancy(eqx.Module):
     the training membranes (mm), ``length`` the gate's length scale (feature units; inf =
     no gate), ``sigma_n`` the prior scale [N], ``report`` the selection's figures."""
 
-    ensemble: object
+    ensemble: Ensemble
     anchors: jax.Array
     length: float = eqx.field(static=True)
     sigma_n: float = eqx.field(static=True)
@@ -128,7 +129,6 @@ class Discrepancy(eqx.Module):
         loads as the ungated ensemble, as it was fitted. Raises ``InputError`` on a
         malformed gate file."""
         from mfdesign.errors import InputError
-        from mfdesign.models.ensemble import Ensemble
 
         path = Path(path)
         ens = Ensemble.load(path)
