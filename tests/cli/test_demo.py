@@ -89,8 +89,11 @@ def assert_page_shows_the_numbers(lines: list[str], out: Path) -> None:
     for p in summary["proposals"]:  # membranes to build, each with why
         assert f"{_short(p['design'])}: {p['fidelity']}" in lines
         assert f"because it {p['reason']} (cost {p['cost']:g})" in lines
-    for p in summary.get("simulator_runs") or []:
-        assert f"{_short(p['design'])}: {p['fidelity']} (because it {p['reason']} (cost {p['cost']:g}))" in lines
+    for p in summary.get("simulator_runs") or []:  # the tool's own runs: made, and what each taught
+        made = f"; made, {p['state']}: {p['taught']}" if p.get("made") else "; not made"
+        assert f"{_short(p['design'])}: {p['fidelity']} (because it {p['reason']} (cost {p['cost']:g})){made}" in lines
+    if summary.get("discrepancy_gate"):
+        assert f"The multi-fidelity model's {summary['discrepancy_gate']}." in lines
     for why in summary["optimum"].get("limits") or []:
         assert f"At a limit: {why}" in lines
     assert f"Optimised for lift task A: {_short(summary['optimum']['design'])}." in lines
