@@ -100,7 +100,9 @@ def main():
     # measured way-points at the last upward crossing before the top (models/trajectory.py),
     # and the discrepancy gated by leave-one-membrane-out (models/discrepancy.py)
     settings["waypoints"] = "last_crossing"
-    settings["discrepancy"] = "gated (one-standard-error rule), antithetic prior draws; (b) shares (e)'s posterior draws"
+    settings["discrepancy"] = (
+        "gated (one-standard-error rule), antithetic prior draws; (b) shares (e)'s posterior draws"
+    )
 
     def ckpt(i):
         return args.out / "cache" / f"real_mass_lift_{args.physics}_fold{i}.json"
