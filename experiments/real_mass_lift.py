@@ -101,7 +101,7 @@ def main():
     # and the discrepancy gated by leave-one-membrane-out (models/discrepancy.py)
     settings["waypoints"] = "last_crossing"
     settings["discrepancy"] = (
-        "gated (one-standard-error rule), antithetic prior draws; (b) shares (e)'s posterior draws"
+        "gated (one-standard-error rule), antithetic prior draws, no constant term; (b) shares (e)'s posterior draws"
     )
 
     def ckpt(i):

@@ -7,7 +7,7 @@ held-out membranes worse than the calibrated physics alone (issue 5: folds 3 and
 posterior around the training membranes (Kennedy & O'Hagan 2001 use a GP; the ensemble
 carries the shape near the data)::
 
-    delta_s(x) = g(x) delta_m(s)(x) + sqrt(1 - g(x)^2) sigma z_s(design)
+    delta_s(x) = g(x) delta_m(s)(x) + sqrt(1 - g(x)^2) sigma (p / p_ref) z_s(design)
     g(x)       = exp(-d(x)^2 / (2 l^2)),   d = distance to the nearest training membrane
 
 * ``delta_m`` is member ``m`` of the RPN ensemble (all training membranes);
@@ -17,8 +17,11 @@ carries the shape near the data)::
   the spread grows to ``sigma``, the discrepancy's prior scale;
 * ``z_s`` is a draw of a unit Gaussian process over the design features with the same
   length scale ``l`` (random Fourier features, Rahimi & Recht 2007): one smooth random
-  offset per posterior draw, correlated between nearby designs, constant over (h, p);
-  drawn in antithetic pairs, so that the predictive mean is not moved by them.
+  offset per posterior draw, correlated between nearby designs, constant over h;
+  drawn in antithetic pairs, so that the predictive mean is not moved by them;
+* no pressure, no force, on the rig as in the simulator: delta is 0 at ``p = 0`` (the
+  ensemble has no constant term, the prior term grows as ``p / p_ref`` with ``p_ref`` the
+  training rows' RMS pressure, so ``sigma`` is the spread at a typical pressure).
 
 ``l`` and ``sigma`` come from the training data by leave-one-membrane-out
 (:func:`fit_gated`): every fold's ensemble is trained at once (``member_weight`` masks the
@@ -57,13 +60,15 @@ class Discrepancy(eqx.Module):
     """Gated discrepancy (module docstring): ``ensemble`` (an RPN
     :class:`~mfdesign.models.ensemble.Ensemble` of the residuals [N]), ``anchors`` [K, 6]
     the training membranes (mm), ``length`` the gate's length scale (feature units; inf =
-    no gate), ``sigma_n`` the prior scale [N], ``report`` the selection's figures."""
+    no gate), ``sigma_n`` the prior scale [N] at ``p_ref_pa`` [Pa], ``report`` the
+    selection's figures."""
 
     ensemble: Ensemble
     anchors: jax.Array
     length: float = eqx.field(static=True)
     sigma_n: float = eqx.field(static=True)
     report: tuple = eqx.field(static=True, default=())
+    p_ref_pa: float = eqx.field(static=True, default=0.0)  # 0: prior term constant in p (gates before it)
 
     def gate(self, design) -> jax.Array:
         """``g`` [N] in [0, 1] at design rows [N, 6] mm (1 at a training membrane)."""
@@ -87,7 +92,10 @@ class Discrepancy(eqx.Module):
         g = self.gate(design)
         out = g * members[jnp.arange(n_draws) % members.shape[0]]
         if self.sigma_n > 0 and not math.isinf(self.length):
-            out = out + jnp.sqrt(jnp.clip(1 - g**2, 0.0, 1.0)) * self.sigma_n * self._prior_draws(design, n_draws, key)
+            scale = jnp.sqrt(jnp.clip(1 - g**2, 0.0, 1.0)) * self.sigma_n
+            if self.p_ref_pa > 0:
+                scale = scale * jnp.asarray(p_pa) / self.p_ref_pa
+            out = out + scale * self._prior_draws(design, n_draws, key)
         return out
 
     def _prior_draws(self, design, n_draws, key) -> jax.Array:
@@ -119,6 +127,7 @@ class Discrepancy(eqx.Module):
                 "anchors_mm": np.asarray(self.anchors).tolist(),
                 "length": None if math.isinf(self.length) else self.length,
                 "sigma_n": self.sigma_n,
+                "p_ref_pa": self.p_ref_pa,
                 "report": [dict(r) for r in self.report],
             },
         )
@@ -141,15 +150,18 @@ class Discrepancy(eqx.Module):
             anchors = np.asarray(meta["anchors_mm"], dtype=np.float64).reshape(-1, 6)
             length = math.inf if meta["length"] is None else float(meta["length"])
             sigma = float(meta["sigma_n"])
+            p_ref = float(meta.get("p_ref_pa", 0.0))  # absent: a gate fitted before the pressure scaling
             report = tuple(tuple(sorted(r.items())) for r in meta.get("report", []))
         except (ValueError, KeyError, TypeError) as err:
             raise InputError(f"{gate} is not a valid gate file ({err!r}); rerun mfdesign fit-mf") from None
-        if not (len(anchors) and length >= 0 and math.isfinite(sigma) and sigma >= 0):
+        if not (
+            len(anchors) and length >= 0 and math.isfinite(sigma) and sigma >= 0 and math.isfinite(p_ref) and p_ref >= 0
+        ):
             raise InputError(
-                f"{gate}: length {length}, sigma_n {sigma}, {len(anchors)} anchors; "
-                "allowed: length >= 0 or null, sigma_n >= 0, at least one anchor"
+                f"{gate}: length {length}, sigma_n {sigma}, p_ref_pa {p_ref}, {len(anchors)} anchors; "
+                "allowed: length >= 0 or null, sigma_n >= 0, p_ref_pa >= 0, at least one anchor"
             )
-        return cls(ens, jnp.asarray(anchors), length, sigma, report)
+        return cls(ens, jnp.asarray(anchors), length, sigma, report, p_ref)
 
     def selection(self) -> list[dict]:
         """The leave-one-membrane-out table behind ``length``: one dict per candidate."""
@@ -192,9 +204,11 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
     membranes, one more training run holds ``K x M`` members, member block ``j`` blind to
     membrane ``j`` (leave-one-membrane-out, one compile): each candidate of
     :data:`LENGTHS` is scored by the held-out RMSE of ``resid - g delta_j``; the shortest
-    length within one standard error of the best wins (the one-standard-error rule), and ``sigma^2 = sum(w ((r - g delta_j)^2 - noise^2)) / sum(w (1 - g^2))`` (>= 0)
+    length within one standard error of the best wins (the one-standard-error rule), and
+    ``sigma^2 = sum(w ((r - g delta_j)^2 - noise^2)) / sum(w (1 - g^2) (p / p_ref)^2)`` (>= 0)
     with ``noise`` the within-membrane residual scale after the full ensemble (or
-    ``noise_n``). With fewer membranes nothing can be held out: ``length`` = inf (the
+    ``noise_n``). The ensemble has no constant term (``config.intercept`` is set False):
+    delta(p = 0) = 0. With fewer membranes nothing can be held out: ``length`` = inf (the
     ensemble everywhere), said in the report.
     """
     enable_x64()  # float64 physics: mfdesign._x64
@@ -202,9 +216,15 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
 
     from mfdesign.models.ensemble import fit_ensemble
 
+    # no pressure, no force, on the rig as in the simulator: the discrepancy is 0 at p = 0 (a
+    # constant term would invent force at rest, +24 N at h = 50 mm on a known membrane)
+    config = dataclasses.replace(config, intercept=False)
     design = np.asarray(design, np.float64)
     r, w = np.asarray(resid_n, np.float64), np.asarray(weight, np.float64)
     membrane = np.asarray(membrane)
+    p = np.asarray(p_pa, np.float64)
+    p_ref = float(np.sqrt(np.average(p**2, weights=w)))
+    shape2 = (p / p_ref) ** 2 if p_ref > 0 else np.ones_like(p)  # the prior term's variance grows as p^2
     ids = np.unique(membrane)
     first = np.array([np.flatnonzero(membrane == i)[0] for i in ids])
     anchors = design[first]
@@ -215,7 +235,9 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
         noise_n = float(np.sqrt(np.average((r - d_full) ** 2, weights=w)))
     if len(ids) < 3:
         report = ({"length": None, "note": f"{len(ids)} membrane(s): nothing to hold out, no gate"},)
-        return Discrepancy(full, jnp.asarray(anchors), math.inf, 0.0, tuple(tuple(sorted(x.items())) for x in report))
+        return Discrepancy(
+            full, jnp.asarray(anchors), math.inf, 0.0, tuple(tuple(sorted(x.items())) for x in report), p_ref
+        )
     m = config.n_members
     cv_cfg = dataclasses.replace(config, n_members=m * len(ids))
     blind = np.repeat((membrane[None, :] != ids[:, None]).astype(float), m, axis=0)  # [K M, n]
@@ -233,7 +255,7 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
         g = np.ones_like(d2) if math.isinf(ell) else (np.zeros_like(d2) if ell == 0 else np.exp(-0.5 * d2 / ell**2))
         e2 = (r - g * d_held) ** 2
         rmse = float(np.sqrt(np.average(e2, weights=w)))
-        room = float(np.sum(w * (1 - g**2)))
+        room = float(np.sum(w * (1 - g**2) * shape2))
         s2 = float(np.sum(w * (e2 - noise_n**2)) / room) if room > 1e-9 * w.sum() else 0.0
         rows.append(
             {"length": None if math.isinf(ell) else ell, "heldout_rmse_n": rmse, "sigma_n": math.sqrt(max(s2, 0.0))}
@@ -253,4 +275,4 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
     for i, x in enumerate(rows):
         x["chosen"] = i == best
     report = tuple(tuple(sorted(x.items())) for x in rows)
-    return Discrepancy(full, jnp.asarray(anchors), ell, sigma, report)
+    return Discrepancy(full, jnp.asarray(anchors), ell, sigma, report, p_ref)

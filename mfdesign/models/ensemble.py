@@ -61,7 +61,9 @@ class EnsembleConfig:
     ``latent_depth``/``latent_width``: the latent MLP; ``degree``: polynomial degree in p;
     ``beta``: prior scale; ``huber_delta_n``: Huber threshold in newtons; learning rate
     ``lr`` decays by ``lr_decay`` every ``lr_decay_steps`` down to ``lr_min`` (the
-    authors' schedule); ``chunk``: steps per compiled ``lax.scan`` call.
+    authors' schedule); ``chunk``: steps per compiled ``lax.scan`` call; ``intercept=False``
+    drops the head's constant ``a_0``, so that ``F(p = 0) = 0`` exactly (a sim-to-real
+    discrepancy: neither the rubber nor the simulator pushes without pressure).
     """
 
     n_members: int = 32
@@ -74,6 +76,7 @@ class EnsembleConfig:
     latent_width: int = 32
     degree: int = 2
     monotone: bool = False
+    intercept: bool = True
     beta: float = 1.0
     huber_delta_n: float = 1.0
     lr: float = 5e-3
@@ -106,6 +109,9 @@ class EnsembleConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"EnsembleConfig.{name} must be a finite number >= 0, got {v!r}")
+        for name in ("monotone", "intercept"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"EnsembleConfig.{name} must be true or false, got {getattr(self, name)!r}")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"EnsembleConfig.dtype must be 'float32' or 'float64', got {self.dtype!r}")
 
@@ -204,6 +210,7 @@ class ForceNet(eqx.Module):
     latent: eqx.nn.MLP
     head: eqx.nn.Linear
     monotone: bool = eqx.field(static=True)
+    intercept: bool = eqx.field(static=True)
 
     def __init__(self, cfg: EnsembleConfig, key):
         k1, k2, k3, k4 = jax.random.split(key, 4)
@@ -225,6 +232,7 @@ class ForceNet(eqx.Module):
         )
         self.head = eqx.nn.Linear(cfg.latent_width, cfg.degree + 1, key=k4, dtype=dt)
         self.monotone = cfg.monotone
+        self.intercept = cfg.intercept
 
     def __call__(self, tch, rings, present, p):
         """``tch`` [3] normalised (t, c, h); ``rings`` [2, 2] normalised, finite;
@@ -235,7 +243,7 @@ class ForceNet(eqx.Module):
         a = self.head(self.latent(jnp.concatenate([emb, count, tch.astype(emb.dtype)])))
         slopes = jax.nn.softplus(a[1:]) if self.monotone else a[1:]
         powers = p.astype(a.dtype) ** jnp.arange(1, a.shape[0])
-        return a[0] + jnp.dot(slopes, powers)
+        return (a[0] if self.intercept else 0.0) + jnp.dot(slopes, powers)
 
 
 def _features(norm: Normaliser, design, h, p):

@@ -26,8 +26,8 @@ class SimParams(eqx.Module):
     * ``thickness_gradient``: relative thickness change from the disk edge to the clamp,
       ``t(r) = t_eff (1 + g ((r - r_mid) / (r_out - r0)))`` (zero mean over the annulus).
     * ``clamp_prestretch``: hoop stretch imposed by the clamp, ``R(r_out) = s * r_out``.
-    * ``contact_offset_mm``: the membrane stays stuck to the plate this far beyond the disk,
-      so the rigid inner region has radius ``c + offset``.
+    * ``contact_offset_mm``: the rigid inner region has radius ``c + offset``: positive, the
+      membrane stays stuck to the plate beyond the disk; negative, it is free over the disk's rim.
     """
 
     mu_pa: Scalar = ECOFLEX_MU_PA

@@ -124,7 +124,7 @@ AXES: dict[str, Axis] = {
             lambda p, b: p.contact_offset_mm - b.contact_offset_mm,
             lambda b, c: dataclasses.replace(b, contact_offset_mm=b.contact_offset_mm + c),
             step=0.5,
-            lo=0.0,
+            lo=-8.0,
             hi=8.0,
             doc="effective - nominal contact radius [mm]",
         ),

@@ -84,6 +84,7 @@ def test_save_load_round_trip_and_an_old_folder_loads_ungated(tmp_path):
     fit.save(tmp_path / "delta")
     back = Discrepancy.load(tmp_path / "delta")
     assert back.length == fit.length and back.sigma_n == pytest.approx(fit.sigma_n)
+    assert back.p_ref_pa == pytest.approx(fit.p_ref_pa) > 0
     key = jax.random.PRNGKey(0)
     np.testing.assert_allclose(
         np.asarray(back.draws(d[:5], h[:5], p[:5], 4, key)), np.asarray(fit.draws(d[:5], h[:5], p[:5], 4, key))
@@ -96,3 +97,21 @@ def test_save_load_round_trip_and_an_old_folder_loads_ungated(tmp_path):
 
     with pytest.raises(InputError, match="allowed"):
         Discrepancy.load(tmp_path / "delta")
+
+
+def test_no_pressure_no_discrepancy_near_or_far():
+    """At p = 0 neither the rubber nor the simulator pushes: the gated discrepancy's mean and
+    every draw are exactly 0 there (no constant term, the prior term grows as p / p_ref),
+    while at a typical pressure far away the spread is sigma."""
+    d, h, p, m = _rows(DESIGNS[:3], n=30)
+    fit = fit_gated(CFG, d, h, p, 2.0 + np.sin(h / 10), np.ones(len(h)), m, key=0)
+    assert fit.p_ref_pa == pytest.approx(float(np.sqrt(np.mean(p**2))))
+    x = np.concatenate([DESIGNS[:1], DESIGNS[4:5]])  # a training membrane and a far one
+    zero = np.zeros(2)
+    assert np.all(np.asarray(fit.mean(x, np.array([10.0, 40.0]), zero)) == 0.0)
+    assert np.all(np.asarray(fit.draws(x, np.array([10.0, 40.0]), zero, 8, jax.random.PRNGKey(0))) == 0.0)
+    far = Discrepancy(fit.ensemble, fit.anchors, 0.05, 2.0, (), 4000.0)
+    at_ref = np.asarray(far.draws(DESIGNS[4:5], np.array([20.0]), np.array([4000.0]), 512, jax.random.PRNGKey(1)))
+    at_half = np.asarray(far.draws(DESIGNS[4:5], np.array([20.0]), np.array([2000.0]), 512, jax.random.PRNGKey(1)))
+    assert at_ref.std() == pytest.approx(2.0, rel=0.15)
+    np.testing.assert_allclose(at_half, 0.5 * at_ref, atol=1e-9)

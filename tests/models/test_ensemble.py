@@ -132,6 +132,9 @@ def test_invalid_inputs_raise_clear_errors(kwargs, match):
 
 
 def test_config_validation():
+    with pytest.raises(ValueError, match="intercept must be true or false"):
+        EnsembleConfig.from_dict({"intercept": "no"})
+    assert EnsembleConfig.from_dict(EnsembleConfig(intercept=False).to_dict()).intercept is False
     with pytest.raises(ValueError, match="degree"):
         EnsembleConfig(degree=4)
     with pytest.raises(ValueError, match="n_members"):
