@@ -105,20 +105,27 @@ class MultiFidelity(eqx.Module):
         return self.sample_data(self.data_for(pad(design), pad(h_mm), pad(p_pa)))[:, :n]
 
     def members(self, design, h_mm, p_pa, key=0) -> jax.Array:
-        """Traceable ``F_s`` [S, N] N for NEW membranes: ``design`` [N, 6] mm, ``h_mm`` [N],
-        ``p_pa`` [N] (force rows; every row's thickness drawn from the population prior).
-        Unlike :meth:`predict` nothing leaves JAX, so acquisition and design optimisation
-        can differentiate through it (their ``members`` protocol)."""
+        """Traceable ``F_s`` [S, N] N at force rows ``design`` [N, 6] mm, ``h_mm`` [N],
+        ``p_pa`` [N]: a row of a calibrated membrane (the same design to 1e-6 mm) takes that
+        membrane's own latent thickness, as :meth:`predict` does; any other design draws its
+        thickness from the population prior. Unlike :meth:`predict` nothing leaves JAX, so
+        acquisition and design optimisation can differentiate through it (their
+        ``members`` protocol)."""
+        from mfdesign.design import Membrane
         from mfdesign.physics.effects import Rows
 
         n = design.shape[0]
+        k = len(self.design_keys)
+        known = jnp.asarray(np.array([Membrane.from_key(x).to_array() for x in self.design_keys]).reshape(k, 6))
+        d, c = design[:, None, :], known[None, :, :]
+        same = jnp.all(jnp.where(jnp.isnan(d) | jnp.isnan(c), jnp.isnan(d) & jnp.isnan(c), jnp.abs(d - c) < 1e-6), -1)
         rows = Rows(
             h_mm,
             p_pa,
             jnp.ones(n, bool),
             jnp.zeros(n, bool),
             jnp.zeros(n, bool),
-            jnp.full(n, len(self.design_keys), jnp.int32),
+            jnp.where(same.any(1), jnp.argmax(same, 1), k).astype(jnp.int32),
         )
         data = CalibrationData(design, rows, jnp.zeros(n), jnp.ones(n), self.design_keys + ("<new membrane>",))
         return self.sample_data(data, key)

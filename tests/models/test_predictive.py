@@ -69,3 +69,21 @@ def test_new_designs_draw_thickness_from_the_population(setup):
     f = np.asarray(mf.predict(design, np.full(4, 20.0), np.linspace(2000, 8000, 4)))
     assert f.shape == (12, 4) and np.all(np.isfinite(f))
     assert np.all(f.std(0) > 0)  # draws differ (theta and the new membrane's thickness)
+
+
+def test_members_gives_a_calibrated_membrane_its_own_thickness(setup):
+    """The traceable ``members`` (acquisition, design search, trajectories) must treat a
+    calibrated membrane as ``predict`` does: with its own latent thickness, not a new draw."""
+    import jax.numpy as jnp
+
+    from mfdesign.design import Membrane
+
+    _, data, model, post = setup
+    mf = MultiFidelity.from_posterior(model, post, delta=None, noise_n=0.5)
+    known = np.array([Membrane.from_key(k).to_array() for k in mf.design_keys])
+    design = np.concatenate([known, [[1.7, 31.0, np.nan, np.nan, np.nan, np.nan]]])
+    h, p = np.full(len(design), 20.0), np.full(len(design), 5000.0)
+    got = np.asarray(mf.members(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p)))
+    want = np.asarray(mf.predict(design, h, p))
+    np.testing.assert_allclose(got[:, :-1], want[:, :-1], rtol=1e-9)
+    assert np.all(np.isfinite(got[:, -1])) and np.all(got.std(0)[-1:] > 0)
