@@ -206,8 +206,8 @@ class ExactForceModel(ForceModel):
         s_min = 1.0 / pl.PlaneGrid.P_MARGIN
         return {
             "jm": (float(self.base.jm * math.exp(a.lo)), float(self.base.jm * math.exp(a.hi))),
-            "mu_pa": (float(self.base.mu_pa * s_min / 0.85), float(self.base.mu_pa * 2.0)),
-            "thickness_factor": (0.85, 1.15),
+            "mu_pa": (float(self.base.mu_pa * s_min / 0.7), float(self.base.mu_pa * 2.0)),
+            "thickness_factor": (0.7, 1.3),
         }
 
     def _box(self, params: SimParams) -> dict[str, tuple[float, float]]:
