@@ -84,6 +84,14 @@ class ContractGroup(TyperGroup):
             return super().invoke(ctx)
         except (typer.Exit, typer.Abort, KeyboardInterrupt):
             raise
+        except BrokenPipeError:
+            # the reader went away (`mfdesign ... | head`): stop quietly, as a Unix filter does
+            # (the Python docs' recipe: stdout onto devnull, so the interpreter's last flush is silent)
+            import os
+            import sys
+
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            raise typer.Exit(code=141) from None
         except Exception as err:  # noqa: BLE001 -- the contract: no traceback ever reaches the user
             try:  # typer >= 0.2x vendors click as typer._click; older typer uses click itself
                 from typer._click.exceptions import ClickException

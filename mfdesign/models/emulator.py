@@ -182,7 +182,9 @@ class Emulator(ForceModel):
     def members_force(self, design, h_mm, p_pa, params: SimParams = SimParams()) -> jax.Array:
         """Force of every member [n_members, N] (N)."""
         feats, scale = features(design, h_mm, p_pa, params)
-        return scale * jax.nn.softplus(self._z(feats))
+        f = scale * jax.nn.softplus(self._z(feats))
+        # constants it was not trained on (a fabric inset): NaN, never a silent zero effect
+        return jnp.where(jnp.asarray(params.fabric_inset_mm) != 0.0, jnp.nan, f)
 
     def __call__(self, design, h_mm, p_pa, params: SimParams = SimParams()) -> jax.Array:
         """Mean force over the members [N] (N)."""
@@ -199,8 +201,8 @@ class Emulator(ForceModel):
         return {n: (lo, hi) for n, lo, hi in self.ranges}
 
     def support(self) -> dict[str, tuple[float, float]]:
-        """The training ranges: outside them the emulator extrapolates."""
-        return self.range_dict
+        """The training ranges: outside them the emulator extrapolates (it knows no fabric inset)."""
+        return {**self.range_dict, "fabric_inset_mm": (0.0, 0.0)}
 
     def input_ranges(self) -> dict[str, tuple[float, float]]:
         rg = self.range_dict
@@ -229,6 +231,7 @@ class Emulator(ForceModel):
         ok &= within(h, "height_mm") & within(p, "pressure_pa")
         for f in PARAM_FIELDS:
             ok &= within(par[f], f)
+        ok &= jnp.asarray(params.fabric_inset_mm) == 0.0
         r1, w1, r2, w2 = (d[..., k] for k in range(2, 6))
         has1 = ~jnp.isnan(r1) & ~jnp.isnan(w1)
         has2 = ~jnp.isnan(r2) & ~jnp.isnan(w2)

@@ -43,7 +43,7 @@ def _formula(xp, softplus, design, h_mm, p_pa, params: SimParams):
     stiff = params.mu_pa * design[:, 0] * params.thickness_factor / ECOFLEX_MU_PA
     p_c = 40.0 * stiff * h_mm * (1.0 + 0.4 * n_rings)
     p_lock = 250.0 * params.jm * stiff
-    r_m = (design[:, 1] + params.contact_offset_mm) * 1e-3
+    r_m = (design[:, 1] + params.contact_offset_mm - params.fabric_inset_mm) * 1e-3
     push = _W_PA * softplus((p_pa - p_c) / _W_PA)
     return 1.6 * xp.pi * r_m**2 * push * (1.0 + p_pa / p_lock), p_lock
 

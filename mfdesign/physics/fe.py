@@ -90,15 +90,16 @@ def build_mesh(design: Membrane, params: SimParams = SimParams(), n_elements: in
     the disk-balance force); the other segments are uniform.
     """
     enable_x64()  # float64 physics: mfdesign._x64
-    r0 = float(design.contact_radius_mm) + float(params.contact_offset_mm)
+    inset = float(params.fabric_inset_mm)
+    r0 = float(design.contact_radius_mm) + float(params.contact_offset_mm) - inset
     r_out = float(design.outer_radius_mm)
     edges = [r0]
     for ring in design.rings:
-        edges += [ring.inner_mm, ring.outer_mm]
+        edges += [ring.inner_mm + inset, ring.outer_mm - inset]
     edges.append(r_out)
     edges = np.asarray(edges, dtype=np.float64)
     if np.any(np.diff(edges) <= 0):
-        raise ValueError(f"contact offset puts the disk edge {r0} mm beyond a ring edge")
+        raise ValueError(f"contact offset / fabric inset put the disk edge {r0} mm beyond a ring edge, or close a ring")
     lengths = np.diff(edges)
     n_seg = len(lengths)
     counts = np.maximum(4, np.floor(n_elements * lengths / lengths.sum()).astype(int))

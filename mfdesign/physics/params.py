@@ -28,6 +28,10 @@ class SimParams(eqx.Module):
     * ``clamp_prestretch``: hoop stretch imposed by the clamp, ``R(r_out) = s * r_out``.
     * ``contact_offset_mm``: the rigid inner region has radius ``c + offset``: positive, the
       membrane stays stuck to the plate beyond the disk; negative, it is free over the disk's rim.
+    * ``fabric_inset_mm``: every fabric edge bonded to rubber acts this far inside the
+      fabric (the disk's radius shrinks by it; each ring's inner edge moves out and its outer
+      edge in): the bond takes up the rubber's pull over a shear-lag length, so the rubber
+      beside a fabric edge strains over a longer span than the nominal gap.
     """
 
     mu_pa: Scalar = ECOFLEX_MU_PA
@@ -38,6 +42,7 @@ class SimParams(eqx.Module):
     thickness_gradient: Scalar = 0.0
     clamp_prestretch: Scalar = 1.0
     contact_offset_mm: Scalar = 0.0
+    fabric_inset_mm: Scalar = 0.0
 
     @property
     def rubber(self) -> Gent:

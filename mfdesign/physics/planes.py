@@ -18,7 +18,7 @@ Two facts keep their number small:
   axis for ringed membranes (ring softening lives on the same axis).
 * **Lattice.** Every other constant that changes the solution's shape is an axis with
   nodes ``c0 + k step`` of a coordinate (:data:`AXES`): ``log J_m``, ``log(rho / rho0)``,
-  the thickness gradient, the clamp pre-stretch and the contact offset. A plane is solved
+  the thickness gradient, the clamp pre-stretch, the contact offset and the fabric inset. A plane is solved
   at each node that a fit needs (:func:`lattice_jobs`, :func:`solve_planes`), cached on disk.
 
 Planes hold the *signed* force (:func:`~mfdesign.physics.solve.force_plane` with
@@ -128,6 +128,15 @@ AXES: dict[str, Axis] = {
             hi=8.0,
             doc="effective - nominal contact radius [mm]",
         ),
+        Axis(
+            "inset",
+            lambda p, b: p.fabric_inset_mm - b.fabric_inset_mm,
+            lambda b, c: dataclasses.replace(b, fabric_inset_mm=b.fabric_inset_mm + c),
+            step=0.25,
+            lo=0.0,
+            hi=2.5,
+            doc="fabric edges' effective inset [mm]",
+        ),
     )
 }
 
@@ -170,8 +179,14 @@ def cache_dir() -> Path:
     return (Path(root) if root else Path.home() / ".cache" / "mfdesign") / "planes"
 
 
+# SimParams fields added after SCHEMA 2 enter a plane's key only when they leave their
+# default, so adding a field does not orphan every cached plane
+_KEYED_WHEN_SET = {"fabric_inset_mm": 0.0}
+
+
 def _params_tuple(params: SimParams) -> tuple[float, ...]:
-    return tuple(round(float(getattr(params, f.name)), 12) for f in dataclasses.fields(params))
+    values = ((f.name, round(float(getattr(params, f.name)), 12)) for f in dataclasses.fields(params))
+    return tuple(v for name, v in values if _KEYED_WHEN_SET.get(name, v + 1.0) != v)
 
 
 def _job_key(design: Membrane, params: SimParams, grid: PlaneGrid) -> str:

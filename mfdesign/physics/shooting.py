@@ -93,9 +93,13 @@ class Segments(eqx.Module):
 
 
 def segments(geom: Geometry, params: SimParams) -> Segments:
-    r0 = geom.contact_mm + params.contact_offset_mm
+    inset = params.fabric_inset_mm
+    r0 = geom.contact_mm + params.contact_offset_mm - inset
     r_out = geom.outer_mm
-    bounds = jnp.concatenate([jnp.stack([r0]), geom.ring_edges_mm, jnp.stack([r_out])])
+    # a used ring's inner edge moves out and its outer edge in (unused slots sit at the clamp)
+    inward = jnp.tile(jnp.array([1.0, -1.0]), geom.ring_edges_mm.shape[0] // 2)
+    edges = geom.ring_edges_mm + inset * inward * jnp.repeat(geom.ring_used, 2)
+    bounds = jnp.concatenate([jnp.stack([r0]), edges, jnp.stack([r_out])])
     n = bounds.shape[0] - 1
     real = jnp.concatenate([jnp.array([True]), jnp.repeat(geom.ring_used, 2)])
     # An unused slot is rubber: its (repeated) profile points then carry the last real

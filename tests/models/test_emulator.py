@@ -145,6 +145,17 @@ def test_in_range_flags(emu):
     assert not np.asarray(emu.in_range(DESIGNS[0], 10.0, 100.0, SimParams(ring_jm=30.0))).item()
 
 
+def test_a_constant_it_never_saw_is_nan_not_ignored(emu):
+    """The emulator was trained without a fabric inset: with one it says NaN (and out of
+    range), never the force of the membrane without it."""
+    d, h, p = _queries()
+    inset = SimParams(fabric_inset_mm=np.where(np.arange(len(h)) % 2 == 0, 0.5, 0.0))
+    f = np.asarray(emu(d, h, p, inset))
+    assert np.all(np.isnan(f[::2])) and np.all(np.isfinite(f[1::2]))
+    assert not np.asarray(emu.in_range(d, h, p, inset))[::2].any()
+    assert emu.support()["fabric_inset_mm"] == (0.0, 0.0)
+
+
 def test_save_load_bit_identical(emu, tmp_path):
     d, h, p = _queries()
     emu.save(tmp_path / "e", extra={"note": "test"})

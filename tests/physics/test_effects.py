@@ -36,6 +36,7 @@ EXPECTED = {
     "clamp_prestretch",
     "ring_softening",
     "contact_offset",
+    "fabric_inset",
     "stress_softening",
     "lift_preload",
     "pressure_sensor",
@@ -109,15 +110,25 @@ def test_mechanics_go_through_simparams():
         "contact_offset.offset_mm": 2.0,
         "clamp_prestretch.strain": 0.02,
         "thickness_gradient.gradient": -0.2,
+        "fabric_inset.inset_mm": 0.75,
     }
     p = apply_sim_params(
-        ["thickness_deviation", "ring_softening", "contact_offset", "clamp_prestretch", "thickness_gradient"], theta
+        [
+            "thickness_deviation",
+            "ring_softening",
+            "contact_offset",
+            "clamp_prestretch",
+            "thickness_gradient",
+            "fabric_inset",
+        ],
+        theta,
     )
     assert p.thickness_factor == pytest.approx(1.1)
     assert p.ring_mu_pa == pytest.approx(0.5e6)
     assert p.contact_offset_mm == pytest.approx(2.0)
     assert p.clamp_prestretch == pytest.approx(1.02)
     assert p.thickness_gradient == pytest.approx(-0.2)
+    assert p.fabric_inset_mm == pytest.approx(0.75)
     assert p.mu_pa == SimParams().mu_pa
 
 

@@ -44,8 +44,10 @@ def test_exact_model_matches_direct_simulator_calls_at_random_rows_and_parameter
             jm=39.6 * np.exp(rng.uniform(-0.08, 0.08)),
             thickness_factor=float(np.exp(rng.uniform(-0.1, 0.1))),
         )
-        if trial >= 2:  # a mechanical effect: the lattice grows a new axis for it
+        if trial == 2:  # a mechanical effect: the lattice grows a new axis for it
             params = dataclasses.replace(params, contact_offset_mm=float(rng.uniform(0.2, 1.3)))
+        if trial == 3:  # the fabric inset moves the disk's edge and the ring's edges
+            params = dataclasses.replace(params, fabric_inset_mm=float(rng.uniform(0.1, 0.9)))
         fm = fm.covering(params)
         assert fm.covers(params)
         design, h, p = _rows(key, 12, rng)

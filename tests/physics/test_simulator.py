@@ -110,3 +110,19 @@ def test_statuses_of_edge_cases():
 def test_not_lifted_below_the_lift_pressure():
     h, status = height_at(RINGLESS, 40.0, 500.0)
     assert status[()] == Status.NOT_LIFTED and float(h) == 0.0
+
+
+def test_fabric_inset_is_the_redrawn_membrane():
+    """A fabric inset of d mm is the same mechanics as a membrane drawn with a disk d mm
+    smaller and every ring d mm narrower on each side (the plain simulator on the redrawn
+    design is the truth); the inset moves every fabric edge, not the disk's alone."""
+    d = 0.8
+    inset = Membrane.from_key("[2.0, 38.1, 47.55, 6.45, 62.0, 5.0]")
+    redrawn = Membrane.from_key(f"[2.0, {38.1 - d}, 47.55, {6.45 - d}, 62.0, {5.0 - d}]")
+    h, p = np.array([10.0, 30.0, 45.0]), np.array([4000.0, 6000.0, 7000.0])
+    got = force_at(inset, h, p, SimParams(fabric_inset_mm=d))
+    ref = force_at(redrawn, h, p, SimParams())
+    assert np.all(np.isfinite(ref.force_n))
+    np.testing.assert_allclose(got.force_n, ref.force_n, rtol=1e-9, atol=1e-9)
+    disk_only = force_at(inset, h, p, SimParams(contact_offset_mm=-d))
+    assert np.max(np.abs(np.asarray(disk_only.force_n) - np.asarray(ref.force_n))) > 0.5
