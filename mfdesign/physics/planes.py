@@ -35,6 +35,7 @@ import hashlib
 import json
 import math
 import os
+import threading
 from pathlib import Path
 from typing import Callable, Iterable, Mapping, Sequence
 
@@ -279,21 +280,23 @@ def solve_planes(
         todo[k] = job
     if todo:
 
-        def repaired(job, res):
+        def solved(job, res):
+            # each plane is stored as soon as it is solved (in its worker): a run stopped
+            # half-way, or a second process solving the same lattice, loses none of them
             f = np.asarray(res.force_n, float)
             _repair(*job, grid, f, np.asarray(res.status))
+            f = _fill_zero_pressure(np.concatenate([np.full((grid.h.size, 1), np.nan), f], axis=1))
+            if folder is not None:
+                k = _job_key(job[0], job[1], grid)
+                folder.mkdir(parents=True, exist_ok=True)
+                tmp = folder / f".{k}.{os.getpid()}.{threading.get_ident()}.npy"
+                np.save(tmp, f, allow_pickle=False)
+                os.replace(tmp, folder / f"{k}.npy")  # atomic: a reader never sees half a plane
             return f
 
-        results = force_planes(list(todo.values()), grid.h, grid.p[1:], signed=True, progress=progress, then=repaired)
+        results = force_planes(list(todo.values()), grid.h, grid.p[1:], signed=True, progress=progress, then=solved)
         for k, f in zip(todo, results):
-            f = np.concatenate([np.full((grid.h.size, 1), np.nan), f], axis=1)
-            _MEMO[k] = _fill_zero_pressure(f)
-            if folder is not None:
-                folder.mkdir(parents=True, exist_ok=True)
-                tmp = folder / f".{k}.{os.getpid()}.npy"
-                np.save(tmp, _MEMO[k], allow_pickle=False)
-                os.replace(tmp, folder / f"{k}.npy")  # atomic: a reader never sees half a plane
-            _MEMO[k] = _fill_above_no_contact(_MEMO[k])
+            _MEMO[k] = _fill_above_no_contact(f)
     return [_MEMO[k] for k in keys]
 
 

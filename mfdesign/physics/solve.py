@@ -573,8 +573,12 @@ def force_planes(
             from tqdm.auto import tqdm
 
             it = tqdm(jobs, desc="simulator planes", unit="plane")
-        out = [force_plane(d, h_grid_mm, p_grid_pa, prm, signed=signed) for d, prm in it]
-        return out if then is None else [then(job, res) for job, res in zip(jobs, out)]
+        # ``then`` right after each plane: a caller that stores planes loses none on a crash
+        out = []
+        for job in it:
+            res = force_plane(job[0], h_grid_mm, p_grid_pa, job[1], signed=signed)
+            out.append(res if then is None else then(job, res))
+        return out
     bar = None
     if progress:
         from tqdm.auto import tqdm

@@ -85,3 +85,35 @@ def test_mu_and_thickness_scale_one_plane_exactly(exact):
     f1 = np.asarray(exact(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), SimParams(thickness_factor=1.05)))
     f2 = np.asarray(exact(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), SimParams(mu_pa=31.7e3 * 1.05)))
     np.testing.assert_allclose(f1, f2, rtol=1e-12, atol=1e-12)
+
+
+def test_planes_are_stored_as_they_are_solved(tmp_path, monkeypatch):
+    """A plane reaches the disk cache as soon as it is solved: a run stopped half-way (here
+    the second plane fails) keeps the first, and a rerun reads it instead of solving it."""
+    import types
+
+    from mfdesign.physics import planes as pl
+    from mfdesign.physics import solve as sv
+
+    grid = pl.PlaneGrid(5.0, 1000.0)
+    a, b = Membrane.from_key(KEYS[0]), Membrane.from_key(KEYS[1])
+    calls = []
+
+    def fake_plane(design, h, p, params, signed=False, parts=None):
+        calls.append(design.key())
+        if design == b:
+            raise RuntimeError("stopped")
+        f = np.add.outer(np.asarray(h), np.asarray(p) / 1000.0)
+        return types.SimpleNamespace(force_n=f, status=np.zeros(f.shape, int))
+
+    monkeypatch.setattr(sv, "force_plane", fake_plane)
+    monkeypatch.setattr(pl, "_MEMO", {})
+    with pytest.raises(RuntimeError, match="stopped"):
+        pl.solve_planes([(a, SimParams()), (b, SimParams())], grid, cache=tmp_path)
+    stored = sorted(tmp_path.glob("*.npy"))
+    assert len(stored) == 1 and not list(tmp_path.glob(".*"))  # no torn temporary left
+    monkeypatch.setattr(pl, "_MEMO", {})
+    calls.clear()
+    (plane,) = pl.solve_planes([(a, SimParams())], grid, cache=tmp_path)
+    assert calls == []  # read from the disk, not solved again
+    np.testing.assert_allclose(plane[:, 1:], np.add.outer(grid.h, grid.p[1:] / 1000.0))
