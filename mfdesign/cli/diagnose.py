@@ -200,6 +200,8 @@ def register(app: typer.Typer) -> None:
                 f"round {i + 1}: screen " + ", ".join(f"{r.effect} {r.explained_fraction:.2f}" for r in s["screen"][:5])
             )
             typer.echo(f"  {s['verdict']['words']}")
+        for name, why in diag.not_screened.items():
+            typer.echo(f"not screened: {name} ({why})")
         if diag.after is not None:
             typer.echo(f"after ({', '.join(diag.effects)}): RMSE {diag.after.rmse_n:.3f} N")
         typer.echo(f"wrote {paths['html']} and {paths['json']}")

@@ -50,6 +50,7 @@ class Diagnosis:
     theta: dict = field(default_factory=dict)
     steps: list = field(default_factory=list)
     model: str = "simulator"
+    not_screened: dict = field(default_factory=dict)  # candidate -> why the forward model cannot try it
 
     @property
     def found(self) -> list[str]:
@@ -84,7 +85,33 @@ class Diagnosis:
                 for s in self.steps
             ],
             "found": self.found,
+            "not_screened": self.not_screened,
         }
+
+
+def unmodelled(names: Sequence[str], sim: ForwardModel) -> dict[str, str]:
+    """Candidates whose mechanics the forward model cannot represent: a simulator constant
+    its force model pins to one value (the emulator was never trained on a fabric inset).
+    Screened, such an effect would read as "explains nothing"; it is named instead."""
+    import dataclasses
+
+    from mfdesign.physics.params import SimParams
+
+    pinned = {k: lo for k, (lo, hi) in sim.force_model.support().items() if lo == hi}
+    out = {}
+    for n in names:
+        e = fx.effect(n)
+        if e.acts_on_measurement or not pinned:
+            continue
+        p = fx.apply_sim_params([e], fx.typical_theta([e]), SimParams())
+        moved = [
+            f.name for f in dataclasses.fields(p) if f.name in pinned and float(getattr(p, f.name)) != pinned[f.name]
+        ]
+        if moved:
+            out[n] = (
+                f"the {type(sim.force_model).__name__} force model holds {', '.join(moved)} fixed (use --physics exact)"
+            )
+    return out
 
 
 def diagnose(
@@ -164,6 +191,10 @@ def diagnose(
         from mfdesign.diagnose.emulated import likelihood_effects
 
         pool = likelihood_effects()
+    skipped = unmodelled(pool, sim)
+    if skipped:
+        pool = [c for c in pool if c not in skipped]
+        out = replace(out, not_screened=skipped)
     for _ in range(max_steps):
         names = [e.name for e in cur_effects]
         cands = [c for c in pool if c not in names]

@@ -228,3 +228,18 @@ def test_unexplained_structure_is_not_attributed():
     v = d.steps[0]["verdict"]
     assert v["status"] == "unexplained", v["words"]
     assert d.found == []
+
+
+def test_an_effect_the_force_model_cannot_represent_is_named_not_screened():
+    """The emulator was never trained on a fabric inset: screened, the inset would read as
+    'explains nothing'; it is named as not screened instead, with the reason."""
+    import types
+
+    from mfdesign.diagnose.pipeline import unmodelled
+    from mfdesign.models.emulator import load_default
+    from mfdesign.models.standin import StandinForceModel
+
+    names = ["fabric_inset", "contact_offset", "lift_preload", "thickness_deviation"]
+    out = unmodelled(names, types.SimpleNamespace(force_model=load_default()))
+    assert list(out) == ["fabric_inset"] and "fabric_inset_mm" in out["fabric_inset"]
+    assert unmodelled(names, types.SimpleNamespace(force_model=StandinForceModel())) == {}
