@@ -68,6 +68,12 @@ def main():
         help="effects calibrated with the material in (b) and (e), e.g. what `mfdesign diagnose mass-lift` found",
     )
     ap.add_argument(
+        "--effect-axes",
+        choices=("tensor", "additive"),
+        default="tensor",
+        help="exact physics: an effect's lattice axis crossed with J_m and the ring ratio (tensor) or added at the reference material (additive: few planes)",
+    )
+    ap.add_argument(
         "--draws", type=int, default=32, help="posterior draws in the predictive (evaluation cost scales with it)"
     )
     args = ap.parse_args()
@@ -85,7 +91,7 @@ def main():
     data = load_mass_lift()
     # One force model over all seven membranes: each fold calibrates on six and predicts the
     # seventh, whose planes the exact model must hold too (it never extrapolates to designs).
-    emu = force_model_named(args.physics, data, progress=True)
+    emu = force_model_named(args.physics, data, progress=True, effect_axes=args.effect_axes)
     waypoints = measured_waypoints(data)
     folds = data.leave_one_out()[: args.folds]
     names = ("a_sim_paper", "b_sim_calibrated", "c_ensemble", "d_curve_fit", "e_multi_fidelity")

@@ -38,9 +38,17 @@ __all__ = [
 ]
 
 
-def force_model_named(name: str, table=None, progress: bool = False):
+def force_model_named(name: str, table=None, progress: bool = False, effect_axes: str = "tensor"):
     """The force model ``name`` (:data:`~mfdesign.models.force.FORCE_MODELS`) for the rows of
-    ``table`` (Measurements; the exact model needs its designs, heights and pressures)."""
+    ``table`` (Measurements; the exact model needs its designs, heights and pressures).
+
+    ``effect_axes`` (exact only): ``"tensor"`` crosses every effect's lattice axis with the
+    material's (exact cross terms; a calibrated mechanical effect multiplies the planes by
+    its node count), ``"additive"`` keeps J_m and the ring ratio crossed and adds each
+    effect's axis at the reference material (first order in the cross terms, few planes;
+    ``experiments/bench_exact.py`` measures the difference)."""
+    if effect_axes not in ("tensor", "additive"):
+        raise ValueError(f"effect_axes must be 'tensor' or 'additive', got {effect_axes!r}")
     enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.models.backends import force_model_for
 
@@ -59,6 +67,8 @@ def force_model_named(name: str, table=None, progress: bool = False):
             ),
             p_max_pa=float(df["pressure_pa"].max()),
             progress=progress,
+            grow=effect_axes,
+            tensor={"jm": (0.0, 0.0), "ring": (0.0, 0.0)} if effect_axes == "additive" else None,
         )
     return force_model_for(name)
 

@@ -20,6 +20,7 @@ def force_model_for(
     cache=None,
     grow: str = "tensor",
     also: SimParams | None = None,
+    tensor: dict | None = None,
 ) -> ForceModel:
     """The force model called ``name`` (one of :data:`FORCE_MODELS`).
 
@@ -35,6 +36,9 @@ def force_model_for(
             (``"tensor"``: calibration; ``"additive"``: diagnosis, one effect at a time).
         also: constants (fields of any shape) the exact model holds from the start (their
             planes are solved with the reference ones).
+        tensor: axes of the exact model's full product lattice from the start (axis name ->
+            coordinate range); with ``grow="additive"``, ``{"jm": (0, 0), "ring": (0, 0)}``
+            keeps the material's axes crossed and puts effects on additive axes.
     """
     if name == "exact":
         from mfdesign.models.exact import build_exact
@@ -51,6 +55,7 @@ def force_model_for(
             progress=progress,
             grow=grow,
             also=also,
+            tensor=tensor,
         )
     if name == "emulator":
         from mfdesign.models.emulator import load_default

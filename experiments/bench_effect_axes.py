@@ -1,0 +1,84 @@
+"""How exact is the exact model with an effect on an additive axis, where calibration meets the real data?
+
+``experiments/real_mass_lift.py --effect-axes additive`` calibrates the fabric inset with
+J_m and the ring ratio on a crossed (tensor) lattice and the inset's axis added at the
+reference material: ``G = G_T(jm, ring) + G_inset(c) - G_inset(0)``, first order in the
+cross terms. This measures that approximation against direct simulator calls
+(``force_at``, the truth) on the real membranes' floating lift rows, at the constants the
+calibration reaches (by default the posterior medians that ``real_mass_lift.json`` holds,
+else ``--mu-pa/--jm/--inset-mm``), and writes RMS / max error per membrane.
+
+    python experiments/bench_effect_axes.py [--rows 24]
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from _common import OUT, machine, parser, timed, write_json  # experiments/ is on a script's path
+
+
+def main():
+    ap = parser(__doc__, seed=True)
+    ap.add_argument("--rows", type=int, default=24, help="floating lift rows per membrane")
+    ap.add_argument("--mu-pa", type=float, default=None)
+    ap.add_argument("--jm", type=float, default=None)
+    ap.add_argument("--inset-mm", type=float, default=None)
+    args = ap.parse_args()
+
+    import jax.numpy as jnp
+
+    from mfdesign.calibration.workflow import force_model_named
+    from mfdesign.data import load_mass_lift
+    from mfdesign.data.lifts import floating_rows
+    from mfdesign.design import Membrane
+    from mfdesign.physics.params import SimParams
+    from mfdesign.physics.solve import force_at
+
+    src = OUT / "real_mass_lift.json"
+    post = {}
+    if src.is_file():
+        rows = {r["parameter"]: r for r in json.loads(src.read_text())["posterior_all_membranes"]["parameters"]}
+        post = {k: rows[k]["median"] for k in ("mu_pa", "jm", "fabric_inset.inset_mm") if k in rows}
+    params = SimParams(
+        mu_pa=args.mu_pa or post.get("mu_pa", 31.7e3),
+        jm=args.jm or post.get("jm", 39.6),
+        fabric_inset_mm=args.inset_mm if args.inset_mm is not None else post.get("fabric_inset.inset_mm", 0.63),
+    )
+    meas = load_mass_lift()
+    df = meas.df[floating_rows(meas)].groupby("design_key").sample(n=args.rows, random_state=args.seed)
+    out = {}
+    with timed() as clock:
+        fm = force_model_named("exact", meas, effect_axes="additive").covering(params).strict(True)
+        for key, g in df.groupby("design_key", sort=False):
+            h, p = g["height_mm"].to_numpy(), g["pressure_pa"].to_numpy()
+            d = np.broadcast_to(Membrane.from_key(key).to_array(), (len(h), 6))
+            got = np.asarray(fm(jnp.asarray(d), jnp.asarray(h), jnp.asarray(p), params))
+            ref = np.asarray(force_at(Membrane.from_key(key), h, p, params).force_n)
+            e = (got - ref)[np.isfinite(got) & np.isfinite(ref)]
+            out[key] = {"rms_n": float(np.sqrt(np.mean(e**2))), "max_n": float(np.max(np.abs(e))), "n": int(e.size)}
+            print(
+                f"{key}: additive - simulator RMS {out[key]['rms_n']:.3f} N, max {out[key]['max_n']:.3f} N (n {e.size})",
+                flush=True,
+            )
+    pooled = float(np.sqrt(np.mean([v["rms_n"] ** 2 for v in out.values()])))
+    print(
+        f"pooled RMS {pooled:.3f} N at mu {params.mu_pa:.0f} Pa, J_m {params.jm:.2f}, inset {params.fabric_inset_mm:.3f} mm"
+    )
+    write_json(
+        args.out / "bench_effect_axes.json",
+        {
+            "params": {"mu_pa": params.mu_pa, "jm": params.jm, "fabric_inset_mm": params.fabric_inset_mm},
+            "rows_per_membrane": args.rows,
+            "per_membrane": out,
+            "pooled_rms_n": pooled,
+            "timing": dict(clock),
+            "machine": machine(),
+        },
+    )
+
+
+if __name__ == "__main__":
+    main()
