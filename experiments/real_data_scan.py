@@ -2,7 +2,7 @@
 
 One change at a time to the simulator's constants (``SimParams``: a softer rubber, the
 session-9 calibrated constants, softer fabric rings, a thinner membrane, a smaller contact
-radius, a larger J_m, the fabric inset that `mfdesign diagnose mass-lift` finds), evaluated by the exact simulator (``force_at``) on the rows of the
+radius, a larger J_m), evaluated by the exact simulator (``force_at``) on the rows of the
 shared mass-lift file where the plate floats (``mfdesign.data.lifts.floating_rows``),
 ``--rows`` per membrane drawn at random. A lift row's residual is W - F(h, p) [N]
 (positive: the model under-predicts the membrane's push). Prints RMS / mean per membrane
@@ -26,7 +26,6 @@ VARIANTS = {
     "J_m 80": {"jm": 80.0},
     "thickness x0.93": {"thickness_factor": 0.93},
     "contact radius -3 mm": {"contact_offset_mm": -3.0},
-    "fabric inset 0.63 mm": {"fabric_inset_mm": 0.63},
 }
 
 

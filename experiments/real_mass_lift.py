@@ -68,6 +68,11 @@ def main():
         help="effects calibrated with the material in (b) and (e), e.g. what `mfdesign diagnose mass-lift` found",
     )
     ap.add_argument(
+        "--posterior-only",
+        action="store_true",
+        help="compute only the posterior on all seven membranes (its checkpoint), no folds, no summary",
+    )
+    ap.add_argument(
         "--effect-axes",
         choices=("tensor", "additive"),
         default="tensor",
@@ -99,7 +104,7 @@ def main():
     # One checkpoint file per fold (a rerun with the same settings skips finished folds;
     # ``--only`` lets several processes share the folds, one core each).
     # (the output folder is where, not what: a checkpoint serves any --out)
-    settings = {k: v for k, v in vars(args).items() if k not in ("only", "out")}
+    settings = {k: v for k, v in vars(args).items() if k not in ("only", "out", "posterior_only")}
     settings["lift_rows"] = (
         "floating_rows"  # the equilibrium-row rule (data/lifts.py); older checkpoints used h >= 2 mm
     )
@@ -114,7 +119,7 @@ def main():
         return args.out / "cache" / f"real_mass_lift_{args.physics}_fold{i}.json"
 
     clock = Timing()
-    for i, (train, test) in enumerate(folds):
+    for i, (train, test) in enumerate([] if args.posterior_only else folds):
         if ckpt(i).exists() and json.loads(ckpt(i).read_text()).get("settings") == settings:
             saved = json.loads(ckpt(i).read_text())["rows"]
             for n in names:
@@ -209,6 +214,28 @@ def main():
     if args.only is not None:
         print(f"folds {args.only} done (--only: no summary)", flush=True)
         return
+    # the posterior on all seven membranes: a checkpoint of its own, so that one process can
+    # compute it while another finishes the last folds (--posterior-only)
+    post_ckpt = args.out / "cache" / f"real_mass_lift_{args.physics}_all7.json"
+    saved = json.loads(post_ckpt.read_text()) if post_ckpt.exists() else {}
+    if saved.get("settings") != settings:
+        print("all 7: calibrating on every membrane for the posterior of mu, J_m", flush=True)
+        full = fit_multi_fidelity(
+            data,
+            emu,
+            tuple(args.effects),
+            n_steps=args.steps,
+            n_walkers=None,  # all seven membranes: one more latent than a fold; the default max(32, 2 dim + 2)
+            max_rows=args.max_rows,
+            ensemble_config=EnsembleConfig(n_members=2, steps=10, monotone=False),
+            seed=args.seed,
+            progress=False,
+        )
+        saved = {"settings": settings, "posterior": full.posterior.to_json()}
+        write_json(post_ckpt, saved, indent=1, default=float)
+    if args.posterior_only:
+        print(f"posterior on all 7 written to {post_ckpt}", flush=True)
+        return
 
     summary = {}
     for n in names:
@@ -226,28 +253,16 @@ def main():
                 x["membrane"] for x, a in zip(r, rows["a_sim_paper"]) if x["rmse_n"] > a["rmse_n"] * 1.0001
             ],
         }
-    print("all 7: calibrating on every membrane for the posterior of mu, J_m", flush=True)
-    full = fit_multi_fidelity(
-        data,
-        emu,
-        tuple(args.effects),
-        n_steps=args.steps,
-        n_walkers=None,  # all seven membranes: one more latent than a fold; the default max(32, 2 dim + 2)
-        max_rows=args.max_rows,
-        ensemble_config=EnsembleConfig(n_members=2, steps=10, monotone=False),
-        seed=args.seed,
-        progress=False,
-    )
-    post = full.posterior.summary().set_index("parameter")
+    post = {r["parameter"]: r for r in saved["posterior"]["parameters"]}
     out = {
         "settings": {k: v for k, v in vars(args).items() if k != "out"},
         "physics": args.physics,
         "metrics_held_out": summary,
         "folds": rows,
-        "posterior_all_membranes": full.posterior.to_json(),
-        "mu_pa": {k: float(post.loc["mu_pa", k]) for k in ("median", "q05", "q95")},
+        "posterior_all_membranes": saved["posterior"],
+        "mu_pa": {k: float(post["mu_pa"][k]) for k in ("median", "q05", "q95")},
         "mu_pa_paper_uniaxial": 31.5e3,
-        "jm": {k: float(post.loc["jm", k]) for k in ("median", "q05", "q95")},
+        "jm": {k: float(post["jm"][k]) for k in ("median", "q05", "q95")},
         "jm_paper": 39.6,
         "seconds": clock.elapsed(),
         "notes": (
