@@ -187,7 +187,7 @@ _KEYED_WHEN_SET = {"fabric_inset_mm": 0.0}
 
 def _params_tuple(params: SimParams) -> tuple[float, ...]:
     values = ((f.name, round(float(getattr(params, f.name)), 12)) for f in dataclasses.fields(params))
-    return tuple(v for name, v in values if _KEYED_WHEN_SET.get(name, v + 1.0) != v)
+    return tuple(v for name, v in values if name not in _KEYED_WHEN_SET or v != _KEYED_WHEN_SET[name])
 
 
 def _job_key(design: Membrane, params: SimParams, grid: PlaneGrid) -> str:

@@ -117,3 +117,12 @@ def test_planes_are_stored_as_they_are_solved(tmp_path, monkeypatch):
     (plane,) = pl.solve_planes([(a, SimParams())], grid, cache=tmp_path)
     assert calls == []  # read from the disk, not solved again
     np.testing.assert_allclose(plane[:, 1:], np.add.outer(grid.h, grid.p[1:] / 1000.0))
+
+
+def test_a_new_simparams_field_keeps_the_old_planes_keys():
+    """The fabric inset (added after the cache's schema 2) enters a plane's key only when it is
+    set, so the planes solved before it existed are still found."""
+    from mfdesign.physics import planes as pl
+
+    assert pl._params_tuple(SimParams()) == (31700.0, 39.6, 1.0e6, 25.0, 1.0, 0.0, 1.0, 0.0)
+    assert pl._params_tuple(SimParams(fabric_inset_mm=0.5))[-1] == 0.5
