@@ -183,8 +183,9 @@ class Emulator(ForceModel):
         """Force of every member [n_members, N] (N)."""
         feats, scale = features(design, h_mm, p_pa, params)
         f = scale * jax.nn.softplus(self._z(feats))
-        # constants it was not trained on (a fabric inset): NaN, never a silent zero effect
-        return jnp.where(jnp.asarray(params.fabric_inset_mm) != 0.0, jnp.nan, f)
+        # constants it was not trained on (a fabric inset, any field added to SimParams after
+        # its training): NaN, never a silently ignored effect
+        return jnp.where(self._untrained_set(params), jnp.nan, f)
 
     def __call__(self, design, h_mm, p_pa, params: SimParams = SimParams()) -> jax.Array:
         """Mean force over the members [N] (N)."""
@@ -200,9 +201,23 @@ class Emulator(ForceModel):
     def range_dict(self) -> dict[str, tuple[float, float]]:
         return {n: (lo, hi) for n, lo, hi in self.ranges}
 
+    def untrained_fields(self) -> dict[str, float]:
+        """SimParams fields it has no training range for, with the only value it knows: the default.
+
+        Read from the stored ranges, so an emulator saved before a field existed pins that
+        field too (its features never saw it vary).
+        """
+        return {f.name: f.default for f in dataclasses.fields(SimParams) if f.name not in self.range_dict}
+
+    def _untrained_set(self, params: SimParams) -> jax.Array:
+        off = jnp.asarray(False)
+        for name, default in self.untrained_fields().items():
+            off = off | (jnp.asarray(getattr(params, name)) != default)
+        return off
+
     def support(self) -> dict[str, tuple[float, float]]:
-        """The training ranges: outside them the emulator extrapolates (it knows no fabric inset)."""
-        return {**self.range_dict, "fabric_inset_mm": (0.0, 0.0)}
+        """The training ranges; a field it was never trained on is pinned at its default."""
+        return {**self.range_dict, **{n: (v, v) for n, v in self.untrained_fields().items()}}
 
     def input_ranges(self) -> dict[str, tuple[float, float]]:
         rg = self.range_dict
@@ -231,7 +246,7 @@ class Emulator(ForceModel):
         ok &= within(h, "height_mm") & within(p, "pressure_pa")
         for f in PARAM_FIELDS:
             ok &= within(par[f], f)
-        ok &= jnp.asarray(params.fabric_inset_mm) == 0.0
+        ok &= ~self._untrained_set(params)
         r1, w1, r2, w2 = (d[..., k] for k in range(2, 6))
         has1 = ~jnp.isnan(r1) & ~jnp.isnan(w1)
         has2 = ~jnp.isnan(r2) & ~jnp.isnan(w2)

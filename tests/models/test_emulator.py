@@ -154,6 +154,11 @@ def test_a_constant_it_never_saw_is_nan_not_ignored(emu):
     assert np.all(np.isnan(f[::2])) and np.all(np.isfinite(f[1::2]))
     assert not np.asarray(emu.in_range(d, h, p, inset))[::2].any()
     assert emu.support()["fabric_inset_mm"] == (0.0, 0.0)
+    # the rule is general: every SimParams field has a support, pinned where untrained
+    import dataclasses
+
+    assert set(emu.support()) >= {f.name for f in dataclasses.fields(SimParams)}
+    assert emu.untrained_fields() == {"fabric_inset_mm": 0.0}
 
 
 def test_save_load_bit_identical(emu, tmp_path):
