@@ -31,6 +31,7 @@ covers a box of coordinates (the planes it adds are solved and cached; the rest 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from typing import Mapping, Sequence
 
@@ -44,6 +45,9 @@ from mfdesign.design import Membrane
 from mfdesign.models.force import ForceModel
 from mfdesign.physics import planes as pl
 from mfdesign.physics.params import SimParams
+
+# a growing lattice can solve planes for an hour: one line per growth says where it goes
+log = logging.getLogger("mfdesign.models.exact")
 
 __all__ = ["ExactForceModel", "LatticeAxis", "build_exact"]
 
@@ -248,6 +252,16 @@ class ExactForceModel(ForceModel):
             {a.name: (a.k0, a.k0 + a.n - 1) for a in self.additive_axes},
             box,
             self.grow,
+        )
+        n_planes = len(self.design_keys) * (
+            math.prod(hi - lo + 1 for lo, hi in t_nodes.values())
+            + sum(max(hi, 0) - min(lo, 0) + 1 for lo, hi in a_nodes.values())
+        )
+        log.info(
+            "exact planes: lattice grows to %s (%d planes of %d membranes, cached ones read)",
+            ", ".join(f"{k} {lo}..{hi}" for k, (lo, hi) in {**t_nodes, **a_nodes}.items()),
+            n_planes,
+            len(self.design_keys),
         )
         return _assemble(
             self.design_keys, self.base, t_nodes, a_nodes, self.grid, self.outside, self.cache, progress, self.grow

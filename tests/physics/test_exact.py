@@ -31,7 +31,7 @@ def _rows(key, n, rng):
     return np.broadcast_to(d.to_array(), (n, 6)), rng.uniform(0.0, H_MAX, n), rng.uniform(300.0, P_MAX, n)
 
 
-def test_exact_model_matches_direct_simulator_calls_at_random_rows_and_parameters(exact):
+def test_exact_model_matches_direct_simulator_calls_at_random_rows_and_parameters(exact, caplog):
     """The accuracy bound of issue 17: 0.05 N RMS, 0.15 N max, at random rows and at random
     constants (mu, J_m, thickness factor and a mechanical effect) inside the lattice it grew."""
     rng = np.random.default_rng(7)
@@ -48,7 +48,8 @@ def test_exact_model_matches_direct_simulator_calls_at_random_rows_and_parameter
             params = dataclasses.replace(params, contact_offset_mm=float(rng.uniform(0.2, 1.3)))
         if trial == 3:  # the fabric inset moves the disk's edge and the ring's edges
             params = dataclasses.replace(params, fabric_inset_mm=float(rng.uniform(0.1, 0.9)))
-        fm = fm.covering(params)
+        with caplog.at_level("INFO", logger="mfdesign.models.exact"):
+            fm = fm.covering(params)
         assert fm.covers(params)
         design, h, p = _rows(key, 12, rng)
         ref = force_at(Membrane.from_key(key), h, p, params).force_n
@@ -56,6 +57,8 @@ def test_exact_model_matches_direct_simulator_calls_at_random_rows_and_parameter
         ok = np.isfinite(ref)
         assert np.all(np.isfinite(got[ok])), "the exact model returned NaN where the simulator has a number"
         errors.append(got[ok] - ref[ok])
+    # each growth is said (a calibration can solve planes for an hour): the new inset axis too
+    assert any("lattice grows to" in r.getMessage() and "inset 0.." in r.getMessage() for r in caplog.records)
     e = np.concatenate(errors)
     assert e.size >= 40
     assert np.sqrt(np.mean(e**2)) <= 0.05
