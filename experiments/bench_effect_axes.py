@@ -8,7 +8,11 @@ cross terms. This measures that approximation against direct simulator calls
 calibration reaches (by default the posterior medians that ``real_mass_lift.json`` holds,
 else ``--mu-pa/--jm/--inset-mm``), and writes RMS / max error per membrane.
 
-    python experiments/bench_effect_axes.py [--rows 24]
+    python experiments/bench_effect_axes.py [--rows 24] [--effect-axes tensor-jm]
+
+``--effect-axes tensor-jm`` measures the other approximation: the effect crossed with J_m,
+the ring ratio's axis added at the reference (``force_model_named``); it writes
+``bench_effect_axes_tensor-jm.json``.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ def main():
     ap.add_argument("--mu-pa", type=float, default=None)
     ap.add_argument("--jm", type=float, default=None)
     ap.add_argument("--inset-mm", type=float, default=None)
+    ap.add_argument("--effect-axes", choices=("additive", "tensor-jm", "tensor"), default="additive")
     args = ap.parse_args()
 
     import jax.numpy as jnp
@@ -51,7 +56,7 @@ def main():
     df = meas.df[floating_rows(meas)].groupby("design_key").sample(n=args.rows, random_state=args.seed)
     out = {}
     with timed() as clock:
-        fm = force_model_named("exact", meas, effect_axes="additive").covering(params).strict(True)
+        fm = force_model_named("exact", meas, effect_axes=args.effect_axes).covering(params).strict(True)
         for key, g in df.groupby("design_key", sort=False):
             h, p = g["height_mm"].to_numpy(), g["pressure_pa"].to_numpy()
             d = np.broadcast_to(Membrane.from_key(key).to_array(), (len(h), 6))
@@ -60,7 +65,7 @@ def main():
             e = (got - ref)[np.isfinite(got) & np.isfinite(ref)]
             out[key] = {"rms_n": float(np.sqrt(np.mean(e**2))), "max_n": float(np.max(np.abs(e))), "n": int(e.size)}
             print(
-                f"{key}: additive - simulator RMS {out[key]['rms_n']:.3f} N, max {out[key]['max_n']:.3f} N (n {e.size})",
+                f"{key}: {args.effect_axes} - simulator RMS {out[key]['rms_n']:.3f} N, max {out[key]['max_n']:.3f} N (n {e.size})",
                 flush=True,
             )
     pooled = float(np.sqrt(np.mean([v["rms_n"] ** 2 for v in out.values()])))
@@ -68,8 +73,12 @@ def main():
         f"pooled RMS {pooled:.3f} N at mu {params.mu_pa:.0f} Pa, J_m {params.jm:.2f}, inset {params.fabric_inset_mm:.3f} mm"
     )
     write_json(
-        args.out / "bench_effect_axes.json",
+        args.out
+        / (
+            "bench_effect_axes.json" if args.effect_axes == "additive" else f"bench_effect_axes_{args.effect_axes}.json"
+        ),
         {
+            "effect_axes": args.effect_axes,
             "params": {"mu_pa": params.mu_pa, "jm": params.jm, "fabric_inset_mm": params.fabric_inset_mm},
             "rows_per_membrane": args.rows,
             "per_membrane": out,

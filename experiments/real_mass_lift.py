@@ -75,9 +75,9 @@ def main():
     )
     ap.add_argument(
         "--effect-axes",
-        choices=("tensor", "additive"),
+        choices=("tensor", "tensor-jm", "additive"),
         default="tensor",
-        help="exact physics: an effect's lattice axis crossed with J_m and the ring ratio (tensor) or added at the reference material (additive: few planes)",
+        help="exact physics: an effect's lattice axis crossed with J_m and the ring ratio (tensor), with J_m only, the ring ratio added (tensor-jm), or added at the reference material (additive: fewest planes)",
     )
     ap.add_argument(
         "--draws", type=int, default=32, help="posterior draws in the predictive (evaluation cost scales with it)"

@@ -38,17 +38,32 @@ __all__ = [
 ]
 
 
+EFFECT_AXES = ("tensor", "tensor-jm", "additive")
+# the axes each choice starts with (node 0 only; a calibration grows them where it goes)
+_LATTICE_START = {
+    "tensor": {},
+    "tensor-jm": {"tensor": {"jm": (0.0, 0.0)}, "additive": {"ring": (0.0, 0.0)}},
+    "additive": {"tensor": {"jm": (0.0, 0.0), "ring": (0.0, 0.0)}},
+}
+
+
 def force_model_named(name: str, table=None, progress: bool = False, effect_axes: str = "tensor"):
     """The force model ``name`` (:data:`~mfdesign.models.force.FORCE_MODELS`) for the rows of
     ``table`` (Measurements; the exact model needs its designs, heights and pressures).
 
-    ``effect_axes`` (exact only): ``"tensor"`` crosses every effect's lattice axis with the
-    material's (exact cross terms; a calibrated mechanical effect multiplies the planes by
-    its node count), ``"additive"`` keeps J_m and the ring ratio crossed and adds each
-    effect's axis at the reference material (first order in the cross terms, few planes;
-    ``experiments/bench_exact.py`` measures the difference)."""
-    if effect_axes not in ("tensor", "additive"):
-        raise ValueError(f"effect_axes must be 'tensor' or 'additive', got {effect_axes!r}")
+    ``effect_axes`` (exact only): where a calibrated effect's lattice axis goes.
+
+    - ``"tensor"``: crossed with J_m and the ring ratio (exact cross terms; a calibrated
+      mechanical effect multiplies the planes by its node count).
+    - ``"tensor-jm"``: crossed with J_m, the ring ratio's axis added at the reference (the
+      fabric is 30-40 times the rubber, so the ring ratio's cross terms are small; one
+      J_m node costs 7x fewer planes of a ringed membrane than ``"tensor"``;
+      ``experiments/bench_effect_axes.py`` measures it against the simulator).
+    - ``"additive"``: J_m and the ring ratio crossed, each effect's axis added at the
+      reference material (first order in the cross terms, fewest planes).
+    """
+    if effect_axes not in EFFECT_AXES:
+        raise ValueError(f"effect_axes must be one of {EFFECT_AXES}, got {effect_axes!r}")
     enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.models.backends import force_model_for
 
@@ -67,8 +82,8 @@ def force_model_named(name: str, table=None, progress: bool = False, effect_axes
             ),
             p_max_pa=float(df["pressure_pa"].max()),
             progress=progress,
-            grow=effect_axes,
-            tensor={"jm": (0.0, 0.0), "ring": (0.0, 0.0)} if effect_axes == "additive" else None,
+            grow="additive" if effect_axes == "additive" else "tensor",
+            **_LATTICE_START[effect_axes],
         )
     return force_model_for(name)
 

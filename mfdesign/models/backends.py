@@ -21,6 +21,7 @@ def force_model_for(
     grow: str = "tensor",
     also: SimParams | None = None,
     tensor: dict | None = None,
+    additive: dict | None = None,
 ) -> ForceModel:
     """The force model called ``name`` (one of :data:`FORCE_MODELS`).
 
@@ -39,6 +40,8 @@ def force_model_for(
         tensor: axes of the exact model's full product lattice from the start (axis name ->
             coordinate range); with ``grow="additive"``, ``{"jm": (0, 0), "ring": (0, 0)}``
             keeps the material's axes crossed and puts effects on additive axes.
+        additive: axes that cross only the reference node from the start (exact only), e.g.
+            ``{"ring": (0, 0)}`` with ``tensor={"jm": (0, 0)}``: effects crossed with J_m only.
     """
     if name == "exact":
         from mfdesign.models.exact import build_exact
@@ -56,6 +59,7 @@ def force_model_for(
             grow=grow,
             also=also,
             tensor=tensor,
+            additive=additive,
         )
     if name == "emulator":
         from mfdesign.models.emulator import load_default
