@@ -40,7 +40,7 @@ __all__ = [
 
 EFFECT_AXES = ("tensor", "tensor-jm", "additive")
 # the axes each choice starts with (node 0 only; a calibration grows them where it goes)
-_LATTICE_START = {
+_LATTICE_START: dict[str, dict[str, dict[str, tuple[float, float]]]] = {
     "tensor": {},
     "tensor-jm": {"tensor": {"jm": (0.0, 0.0)}, "additive": {"ring": (0.0, 0.0)}},
     "additive": {"tensor": {"jm": (0.0, 0.0), "ring": (0.0, 0.0)}},
@@ -83,7 +83,8 @@ def force_model_named(name: str, table=None, progress: bool = False, effect_axes
             p_max_pa=float(df["pressure_pa"].max()),
             progress=progress,
             grow="additive" if effect_axes == "additive" else "tensor",
-            **_LATTICE_START[effect_axes],
+            tensor=_LATTICE_START[effect_axes].get("tensor"),
+            additive=_LATTICE_START[effect_axes].get("additive"),
         )
     return force_model_for(name)
 
