@@ -98,6 +98,21 @@ def test_gent_approaches_neo_hookean_and_locks():
     assert jax.numpy.isfinite(Gent().d2W(l1, l2)[0])
 
 
+def test_i2_share_keeps_the_small_strain_modulus_and_stiffens_biaxial_stretch():
+    """``Gent(i2_share=b)``: ``mu`` stays the small-strain shear modulus (the energy of a
+    small uniaxial strain e is 3/2 mu e^2 for every b), while a large equibiaxial stretch
+    costs more energy than plain Gent (the I2 term grows as lambda^4) and a large uniaxial
+    one less."""
+    e = 1e-3
+    uni = lambda m, l: m.energy(l, 1.0 / np.sqrt(l))  # noqa: E731
+    for b in (0.0, 0.2, 0.5):
+        m = Gent(mu_pa=30e3, jm=40.0, i2_share=b)
+        assert math.isclose(float(uni(m, 1 + e)), 1.5 * 30e3 * e**2, rel_tol=3e-3)
+    plain, mr = Gent(mu_pa=30e3, jm=40.0), Gent(mu_pa=30e3, jm=40.0, i2_share=0.3)
+    assert float(mr.energy(2.5, 2.5)) > 1.2 * float(plain.energy(2.5, 2.5))
+    assert float(mr.energy(4.0, 0.5)) < float(plain.energy(4.0, 0.5))
+
+
 def test_decode_any_reads_the_ring_count_as_data():
     import jax
     import jax.numpy as jnp

@@ -77,6 +77,7 @@ class Mesh(eqx.Module):
     r: jax.Array  # [N + 1] mm
     mu: jax.Array  # [N] Pa
     jm: jax.Array  # [N]
+    i2: jax.Array  # [N] the rubber's I2 share (mfdesign.materials.Gent), 0 on the rings
     t_gauss: jax.Array  # [N, 2] mm, reference thickness at the Gauss points
     r_out_def: jax.Array  # deformed clamp radius s * r_out
 
@@ -122,6 +123,7 @@ def build_mesh(design: Membrane, params: SimParams = SimParams(), n_elements: in
     rubber, fabric = params.rubber, params.fabric
     mu = jnp.where(jnp.asarray(is_ring), fabric.mu_pa, rubber.mu_pa)
     jm = jnp.where(jnp.asarray(is_ring), fabric.jm, rubber.jm)
+    i2 = jnp.where(jnp.asarray(is_ring), fabric.i2_share, rubber.i2_share)
     ra, dr = r[:-1], np.diff(r)
     rg = np.stack([ra + g * dr for g in _GAUSS], axis=-1)
     r_mid = 0.5 * (r0 + r_out)
@@ -130,13 +132,15 @@ def build_mesh(design: Membrane, params: SimParams = SimParams(), n_elements: in
         * params.thickness_factor
         * (1.0 + params.thickness_gradient * (jnp.asarray(rg) - r_mid) / (r_out - r0))
     )
-    return Mesh(r=jnp.asarray(r), mu=mu, jm=jm, t_gauss=t_gauss, r_out_def=jnp.asarray(params.clamp_prestretch * r_out))
+    return Mesh(
+        r=jnp.asarray(r), mu=mu, jm=jm, i2=i2, t_gauss=t_gauss, r_out_def=jnp.asarray(params.clamp_prestretch * r_out)
+    )
 
 
 # ----------------------------------------------------------------------------------------
 # Energy: a sum of element terms, each depending on its two end nodes only
 # ----------------------------------------------------------------------------------------
-def _element_potential(q, ra, rb, mu, jm, tg, p_pa):
+def _element_potential(q, ra, rb, mu, jm, i2, tg, p_pa):
     """``Pi_e`` [N mm] of one element; ``q = (R_a, Z_a, R_b, Z_b)``.
 
     Elastic part by 2-point Gauss quadrature, pressure part exact for a linear segment.
@@ -145,7 +149,7 @@ def _element_potential(q, ra, rb, mu, jm, tg, p_pa):
     Ra, Za, Rb, Zb = q[0], q[1], q[2], q[3]
     dr = rb - ra
     l1 = jnp.sqrt((Rb - Ra) ** 2 + (Zb - Za) ** 2) / dr
-    mat = Gent(mu_pa=mu, jm=jm)
+    mat = Gent(mu_pa=mu, jm=jm, i2_share=i2)
     U = 0.0
     bad = l1 <= 0.0
     for k, g in enumerate(_GAUSS):
@@ -172,13 +176,13 @@ def _element_value_grad_hess(q, *args):
 
 
 def _element_args(mesh: Mesh):
-    return mesh.r[:-1], mesh.r[1:], mesh.mu, mesh.jm, mesh.t_gauss
+    return mesh.r[:-1], mesh.r[1:], mesh.mu, mesh.jm, mesh.i2, mesh.t_gauss
 
 
 def potential_nodes(X, p_pa, mesh: Mesh):
     """Total potential ``Pi = U - p V`` [N mm] of the node array ``X = [[R_i, Z_i]]``."""
     q = jnp.concatenate([X[:-1], X[1:]], axis=1)
-    pe = jax.vmap(_element_potential, in_axes=(0, 0, 0, 0, 0, 0, None))(q, *_element_args(mesh), p_pa)
+    pe = jax.vmap(_element_potential, in_axes=(0, 0, 0, 0, 0, 0, 0, None))(q, *_element_args(mesh), p_pa)
     return jnp.sum(pe)
 
 
@@ -196,7 +200,7 @@ def _local_model(X, p_pa, mesh: Mesh):
     ``e`` to node ``e + 1``. Assembled from element values, gradients and Hessians.
     """
     q = jnp.concatenate([X[:-1], X[1:]], axis=1)
-    ax = (0, 0, 0, 0, 0, 0, None)
+    ax = (0, 0, 0, 0, 0, 0, 0, None)
     args = (*_element_args(mesh), p_pa)
     He, (ge, pe) = jax.vmap(_element_value_grad_hess, in_axes=ax)(q, *args)
     n = X.shape[0]
@@ -427,7 +431,7 @@ def _finish(X, p, mesh: Mesh, mask, ok_steps, nsteps):
     ds = jnp.sqrt(dR**2 + dZ**2)
     tg = mesh.t_gauss[0]
     t0 = tg[0] - (tg[1] - tg[0]) * _GAUSS[0] / (_GAUSS[1] - _GAUSS[0])  # extrapolate to r0
-    W1 = jax.grad(Gent(mu_pa=mesh.mu[0], jm=mesh.jm[0]).energy)(ds / dr0, jnp.asarray(1.0))
+    W1 = jax.grad(Gent(mu_pa=mesh.mu[0], jm=mesh.jm[0], i2_share=mesh.i2[0]).energy)(ds / dr0, jnp.asarray(1.0))
     F_disk = p * PA_TO_MPA * jnp.pi * r0**2 + 2.0 * jnp.pi * r0 * t0 * W1 * PA_TO_MPA * dZ / ds
     # The unloaded flat state (p = 0, h = 0, no clamp pre-stretch) is exact but has no
     # out-of-plane stiffness (semi-definite Hessian): accept it when exactly in balance.

@@ -33,12 +33,15 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from mfdesign.materials import Gent
+
 
 class Segment(eqx.Module):
     """Material and thickness law on one radial interval (stresses in MPa, lengths mm)."""
 
     mu_mpa: jax.Array
     jm: jax.Array
+    i2_share: jax.Array  # share of mu in a Mooney-Rivlin I2 term (mfdesign.materials.Gent)
     t_mm: jax.Array  # thickness at r_mid
     gradient: jax.Array  # relative thickness change across the whole annulus
     r_mid: jax.Array
@@ -51,10 +54,7 @@ class Segment(eqx.Module):
 
     def energy(self, l1, l2):
         """Gent energy per reference volume [MPa]; NaN past the extension limit."""
-        i1 = l1**2 + l2**2 + 1.0 / (l1 * l2) ** 2
-        x = (i1 - 3.0) / self.jm
-        x = jnp.where(x < 1.0, x, jnp.nan)
-        return -0.5 * self.mu_mpa * self.jm * jnp.log1p(-x)
+        return Gent(mu_pa=self.mu_mpa, jm=self.jm, i2_share=self.i2_share).energy(l1, l2)
 
     def w1(self, l1, l2):
         return jax.grad(self.energy, argnums=0)(l1, l2)

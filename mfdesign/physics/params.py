@@ -32,6 +32,8 @@ class SimParams(eqx.Module):
       fabric (the disk's radius shrinks by it; each ring's inner edge moves out and its outer
       edge in): the bond takes up the rubber's pull over a shear-lag length, so the rubber
       beside a fabric edge strains over a longer span than the nominal gap.
+    * ``i2_share``: share of the rubber's small-strain shear modulus carried by a
+      Mooney-Rivlin second-invariant term (:class:`~mfdesign.materials.Gent`; 0: plain Gent).
     """
 
     mu_pa: Scalar = ECOFLEX_MU_PA
@@ -43,10 +45,11 @@ class SimParams(eqx.Module):
     clamp_prestretch: Scalar = 1.0
     contact_offset_mm: Scalar = 0.0
     fabric_inset_mm: Scalar = 0.0
+    i2_share: Scalar = 0.0
 
     @property
     def rubber(self) -> Gent:
-        return Gent(mu_pa=self.mu_pa, jm=self.jm)
+        return Gent(mu_pa=self.mu_pa, jm=self.jm, i2_share=self.i2_share)
 
     @property
     def fabric(self) -> Gent:

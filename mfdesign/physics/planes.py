@@ -138,6 +138,15 @@ AXES: dict[str, Axis] = {
             hi=2.5,
             doc="fabric edges' effective inset [mm]",
         ),
+        Axis(
+            "i2",
+            lambda p, b: p.i2_share - b.i2_share,
+            lambda b, c: dataclasses.replace(b, i2_share=b.i2_share + c),
+            step=0.05,
+            lo=0.0,
+            hi=0.9,
+            doc="share of the rubber's modulus in a Mooney-Rivlin I2 term",
+        ),
     )
 }
 
@@ -182,7 +191,7 @@ def cache_dir() -> Path:
 
 # SimParams fields added after SCHEMA 2 enter a plane's key only when they leave their
 # default, so adding a field does not orphan every cached plane
-_KEYED_WHEN_SET = {"fabric_inset_mm": 0.0}
+_KEYED_WHEN_SET = {"fabric_inset_mm": 0.0, "i2_share": 0.0}
 
 
 def _params_tuple(params: SimParams) -> tuple[float, ...]:

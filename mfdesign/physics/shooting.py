@@ -109,6 +109,7 @@ def segments(geom: Geometry, params: SimParams) -> Segments:
     seg = Segment(
         mu_mpa=jnp.where(is_fabric, params.ring_mu_pa, params.mu_pa) * PA_TO_MPA,
         jm=jnp.where(is_fabric, params.ring_jm, params.jm) * ones,
+        i2_share=jnp.where(is_fabric, 0.0, params.i2_share) * ones,  # a rubber property
         t_mm=geom.thickness_mm * params.thickness_factor * ones,
         gradient=params.thickness_gradient * ones,
         r_mid=0.5 * (r0 + r_out) * ones,

@@ -239,7 +239,8 @@ def test_an_effect_the_force_model_cannot_represent_is_named_not_screened():
     from mfdesign.models.emulator import load_default
     from mfdesign.models.standin import StandinForceModel
 
-    names = ["fabric_inset", "contact_offset", "lift_preload", "thickness_deviation"]
+    names = ["fabric_inset", "contact_offset", "lift_preload", "thickness_deviation", "rubber_i2"]
     out = unmodelled(names, types.SimpleNamespace(force_model=load_default()))
-    assert list(out) == ["fabric_inset"] and "fabric_inset_mm" in out["fabric_inset"]
+    assert list(out) == ["fabric_inset", "rubber_i2"] and "fabric_inset_mm" in out["fabric_inset"]
+    assert "i2_share" in out["rubber_i2"]
     assert unmodelled(names, types.SimpleNamespace(force_model=StandinForceModel())) == {}

@@ -37,6 +37,7 @@ EXPECTED = {
     "ring_softening",
     "contact_offset",
     "fabric_inset",
+    "rubber_i2",
     "stress_softening",
     "lift_preload",
     "pressure_sensor",
@@ -111,6 +112,7 @@ def test_mechanics_go_through_simparams():
         "clamp_prestretch.strain": 0.02,
         "thickness_gradient.gradient": -0.2,
         "fabric_inset.inset_mm": 0.75,
+        "rubber_i2.share": 0.2,
     }
     p = apply_sim_params(
         [
@@ -120,6 +122,7 @@ def test_mechanics_go_through_simparams():
             "clamp_prestretch",
             "thickness_gradient",
             "fabric_inset",
+            "rubber_i2",
         ],
         theta,
     )
@@ -129,6 +132,7 @@ def test_mechanics_go_through_simparams():
     assert p.clamp_prestretch == pytest.approx(1.02)
     assert p.thickness_gradient == pytest.approx(-0.2)
     assert p.fabric_inset_mm == pytest.approx(0.75)
+    assert p.i2_share == pytest.approx(0.2)
     assert p.mu_pa == SimParams().mu_pa
 
 

@@ -129,3 +129,4 @@ def test_a_new_simparams_field_keeps_the_old_planes_keys():
 
     assert pl._params_tuple(SimParams()) == (31700.0, 39.6, 1.0e6, 25.0, 1.0, 0.0, 1.0, 0.0)
     assert pl._params_tuple(SimParams(fabric_inset_mm=0.5))[-1] == 0.5
+    assert pl._params_tuple(SimParams(i2_share=0.2))[-1] == 0.2

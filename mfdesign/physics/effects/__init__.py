@@ -67,6 +67,7 @@ from mfdesign.physics.effects.clamp_prestretch import ClampPrestretch
 from mfdesign.physics.effects.ring_softening import RingSoftening
 from mfdesign.physics.effects.contact_offset import ContactOffset
 from mfdesign.physics.effects.fabric_inset import FabricInset
+from mfdesign.physics.effects.rubber_i2 import RubberI2
 from mfdesign.physics.effects.stress_softening import StressSoftening
 from mfdesign.physics.effects.pressure_sensor import PressureSensor
 from mfdesign.physics.effects.load_cell_offset import LoadCellOffset
@@ -104,6 +105,7 @@ __all__ = [
     "RingSoftening",
     "ContactOffset",
     "FabricInset",
+    "RubberI2",
     "StressSoftening",
     "PressureSensor",
     "LoadCellOffset",
