@@ -109,9 +109,11 @@ def main():
         results.append(res)
         print(
             f"J_m {res['jm']:6.2f}  I2 {res['i2_share']:.2f}  inset {res['inset_mm']:.2f} mm: RMS {res['rms_n']:.3f} N"
-            "  (s " + " ".join(f"{v['s']:.2f}" for v in per.values()) + ")",
+            "  (s " + " ".join(f"{v['s']:.2f}" + ("*" if v["s_on_search_limit"] else "") for v in per.values()) + ")",
             flush=True,
         )
+    if any(v["s_on_search_limit"] for r in results for v in r["membranes"].values()):
+        print(f"*: s on its search limit exp(+-{math.log(S_GRID[-1]):.1f}); that membrane's RMS is an upper bound there")
     best = min(results, key=lambda r: r["rms_n"])
     plain = [r for r in results if r["i2_share"] == 0.0]
     best_plain = min(plain, key=lambda r: r["rms_n"]) if plain else None
