@@ -80,6 +80,11 @@ def main():
         help="exact physics: an effect's lattice axis crossed with J_m and the ring ratio (tensor), with J_m only, the ring ratio added (tensor-jm), or added at the reference material (additive: fewest planes)",
     )
     ap.add_argument(
+        "--jm-coupons",
+        action="store_true",
+        help="hold J_m at the coupons' 39.6 (uniform prior 39.4-39.8) in (b) and (e): mu, the effects and the thickness latents are calibrated; use its own --out",
+    )
+    ap.add_argument(
         "--draws", type=int, default=32, help="posterior draws in the predictive (evaluation cost scales with it)"
     )
     args = ap.parse_args()
@@ -91,6 +96,8 @@ def main():
     from mfdesign.models.ensemble import EnsembleConfig
     from mfdesign.models.predictive import MultiFidelity
     from mfdesign.models.trajectory import measured_waypoints, trajectory_errors
+    from mfdesign.materials import ECOFLEX_JM
+    from mfdesign.physics.effects import Uniform
     from mfdesign.physics.params import SimParams
 
     warnings.simplefilter("ignore")
@@ -118,6 +125,10 @@ def main():
     settings["discrepancy"] = (
         "gated (one-standard-error rule), antithetic prior draws, no constant term; (b) shares (e)'s posterior draws"
     )
+
+    # the coupons' locking (the paper's uniaxial fit), held: J_m then cannot trade with an
+    # effect's geometry (docs/real_data.md section 6)
+    jm_prior = Uniform(ECOFLEX_JM - 0.2, ECOFLEX_JM + 0.2) if args.jm_coupons else None
 
     def ckpt(i):
         return args.out / "cache" / f"real_mass_lift_{args.physics}_fold{i}.json"
@@ -147,6 +158,7 @@ def main():
             ensemble_config=EnsembleConfig(n_members=args.members, steps=args.ens_steps, monotone=False),
             seed=args.seed + i,
             progress=False,
+            jm_prior=jm_prior,
         )
         t_fit = fold_clock.elapsed()
         # the same posterior draws as (e) (fit_multi_fidelity thins with seed + i): (b) and (e)
@@ -234,6 +246,7 @@ def main():
             ensemble_config=EnsembleConfig(n_members=2, steps=10, monotone=False),
             seed=args.seed,
             progress=False,
+            jm_prior=jm_prior,
         )
         saved = {"settings": settings, "posterior": full.posterior.to_json()}
         write_json(post_ckpt, saved, indent=1, default=float)

@@ -135,6 +135,7 @@ def fit_multi_fidelity(
     likelihood: str = "student_t",
     pool=None,
     stop_when_converged: bool = True,
+    jm_prior=None,
 ) -> MFFit:
     """The multi-fidelity model: calibrate the physics, then fit the sim-to-real discrepancy.
 
@@ -166,6 +167,9 @@ def fit_multi_fidelity(
     - `pool`: anything with `map`, for emcee.
     - `stop_when_converged`: stop once the chain is 50 autocorrelation times long
       (:func:`~mfdesign.calibration.mcmc.calibrate`).
+    - `jm_prior`: the prior of J_m (a :class:`~mfdesign.physics.effects.Prior`; default:
+      log-normal around the coupons' 39.6, sd 0.5, inside the force model's support); a
+      narrow one holds the locking at a measured value.
 
     **Returns:**
 
@@ -186,7 +190,11 @@ def fit_multi_fidelity(
     data = CalibrationData.from_measurements(table, max_rows=max_rows, seed=seed)
     n_trials = table.df.groupby(["design_key", "trial"]).ngroups
     data = data.padded(max(len(data), max_rows + n_trials))  # equal shapes across folds: one compile
-    model = model_for(force_model, data.design_keys, effects, likelihood=likelihood)
+    model = (
+        model_for(force_model, data.design_keys, effects, likelihood=likelihood)
+        if jm_prior is None
+        else model_for(force_model, data.design_keys, effects, likelihood=likelihood, jm_prior=jm_prior)
+    )
     post = calibrate(
         data,
         model,

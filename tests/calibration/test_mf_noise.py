@@ -47,3 +47,29 @@ def test_predictive_noise_and_intervals_stay_finite_beside_a_row_without_value()
     mean, lo, hi = (np.asarray(a) for a in mf.interval(data, 0.9, key=0))
     low = np.asarray(data.rows.h_mm) <= 60.0
     assert np.isfinite(mean[low]).all() and np.isfinite(lo[low]).all() and np.isfinite(hi[low]).all()
+
+
+def test_a_given_jm_prior_holds_the_locking():
+    """``fit_multi_fidelity(jm_prior=...)``: a narrow prior (the coupons' J_m, held) bounds
+    every posterior draw of J_m, where the default prior lets the data move it."""
+    from test_calibrate import virtual_data
+
+    from mfdesign.calibration.workflow import fit_multi_fidelity
+    from mfdesign.models.ensemble import EnsembleConfig
+    from mfdesign.models.standin import StandinForceModel
+    from mfdesign.physics.effects import Uniform
+
+    table, _ = virtual_data()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = fit_multi_fidelity(
+            table,
+            StandinForceModel(),
+            n_steps=60,
+            max_rows=200,
+            ensemble_config=EnsembleConfig(n_members=2, steps=20, monotone=False),
+            progress=False,
+            jm_prior=Uniform(30.0, 31.0),
+        )
+    jm = np.asarray(fit.posterior.samples[:, list(fit.posterior.names).index("jm")])
+    assert jm.min() >= 30.0 and jm.max() <= 31.0
