@@ -116,6 +116,8 @@ def main():
     # ``--only`` lets several processes share the folds, one core each).
     # (the output folder is where, not what: a checkpoint serves any --out)
     settings = {k: v for k, v in vars(args).items() if k not in ("only", "out", "posterior_only")}
+    if not args.jm_coupons:  # a flag added later: off, it names the same computation as before
+        del settings["jm_coupons"]
     settings["lift_rows"] = (
         "floating_rows"  # the equilibrium-row rule (data/lifts.py); older checkpoints used h >= 2 mm
     )

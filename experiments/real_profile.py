@@ -113,7 +113,9 @@ def main():
             flush=True,
         )
     if any(v["s_on_search_limit"] for r in results for v in r["membranes"].values()):
-        print(f"*: s on its search limit exp(+-{math.log(S_GRID[-1]):.1f}); that membrane's RMS is an upper bound there")
+        print(
+            f"*: s on its search limit exp(+-{math.log(S_GRID[-1]):.1f}); that membrane's RMS is an upper bound there"
+        )
     best = min(results, key=lambda r: r["rms_n"])
     plain = [r for r in results if r["i2_share"] == 0.0]
     best_plain = min(plain, key=lambda r: r["rms_n"]) if plain else None
