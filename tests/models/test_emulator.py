@@ -158,7 +158,7 @@ def test_a_constant_it_never_saw_is_nan_not_ignored(emu):
     import dataclasses
 
     assert set(emu.support()) >= {f.name for f in dataclasses.fields(SimParams)}
-    assert emu.untrained_fields() == {"fabric_inset_mm": 0.0}
+    assert emu.untrained_fields() == {"fabric_inset_mm": 0.0, "i2_share": 0.0}
 
 
 def test_save_load_bit_identical(emu, tmp_path):
