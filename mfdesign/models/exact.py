@@ -253,12 +253,13 @@ class ExactForceModel(ForceModel):
             box,
             self.grow,
         )
+        # an upper bound: a ringless membrane needs no nodes of a ringed-only axis (the ring ratio)
         n_planes = len(self.design_keys) * (
             math.prod(hi - lo + 1 for lo, hi in t_nodes.values())
             + sum(max(hi, 0) - min(lo, 0) + 1 for lo, hi in a_nodes.values())
         )
         log.info(
-            "exact planes: lattice grows to %s (%d planes of %d membranes, cached ones read)",
+            "exact planes: lattice grows to %s (at most %d planes of %d membranes, cached ones read)",
             ", ".join(f"{k} {lo}..{hi}" for k, (lo, hi) in {**t_nodes, **a_nodes}.items()),
             n_planes,
             len(self.design_keys),
