@@ -85,6 +85,11 @@ def main():
         help="hold J_m at the coupons' 39.6 (uniform prior 39.4-39.8) in (b) and (e): mu, the effects and the thickness latents are calibrated; use its own --out",
     )
     ap.add_argument(
+        "--material-coupons",
+        action="store_true",
+        help="hold mu and J_m at the coupons' 31.5 kPa and 39.6 (uniform priors 31.3-31.7 kPa, 39.4-39.8) in (b) and (e): the lifts calibrate the effects and the thickness latents only; use its own --out",
+    )
+    ap.add_argument(
         "--draws", type=int, default=32, help="posterior draws in the predictive (evaluation cost scales with it)"
     )
     args = ap.parse_args()
@@ -116,8 +121,9 @@ def main():
     # ``--only`` lets several processes share the folds, one core each).
     # (the output folder is where, not what: a checkpoint serves any --out)
     settings = {k: v for k, v in vars(args).items() if k not in ("only", "out", "posterior_only")}
-    if not args.jm_coupons:  # a flag added later: off, it names the same computation as before
-        del settings["jm_coupons"]
+    for flag in ("jm_coupons", "material_coupons"):  # flags added later: off, they name the same computation as before
+        if not settings[flag]:
+            del settings[flag]
     settings["lift_rows"] = (
         "floating_rows"  # the equilibrium-row rule (data/lifts.py); older checkpoints used h >= 2 mm
     )
@@ -130,7 +136,11 @@ def main():
 
     # the coupons' locking (the paper's uniaxial fit), held: J_m then cannot trade with an
     # effect's geometry (docs/real_data.md section 6)
-    jm_prior = Uniform(ECOFLEX_JM - 0.2, ECOFLEX_JM + 0.2) if args.jm_coupons else None
+    jm_prior = Uniform(ECOFLEX_JM - 0.2, ECOFLEX_JM + 0.2) if args.jm_coupons or args.material_coupons else None
+    # and the coupons' modulus too: the lifts then cannot move the material to absorb what
+    # the structure misses (section 7: a modulus calibrated on ringed membranes transfers
+    # badly to the ringless one)
+    mu_prior = Uniform(31.3e3, 31.7e3) if args.material_coupons else None
 
     def ckpt(i):
         return args.out / "cache" / f"real_mass_lift_{args.physics}_fold{i}.json"
@@ -161,6 +171,7 @@ def main():
             seed=args.seed + i,
             progress=False,
             jm_prior=jm_prior,
+            mu_prior=mu_prior,
         )
         t_fit = fold_clock.elapsed()
         # the same posterior draws as (e) (fit_multi_fidelity thins with seed + i): (b) and (e)
@@ -249,6 +260,7 @@ def main():
             seed=args.seed,
             progress=False,
             jm_prior=jm_prior,
+            mu_prior=mu_prior,
         )
         saved = {"settings": settings, "posterior": full.posterior.to_json()}
         write_json(post_ckpt, saved, indent=1, default=float)

@@ -136,6 +136,7 @@ def fit_multi_fidelity(
     pool=None,
     stop_when_converged: bool = True,
     jm_prior=None,
+    mu_prior=None,
 ) -> MFFit:
     """The multi-fidelity model: calibrate the physics, then fit the sim-to-real discrepancy.
 
@@ -170,6 +171,10 @@ def fit_multi_fidelity(
     - `jm_prior`: the prior of J_m (a :class:`~mfdesign.physics.effects.Prior`; default:
       log-normal around the coupons' 39.6, sd 0.5, inside the force model's support); a
       narrow one holds the locking at a measured value.
+    - `mu_prior`: the prior of mu [Pa] (default: log-normal around the paper's 31.7 kPa, sd
+      0.3, inside the force model's support); a narrow one holds the rubber's modulus at a
+      measured value (the coupons'), so that the lifts calibrate the effects and the
+      membranes' latents only.
 
     **Returns:**
 
@@ -190,11 +195,8 @@ def fit_multi_fidelity(
     data = CalibrationData.from_measurements(table, max_rows=max_rows, seed=seed)
     n_trials = table.df.groupby(["design_key", "trial"]).ngroups
     data = data.padded(max(len(data), max_rows + n_trials))  # equal shapes across folds: one compile
-    model = (
-        model_for(force_model, data.design_keys, effects, likelihood=likelihood)
-        if jm_prior is None
-        else model_for(force_model, data.design_keys, effects, likelihood=likelihood, jm_prior=jm_prior)
-    )
+    priors = {k: v for k, v in (("jm_prior", jm_prior), ("mu_prior", mu_prior)) if v is not None}
+    model = model_for(force_model, data.design_keys, effects, likelihood=likelihood, **priors)
     post = calibrate(
         data,
         model,

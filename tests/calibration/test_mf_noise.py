@@ -49,9 +49,10 @@ def test_predictive_noise_and_intervals_stay_finite_beside_a_row_without_value()
     assert np.isfinite(mean[low]).all() and np.isfinite(lo[low]).all() and np.isfinite(hi[low]).all()
 
 
-def test_a_given_jm_prior_holds_the_locking():
-    """``fit_multi_fidelity(jm_prior=...)``: a narrow prior (the coupons' J_m, held) bounds
-    every posterior draw of J_m, where the default prior lets the data move it."""
+def test_given_priors_hold_the_material():
+    """``fit_multi_fidelity(jm_prior=..., mu_prior=...)``: narrow priors (the coupons' J_m
+    and modulus, held) bound every posterior draw of J_m and mu, where the default priors
+    let the data move them."""
     from test_calibrate import virtual_data
 
     from mfdesign.calibration.workflow import fit_multi_fidelity
@@ -70,6 +71,10 @@ def test_a_given_jm_prior_holds_the_locking():
             ensemble_config=EnsembleConfig(n_members=2, steps=20, monotone=False),
             progress=False,
             jm_prior=Uniform(30.0, 31.0),
+            mu_prior=Uniform(28.0e3, 28.5e3),
         )
-    jm = np.asarray(fit.posterior.samples[:, list(fit.posterior.names).index("jm")])
+    names = list(fit.posterior.names)
+    jm = np.asarray(fit.posterior.samples[:, names.index("jm")])
+    mu = np.asarray(fit.posterior.samples[:, names.index("mu_pa")])
     assert jm.min() >= 30.0 and jm.max() <= 31.0
+    assert mu.min() >= 28.0e3 and mu.max() <= 28.5e3
