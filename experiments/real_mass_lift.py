@@ -90,6 +90,11 @@ def main():
         help="hold mu and J_m at the coupons' 31.5 kPa and 39.6 (uniform priors 31.3-31.7 kPa, 39.4-39.8) in (b) and (e): the lifts calibrate the effects and the thickness latents only; use its own --out",
     )
     ap.add_argument(
+        "--no-latents",
+        action="store_true",
+        help="no per-membrane thickness latents in (b) and (e) (every membrane at its nominal thickness): with them the six training membranes trade their own scale against the fabric inset; use its own --out",
+    )
+    ap.add_argument(
         "--draws", type=int, default=32, help="posterior draws in the predictive (evaluation cost scales with it)"
     )
     args = ap.parse_args()
@@ -121,7 +126,7 @@ def main():
     # ``--only`` lets several processes share the folds, one core each).
     # (the output folder is where, not what: a checkpoint serves any --out)
     settings = {k: v for k, v in vars(args).items() if k not in ("only", "out", "posterior_only")}
-    for flag in ("jm_coupons", "material_coupons"):  # flags added later: off, they name the same computation as before
+    for flag in ("jm_coupons", "material_coupons", "no_latents"):  # flags added later: off, they name the same computation as before
         if not settings[flag]:
             del settings[flag]
     settings["lift_rows"] = (
@@ -172,6 +177,7 @@ def main():
             progress=False,
             jm_prior=jm_prior,
             mu_prior=mu_prior,
+            membrane_latents=not args.no_latents,
         )
         t_fit = fold_clock.elapsed()
         # the same posterior draws as (e) (fit_multi_fidelity thins with seed + i): (b) and (e)
@@ -261,6 +267,7 @@ def main():
             progress=False,
             jm_prior=jm_prior,
             mu_prior=mu_prior,
+            membrane_latents=not args.no_latents,
         )
         saved = {"settings": settings, "posterior": full.posterior.to_json()}
         write_json(post_ckpt, saved, indent=1, default=float)

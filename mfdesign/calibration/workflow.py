@@ -137,6 +137,7 @@ def fit_multi_fidelity(
     stop_when_converged: bool = True,
     jm_prior=None,
     mu_prior=None,
+    membrane_latents: bool = True,
 ) -> MFFit:
     """The multi-fidelity model: calibrate the physics, then fit the sim-to-real discrepancy.
 
@@ -175,6 +176,10 @@ def fit_multi_fidelity(
       0.3, inside the force model's support); a narrow one holds the rubber's modulus at a
       measured value (the coupons'), so that the lifts calibrate the effects and the
       membranes' latents only.
+    - `membrane_latents`: one thickness latent per membrane, drawn from a population
+      (the hierarchy); `False`: none, every membrane at its nominal thickness (what the
+      membranes share, e.g. an effect's geometry, is then not traded against each
+      membrane's own scale; their differences go to the discrepancy and the noise).
 
     **Returns:**
 
@@ -196,7 +201,9 @@ def fit_multi_fidelity(
     n_trials = table.df.groupby(["design_key", "trial"]).ngroups
     data = data.padded(max(len(data), max_rows + n_trials))  # equal shapes across folds: one compile
     priors = {k: v for k, v in (("jm_prior", jm_prior), ("mu_prior", mu_prior)) if v is not None}
-    model = model_for(force_model, data.design_keys, effects, likelihood=likelihood, **priors)
+    model = model_for(
+        force_model, data.design_keys, effects, likelihood=likelihood, membrane_latents=membrane_latents, **priors
+    )
     post = calibrate(
         data,
         model,

@@ -78,3 +78,32 @@ def test_given_priors_hold_the_material():
     mu = np.asarray(fit.posterior.samples[:, names.index("mu_pa")])
     assert jm.min() >= 30.0 and jm.max() <= 31.0
     assert mu.min() >= 28.0e3 and mu.max() <= 28.5e3
+
+
+def test_without_membrane_latents_every_membrane_is_nominal():
+    """``fit_multi_fidelity(membrane_latents=False)``: no thickness latents, no population
+    spread (what the membranes share is not traded against each one's own scale), and the
+    predictive still gives finite intervals."""
+    from test_calibrate import virtual_data
+
+    from mfdesign.calibration.workflow import fit_multi_fidelity
+    from mfdesign.models.ensemble import EnsembleConfig
+    from mfdesign.models.standin import StandinForceModel
+
+    table, _ = virtual_data()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = fit_multi_fidelity(
+            table,
+            StandinForceModel(),
+            n_steps=60,
+            max_rows=200,
+            ensemble_config=EnsembleConfig(n_members=2, steps=20, monotone=False),
+            progress=False,
+            membrane_latents=False,
+        )
+    names = list(fit.posterior.names)
+    assert not any(n.startswith("thickness") for n in names), names
+    data = fit.mf.data_for(None, None, None, table=table)
+    mean, lo, hi = (np.asarray(a) for a in fit.mf.interval(data, 0.9, key=0))
+    assert np.isfinite(mean).all() and (lo <= mean).all() and (mean <= hi).all()
