@@ -126,7 +126,8 @@ def main():
     # ``--only`` lets several processes share the folds, one core each).
     # (the output folder is where, not what: a checkpoint serves any --out)
     settings = {k: v for k, v in vars(args).items() if k not in ("only", "out", "posterior_only")}
-    for flag in ("jm_coupons", "material_coupons", "no_latents"):  # flags added later: off, they name the same computation as before
+    # flags added later: off, they name the same computation as before
+    for flag in ("jm_coupons", "material_coupons", "no_latents"):
         if not settings[flag]:
             del settings[flag]
     settings["lift_rows"] = (
