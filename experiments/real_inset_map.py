@@ -42,17 +42,16 @@ def main():
 
     from mfdesign._x64 import enable_x64
     from mfdesign.calibration.mcmc import _cover_starts, find_map, fit_force_model
-    from mfdesign.calibration.workflow import force_model_named, model_for
+    from mfdesign.calibration.workflow import force_model_named, material_priors, model_for
     from mfdesign.data.spa_design import load_mass_lift
     from mfdesign.models.hierarchical import CalibrationData
-    from mfdesign.physics.effects import Uniform
 
     enable_x64()
     warnings.simplefilter("ignore")
     data = load_mass_lift()
     keys = list(dict.fromkeys(data.df["design_key"]))
     emu = force_model_named("exact", data, progress=False, effect_axes="tensor-jm")
-    priors = dict(jm_prior=Uniform(39.4, 39.8), mu_prior=Uniform(31.3e3, 31.7e3)) if args.material == "coupons" else {}
+    priors = material_priors(args.material)
     out = {"material": args.material, "seed": args.seed, "membranes": keys, "cases": {}}
     # one model per case (their parameter layouts differ): a loop over cases, not points
     for name, latents, drop in cases:

@@ -99,15 +99,13 @@ def main():
     )
     args = ap.parse_args()
 
-    from mfdesign.calibration.workflow import fit_multi_fidelity, lifted_rows, force_model_named
+    from mfdesign.calibration.workflow import fit_multi_fidelity, lifted_rows, force_model_named, material_priors
     from mfdesign.data.spa_design import load_mass_lift
     from mfdesign.models.baselines import CurveFitConfig
     from mfdesign.models.cv import predict_mean_std
     from mfdesign.models.ensemble import EnsembleConfig
     from mfdesign.models.predictive import MultiFidelity
     from mfdesign.models.trajectory import measured_waypoints, trajectory_errors
-    from mfdesign.materials import ECOFLEX_JM
-    from mfdesign.physics.effects import Uniform
     from mfdesign.physics.params import SimParams
 
     warnings.simplefilter("ignore")
@@ -142,11 +140,11 @@ def main():
 
     # the coupons' locking (the paper's uniaxial fit), held: J_m then cannot trade with an
     # effect's geometry (docs/real_data.md section 6)
-    jm_prior = Uniform(ECOFLEX_JM - 0.2, ECOFLEX_JM + 0.2) if args.jm_coupons or args.material_coupons else None
     # and the coupons' modulus too: the lifts then cannot move the material to absorb what
     # the structure misses (section 7: a modulus calibrated on ringed membranes transfers
     # badly to the ringless one)
-    mu_prior = Uniform(31.3e3, 31.7e3) if args.material_coupons else None
+    held = material_priors("coupons" if args.material_coupons else "coupons-jm" if args.jm_coupons else "free")
+    jm_prior, mu_prior = held.get("jm_prior"), held.get("mu_prior")
 
     def ckpt(i):
         return args.out / "cache" / f"real_mass_lift_{args.physics}_fold{i}.json"

@@ -34,8 +34,39 @@ __all__ = [
     "force_model_named",
     "lifted_rows",
     "load_multi_fidelity",
+    "material_priors",
     "model_for",
 ]
+
+# The paper's uniaxial coupon tests (Campbell et al. 2025): the rubber's mu and J_m measured
+# apart from any membrane.
+COUPON_MU_PA = 31.5e3
+MATERIALS = ("free", "coupons", "coupons-jm")
+
+
+def material_priors(material: str = "free") -> dict:
+    """Priors of the rubber for :func:`fit_multi_fidelity` / :func:`model_for` (keyword
+    arguments ``mu_prior``, ``jm_prior``).
+
+    - ``"free"``: none given (the defaults: the data calibrate mu [Pa] and J_m).
+    - ``"coupons"``: both held at the coupons' values, mu 31.5 kPa and J_m 39.6 (uniform
+      priors +-0.2 kPa and +-0.2: held, with room for the sampler to move): the data then
+      calibrate the effects and the membranes' latents only. On the real lifts this is what
+      transfers to a new membrane (docs/real_data.md section 7): a rubber calibrated on a
+      few membranes absorbs what their structure misses.
+    - ``"coupons-jm"``: J_m held, mu calibrated.
+    """
+    from mfdesign.errors import InputError
+    from mfdesign.physics.effects import Uniform
+
+    if material not in MATERIALS:
+        raise InputError(f"material {material!r}: allowed {', '.join(MATERIALS)}")
+    out = {}
+    if material in ("coupons", "coupons-jm"):
+        out["jm_prior"] = Uniform(ECOFLEX_JM - 0.2, ECOFLEX_JM + 0.2)
+    if material == "coupons":
+        out["mu_prior"] = Uniform(COUPON_MU_PA - 200.0, COUPON_MU_PA + 200.0)
+    return out
 
 
 EFFECT_AXES = ("tensor", "tensor-jm", "additive")
@@ -284,6 +315,8 @@ def load_multi_fidelity(folder) -> MFFit:
             post.design_keys,
             effects,
             likelihood=meta.get("likelihood", "gaussian"),
+            membrane_latents=bool(meta.get("membrane_latents", True)),
+            **material_priors(str(meta.get("material", "free"))),
         )
     except Exception as err:  # noqa: BLE001 -- unknown simulator / effect / likelihood named in the file
         raise InputError(

@@ -56,6 +56,8 @@ def _run(
     multi_fidelity: bool = False,
     members: int = 0,
     delta_steps: int = 0,
+    material: str = "free",
+    latents: bool = True,
 ) -> None:
     from mfdesign import outputs
     from mfdesign.cli._app import fail
@@ -64,6 +66,11 @@ def _run(
         fail(f"--likelihood must be 'gaussian' or 'student_t', got {likelihood!r}")
     if walkers and walkers < 2:
         fail(f"--walkers must be >= 2 (0 = automatic), got {walkers}")
+    from mfdesign.calibration.workflow import MATERIALS, material_priors
+
+    if material not in MATERIALS:
+        fail(f"--material must be one of {', '.join(MATERIALS)}, got {material!r}")
+    priors = material_priors(material)
     import warnings
 
     from mfdesign.calibration.plots import corner_plot
@@ -106,11 +113,15 @@ def _run(
                     ensemble_config=cfg,
                     seed=seed,
                     likelihood=likelihood,
+                    membrane_latents=latents,
+                    **priors,
                 )
                 post = fit.posterior
             else:
                 cdata = CalibrationData.from_measurements(table, max_rows=max_rows, seed=seed)
-                model = model_for(force_model, cdata.design_keys, effects, likelihood=likelihood)
+                model = model_for(
+                    force_model, cdata.design_keys, effects, likelihood=likelihood, membrane_latents=latents, **priors
+                )
                 post = calibrate(
                     cdata,
                     model,
@@ -176,6 +187,9 @@ def _run(
                     "physics": physics,
                     "search_physics": "emulator" if physics == "exact" else physics,
                     "likelihood": likelihood,
+                    # the model's layout and priors, for load_multi_fidelity to rebuild it
+                    "material": material,
+                    "membrane_latents": latents,
                     "train_rmse_n": cov["rmse_n"],
                     "train_coverage90": cov["coverage"],
                     # how far the discrepancy reaches beyond its membranes (leave-one-membrane-out)
@@ -235,6 +249,17 @@ LIKELIHOOD = typer.Option(
     "lifted plate mid snap-through or at the rig's top stop) | gaussian",
 )
 SEED = typer.Option(0, help="Random seed.")
+MATERIAL = typer.Option(
+    "free",
+    help="The rubber: free (the data calibrate mu and J_m) | coupons (held at the coupons' 31.5 kPa "
+    "and 39.6; the data calibrate the effects and latents: what transferred to new membranes on the "
+    "real lifts, docs/real_data.md section 7) | coupons-jm (J_m held).",
+)
+LATENTS = typer.Option(
+    True,
+    help="One thickness latent per membrane (the hierarchy); --no-latents: every membrane at its "
+    "nominal thickness (an effect shared by the membranes is then not traded against each one's scale).",
+)
 RESUME = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists.")
 
 
@@ -282,6 +307,8 @@ def _register(
         seed: int = SEED,
         resume: bool = RESUME,
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
+        material: str = MATERIAL,
+        latents: bool = LATENTS,
     ) -> None:
         _run(
             data,
@@ -298,6 +325,8 @@ def _register(
             multi_fidelity=multi_fidelity,
             members=members,
             delta_steps=delta_steps,
+            material=material,
+            latents=latents,
         )
 
     command.__doc__ = doc

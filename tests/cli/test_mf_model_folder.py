@@ -153,3 +153,35 @@ def test_propose_lists_but_does_not_make_sim_runs_of_a_standin_fit(folder, tmp_p
     (entry,) = json.loads((out / "proposal.json").read_text())["simulate"]
     assert entry["made"] is False and "standin" in entry["why_not_made"]
     assert "simulator runs (listed, not made: the model was fitted with --physics standin" in r.output
+
+
+def test_a_fit_with_the_coupons_rubber_and_no_latents_reloads_as_fitted(tmp_path):
+    """`fit-mf --material coupons --no-latents`: mu and J_m stay in the coupons' held ranges,
+    no thickness latents, and the folder reloads into the same layout (mf.json records it)."""
+    import json
+
+    meas = read_parquet(BUNDLED)
+    data = tmp_path / "two.parquet"
+    write_parquet(meas.subset(meas.design_keys[:2]), data)
+    out = tmp_path / "fit"
+    args = ["fit-mf", str(data), "--out", str(out), "--physics", "standin", "--mcmc-steps", "30", "--walkers", "16"]
+    args += ["--max-rows", "60", "--members", "2", "--delta-steps", "20", "--material", "coupons", "--no-latents"]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0, r.output
+    meta = json.loads((out / "mf.json").read_text())
+    assert meta["material"] == "coupons" and meta["membrane_latents"] is False
+    fit = load_multi_fidelity(out)
+    names = list(fit.posterior.names)
+    assert not any(n.startswith("thickness") for n in names) and not fit.model.uses_latents
+    mu = np.asarray(fit.posterior.samples[:, names.index("mu_pa")])
+    jm = np.asarray(fit.posterior.samples[:, names.index("jm")])
+    assert 31.3e3 <= mu.min() and mu.max() <= 31.7e3 and 39.4 <= jm.min() and jm.max() <= 39.8
+
+
+def test_an_unknown_material_is_one_line_and_exit_2(tmp_path):
+    meas = read_parquet(BUNDLED)
+    data = tmp_path / "two.parquet"
+    write_parquet(meas.subset(meas.design_keys[:2]), data)
+    r = runner.invoke(app, ["fit-mf", str(data), "--out", str(tmp_path / "o"), "--material", "rubbery"])
+    assert r.exit_code == 2
+    assert "--material must be one of free, coupons, coupons-jm" in r.output and "Traceback" not in r.output
