@@ -49,16 +49,13 @@ def test_predictive_noise_and_intervals_stay_finite_beside_a_row_without_value()
     assert np.isfinite(mean[low]).all() and np.isfinite(lo[low]).all() and np.isfinite(hi[low]).all()
 
 
-def test_given_priors_hold_the_material():
-    """``fit_multi_fidelity(jm_prior=..., mu_prior=...)``: narrow priors (the coupons' J_m
-    and modulus, held) bound every posterior draw of J_m and mu, where the default priors
-    let the data move them."""
+def _tiny_fit(**kwargs):
+    """A quick ``fit_multi_fidelity`` on the virtual rig's data (stand-in physics): (fit, table)."""
     from test_calibrate import virtual_data
 
     from mfdesign.calibration.workflow import fit_multi_fidelity
     from mfdesign.models.ensemble import EnsembleConfig
     from mfdesign.models.standin import StandinForceModel
-    from mfdesign.physics.effects import Uniform
 
     table, _ = virtual_data()
     with warnings.catch_warnings():
@@ -70,9 +67,18 @@ def test_given_priors_hold_the_material():
             max_rows=200,
             ensemble_config=EnsembleConfig(n_members=2, steps=20, monotone=False),
             progress=False,
-            jm_prior=Uniform(30.0, 31.0),
-            mu_prior=Uniform(28.0e3, 28.5e3),
+            **kwargs,
         )
+    return fit, table
+
+
+def test_given_priors_hold_the_material():
+    """``fit_multi_fidelity(jm_prior=..., mu_prior=...)``: narrow priors (the coupons' J_m
+    and modulus, held) bound every posterior draw of J_m and mu, where the default priors
+    let the data move them."""
+    from mfdesign.physics.effects import Uniform
+
+    fit, _ = _tiny_fit(jm_prior=Uniform(30.0, 31.0), mu_prior=Uniform(28.0e3, 28.5e3))
     names = list(fit.posterior.names)
     jm = np.asarray(fit.posterior.samples[:, names.index("jm")])
     mu = np.asarray(fit.posterior.samples[:, names.index("mu_pa")])
@@ -84,24 +90,7 @@ def test_without_membrane_latents_every_membrane_is_nominal():
     """``fit_multi_fidelity(membrane_latents=False)``: no thickness latents, no population
     spread (what the membranes share is not traded against each one's own scale), and the
     predictive still gives finite intervals."""
-    from test_calibrate import virtual_data
-
-    from mfdesign.calibration.workflow import fit_multi_fidelity
-    from mfdesign.models.ensemble import EnsembleConfig
-    from mfdesign.models.standin import StandinForceModel
-
-    table, _ = virtual_data()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        fit = fit_multi_fidelity(
-            table,
-            StandinForceModel(),
-            n_steps=60,
-            max_rows=200,
-            ensemble_config=EnsembleConfig(n_members=2, steps=20, monotone=False),
-            progress=False,
-            membrane_latents=False,
-        )
+    fit, table = _tiny_fit(membrane_latents=False)
     names = list(fit.posterior.names)
     assert not any(n.startswith("thickness") for n in names), names
     data = fit.mf.data_for(None, None, None, table=table)
