@@ -83,6 +83,7 @@ HELD_OUT_TABLES = {
     "held out (J_m held at 39.6)": "real_mass_lift_jm_coupons",
     "held out (mu, J_m held)": "real_mass_lift_material_coupons",
     "held out (mu, J_m held, no latents)": "real_mass_lift_material_nolatents",
+    "held out (rubber free, no latents)": "real_mass_lift_nolatents",
 }
 
 

@@ -51,9 +51,8 @@ def material_priors(material: str = "free") -> dict:
     - ``"free"``: none given (the defaults: the data calibrate mu [Pa] and J_m).
     - ``"coupons"``: both held at the coupons' values, mu 31.5 kPa and J_m 39.6 (uniform
       priors +-0.2 kPa and +-0.2: held, with room for the sampler to move): the data then
-      calibrate the effects and the membranes' latents only. On the real lifts this is what
-      transfers to a new membrane (docs/real_data.md section 7): a rubber calibrated on a
-      few membranes absorbs what their structure misses.
+      calibrate the effects and the membranes' latents only (on the real lifts, without
+      latents: the best trajectories of a new membrane, docs/real_data.md section 7).
     - ``"coupons-jm"``: J_m held, mu calibrated.
     """
     from mfdesign.errors import InputError

@@ -252,13 +252,13 @@ SEED = typer.Option(0, help="Random seed.")
 MATERIAL = typer.Option(
     "free",
     help="The rubber: free (the data calibrate mu and J_m) | coupons (held at the coupons' 31.5 kPa "
-    "and 39.6; the data calibrate the effects and latents: what transferred to new membranes on the "
-    "real lifts, docs/real_data.md section 7) | coupons-jm (J_m held).",
+    "and 39.6; the data calibrate the effects and latents) | coupons-jm (J_m held).",
 )
 LATENTS = typer.Option(
     True,
     help="One thickness latent per membrane (the hierarchy); --no-latents: every membrane at its "
-    "nominal thickness (an effect shared by the membranes is then not traded against each one's scale).",
+    "nominal thickness (an effect shared by the membranes is then not traded against each one's scale: "
+    "what predicted new membranes best on the real lifts, docs/real_data.md section 7).",
 )
 RESUME = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists.")
 
