@@ -3,7 +3,7 @@ membranes' thickness latents, on all seven membranes or without one (a fold).
 
 The calibration of ``real_mass_lift.py`` (the ``tensor-jm`` exact planes, 400 likelihood
 rows, Student-t noise, the fabric inset calibrated), searched for its MAP only
-(``find_map`` from four starts, the lattice grown around it by ``fit_force_model``), once
+(``mfdesign.calibration.mcmc.map_on_lattice``, four starts, as ``calibrate`` does), once
 per case of ``--cases``: ``LATENTS:DROP`` with LATENTS ``latents`` or ``nolatents`` and
 DROP a membrane's index in the file's order (0-6, the fold that holds it out) or ``none``.
 ``--material coupons`` holds mu and J_m at the coupons' 31.5 kPa and 39.6 (uniform priors
@@ -41,7 +41,7 @@ def main():
         ap.error(str(err))
 
     from mfdesign._x64 import enable_x64
-    from mfdesign.calibration.mcmc import _cover_starts, find_map, fit_force_model
+    from mfdesign.calibration.mcmc import map_on_lattice
     from mfdesign.calibration.workflow import force_model_named, material_priors, model_for
     from mfdesign.data.spa_design import load_mass_lift
     from mfdesign.models.hierarchical import CalibrationData
@@ -61,9 +61,7 @@ def main():
         model = model_for(
             emu, cd.design_keys, ("fabric_inset",), likelihood="student_t", membrane_latents=latents, **priors
         )
-        model = _cover_starts(model, cd, False)
-        res = find_map(model, cd, starts=4, seed=args.seed)
-        model, res = fit_force_model(model, cd, res, starts=4, seed=args.seed)
+        model, res = map_on_lattice(model, cd, starts=4, seed=args.seed)
         x = {n: float(v) for n, v in zip(model.names, np.asarray(res.x))}
         out["cases"][name] = {
             "held_out": None if drop is None else keys[drop],

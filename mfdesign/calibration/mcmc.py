@@ -244,6 +244,17 @@ def _cover_starts(model: HierarchicalModel, data: CalibrationData, progress: boo
     return eqx.tree_at(lambda m: m.force_model, model, fm)
 
 
+def map_on_lattice(
+    model: HierarchicalModel, data: CalibrationData, *, starts: int = 4, seed: int = 0, progress: bool = False
+) -> tuple[HierarchicalModel, MapResult]:
+    """The MAP as :func:`calibrate` finds it before sampling: the force model grown to hold
+    the search's start, :func:`find_map`, then :func:`fit_force_model` (the lattice grown
+    around the MAP). Returns the model for sampling and the MAP."""
+    model = _cover_starts(model, data, progress)
+    res = find_map(model, data, starts=starts, seed=seed)
+    return fit_force_model(model, data, res, starts=starts, seed=seed, progress=progress)
+
+
 def _strict(fm, strict: bool):
     from mfdesign.models.force import ForceModel
 
@@ -499,9 +510,7 @@ def calibrate(
         res = MapResult(*(jnp.asarray(stored[k]) for k in ("u", "x", "log_post", "hessian", "converged")))
         model, _ = fit_force_model(model, data, res, starts=map_starts, seed=seed, progress=progress)
     else:
-        model = _cover_starts(model, data, progress)
-        res = find_map(model, data, starts=map_starts, seed=seed)
-        model, res = fit_force_model(model, data, res, starts=map_starts, seed=seed, progress=progress)
+        model, res = map_on_lattice(model, data, starts=map_starts, seed=seed, progress=progress)
         if backend is not None:
             backend.reset(n_walkers, dim)
             _store_map(chain_path, fp, res, model.names)
