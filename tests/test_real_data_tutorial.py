@@ -74,6 +74,16 @@ def test_the_tutorial_runs_and_quotes_its_outputs():
             name = {m[0]: m for m in MODELS}.get(head[:1])
             if name is not None and cell:
                 assert _num(cell) == pytest.approx(lomo["metrics_held_out"][name]["rmse_n"], abs=0.02), (title, name)
+    # the in-sample floor (experiments/real_floor.py): its last two columns, fitted on all
+    # seven and each membrane on itself
+    ((_, _, pooled),) = _held_out_tables(text, "in sample")
+    floor = json.loads((ROOT / "experiments" / "out" / "real_floor.json").read_text())["cases"]
+    traj = _table_rows(text, "trajectory mean / median")[-1]  # section 8's table: the page's last such row
+    for cell, tcell, case in zip(pooled[-2:], traj[-2:], ("all7", "each")):
+        assert _num(cell) == pytest.approx(floor[case]["summary"]["pooled_rmse_n"], abs=0.02), case
+        mean, median = (float(v) for v in tcell.split("/"))
+        assert mean == pytest.approx(floor[case]["summary"]["traj_mean"], abs=0.001), case
+        assert median == pytest.approx(floor[case]["summary"]["traj_median"], abs=0.001), case
 
 
 # The page's leave-one-membrane-out tables (the header's first cell) and the --out folder
@@ -87,9 +97,9 @@ HELD_OUT_TABLES = {
 }
 
 
-def _held_out_tables(text: str) -> list[tuple[str, list[str], list[str]]]:
+def _held_out_tables(text: str, prefix: str = "held out") -> list[tuple[str, list[str], list[str]]]:
     """(first header cell, header cells, pooled-force-RMSE row cells) of every table whose
-    header starts with "held out"."""
+    header starts with ``prefix``."""
     out, header = [], None
     for line in text.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")] if line.startswith("|") else None
@@ -97,6 +107,6 @@ def _held_out_tables(text: str) -> list[tuple[str, list[str], list[str]]]:
             header = None
         elif header is None:
             header = cells
-        elif cells[0] == "pooled force RMSE" and header[0].startswith("held out"):
+        elif cells[0] == "pooled force RMSE" and header[0].startswith(prefix):
             out.append((header[0], header, cells))
     return out
