@@ -119,12 +119,17 @@ def main():
         out["cases"]["all7"] = {"map": x, "map_converged": conv, "scores": rows, "seconds": clock.elapsed()}
         print("all7: " + ", ".join(f"{k} {v:.4g}" for k, v in x.items()), flush=True)
     if "each" in args.cases:
-        out["cases"]["each"] = {}
+        out["cases"]["each"] = {"scores": {}}
         # one calibration per membrane: different data, different models (a loop over fits)
         for k in keys:
             clock = Timing()
             x, conv, mf = calibrate(data.subset([k]))
-            out["cases"]["each"][k] = {"map": x, "map_converged": conv, **score(mf, k), "seconds": clock.elapsed()}
+            out["cases"]["each"]["scores"][k] = {
+                "map": x,
+                "map_converged": conv,
+                **score(mf, k),
+                "seconds": clock.elapsed(),
+            }
             fits.setdefault("each", {})[k] = curves(mf, k)
             print(f"each {k}: " + ", ".join(f"{n} {v:.4g}" for n, v in x.items()), flush=True)
     if "trim" in args.cases:
@@ -144,7 +149,7 @@ def main():
     for name, case in out["cases"].items():
         if name == "trim":
             continue
-        per = case["scores"] if name == "all7" else case
+        per = case["scores"]
         traj = np.array([per[k]["traj_rmse_p"] for k in keys])
         rmse = np.array([per[k]["rmse_n"] for k in keys])
         n = np.array([per[k]["n"] for k in keys])
@@ -177,7 +182,7 @@ def _plot(rows, keys, forces, h_grid, fits, cases, path):
                     ax.plot(fits[case][key][j], h_grid, ls, color=f"C{j}", lw=1.2)
         title = key.replace(", nan", "")
         if "each" in cases:
-            c = cases["each"][key]
+            c = cases["each"]["scores"][key]
             title += f"\nown fit {c['rmse_n']:.2f} N / {c['traj_rmse_p']:.3f}"
         if "all7" in cases:
             c = cases["all7"]["scores"][key]
