@@ -53,12 +53,12 @@ def main():
     from mfdesign._x64 import enable_x64
     from mfdesign.calibration.mcmc import map_on_lattice
     from mfdesign.calibration.workflow import force_model_named, lifted_rows, model_for
-    from mfdesign.data.spa_design import load_mass_lift
-    from mfdesign.models.hierarchical import CalibrationData
-    from mfdesign.models.predictive import MultiFidelity
     from mfdesign.data.lifts import floating_rows
     from mfdesign.data.measurements import Measurements
+    from mfdesign.data.spa_design import load_mass_lift
     from mfdesign.design import Membrane
+    from mfdesign.models.hierarchical import CalibrationData
+    from mfdesign.models.predictive import MultiFidelity
     from mfdesign.models.trajectory import measured_waypoints, model_pressure, trajectory_errors
 
     enable_x64()
@@ -104,10 +104,10 @@ def main():
     forces = np.unique(data.df["force_n"].round(3))
 
     def curves(mf, key):
-        # the model's lift trajectory p(h) [kPa] for each mass: one vectorised call per mass
-        design = Membrane.from_key(key).to_array()
-        pred = mf.predictor(1)
-        return [model_pressure(pred, design, np.full(len(h_grid), f), h_grid) / 1e3 for f in forces]
+        # the model's lift trajectories p(h) [kPa], one row per mass: one vectorised call
+        f, h = np.repeat(forces, len(h_grid)), np.tile(h_grid, len(forces))
+        p = model_pressure(mf.predictor(1), Membrane.from_key(key).to_array(), f, h)
+        return (p / 1e3).reshape(len(forces), len(h_grid))
 
     fits = {}
     out = {"effects": args.effects, "seed": args.seed, "membranes": keys, "cases": {}}
@@ -197,8 +197,9 @@ def _plot(rows, keys, forces, h_grid, fits, cases, path):
     ax = axes.flat[-1]
     for j, f in enumerate(forces):
         ax.plot([], [], color=f"C{j}", label=f"{f:.1f} N")
-    ax.plot([], [], "-", color="k", label="fitted on itself")
-    ax.plot([], [], "--", color="k", label="fitted on all seven")
+    for case, ls, label in (("each", "-", "fitted on itself"), ("all7", "--", "fitted on all seven")):
+        if case in fits:
+            ax.plot([], [], ls, color="k", label=label)
     ax.legend(loc="center", fontsize=9)
     ax.axis("off")
     fig.suptitle(
