@@ -21,6 +21,8 @@ out either: its gap is the model's form, not the transfer.
 
     python experiments/real_floor.py
 
+It also lists, from the data alone, where each lift trial's plate stalls (``stalls``).
+
 Writes ``experiments/out/real_floor.json`` and ``real_floor.png`` (per membrane: the
 floating rows' pressure-height paths of the three masses, and the trajectories p(h) of
 both fits: where the model's form bends away from a lift).
@@ -110,7 +112,7 @@ def main():
         return (p / 1e3).reshape(len(forces), len(h_grid))
 
     fits = {}
-    out = {"effects": args.effects, "seed": args.seed, "membranes": keys, "cases": {}}
+    out = {"effects": args.effects, "seed": args.seed, "membranes": keys, "cases": {}, "stalls": _stalls(data)}
     if "all7" in args.cases:
         clock = Timing()
         x, conv, mf = calibrate(data)
@@ -163,6 +165,31 @@ def main():
     write_json(args.out / "real_floor.json", out, indent=1)
     rows = data.df[floating_rows(data) & (data.df["experiment"] == "lift").to_numpy()]
     _plot(rows, keys, forces, h_grid, fits, out["cases"], args.out / "real_floor.png")
+
+
+def _stalls(data, min_pa: float = 400.0, rest_mm: float = 8.0) -> list[dict]:
+    """Where each lift trial's plate stalls: the heights (whole mm of the running top, the
+    sensor's resolution) at which the pressure climbed more than ``min_pa`` before the plate
+    rose a millimetre further (a floating plate needs about 100 Pa a millimetre), above
+    ``rest_mm`` (a resting plate reads up to 6 mm), each as [height mm, kPa, within 2 mm of
+    the trial's top]. Data only, no model: does a stall repeat between the two trials of a
+    mass (the membrane's mechanics) or not (an event of the rig)?"""
+    out = []
+    lift = data.df[data.df["experiment"] == "lift"]
+    for (key, trial), g in lift.groupby(["design_key", "trial"], sort=False):
+        g = g.sort_values("pressure_pa")
+        top = np.maximum.accumulate(g["height_mm"].to_numpy())  # inflation: the running top
+        spent = g.groupby(top)["pressure_pa"].agg(lambda p: p.max() - p.min())
+        spent = spent[(spent.index >= rest_mm) & (spent > min_pa)]
+        out.append(
+            {
+                "membrane": key,
+                "trial": int(trial),
+                "force_n": round(float(g["force_n"].iloc[0]), 3),
+                "stalls": [[float(h), round(float(pa) / 1e3, 2), bool(h >= top[-1] - 2)] for h, pa in spent.items()],
+            }
+        )
+    return out
 
 
 def _plot(rows, keys, forces, h_grid, fits, cases, path):
