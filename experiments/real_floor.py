@@ -167,26 +167,23 @@ def main():
     _plot(rows, keys, forces, h_grid, fits, out["cases"], args.out / "real_floor.png")
 
 
-def _stalls(data, min_pa: float = 400.0, rest_mm: float = 8.0) -> list[dict]:
-    """Where each lift trial's plate stalls: the heights (whole mm of the running top, the
-    sensor's resolution) at which the pressure climbed more than ``min_pa`` before the plate
-    rose a millimetre further (a floating plate needs about 100 Pa a millimetre), above
-    ``rest_mm`` (a resting plate reads up to 6 mm), each as [height mm, kPa, within 2 mm of
-    the trial's top]. Data only, no model: does a stall repeat between the two trials of a
-    mass (the membrane's mechanics) or not (an event of the rig)?"""
+def _stalls(data) -> list[dict]:
+    """Where each lift trial's plate stalls (``mfdesign.data.lifts.stalls``, data only), per
+    trial as [height mm, kPa spent there, within 2 mm of the trial's top]."""
+    from mfdesign.data.lifts import stalls
+
+    found = stalls(data)
     out = []
-    lift = data.df[data.df["experiment"] == "lift"]
-    for (key, trial), g in lift.groupby(["design_key", "trial"], sort=False):
-        g = g.sort_values("pressure_pa")
-        top = np.maximum.accumulate(g["height_mm"].to_numpy())  # inflation: the running top
-        spent = g.groupby(top)["pressure_pa"].agg(lambda p: p.max() - p.min())
-        spent = spent[(spent.index >= rest_mm) & (spent > min_pa)]
+    for (key, trial), g in data.df[data.df["experiment"] == "lift"].groupby(["design_key", "trial"], sort=False):
+        s = found[(found["design_key"] == key) & (found["trial"] == trial)]
         out.append(
             {
                 "membrane": key,
                 "trial": int(trial),
                 "force_n": round(float(g["force_n"].iloc[0]), 3),
-                "stalls": [[float(h), round(float(pa) / 1e3, 2), bool(h >= top[-1] - 2)] for h, pa in spent.items()],
+                "stalls": [
+                    [h, round(pa / 1e3, 2), top] for h, pa, top in zip(s["height_mm"], s["spent_pa"], s["at_top"])
+                ],
             }
         )
     return out

@@ -193,8 +193,16 @@ def register(app: typer.Typer) -> None:
         paths = write_report(diag, out, shapes=shapes and sim_name == "exact")
         b = diag.before
         typer.echo(f"before: RMSE {b.rmse_n:.3f} N, noise floor {b.noise_floor_n:.3f} N")
-        for w in diag.to_json()["before"]["worst_regions"]:
+        report = diag.to_json()
+        for w in report["before"]["worst_regions"]:
             typer.echo(f"  {w['words']}")
+        if report["stalls"]:
+            kpa = report["stalls"]["min_pa"] / 1e3
+            typer.echo(
+                f"where the lift plates stall (data only: the pressure climbed > {kpa:.1f} kPa over 1 mm of rise):"
+            )
+            for w in report["stalls"]["words"]:
+                typer.echo(f"  {w}")
         for i, s in enumerate(diag.steps):
             typer.echo(
                 f"round {i + 1}: screen " + ", ".join(f"{r.effect} {r.explained_fraction:.2f}" for r in s["screen"][:5])

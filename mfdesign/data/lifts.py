@@ -11,7 +11,17 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-__all__ = ["HELD_BAND_MM", "HELD_MIN_ROWS", "HELD_PA", "JUMP_MM", "JUMP_MM_PER_PA", "RESTING_MM", "floating_rows"]
+__all__ = [
+    "HELD_BAND_MM",
+    "HELD_MIN_ROWS",
+    "HELD_PA",
+    "JUMP_MM",
+    "JUMP_MM_PER_PA",
+    "RESTING_MM",
+    "STALL_PA",
+    "floating_rows",
+    "stalls",
+]
 
 RESTING_MM = 1.5  # a lifted plate below this rests on its stop (the sensor reads 0 or 1 mm there)
 JUMP_MM = 2.0  # a lifted plate moving more than this between samples is not in equilibrium
@@ -19,6 +29,10 @@ JUMP_MM_PER_PA = 0.1  # ... when it moves faster than this with pressure (2x the
 HELD_PA = 400.0  # pressure a plate may gain within HELD_BAND_MM of its trial's end and still float
 HELD_BAND_MM = 1.0
 HELD_MIN_ROWS = 5  # a hold shows as a run of samples; two sparse samples prove nothing
+STALL_PA = 400.0  # pressure a plate may spend on one mm of rise before it "stalls" (it needs ~100 Pa)
+STALL_ABOVE_MM = 8.0  # stalls are looked for above this (a resting plate reads up to 6-7 mm)
+STALL_TOP_MM = 2.0  # a stall this close to its trial's top is a hold at the end of travel
+STALL_REPEAT_MM = 2.0  # ... and one this close to a stall of another trial of the same mass repeats
 
 
 def floating_rows(
@@ -93,4 +107,46 @@ def _held_at_an_end(tid: np.ndarray, h: np.ndarray, p: np.ndarray, band_mm: floa
         held |= near & (span > span_pa) & (count >= HELD_MIN_ROWS)
     out = np.zeros(len(h), bool)
     out[frame.index.to_numpy()] = held.to_numpy()
+    return out
+
+
+def stalls(table, min_pa: float = STALL_PA, above_mm: float = STALL_ABOVE_MM) -> pd.DataFrame:
+    """Where each lift trial's plate stalls, from the data alone (no model).
+
+    ``table``: a :class:`~mfdesign.data.measurements.Measurements` or its DataFrame.
+
+    A floating plate rises about 10 mm per kPa (100 Pa a millimetre). A stall is a height
+    level (whole mm of the trial's running top, the sensor's resolution) at which the
+    pressure climbed more than ``min_pa`` before the plate rose a millimetre further, above
+    ``above_mm``. Each is classed by what the other trials say: ``at_top`` (within
+    ``STALL_TOP_MM`` of its trial's top: a hold at the end of travel, which
+    :func:`floating_rows` drops only within ``HELD_BAND_MM``) and ``repeats`` (another trial
+    of the same membrane and mass stalls within ``STALL_REPEAT_MM``: the membrane's own
+    mechanics rather than an event of the rig).
+
+    Returns one row per stall: ``design_key``, ``trial``, ``force_n`` [N], ``height_mm``,
+    ``spent_pa`` (the pressure climbed there), ``at_top``, ``repeats`` (empty without lifts).
+    """
+    df = table if isinstance(table, pd.DataFrame) else table.df
+    cols = ["design_key", "trial", "force_n", "height_mm", "spent_pa", "at_top", "repeats"]
+    lift = df[df["experiment"] == "lift"].dropna(subset=["height_mm", "pressure_pa"])
+    rows = []
+    for (key, trial), g in lift.groupby(["design_key", "trial"], sort=False):
+        g = g.sort_values("pressure_pa")  # inflation order (some trials are stored top-down)
+        top = np.maximum.accumulate(g["height_mm"].to_numpy())
+        spent = g.groupby(top)["pressure_pa"].agg(lambda p: p.max() - p.min())
+        spent = spent[(spent.index >= above_mm) & (spent > min_pa)]
+        force = round(float(g["force_n"].iloc[0]), 3)
+        rows += [
+            (key, int(trial), force, float(h), float(pa), bool(h >= top[-1] - STALL_TOP_MM)) for h, pa in spent.items()
+        ]
+    out = pd.DataFrame(rows, columns=cols[:-1])
+    if out.empty:
+        return pd.DataFrame(columns=cols)
+    # repeats: a stall of ANOTHER trial of the same membrane and mass within STALL_REPEAT_MM
+    pair = out.merge(out, on=["design_key", "force_n"], suffixes=("", "_o"))
+    near = (pair["trial"] != pair["trial_o"]) & ((pair["height_mm"] - pair["height_mm_o"]).abs() <= STALL_REPEAT_MM)
+    hit = pair[near].groupby(["design_key", "trial", "height_mm"]).size()
+    idx = pd.MultiIndex.from_frame(out[["design_key", "trial", "height_mm"]])
+    out["repeats"] = idx.isin(hit.index)
     return out

@@ -19,8 +19,11 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 import numpy as np
+import pandas as pd
 
 from mfdesign._x64 import enable_x64
+from mfdesign.data.lifts import STALL_PA
+from mfdesign.data.lifts import stalls as find_stalls
 from mfdesign.data.measurements import Measurements
 from mfdesign.diagnose.check import calibrate_effects, full_check, verdict
 from mfdesign.diagnose.residuals import (
@@ -28,6 +31,7 @@ from mfdesign.diagnose.residuals import (
     breakdowns,
     compute_residuals,
     residual_shape,
+    stall_words,
     trend_words,
     worst_regions,
 )
@@ -51,6 +55,9 @@ class Diagnosis:
     steps: list = field(default_factory=list)
     model: str = "simulator"
     not_screened: dict = field(default_factory=dict)  # candidate -> why the forward model cannot try it
+    # where lift plates stall, from the data alone (mfdesign.data.lifts.stalls): a smooth
+    # quasi-static model cannot follow a plate that stops while the pressure climbs
+    stalls: pd.DataFrame | None = None
 
     @property
     def found(self) -> list[str]:
@@ -86,6 +93,9 @@ class Diagnosis:
             ],
             "found": self.found,
             "not_screened": self.not_screened,
+            "stalls": None
+            if self.stalls is None
+            else {"min_pa": STALL_PA, "words": stall_words(self.stalls), "rows": self.stalls.to_dict("records")},
         }
 
 
@@ -171,7 +181,8 @@ def diagnose(
     base_pred = e0 if model is None else np.asarray(model(meas), float)
     offset = None if model is None else base_pred - e0
     before = compute_residuals(meas, base_pred)
-    out = Diagnosis(before=before, model=model_name)
+    found = find_stalls(meas)
+    out = Diagnosis(before=before, model=model_name, stalls=found if len(found) else None)
     cur_res, cur_effects, cur_theta = before, [], {}
     if effects:
         given = dict(theta or {})

@@ -37,6 +37,7 @@ __all__ = [
     "noise_floor",
     "residual_shape",
     "shape_words",
+    "stall_words",
     "subsample",
     "worst_regions",
 ]
@@ -398,3 +399,39 @@ def shape_words(res: Residuals, min_share: float = 0.1) -> str:
     if not parts:
         return "no dominant shape (no part holds 10 % of the mean square)"
     return ", ".join(f"{s['shape']} {100 * s['share']:.0f} % (RMS {s['rms_n']:.2f} N)" for s in parts)
+
+
+def _spans(heights) -> str:
+    """Whole-mm heights as ranges: [28, 43, 44, 45, 47] -> '28, 43-47' (gaps up to 2 mm joined)."""
+    hs = sorted({int(round(h)) for h in heights})
+    out, lo = [], hs[0]
+    for a, b in zip(hs, hs[1:] + [None]):
+        if b is None or b - a > 2:
+            out.append(f"{lo}" if lo == a else f"{lo}-{a}")
+            lo = b
+    return ", ".join(out)
+
+
+def stall_words(stalls: pd.DataFrame) -> list[str]:
+    """One line per membrane whose lift plates stall (:func:`mfdesign.data.lifts.stalls`):
+    where, at which masses, and what the other trials say. A stall repeated by another trial
+    of the same mass in mid-travel is the membrane's own mechanics (a smooth quasi-static model
+    cannot follow it); one at a trial's top is a hold at the end of travel; one its replicate
+    does not repeat is an event of the rig."""
+    lines = []
+    for key, g in stalls.groupby("design_key", sort=False):
+        parts = []
+        for label, sel in (
+            (
+                "mid-travel, repeated by another trial of the same mass (the membrane's own steps)",
+                ~g["at_top"] & g["repeats"],
+            ),
+            ("at the trials' tops (holds at the end of travel)", g["at_top"]),
+            ("mid-travel, not repeated by the other trial (an event of the rig)", ~g["at_top"] & ~g["repeats"]),
+        ):
+            s = g[sel]
+            if len(s):
+                masses = "; ".join(f"{f:.1f} N: {_spans(m['height_mm'])} mm" for f, m in s.groupby("force_n"))
+                parts.append(f"{label} at {masses}")
+        lines.append(f"{key.replace(', nan', '')}: the plate stalls " + "; and ".join(parts))
+    return lines

@@ -76,6 +76,9 @@ def test_effects_give_a_before_after_report(data, tmp_path):
     html = (out / "report.html").read_text()
     for png in ("maps_before.png", "maps_after.png", "parity.png", "trial_order.png", "breakdown.png"):
         assert (out / png).is_file() and f'src="{png}"' in html
+    # the virtual rig's plates rise smoothly: no stall is claimed (tests/data/test_lift_stalls.py
+    # finds them where they are)
+    assert js["stalls"] is None and "stall" not in r.output and "stall" not in html
 
 
 def test_config_file_and_user_effect_module(data, tmp_path):
