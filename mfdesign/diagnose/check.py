@@ -24,6 +24,8 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import numpy as np
+
 # The refits themselves live in :mod:`mfdesign.diagnose.refit` (nonlinear, exact lattice).
 from mfdesign.diagnose.refit import CheckResult, calibrate_effects, full_check
 from mfdesign.diagnose.residuals import Residuals, shape_words
@@ -54,6 +56,17 @@ def verdict(
                 f"noise floor {floor:.3f} N; no effect is claimed"
             ),
         }
+    # a refit whose forces are not finite (the simulator did not converge there) is named,
+    # never ranked: NaN compares False, so min() would pick one silently
+    failed = [c for c in checks if not (np.isfinite(c.heldout_rmse_n) and np.isfinite(c.delta_bic))]
+    checks = [c for c in checks if c not in failed]
+    not_evaluated = (
+        "; not evaluated (non-finite forces in the refit: the simulator did not converge there): "
+        + ", ".join("+".join(c.effects) for c in failed)
+        if failed
+        else ""
+    )
+    base["not_evaluated"] = [list(c.effects) for c in failed]
     good = [
         c for c in checks if c.delta_bic < -bic_margin and c.heldout_rmse_n < (1 - min_gain) * c.heldout_rmse_base_n
     ]
@@ -73,7 +86,7 @@ def verdict(
             "effects": [],
             "words": (
                 f"no candidate effect explains the residual structure: RMS {rms:.3f} N vs noise floor "
-                f"{floor:.3f} N{extra}; the residual's shape: {shape_words(res)}"
+                f"{floor:.3f} N{extra}{not_evaluated}; the residual's shape: {shape_words(res)}"
             ),
         }
     best = min(good, key=lambda c: (c.heldout_rmse_n, c.delta_bic))
@@ -93,5 +106,6 @@ def verdict(
             f"{'+'.join(best.effects)} {'explains' if full else 'explains part of'} the residual: {th}; "
             f"held-out RMSE {best.heldout_rmse_base_n:.3f} -> {best.heldout_rmse_n:.3f} N "
             f"(noise floor {floor:.3f} N, ratio {best.heldout_over_noise:.2f}), delta BIC {best.delta_bic:+.1f}"
+            f"{not_evaluated}"
         ),
     }

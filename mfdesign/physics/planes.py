@@ -200,14 +200,17 @@ def _params_tuple(params: SimParams) -> tuple[float, ...]:
 
 
 def _job_key(design: Membrane, params: SimParams, grid: PlaneGrid) -> str:
-    blob = json.dumps(
-        {
-            "schema": SCHEMA,
-            "design": design.key(),
-            "params": _params_tuple(params),
-            "grid": [grid.h_top_mm, grid.p_top_pa, H_STEP_MM, P_STEP_PA],
-        }
-    )
+    from mfdesign.physics.solve import fine_path
+
+    key = {
+        "schema": SCHEMA,
+        "design": design.key(),
+        "params": _params_tuple(params),
+        "grid": [grid.h_top_mm, grid.p_top_pa, H_STEP_MM, P_STEP_PA],
+    }
+    if fine_path(params):  # solved on a finer path than planes cached before it existed
+        key["path"] = "fine"
+    blob = json.dumps(key)
     return hashlib.sha256(blob.encode()).hexdigest()[:24]
 
 

@@ -36,3 +36,21 @@ def test_shares_sum_to_one_and_find_the_shape_that_was_put_in():
     per_lift = _res(lambda f: np.where(f["trial"] == 1, 2.0, -1.0) * np.where(f["m"] % 2 == 0, 1, -1))
     assert _share(per_lift, "per lift") > 0.9
     assert shape_words(height).startswith("grows with height")
+
+
+def test_a_refit_with_non_finite_forces_is_named_not_ranked():
+    from mfdesign.diagnose.check import CheckResult, verdict
+
+    res = _res(lambda f: np.array([3.0, -2.0, 1.0, -4.0])[f["m"]])
+
+    def check(name, heldout, bic):
+        return CheckResult((name,), {}, {}, 1.0, heldout, 2.5, bic, 100.0, 0.05)
+
+    # the NaN refit would win a min() over held-out errors (NaN compares False)
+    v = verdict(res, [check("ring_stiffening", float("nan"), 2e13), check("contact_offset", 2.4, 5.0)])
+    assert v["status"] == "unexplained" and v["not_evaluated"] == [["ring_stiffening"]]
+    assert "the best candidate, contact_offset" in v["words"] and "not evaluated" in v["words"]
+    assert "ring_stiffening" in v["words"].split("not evaluated")[1]
+    v = verdict(res, [check("contact_offset", 1.0, -50.0), check("ring_stiffening", float("nan"), float("nan"))])
+    assert v["effects"] == ["contact_offset"] and "not evaluated" in v["words"]
+    assert verdict(res, [check("contact_offset", 1.0, -50.0)])["not_evaluated"] == []

@@ -65,6 +65,7 @@ from mfdesign.physics.effects.thickness_deviation import ThicknessDeviation
 from mfdesign.physics.effects.thickness_gradient import ThicknessGradient
 from mfdesign.physics.effects.clamp_prestretch import ClampPrestretch
 from mfdesign.physics.effects.ring_softening import RingSoftening
+from mfdesign.physics.effects.ring_stiffening import RingStiffening
 from mfdesign.physics.effects.contact_offset import ContactOffset
 from mfdesign.physics.effects.fabric_inset import FabricInset
 from mfdesign.physics.effects.rubber_i2 import RubberI2
@@ -103,6 +104,7 @@ __all__ = [
     "ThicknessGradient",
     "ClampPrestretch",
     "RingSoftening",
+    "RingStiffening",
     "ContactOffset",
     "FabricInset",
     "RubberI2",
