@@ -84,6 +84,13 @@ def test_the_tutorial_runs_and_quotes_its_outputs():
         mean, median = (float(v) for v in tcell.split("/"))
         assert mean == pytest.approx(floor[case]["summary"]["traj_mean"], abs=0.001), case
         assert median == pytest.approx(floor[case]["summary"]["traj_median"], abs=0.001), case
+    # section 8's probes (experiments/real_probes.py): the rings x J_m table
+    grid = json.loads((ROOT / "experiments" / "out" / "real_probes.json").read_text())["cases"]["rings"]["jm_grid"]
+    quoted = {row[0]: row[1:4] for row in _table_rows(text, "") if re.fullmatch(r"[0-9.]+x", row[0])}
+    assert quoted, "the page's rings x J_m table is missing"
+    for g in grid:
+        cell = quoted[f"{g['factor']:g}x"][[21.0, 30.0, 39.6].index(g["jm"])]  # "**3.34** (7)": 3.34
+        assert float(re.search(r"[0-9.]+", cell).group()) == pytest.approx(g["rmse_n"], abs=0.01), g
 
 
 # The page's leave-one-membrane-out tables (the header's first cell) and the --out folder

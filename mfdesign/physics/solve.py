@@ -400,8 +400,11 @@ MAX_PATH_STEP_PA = 250.0
 # Rings stiffer than STIFF_RING_RATIO x the modelled ring-to-rubber modulus ratio (the
 # authors' 1 MPa over 31.7 kPa) change the solution fast along the path: at 3x, 250 Pa
 # steps left 3.6 % of a plane's nodes above 1 kPa unconverged, in a band through the real
-# lifts' operating region ([2.0, 25.4, 33.4, 5, 46.4, 5]); a 4x finer path left 0.1 %.
-STIFF_RING_RATIO = 1.9
+# lifts' operating region ([2.0, 25.4, 33.4, 5, 46.4, 5]); a 4x finer path left 0.1 %. The
+# band starts below 2x (a diagnosis refit at 1.89x met it), so the lattice's ring nodes
+# from 2^(3/4) = 1.68x up take the finer path; those up to 2^(2/4) = 1.41x, which the real
+# lifts' calibrations use, keep theirs.
+STIFF_RING_RATIO = 1.5
 STIFF_RING_PATH_REFINE = 4
 
 

@@ -35,6 +35,7 @@ EXPECTED = {
     "thickness_gradient",
     "clamp_prestretch",
     "ring_softening",
+    "ring_stiffening",
     "contact_offset",
     "fabric_inset",
     "rubber_i2",

@@ -130,3 +130,36 @@ def test_a_new_simparams_field_keeps_the_old_planes_keys():
     assert pl._params_tuple(SimParams()) == (31700.0, 39.6, 1.0e6, 25.0, 1.0, 0.0, 1.0, 0.0)
     assert pl._params_tuple(SimParams(fabric_inset_mm=0.5))[-1] == 0.5
     assert pl._params_tuple(SimParams(i2_share=0.2))[-1] == 0.2
+
+
+def test_stiff_rings_get_a_finer_path_and_their_own_plane_keys():
+    """Rings stiffer than 1.5x the modelled ring/rubber ratio are solved on a finer
+    continuation path; only their planes' keys say so (the others keep theirs)."""
+    import json
+
+    from mfdesign.physics import planes as pl
+    from mfdesign.physics.solve import fine_path
+
+    grid, design = pl.PlaneGrid(), Membrane.from_key(KEYS[-1])
+    assert not fine_path(SimParams()) and not fine_path(SimParams(ring_mu_pa=1.42e6))  # lattice node 2^(2/4)
+    assert fine_path(SimParams(ring_mu_pa=1.68e6)) and fine_path(SimParams(ring_mu_pa=1.2e6, mu_pa=22_000.0))
+    plain = pl._job_key(design, SimParams(), grid)
+    blob = {"schema": pl.SCHEMA, "design": design.key(), "params": pl._params_tuple(SimParams())}
+    blob["grid"] = [grid.h_top_mm, grid.p_top_pa, pl.H_STEP_MM, pl.P_STEP_PA]
+    assert plain == pl.hashlib.sha256(json.dumps(blob).encode()).hexdigest()[:24]  # as before
+    stiff = SimParams(ring_mu_pa=3.0e6)
+    blob["params"] = pl._params_tuple(stiff)
+    assert pl._job_key(design, stiff, grid) != pl.hashlib.sha256(json.dumps(blob).encode()).hexdigest()[:24]
+
+
+def test_stiff_rings_converge_through_the_real_lifts_operating_band():
+    """At 3x the modelled ring modulus the plain path left a band of unconverged nodes across
+    a real membrane's operating region (14.7 N lift at 30-40 mm, 3.5-5 kPa); the finer path
+    solves it (experiments/real_probes.py found the stiffer rings)."""
+    from mfdesign.physics.solve import force_plane
+
+    design = Membrane.from_key("[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]")
+    h, p = np.arange(15.0, 42.6, 2.5), np.arange(0.0, 6001.0, 250.0)
+    f = np.asarray(force_plane(design, h, p, SimParams(ring_mu_pa=3.0e6, fabric_inset_mm=0.6), signed=True).force_n)
+    assert np.isfinite(f[(h >= 27.5)][:, p >= 3000.0]).all()  # the 14.7 N lift's band
+    assert np.isnan(f[:, p >= 1000.0]).mean() < 0.01  # (2 nodes at 15 mm, 1-1.25 kPa: the contact boundary)
