@@ -84,6 +84,12 @@ def test_the_tutorial_runs_and_quotes_its_outputs():
         mean, median = (float(v) for v in tcell.split("/"))
         assert mean == pytest.approx(floor[case]["summary"]["traj_mean"], abs=0.001), case
         assert median == pytest.approx(floor[case]["summary"]["traj_median"], abs=0.001), case
+    # section 8: the in-sample fit with the rings calibrated too (real_floor.py --effects ...)
+    rings = json.loads((ROOT / "experiments" / "out" / "real_floor_rings" / "real_floor.json").read_text())
+    quoted = re.search(r"pooled force falls from 2.96 to \*\*([0-9.]+) N", text)
+    assert quoted and float(quoted.group(1)) == pytest.approx(
+        rings["cases"]["all7"]["summary"]["pooled_rmse_n"], abs=0.01
+    )
     # section 8's probes (experiments/real_probes.py): the rings x J_m table
     grid = json.loads((ROOT / "experiments" / "out" / "real_probes.json").read_text())["cases"]["rings"]["jm_grid"]
     quoted = {row[0]: row[1:4] for row in _table_rows(text, "") if re.fullmatch(r"[0-9.]+x", row[0])}
