@@ -45,7 +45,7 @@ def verdict(
     """What may be claimed (see the module doc): ``{"status", "effects", "words", ...}``."""
     floor = res.noise_floor_n
     rms = res.rmse_n
-    base = {"rmse_n": rms, "noise_floor_n": floor, "rmse_over_noise": rms / floor if floor > 0 else None}
+    base: dict = {"rmse_n": rms, "noise_floor_n": floor, "rmse_over_noise": rms / floor if floor > 0 else None}
     if floor > 0 and rms <= floor_factor * floor:
         return {
             **base,

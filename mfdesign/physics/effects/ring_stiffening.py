@@ -13,19 +13,20 @@ on most), so a stiffer ring needs an inextensible-ring model, not a larger facto
 
 from __future__ import annotations
 
-from mfdesign.physics.effects._base import MechanicalEffect, Parameter, register_effect, _replace
+from mfdesign.physics.effects._base import Parameter, register_effect
 from mfdesign.physics.effects._priors import LogNormal
+from mfdesign.physics.effects.ring_softening import RingSoftening
 
 __all__ = ["RingStiffening"]
 
 
 @register_effect
-class RingStiffening(MechanicalEffect):
+class RingStiffening(RingSoftening):
+    """The same simulator constant as :class:`RingSoftening` (``sim_params`` scales
+    ``ring_mu_pa`` by ``factor``), another story and prior."""
+
     name = "ring_stiffening"
     story = "the fabric rings barely stretch: stiffer than the modelled fabric (1 MPa), so the rubber gaps take more of the stretch"
     parameters = (
         Parameter("factor", "1", LogNormal(2.0, 0.7, 1.0, 4.0), 1.0, 2.0, "effective / modelled ring shear modulus"),
     )
-
-    def sim_params(self, base, theta, context=None):
-        return _replace(base, ring_mu_pa=base.ring_mu_pa * theta["factor"])
