@@ -130,17 +130,23 @@ def stalls(table, min_pa: float = STALL_PA, above_mm: float = STALL_ABOVE_MM) ->
     df = table if isinstance(table, pd.DataFrame) else table.df
     cols = ["design_key", "trial", "force_n", "height_mm", "spent_pa", "at_top", "repeats"]
     lift = df[df["experiment"] == "lift"].dropna(subset=["height_mm", "pressure_pa"])
-    rows = []
-    for (key, trial), g in lift.groupby(["design_key", "trial"], sort=False):
-        g = g.sort_values("pressure_pa")  # inflation order (some trials are stored top-down)
-        top = np.maximum.accumulate(g["height_mm"].to_numpy())
-        spent = g.groupby(top)["pressure_pa"].agg(lambda p: p.max() - p.min())
-        spent = spent[(spent.index >= above_mm) & (spent > min_pa)]
-        force = round(float(g["force_n"].iloc[0]), 3)
-        rows += [
-            (key, int(trial), force, float(h), float(pa), bool(h >= top[-1] - STALL_TOP_MM)) for h, pa in spent.items()
-        ]
-    out = pd.DataFrame(rows, columns=cols[:-1])
+    # inflation order within each trial (some trials are stored top-down), then the running
+    # top of the height: one group per (trial, level), vectorised over trials
+    seen = pd.factorize(lift["design_key"].astype(str) + "|" + lift["trial"].astype(str))[0]  # the file's order
+    f = lift.assign(_seen=seen).sort_values(["_seen", "pressure_pa"], kind="stable")
+    trial = [f["design_key"], f["trial"]]
+    level = f["height_mm"].groupby(trial).cummax()
+    g = f.groupby([f["design_key"], f["trial"], level.rename("level")], sort=False)
+    out = pd.DataFrame(
+        {
+            "force_n": g["force_n"].first().round(3),
+            "spent_pa": g["pressure_pa"].max() - g["pressure_pa"].min(),
+            "top": level.groupby(trial).max().reindex(g.size().index.droplevel("level")).to_numpy(),
+        }
+    ).reset_index()
+    out = out[(out["level"] >= above_mm) & (out["spent_pa"] > min_pa)].rename(columns={"level": "height_mm"})
+    out["at_top"] = out["height_mm"] >= out.pop("top") - STALL_TOP_MM
+    out = out.astype({"trial": int, "height_mm": float})[cols[:-1]].reset_index(drop=True)
     if out.empty:
         return pd.DataFrame(columns=cols)
     # repeats: a stall of ANOTHER trial of the same membrane and mass within STALL_REPEAT_MM
