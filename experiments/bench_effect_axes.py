@@ -12,7 +12,8 @@ else ``--mu-pa/--jm/--inset-mm``), and writes RMS / max error per membrane.
 
 ``--effect-axes tensor-jm`` measures the other approximation: the effect crossed with J_m,
 the ring ratio's axis added at the reference (``force_model_named``); it writes
-``bench_effect_axes_tensor-jm.json``.
+``bench_effect_axes_tensor-jm.json``. ``--ring-factor F`` puts the rings at F times the
+modelled fabric (``ring_stiffening``): how far the ring axis's cross terms carry.
 """
 
 from __future__ import annotations
@@ -31,6 +32,12 @@ def main():
     ap.add_argument("--jm", type=float, default=None)
     ap.add_argument("--inset-mm", type=float, default=None)
     ap.add_argument("--effect-axes", choices=("additive", "tensor-jm", "tensor"), default="additive")
+    ap.add_argument(
+        "--ring-factor",
+        type=float,
+        default=1.0,
+        help="rings this many times the modelled fabric (ring_stiffening); the JSON's name gets _ring<F>",
+    )
     args = ap.parse_args()
 
     import jax.numpy as jnp
@@ -51,6 +58,7 @@ def main():
         mu_pa=args.mu_pa or post.get("mu_pa", 31.7e3),
         jm=args.jm or post.get("jm", 39.6),
         fabric_inset_mm=args.inset_mm if args.inset_mm is not None else post.get("fabric_inset.inset_mm", 0.63),
+        ring_mu_pa=SimParams().ring_mu_pa * args.ring_factor,
     )
     meas = load_mass_lift()
     df = meas.df[floating_rows(meas)].groupby("design_key").sample(n=args.rows, random_state=args.seed)
@@ -70,16 +78,21 @@ def main():
             )
     pooled = float(np.sqrt(np.mean([v["rms_n"] ** 2 for v in out.values()])))
     print(
-        f"pooled RMS {pooled:.3f} N at mu {params.mu_pa:.0f} Pa, J_m {params.jm:.2f}, inset {params.fabric_inset_mm:.3f} mm"
+        f"pooled RMS {pooled:.3f} N at mu {params.mu_pa:.0f} Pa, J_m {params.jm:.2f}, inset {params.fabric_inset_mm:.3f} mm,"
+        f" rings x{args.ring_factor:g}"
     )
+    name = "bench_effect_axes" + ("" if args.effect_axes == "additive" else f"_{args.effect_axes}")
+    name += "" if args.ring_factor == 1.0 else f"_ring{args.ring_factor:g}"
     write_json(
-        args.out
-        / (
-            "bench_effect_axes.json" if args.effect_axes == "additive" else f"bench_effect_axes_{args.effect_axes}.json"
-        ),
+        args.out / f"{name}.json",
         {
             "effect_axes": args.effect_axes,
-            "params": {"mu_pa": params.mu_pa, "jm": params.jm, "fabric_inset_mm": params.fabric_inset_mm},
+            "params": {
+                "mu_pa": params.mu_pa,
+                "jm": params.jm,
+                "fabric_inset_mm": params.fabric_inset_mm,
+                "ring_factor": args.ring_factor,
+            },
             "rows_per_membrane": args.rows,
             "per_membrane": out,
             "pooled_rms_n": pooled,
