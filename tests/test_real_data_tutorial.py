@@ -97,6 +97,13 @@ def test_the_tutorial_runs_and_quotes_its_outputs():
     for g in grid:
         cell = quoted[f"{g['factor']:g}x"][[21.0, 30.0, 39.6].index(g["jm"])]  # "**3.34** (7)": 3.34
         assert float(re.search(r"[0-9.]+", cell).group()) == pytest.approx(g["rmse_n"], abs=0.01), g
+    # section 8: the plate as a contact beyond the disk (experiments/real_plate_contact.py)
+    contact = json.loads((ROOT / "experiments" / "out" / "real_plate_contact.json").read_text())
+    (row,) = _table_rows(text, "pooled |")  # its table's last row: "| pooled | 6.40 | 11.03 | ..."
+    quoted = [_num(c) for c in row[1:5]]
+    measured = [contact["pooled"][n][c] for n in ("paper", "map") for c in ("no_contact_n", "contact_n")]
+    assert quoted == pytest.approx(measured, abs=0.01)
+    assert contact["best_contact_rubber"]["rmse_n"] > 2 * contact["pooled"]["map"]["no_contact_n"]
 
 
 # The page's leave-one-membrane-out tables (the header's first cell) and the --out folder

@@ -80,10 +80,21 @@ class Mesh(eqx.Module):
     i2: jax.Array  # [N] the rubber's I2 share (mfdesign.materials.Gent), 0 on the rings
     t_gauss: jax.Array  # [N, 2] mm, reference thickness at the Gauss points
     r_out_def: jax.Array  # deformed clamp radius s * r_out
+    plate_k: jax.Array  # plate-contact penalty [N/mm^3]; 0: the plate touches the disk only
+    node_area: jax.Array  # [N + 1] mm^2, reference area each node stands for (2 pi r dr)
 
 
-def build_mesh(design: Membrane, params: SimParams = SimParams(), n_elements: int = 400, grading: float = 1.6) -> Mesh:
+def build_mesh(
+    design: Membrane,
+    params: SimParams = SimParams(),
+    n_elements: int = 400,
+    grading: float = 1.6,
+    plate_contact_k: float = 0.0,
+) -> Mesh:
     """Graded mesh: ring edges are nodes; the first segment is refined towards the disk.
+
+    ``plate_contact_k`` [N/mm^3] > 0 lets the membrane touch the plate beyond the disk
+    (:func:`fe_force`); 0 keeps the model of the shooting solver and the authors.
 
     Elements are shared among the segments (disk-ring-...-clamp) in proportion to their
     length (at least 4 per segment). In the first segment the nodes follow
@@ -132,8 +143,16 @@ def build_mesh(design: Membrane, params: SimParams = SimParams(), n_elements: in
         * params.thickness_factor
         * (1.0 + params.thickness_gradient * (jnp.asarray(rg) - r_mid) / (r_out - r0))
     )
+    half = np.concatenate([[0.0], 0.5 * dr]) + np.concatenate([0.5 * dr, [0.0]])
     return Mesh(
-        r=jnp.asarray(r), mu=mu, jm=jm, i2=i2, t_gauss=t_gauss, r_out_def=jnp.asarray(params.clamp_prestretch * r_out)
+        r=jnp.asarray(r),
+        mu=mu,
+        jm=jm,
+        i2=i2,
+        t_gauss=t_gauss,
+        r_out_def=jnp.asarray(params.clamp_prestretch * r_out),
+        plate_k=jnp.asarray(float(plate_contact_k)),
+        node_area=jnp.asarray(2.0 * np.pi * r * half),
     )
 
 
@@ -175,6 +194,24 @@ def _element_value_grad_hess(q, *args):
     return jax.jacfwd(grad, has_aux=True)(q)
 
 
+def _plate_contact(X, mesh: Mesh):
+    """Penalty ``sum_i k A_i max(Z_i - Z_0, 0)^2 / 2`` [N mm] of nodes above the plate.
+
+    The plate is the plane through the disk (``Z_0 = h``); a frictionless stiff contact
+    (``k`` [N/mm^3], a contact pressure ``k`` x penetration) stands in for the constraint
+    ``Z <= h``. Returns the value, its nodal gradient [N+1, 2] and Hessian diagonal
+    [N+1, 2] (the disk node's coupling to the others is dropped: it is a fixed dof).
+    The gradient's disk entry is the plate's contact reaction, so ``-dPi/dh`` includes it.
+    """
+    gap = jnp.maximum(X[1:, 1] - X[0, 1], 0.0)
+    kA = mesh.plate_k * mesh.node_area[1:]
+    value = 0.5 * jnp.sum(kA * gap**2)
+    gz = jnp.concatenate([-jnp.sum(kA * gap)[None], kA * gap])
+    hz = jnp.concatenate([jnp.zeros(1), jnp.where(gap > 0.0, kA, 0.0)])
+    zero = jnp.zeros_like(gz)
+    return value, jnp.stack([zero, gz], -1), jnp.stack([zero, hz], -1)
+
+
 def _element_args(mesh: Mesh):
     return mesh.r[:-1], mesh.r[1:], mesh.mu, mesh.jm, mesh.i2, mesh.t_gauss
 
@@ -183,7 +220,7 @@ def potential_nodes(X, p_pa, mesh: Mesh):
     """Total potential ``Pi = U - p V`` [N mm] of the node array ``X = [[R_i, Z_i]]``."""
     q = jnp.concatenate([X[:-1], X[1:]], axis=1)
     pe = jax.vmap(_element_potential, in_axes=(0, 0, 0, 0, 0, 0, 0, None))(q, *_element_args(mesh), p_pa)
-    return jnp.sum(pe)
+    return jnp.sum(pe) + _plate_contact(X, mesh)[0]
 
 
 def enclosed_volume(X):
@@ -207,8 +244,11 @@ def _local_model(X, p_pa, mesh: Mesh):
     g = jnp.zeros((n, 2)).at[:-1].add(ge[:, :2]).at[1:].add(ge[:, 2:])
     D = jnp.zeros((n, 2, 2)).at[:-1].add(He[:, :2, :2]).at[1:].add(He[:, 2:, 2:])
     B = He[:, :2, 2:]
+    pc, gc, hc = _plate_contact(X, mesh)
+    g = g + gc
+    D = D + jax.vmap(jnp.diag)(hc)
     # Scales for round-off-aware tests: sum |Pi_e| and the largest element force.
-    return jnp.sum(pe), g, D, B, jnp.sum(jnp.abs(pe)), jnp.max(jnp.abs(ge))
+    return jnp.sum(pe) + pc, g, D, B, jnp.sum(jnp.abs(pe)) + pc, jnp.max(jnp.abs(ge))
 
 
 def _masked_model(X, args):
@@ -509,8 +549,14 @@ def fe_force(
     init: FEResult | None = None,
     n_steps: int = 8,
     max_steps: int = 200,
+    plate_contact_k: float = 0.0,
 ) -> FEResult:
     """Force [N] on the plate held at height ``h_mm`` [mm] at pressure ``p_pa`` [Pa].
+
+    ``plate_contact_k`` [N/mm^3]: 0 (the default, the shooting solver's and the authors'
+    model) lets the membrane beside the disk rise through the plate; > 0 makes the plate
+    a frictionless penalty contact (pressure ``k`` x penetration) that the membrane lies
+    against, and the force then includes its reaction.
 
     ``h_mm`` and ``p_pa`` may be arrays (broadcast together; solved in parallel with
     ``vmap``). Without ``init`` each point follows quasi-static inflation at fixed ``h``
@@ -523,7 +569,7 @@ def fe_force(
     unstable state) have ``converged = False`` and NaN forces and shapes.
     """
     enable_x64()  # float64 physics: mfdesign._x64
-    mesh = build_mesh(design, params, n_elements)
+    mesh = build_mesh(design, params, n_elements, plate_contact_k=plate_contact_k)
     h, p = jnp.broadcast_arrays(jnp.asarray(h_mm, dtype=jnp.float64), jnp.asarray(p_pa, dtype=jnp.float64))
     mask = _plate_mask(mesh.r.shape[0])
 

@@ -5,7 +5,10 @@
 * the finite-element energy minimisation (``mfdesign.physics.fe``) against Hencky in the
   small-strain limit (free inflation, no plate);
 * the finite-element plate force: mesh convergence and the two force formulas
-  (envelope theorem vs vertical balance of the disk).
+  (envelope theorem vs vertical balance of the disk);
+* the plate as a contact beyond the disk (``plate_contact_k``): a converged penalty, the
+  vertical balance at the line where the membrane leaves the plate, and no change where
+  the membrane stays below the plate.
 
 The shooting solver is compared with ``fe_force`` elsewhere; nothing here imports it.
 """
@@ -118,6 +121,44 @@ def test_fe_force_formulas_agree(key):
     assert np.all(np.asarray(res.converged))
     np.testing.assert_allclose(res.force_disk_n, res.force_n, rtol=1e-3)
     assert np.all(np.asarray(res.force_n) > 10.0)  # order of magnitude: tens of newtons
+
+
+@pytest.mark.parametrize("key", [RINGLESS, TWO_RINGS])
+def test_fe_plate_contact(key):
+    """The plate as a frictionless penalty contact beyond the disk.
+
+    At these points the contact-free membrane rises 10-37 mm above the plate beside the
+    disk. With the contact: (1) the penalty is converged (k 10 vs 100 N/mm^3: measured
+    <= 0.01 N, penetration < 1e-3 mm at 100); (2) everything inside the line where the
+    membrane leaves the plate (horizontal there) balances, F = p pi R(a)^2 (the first
+    integral of the ODEs with beta = 0; measured within 0.5 %, a node spacing); (3) the
+    plate pushed by the membrane carries more than the disk alone (measured 53 -> 57 N,
+    164 -> 225 N ringless; 30 -> 43, 50 -> 68 N ringed).
+    """
+    design = Membrane.from_key(key)
+    h, p = np.asarray(POINTS[0]), np.asarray(POINTS[1])
+    free = fe_force(design, h, p, n_elements=400)
+    assert np.all(np.asarray(free.Z_mm).max(1) - h > 10.0)  # the case contact is about
+    soft = fe_force(design, h, p, n_elements=400, plate_contact_k=10.0)
+    stiff = fe_force(design, h, p, n_elements=400, plate_contact_k=100.0)
+    assert np.all(np.asarray(soft.converged)) and np.all(np.asarray(stiff.converged))
+    np.testing.assert_allclose(soft.force_n, stiff.force_n, rtol=1e-3)
+    above = np.asarray(stiff.Z_mm) - h[:, None]
+    assert above.max() < 1e-3
+    last = np.array([np.nonzero(row > 0.0)[0].max() for row in above])  # where it leaves the plate
+    R_a = np.asarray(stiff.R_mm)[np.arange(h.size), last]
+    np.testing.assert_allclose(stiff.force_n, p * 1e-6 * np.pi * R_a**2, rtol=0.01)
+    assert np.all(np.asarray(stiff.force_n) > np.asarray(free.force_n) + 3.0)
+
+
+def test_fe_plate_contact_inactive_below_the_plate():
+    """Where the contact-free membrane stays below the plate, the contact changes nothing."""
+    design = Membrane.from_key(TWO_RINGS)
+    h, p = np.array([60.0, 70.0]), np.array([2000.0, 3000.0])
+    free = fe_force(design, h, p, n_elements=400)
+    assert np.all(np.asarray(free.Z_mm).max(1) <= h)
+    touch = fe_force(design, h, p, n_elements=400, plate_contact_k=10.0)
+    np.testing.assert_allclose(touch.force_n, free.force_n, rtol=0, atol=1e-9)
 
 
 @pytest.mark.slow
