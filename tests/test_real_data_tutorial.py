@@ -104,6 +104,11 @@ def test_the_tutorial_runs_and_quotes_its_outputs():
     measured = [contact["pooled"][n][c] for n in ("paper", "map") for c in ("no_contact_n", "contact_n")]
     assert quoted == pytest.approx(measured, abs=0.01)
     assert contact["best_contact_rubber"]["rmse_n"] > 2 * contact["pooled"]["map"]["no_contact_n"]
+    # section 8: rings up to 100x stiffer with the FE reference (experiments/real_rings_fe.py)
+    rings_fe = json.loads((ROOT / "experiments" / "out" / "real_rings_fe.json").read_text())["pooled_rmse_n"]
+    for row in _table_rows(text, "pooled RMSE [N],"):
+        name = "map" if "MAP" in row[0] else "coupons"
+        assert [_num(c) for c in row[1:]] == pytest.approx(list(rings_fe[name].values()), abs=0.01), name
 
 
 # The page's leave-one-membrane-out tables (the header's first cell) and the --out folder
