@@ -30,7 +30,8 @@ import warnings
 
 import numpy as np
 
-from _common import OUT, Timing, command, machine, parser, write_json  # experiments/ is on a script's path
+from _common import Timing, command, machine, parser, write_json  # experiments/ is on a script's path
+from _real import lift_sample, real_floor
 
 
 def main():
@@ -42,31 +43,20 @@ def main():
     ap.add_argument("--elements", type=int, default=300, help="finite elements along r")
     args = ap.parse_args()
 
-    from mfdesign.data.lifts import floating_rows
-    from mfdesign.data.spa_design import load_mass_lift
     from mfdesign.design import Membrane
     from mfdesign.physics.fe import fe_force
     from mfdesign.physics.params import SimParams
     from mfdesign.physics.solve import force_at
 
     warnings.simplefilter("ignore")
-    floor = OUT / "real_floor.json"
-    if not floor.exists():
-        raise SystemExit(f"{floor} is missing: run `python experiments/real_floor.py` first")
-    x = json.loads(floor.read_text())["cases"]["all7"]["map"]
+    x = real_floor()["cases"]["all7"]["map"]
     rubbers = {
         "paper": SimParams(),
         "map": SimParams(mu_pa=x["mu_pa"], jm=x["jm"], fabric_inset_mm=x["fabric_inset.inset_mm"]),
     }
-    data = load_mass_lift()
-    df = data.df
-    floating = (df["experiment"] == "lift").to_numpy() & floating_rows(data)
-    keys = list(dict.fromkeys(df["design_key"]))
-    rng = np.random.default_rng(args.seed)
-    rows = {
-        k: df.iloc[rng.choice(np.nonzero(floating & (df["design_key"] == k).to_numpy())[0], args.per_membrane, False)]
-        for k in keys
-    }
+    lifts = lift_sample(args.per_membrane, args.seed)
+    keys = lifts.keys
+    rows = {k: lifts.df.iloc[idx] for k, idx in lifts.rows.items()}
     k_used, k_check = args.k
 
     def fe(key, params, k):

@@ -29,12 +29,12 @@ membranes); these are probes of a story, not held-out results.
 from __future__ import annotations
 
 import dataclasses
-import json
 import warnings
 
 import numpy as np
 
-from _common import OUT, Timing, parser, write_json  # experiments/ is on a script's path
+from _common import Timing, parser, write_json  # experiments/ is on a script's path
+from _real import lift_sample, real_floor
 
 
 def main():
@@ -53,30 +53,17 @@ def main():
     args = ap.parse_args()
 
     from mfdesign._x64 import enable_x64
-    from mfdesign.data.lifts import floating_rows
-    from mfdesign.data.spa_design import load_mass_lift
     from mfdesign.design import Membrane
     from mfdesign.physics.params import SimParams
     from mfdesign.physics.solve import force_at, shape
 
     enable_x64()
     warnings.simplefilter("ignore")
-    floor = OUT / "real_floor.json"
-    if not floor.exists():
-        raise SystemExit(f"{floor} is missing: run `python experiments/real_floor.py` first")
-    floor = json.loads(floor.read_text())
+    floor = real_floor()
     x = floor["cases"]["all7"]["map"]
     base = SimParams(mu_pa=x["mu_pa"], jm=x["jm"], fabric_inset_mm=x["fabric_inset.inset_mm"])
-    data = load_mass_lift()
-    df = data.df
-    lift = (df["experiment"] == "lift").to_numpy()
-    floating = lift & floating_rows(data)
-    keys = list(dict.fromkeys(df["design_key"]))
-    rng = np.random.default_rng(args.seed)
-    sample = {
-        k: rng.choice(np.nonzero(floating & (df["design_key"] == k).to_numpy())[0], args.per_membrane, False)
-        for k in keys
-    }
+    lifts = lift_sample(args.per_membrane, args.seed)
+    df, lift, floating, keys, sample = lifts.df, lifts.lift, lifts.floating, lifts.keys, lifts.rows
     out = {"map": x, "seed": args.seed, "per_membrane": args.per_membrane, "cases": {}}
 
     def forces(key, params, shift=0.0):
