@@ -8,7 +8,9 @@ more of the inflation's stretch to the rubber gaps, which then lock sooner. It i
 counterpart of :mod:`~mfdesign.physics.effects.ring_softening` (a ring partly delaminated
 from the rubber) on the same simulator constant. The prior stops at 4x: beyond about 3x
 the shooting no longer converges on part of the real operating points (and beyond 10x
-on most), so a stiffer ring needs an inextensible-ring model, not a larger factor.
+on most). Nothing is lost there: the finite-element reference, which converges to 100x,
+finds the real lifts fit worse at every step beyond ~2x (``experiments/real_rings_fe.py``):
+the bonded rings are stiff but extensible, not inextensible.
 """
 
 from __future__ import annotations
