@@ -48,13 +48,19 @@ def main():
         help="case trim: calibrate on all seven without the top TRIM mm of every lift trial",
     )
     ap.add_argument("--effects", nargs="*", default=["fabric_inset"], help="the calibrated effects")
+    ap.add_argument(
+        "--material",
+        choices=("free", "coupons", "coupons-jm"),
+        default="free",
+        help="the rubber: calibrated (free), held at the coupons' mu and J_m, or J_m held (calibration.workflow.material_priors)",
+    )
     args = ap.parse_args()
 
     import jax.numpy as jnp
 
     from mfdesign._x64 import enable_x64
     from mfdesign.calibration.mcmc import map_on_lattice
-    from mfdesign.calibration.workflow import force_model_named, lifted_rows, model_for
+    from mfdesign.calibration.workflow import force_model_named, lifted_rows, material_priors, model_for
     from mfdesign.data.lifts import floating_rows
     from mfdesign.data.measurements import Measurements
     from mfdesign.data.spa_design import load_mass_lift
@@ -72,7 +78,14 @@ def main():
 
     def calibrate(train):
         cd = CalibrationData.from_measurements(train, max_rows=400, seed=args.seed)
-        model = model_for(emu, cd.design_keys, tuple(args.effects), likelihood="student_t", membrane_latents=False)
+        model = model_for(
+            emu,
+            cd.design_keys,
+            tuple(args.effects),
+            likelihood="student_t",
+            membrane_latents=False,
+            **material_priors(args.material),
+        )
         model, res = map_on_lattice(model, cd, starts=4, seed=args.seed)
         x = np.asarray(res.x)
         # the MAP as a one-draw predictor: the held-out table's metrics, on the fitted rows
@@ -112,7 +125,14 @@ def main():
         return (p / 1e3).reshape(len(forces), len(h_grid))
 
     fits = {}
-    out = {"effects": args.effects, "seed": args.seed, "membranes": keys, "cases": {}, "stalls": _stalls(data)}
+    out = {
+        "effects": args.effects,
+        "material": args.material,
+        "seed": args.seed,
+        "membranes": keys,
+        "cases": {},
+        "stalls": _stalls(data),
+    }
     if "all7" in args.cases:
         clock = Timing()
         x, conv, mf = calibrate(data)

@@ -90,6 +90,21 @@ def test_the_tutorial_runs_and_quotes_its_outputs():
     assert quoted and float(quoted.group(1)) == pytest.approx(
         rings["cases"]["all7"]["summary"]["pooled_rmse_n"], abs=0.01
     )
+    # section 8: rubber (free / coupons') x rings (model's / calibrated), in sample
+    quoted = {
+        row[0].split(" (")[0]: row[1:3]
+        for row in _table_rows(text, "rubber free (") + _table_rows(text, "coupons' rubber (")
+    }
+    for rubber, folders in (
+        ("rubber free", ("", "real_floor_rings")),
+        ("coupons' rubber", ("real_floor_coupons", "real_floor_rings_coupons")),
+    ):
+        for cell, folder in zip(quoted[rubber], folders):
+            fit = json.loads((ROOT / "experiments" / "out" / folder / "real_floor.json").read_text())["cases"]["all7"]
+            force, mean, median = (float(v) for v in re.findall(r"[0-9.]+", cell.split(" (")[0].replace("*", "")))
+            assert [force, mean, median] == pytest.approx(
+                [fit["summary"]["pooled_rmse_n"], fit["summary"]["traj_mean"], fit["summary"]["traj_median"]], abs=0.006
+            ), (rubber, folder)
     # section 8's probes (experiments/real_probes.py): the rings x J_m table
     grid = json.loads((ROOT / "experiments" / "out" / "real_probes.json").read_text())["cases"]["rings"]["jm_grid"]
     quoted = {row[0]: row[1:4] for row in _table_rows(text, "") if re.fullmatch(r"[0-9.]+x", row[0])}
