@@ -135,6 +135,7 @@ HELD_OUT_TABLES = {
     "held out (mu, J_m held, no latents)": "real_mass_lift_material_nolatents",
     "held out (rubber free, no latents)": "real_mass_lift_nolatents",
     "held out (rubber free, no latents, stiff rings)": "real_mass_lift_rings",
+    "held out (coupons' rubber, no latents, stiff rings)": "real_mass_lift_rings_coupons",
 }
 
 
