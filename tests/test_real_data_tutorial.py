@@ -78,7 +78,7 @@ def test_the_tutorial_runs_and_quotes_its_outputs():
     # seven and each membrane on itself
     ((_, _, pooled),) = _held_out_tables(text, "in sample")
     floor = json.loads((ROOT / "experiments" / "out" / "real_floor.json").read_text())["cases"]
-    traj = _table_rows(text, "trajectory mean / median")[-1]  # section 8's table: the page's last such row
+    traj = _row_of_table(text, "in sample", "trajectory mean / median")
     for cell, tcell, case in zip(pooled[-2:], traj[-2:], ("all7", "each")):
         assert _num(cell) == pytest.approx(floor[case]["summary"]["pooled_rmse_n"], abs=0.02), case
         mean, median = (float(v) for v in tcell.split("/"))
@@ -139,9 +139,9 @@ HELD_OUT_TABLES = {
 }
 
 
-def _held_out_tables(text: str, prefix: str = "held out") -> list[tuple[str, list[str], list[str]]]:
-    """(first header cell, header cells, pooled-force-RMSE row cells) of every table whose
-    header starts with ``prefix``."""
+def _rows_of_tables(text: str, prefix: str, first_cell: str) -> list[tuple[list[str], list[str]]]:
+    """(header cells, row cells) of the row ``first_cell`` of every table whose header starts
+    with ``prefix``, in the page's order."""
     out, header = [], None
     for line in text.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")] if line.startswith("|") else None
@@ -149,6 +149,18 @@ def _held_out_tables(text: str, prefix: str = "held out") -> list[tuple[str, lis
             header = None
         elif header is None:
             header = cells
-        elif cells[0] == "pooled force RMSE" and header[0].startswith(prefix):
-            out.append((header[0], header, cells))
+        elif cells[0] == first_cell and header[0].startswith(prefix):
+            out.append((header, cells))
     return out
+
+
+def _row_of_table(text: str, prefix: str, first_cell: str) -> list[str]:
+    """The row ``first_cell`` of the one table whose header starts with ``prefix``."""
+    ((_, row),) = _rows_of_tables(text, prefix, first_cell)
+    return row
+
+
+def _held_out_tables(text: str, prefix: str = "held out") -> list[tuple[str, list[str], list[str]]]:
+    """(first header cell, header cells, pooled-force-RMSE row cells) of every table whose
+    header starts with ``prefix``."""
+    return [(header[0], header, row) for header, row in _rows_of_tables(text, prefix, "pooled force RMSE")]
