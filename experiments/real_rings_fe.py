@@ -60,6 +60,8 @@ def main():
     ringed = [k for k in keys if Membrane.from_key(k).rings]
     clock = Timing()
     out_rows = {}
+    # per rubber and factor: the residuals [N] of the rows every factor solved, membrane after membrane
+    solved_res = {name: {fac: [] for fac in args.ring_factors} for name in rubbers}
     for name, base in rubbers.items():
         out_rows[name] = {}
         for key in ringed:
@@ -92,21 +94,15 @@ def main():
                 "factors": per,
                 "rows_common": int(common.sum()),
                 "fe_vs_shooting_max_n": float(np.nanmax(np.abs(forces[1.0] - shoot))) if 1.0 in forces else None,
-                "_res": {f"{fac:g}": (f - v).tolist() for fac, v in forces.items()},
-                "_common": common.tolist(),
             }
+            for fac, v in forces.items():
+                solved_res[name][fac].append((f - v)[common])
             print(f"{name} {key}: " + ", ".join(f"{k}x {v['rmse_n']:.2f}" for k, v in per.items()), flush=True)
     # pooled over the ringed membranes' rows that every factor of the rubber solved
-    pooled = {}
-    for name, per_key in out_rows.items():
-        pooled[name] = {}
-        for fac in args.ring_factors:
-            res = np.concatenate(
-                [np.asarray(v["_res"][f"{fac:g}"])[np.asarray(v["_common"])] for v in per_key.values()]
-            )
-            pooled[name][f"{fac:g}"] = float(np.sqrt(np.mean(res**2)))
-        for v in per_key.values():
-            v.pop("_res"), v.pop("_common")
+    pooled = {
+        name: {f"{fac:g}": float(np.sqrt(np.mean(np.concatenate(res) ** 2))) for fac, res in by_factor.items()}
+        for name, by_factor in solved_res.items()
+    }
     clock.stop()
     out = {
         "command": command(__file__, args),
