@@ -153,7 +153,9 @@ def register(app: typer.Typer) -> None:
             fail(str(err).strip('"'))
         import numpy as np
 
+        from mfdesign.data.lifts import STALL_PA
         from mfdesign.diagnose.pipeline import diagnose as run
+        from mfdesign.diagnose.residuals import stall_words, worst_regions
         from mfdesign.report.diagnosis import write_report
 
         predict, model_name = None, "simulator"
@@ -193,15 +195,15 @@ def register(app: typer.Typer) -> None:
         paths = write_report(diag, out, shapes=shapes and sim_name == "exact")
         b = diag.before
         typer.echo(f"before: RMSE {b.rmse_n:.3f} N, noise floor {b.noise_floor_n:.3f} N")
-        report = diag.to_json()
-        for w in report["before"]["worst_regions"]:
+        # the same words as the report (diagnosis.json), without rebuilding its whole JSON
+        for w in worst_regions(b):
             typer.echo(f"  {w['words']}")
-        if report["stalls"]:
-            kpa = report["stalls"]["min_pa"] / 1e3
+        if diag.stalls is not None:
+            kpa = STALL_PA / 1e3
             typer.echo(
                 f"where the lift plates stall (data only: the pressure climbed > {kpa:.1f} kPa over 1 mm of rise):"
             )
-            for w in report["stalls"]["words"]:
+            for w in stall_words(diag.stalls):
                 typer.echo(f"  {w}")
         for i, s in enumerate(diag.steps):
             typer.echo(
