@@ -390,7 +390,7 @@ def _pad(values: np.ndarray, n: int) -> np.ndarray:
     """Pad a batch to the next power of two (>= 8) by repeating its last entry: each
     batch size is a separate compilation, so a few sizes serve every call."""
     size = max(8, 1 << (n - 1).bit_length())
-    return np.concatenate([values, np.full(size - n, values[-1])])
+    return np.concatenate([values, np.repeat(values[-1:], size - n, axis=0)])
 
 
 # Widest pressure step of a plane's continuation path [Pa]: on a 12 x 12 grid (909 Pa
@@ -825,7 +825,11 @@ def _final_state(geom, params, h, p_mpa):
     return jnp.where(conv, x, xs[-1])
 
 
-_profile_jit = eqx.filter_jit(sh.profile)
+@eqx.filter_jit
+def _profiles(states, geom, params, h, p_mpa, n_save: int):
+    """:func:`~mfdesign.physics.shooting.profile` of every point in one vmapped program
+    (``n_save`` is static: the saved points per segment fix the output's shape)."""
+    return jax.vmap(lambda x, hh, pp: sh.profile(x, geom, params, hh, pp, n_save=n_save))(states, h, p_mpa)
 
 
 @eqx.filter_jit
@@ -859,44 +863,52 @@ class Shape(eqx.Module):
     phi_rad: np.ndarray
     tension1_n_per_mm: np.ndarray
     tension2_n_per_mm: np.ndarray
-    force_n: float
-    status: int
+    force_n: float | np.ndarray
+    status: int | np.ndarray
 
 
-def shape(
-    design: Membrane, h_mm: float, p_pa: float, params: SimParams = SimParams(), n_per_segment: int = 64
-) -> Shape:
-    """The deformed membrane at plate height ``h_mm`` [mm] and pressure ``p_pa`` [Pa]."""
+def shape(design: Membrane, h_mm, p_pa, params: SimParams = SimParams(), n_per_segment: int = 64) -> Shape:
+    """The deformed membrane at plate height ``h_mm`` [mm] and pressure ``p_pa`` [Pa].
+
+    Scalars give one profile. Arrays (broadcast together) give one profile per point, all
+    solved and integrated in one vmapped call: every field then gains the points' leading
+    axes (``force_n`` and ``status`` become arrays of the points' shape).
+    """
     enable_x64()  # float64 physics: mfdesign._x64
-    h, p = np.array([float(h_mm)]), np.array([float(p_pa)])
+    h, p = np.broadcast_arrays(np.asarray(h_mm, float), np.asarray(p_pa, float))
+    hf, pf = h.ravel(), p.ravel()
+    k = hf.size
     # The scattered-point kernel gives the state too: one compiled program, shared with
     # force_at and the plane repairs (a separate state kernel cost a cold
     # diagnosis two more compilations).
-    out = _solve_points(design, *_sanitize(h, p), params, PATH_STEPS)
-    res = _classify(h, p, out)
+    out = _solve_points(design, *_sanitize(hf, pf), params, PATH_STEPS)
+    res = _classify(hf, pf, out)
     geom = sh.geometry_of(design)
-    params = _traced(params)
-    r, y, w1, w2, _, _ = _profile_jit(
-        jnp.asarray(out.state[0]),
+    traced = _traced(params)
+    r, y, w1, w2, _, _ = _profiles(
+        jnp.asarray(_pad(out.state, k)),
         geom,
-        params,
-        jnp.asarray(float(h_mm)),
-        jnp.asarray(float(p_pa) * PA_TO_MPA),
-        n_save=n_per_segment,
+        traced,
+        jnp.asarray(_pad(hf, k)),
+        jnp.asarray(_pad(pf, k)) * PA_TO_MPA,
+        n_per_segment,
     )
-    segs = sh.segments(geom, params)
-    t = jnp.repeat(segs.seg.t_mm, n_per_segment)
+    segs = sh.segments(geom, traced)
+    t = np.asarray(jnp.repeat(segs.seg.t_mm, n_per_segment))
     n = sh.n_segments(design.n_rings) * n_per_segment  # unused ring slots: repeats at the clamp
-    r, y, w1, w2, t = (np.asarray(v)[:n] for v in (r, y, w1, w2, t))
+    t = t[:n]
+    lead = h.shape  # the points' shape: () for one point
+    # the k points of the padded batch, their n saved points, then the points' shape
+    r, y, w1, w2 = (np.asarray(a)[:k, :n].reshape(lead + (n,) + a.shape[2:]) for a in (r, y, w1, w2))
     return Shape(
         r_mm=r,
-        R_mm=r * y[:, 1],
-        Z_mm=y[:, 3],
-        lambda1=y[:, 0],
-        lambda2=y[:, 1],
-        phi_rad=y[:, 2],
-        tension1_n_per_mm=t * w1 / y[:, 1],
-        tension2_n_per_mm=t * w2 / y[:, 0],
-        force_n=float(res.force_n[0]),
-        status=int(res.status[0]),
+        R_mm=r * y[..., 1],
+        Z_mm=y[..., 3],
+        lambda1=y[..., 0],
+        lambda2=y[..., 1],
+        phi_rad=y[..., 2],
+        tension1_n_per_mm=t * w1 / y[..., 1],
+        tension2_n_per_mm=t * w2 / y[..., 0],
+        force_n=float(res.force_n[0]) if h.ndim == 0 else np.asarray(res.force_n).reshape(lead),
+        status=int(res.status[0]) if h.ndim == 0 else np.asarray(res.status).reshape(lead),
     )

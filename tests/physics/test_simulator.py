@@ -56,6 +56,24 @@ def test_first_integral_holds_along_the_solution(design, h, p):
     assert np.max(np.abs(lhs - s.force_n)) <= 1e-6 * max(abs(s.force_n), p * 1e-6 * np.pi * 70.0**2)
 
 
+def test_shape_of_many_points_in_one_call():
+    """Arrays of points give one profile each (one vmapped call), the same as one point at a
+    time, each satisfying the first integral, and the forces are force_at's."""
+    hh, pp = H.reshape(3, 1), P.reshape(3, 1)  # a (3, 1) batch: the points' shape is kept
+    s = shape(TWO_RINGS, hh, pp)
+    assert s.R_mm.shape == (3, 1, s.r_mm.shape[-1]) and s.status.shape == (3, 1)
+    assert np.all(s.status == Status.OK)
+    np.testing.assert_allclose(s.force_n[:, 0], force_at(TWO_RINGS, H, P).force_n, rtol=1e-10)
+    for i in range(3):
+        one = shape(TWO_RINGS, H[i], P[i])
+        for name in ("R_mm", "Z_mm", "lambda1", "lambda2", "phi_rad", "tension1_n_per_mm"):
+            np.testing.assert_allclose(getattr(s, name)[i, 0], getattr(one, name), rtol=1e-9, atol=1e-9)
+        p_mpa = P[i] * 1e-6
+        R, T1, phi = s.R_mm[i, 0], s.tension1_n_per_mm[i, 0], s.phi_rad[i, 0]
+        lhs = 2 * np.pi * R * T1 * np.sin(phi) + p_mpa * np.pi * R**2
+        assert np.max(np.abs(lhs - s.force_n[i, 0])) <= 1e-6 * max(s.force_n[i, 0], p_mpa * np.pi * 70.0**2)
+
+
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
