@@ -214,8 +214,8 @@ def fit_force_model(
     for _ in range(LATTICE_ROUNDS):
         at_map = _params_at(model, data, np.asarray(res.u)[None])
         sd = _laplace_sd(res)
-        if not fm.covers(at_map, margin=EDGE_MARGIN):
-            grown = fm.covering(at_map, progress=progress, margin=EDGE_STEP)
+        if not fm.covers(at_map, margin=EDGE_MARGIN):  # past the edge it sits on, only
+            grown = fm.covering(at_map, progress=progress, margin=EDGE_STEP, edge=EDGE_MARGIN)
         elif sd is None:  # no curvature to size the lattice by: a few nodes around the MAP only
             grown = fm.covering(at_map, progress=progress, margin=EDGE_STEP)
         else:

@@ -236,17 +236,34 @@ class ExactForceModel(ForceModel):
                 return False
         return True
 
-    def covering(self, params: SimParams, progress: bool = False, margin: int = 0) -> "ExactForceModel":
+    def covering(
+        self, params: SimParams, progress: bool = False, margin: int = 0, edge: float | None = None
+    ) -> "ExactForceModel":
         """The model grown to hold every constant in ``params`` (fields of any shape) with
         ``margin`` nodes to spare: each axis' node range is widened (never shrunk), and a
-        constant the model did not vary yet becomes a new axis (:attr:`grow`). Planes
+        constant the model did not vary yet becomes a new axis (:attr:`grow`). With
+        ``edge``, the ``margin`` is added only on the sides where ``params`` come within
+        ``edge`` nodes of the lattice's end (and on every side of a new axis): a fit that
+        ran into the lattice's edge on one axis grows that axis, not every axis (a held
+        constant, J_m within +-0.2 say, grew like the rest and doubled the planes). Planes
         already solved come from memory or disk. Returns ``self`` when nothing is missing."""
-        if self.covers(params, margin):
+        if self.covers(params, margin if edge is None else edge):
             return self
-        box = {
-            k: (lo - margin * pl.AXES[k].step, hi + margin * pl.AXES[k].step)
-            for k, (lo, hi) in self._box(params).items()
-        }
+        have = {a.name: (a.lo, a.hi) for a in self.tensor_axes + self.additive_axes}
+
+        def sides(k, lo, hi):  # nodes to add below and above the box of axis k
+            if edge is None or k not in have:
+                return margin, margin
+            st = pl.AXES[k].step
+            return (
+                margin if lo - edge * st < have[k][0] - _TOL else 0,
+                margin if hi + edge * st > have[k][1] + _TOL else 0,
+            )
+
+        box = {}
+        for k, (lo, hi) in self._box(params).items():
+            below, above = sides(k, lo, hi)
+            box[k] = (lo - below * pl.AXES[k].step, hi + above * pl.AXES[k].step)
         t_nodes, a_nodes = _widen(
             {a.name: (a.k0, a.k0 + a.n - 1) for a in self.tensor_axes},
             {a.name: (a.k0, a.k0 + a.n - 1) for a in self.additive_axes},

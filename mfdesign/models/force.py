@@ -55,10 +55,13 @@ class ForceModel(eqx.Module):
         ``margin`` lattice nodes inside its edge (for lattice-based models)."""
         return True
 
-    def covering(self, params: SimParams, progress: bool = False, margin: int = 0) -> "ForceModel":
-        """A model that holds every constant in ``params``; models valid everywhere (the
-        emulator inside its ranges, the stand-in) return themselves, the exact model grows
-        its lattice of simulator planes."""
+    def covering(
+        self, params: SimParams, progress: bool = False, margin: int = 0, edge: float | None = None
+    ) -> "ForceModel":
+        """A model that holds every constant in ``params`` with ``margin`` lattice nodes to
+        spare (with ``edge``: only on the sides where ``params`` come within ``edge`` nodes
+        of the lattice's end); models valid everywhere (the emulator inside its ranges, the
+        stand-in) return themselves, the exact model grows its lattice of simulator planes."""
         return self
 
     def strict(self, strict: bool = True) -> "ForceModel":

@@ -41,7 +41,9 @@ class _Growing(ForceModel):
     def __call__(self, design, h_mm, p_pa, params: SimParams = SimParams()):
         return standin_force(design, h_mm, p_pa, params)
 
-    def covering(self, params: SimParams, progress: bool = False, margin: int = 0) -> "_Growing":
+    def covering(
+        self, params: SimParams, progress: bool = False, margin: int = 0, edge: float | None = None
+    ) -> "_Growing":
         need = float(np.max(np.abs(np.asarray(params.contact_offset_mm))))
         return self if need <= self.reach else _Growing(need)
 

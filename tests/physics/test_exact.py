@@ -163,3 +163,29 @@ def test_stiff_rings_converge_through_the_real_lifts_operating_band():
     f = np.asarray(force_plane(design, h, p, SimParams(ring_mu_pa=3.0e6, fabric_inset_mm=0.6), signed=True).force_n)
     assert np.isfinite(f[(h >= 27.5)][:, p >= 3000.0]).all()  # the 14.7 N lift's band
     assert np.isnan(f[:, p >= 1000.0]).mean() < 0.01  # (2 nodes at 15 mm, 1-1.25 kPa: the contact boundary)
+
+
+def test_a_fit_at_one_edge_grows_that_axis_only(exact, monkeypatch):
+    """``covering(..., edge=)`` (the MAP search's growth, mcmc.fit_force_model): margin
+    nodes are added on the sides the constants come within ``edge`` nodes of, not on every
+    axis (a held J_m grew with the rest and doubled the planes). The node arithmetic only:
+    the planes themselves are not solved here."""
+    import mfdesign.models.exact as ex
+
+    grown = {}
+
+    def capture(design_keys, base, t_nodes, a_nodes, *rest, **kw):
+        grown.update(t_nodes)
+        return exact
+
+    monkeypatch.setattr(ex, "_assemble", capture)
+    nodes = {a.name: (a.k0, a.k0 + a.n - 1) for a in exact.tensor_axes}
+    assert nodes == {"jm": (-2, 2), "ring": (-1, 1)}
+    # ring 0.16 (its top node is at 0.173: inside the last quarter node), J_m 0.05 (inside)
+    at = SimParams(jm=39.6 * np.exp(0.05), ring_mu_pa=SimParams().ring_mu_pa * np.exp(0.16))
+    assert not exact.covers(at, margin=0.25)
+    exact.covering(at, margin=2, edge=0.25)
+    assert grown == {"jm": (-2, 2), "ring": (-1, 3)}, grown  # the ring past its top only
+    grown.clear()
+    exact.covering(at, margin=2)  # without ``edge``: both sides of every axis
+    assert grown == {"jm": (-2, 3), "ring": (-2, 3)}, grown
