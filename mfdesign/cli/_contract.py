@@ -1,7 +1,8 @@
 """The CLI contract, in one place, for every ``mfdesign`` command.
 
-* Bad input (:func:`mfdesign.errors.anticipated`): one line ``error: ...`` on stderr,
-  exit status 2.
+* Bad input (:func:`mfdesign.errors.anticipated`, and click's usage errors: a bad option
+  value, an unknown option, a missing argument): one line ``error: ...`` on stderr, exit
+  status 2.
 * Anything else (a bug): one line naming a log file that holds the traceback, exit
   status 1. The log goes into the command's output folder if it has one, else into
   ``$MFDESIGN_LOG_DIR`` (default: ``<temp dir>/mfdesign-logs``).
@@ -76,8 +77,38 @@ class ContractCommand(TyperCommand):
             return super().invoke(ctx)
 
 
+def _click_exception():
+    try:  # typer >= 0.2x vendors click as typer._click; older typer uses click itself
+        from typer._click.exceptions import ClickException
+    except ImportError:
+        from click.exceptions import ClickException
+    return ClickException
+
+
+def _usage_line(err) -> typer.Exit:
+    """A usage error (a bad option value, an unknown option, a missing argument) as the
+    contract's one line, instead of click's usage block and boxed message; exit status 2."""
+    ctx = getattr(err, "ctx", None)
+    where = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
+    typer.echo(f"error: {one_line(err.format_message())}{where}", err=True)
+    return typer.Exit(code=err.exit_code)
+
+
+def _is_help(err) -> bool:
+    # ``mfdesign`` alone prints the help (no_args_is_help): click raises it as a usage error
+    return type(err).__name__ == "NoArgsIsHelpError"
+
+
 class ContractGroup(TyperGroup):
     """The top-level group: maps what escapes a command onto the contract (module doc)."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        try:
+            return super().make_context(info_name, args, parent=parent, **extra)
+        except _click_exception() as err:  # the group's own options (``mfdesign --bogus``)
+            if _is_help(err):
+                raise
+            raise _usage_line(err) from None
 
     def invoke(self, ctx):
         try:
@@ -93,13 +124,10 @@ class ContractGroup(TyperGroup):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
             raise typer.Exit(code=141) from None
         except Exception as err:  # noqa: BLE001 -- the contract: no traceback ever reaches the user
-            try:  # typer >= 0.2x vendors click as typer._click; older typer uses click itself
-                from typer._click.exceptions import ClickException
-            except ImportError:
-                from click.exceptions import ClickException
-
-            if isinstance(err, ClickException):  # usage errors: click prints them and exits 2
-                raise
+            if isinstance(err, _click_exception()):  # a command's usage error (or an unknown command)
+                if _is_help(err):
+                    raise
+                raise _usage_line(err) from None
             if isinstance(err, anticipated()):
                 typer.echo(f"error: {one_line(err)}", err=True)
                 raise typer.Exit(code=2) from None

@@ -111,6 +111,11 @@ def register(app: typer.Typer) -> None:
         search: bool = typer.Option(True, help="Search for the missing effect."),
         check_top: int = typer.Option(3, min=1, help="Candidates given the full check."),
         max_steps: int = typer.Option(2, min=1, help="Rounds of forward selection."),
+        folds: int = typer.Option(
+            3,
+            min=2,
+            help="Folds of held-out membranes in each candidate's check (more than the membranes: one membrane a fold).",
+        ),
         shapes: bool = typer.Option(True, help="Plot the simulated shape at the worst points (exact physics only)."),
         cache_dir: Optional[Path] = typer.Option(None, help="Plane cache (default ~/.cache/mfdesign/planes)."),
         allow_outside_design_space: bool = typer.Option(
@@ -190,6 +195,7 @@ def register(app: typer.Typer) -> None:
             search=search,
             check_top=check_top,
             max_steps=max_steps,
+            n_folds=folds,
             progress=True,
         )
         paths = write_report(diag, out, shapes=shapes and sim_name == "exact")

@@ -127,6 +127,9 @@ def test_effect_without_likelihood_hook_is_refused_by_the_exact_backend(data, tm
         (["--theta", "{not json"], "--theta is not valid JSON"),
         (["--physics", "quantum"], "--physics must be one of"),
         (["--effects-module", "nothere.py"], "not a Python file"),
+        # click's own usage errors keep the contract too (one line, not a usage block)
+        (["--folds", "1"], "Invalid value for '--folds': Input should be greater than or equal to 2"),
+        (["--no-such-option"], "No such option: --no-such-option"),
     ],
 )
 def test_bad_input_is_one_line_exit_2(data, tmp_path, args, words):
