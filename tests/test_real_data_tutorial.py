@@ -77,6 +77,23 @@ def test_the_tutorial_runs_and_quotes_its_outputs():
     diag = json.loads((ROOT / "out" / "real_diagnose" / "diagnosis.json").read_text())
     before = re.search(r"before: RMSE ([0-9.]+) N", text)
     assert before and float(before.group(1)) == pytest.approx(diag["before"]["summary"]["rmse_n"], abs=0.01)
+    # the diagnosis with one membrane a fold (section 3): the rings' round-2 check, not claimed
+    lomo_diag = json.loads((ROOT / "out" / "real_diagnose_lomo" / "diagnosis.json").read_text())
+    quoted = re.search(r"one membrane a fold: held-out ([0-9.]+) -> ([0-9.]+) N", text)
+    assert quoted, "the page's one-membrane-a-fold diagnosis is missing"
+    best = min(lomo_diag["search"][1]["checks"], key=lambda c: c["heldout_rmse_n"])
+    assert best["effects"] == ["fabric_inset", "ring_stiffening"] and lomo_diag["found"] == ["fabric_inset"]
+    assert [float(quoted.group(1)), float(quoted.group(2))] == pytest.approx(
+        [best["heldout_rmse_base_n"], best["heldout_rmse_n"]], abs=0.001
+    )
+    # the lattice and the simulator against the data at the ring MAPs (section 8)
+    scored = re.findall(
+        r"the lattice scores ([0-9.]+) N and the simulator ([0-9.]+) N\s+\(`(bench_effect_axes[^`]+)`", text
+    )
+    assert len(scored) == 2, scored
+    for lattice, simulator, name in scored:
+        vs = json.loads((ROOT / "experiments" / "out" / name).read_text())["pooled_rmse_vs_data"]
+        assert [float(lattice), float(simulator)] == pytest.approx([vs["lattice_n"], vs["simulator_n"]], abs=0.01), name
     tables = _held_out_tables(text)
     assert [t[0] for t in tables] == list(HELD_OUT_TABLES), "the page's held-out tables and their outputs differ"
     for title, header, pooled in tables:
