@@ -88,7 +88,8 @@ def test_the_tutorial_runs_and_quotes_its_outputs():
     )
     # the lattice and the simulator against the data at the ring MAPs (section 8)
     scored = re.findall(
-        r"the lattice scores ([0-9.]+) N and the simulator ([0-9.]+) N\s+\(`(bench_effect_axes[^`]+)`", text
+        r"the\s+lattice\s+scores\s+([0-9.]+) N\s+and\s+the\s+simulator\s+([0-9.]+) N\s+\(`(bench_effect_axes[^`]+)`",
+        text,
     )
     assert len(scored) == 2, scored
     for lattice, simulator, name in scored:
