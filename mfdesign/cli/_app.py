@@ -8,6 +8,7 @@ error prints one line naming a log file with the traceback and exits with status
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 from pathlib import Path
@@ -85,6 +86,25 @@ def _print_version(value: bool) -> None:
         raise typer.Exit()
 
 
+class _EchoHandler(logging.Handler):
+    """Log records as lines on stderr, resolved at each call (a test runner swaps stderr)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        typer.echo(self.format(record), err=True)
+
+
+def show_lattice_growth() -> None:
+    """The exact force model's one line per lattice growth ("exact planes: lattice grows to
+    ...", :mod:`mfdesign.models.exact`) on stderr: a calibration can solve planes for an
+    hour, and the progress bar alone does not say why."""
+    log = logging.getLogger("mfdesign.models.exact")
+    if not any(isinstance(h, _EchoHandler) for h in log.handlers):
+        handler = _EchoHandler()
+        handler.setFormatter(logging.Formatter("%(asctime)s %(message)s", datefmt="%H:%M:%S"))
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
+
+
 @app.callback()
 def _main(
     version: bool = typer.Option(
@@ -92,3 +112,4 @@ def _main(
     ),
 ) -> None:
     enable_compilation_cache()
+    show_lattice_growth()

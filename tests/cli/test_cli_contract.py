@@ -124,3 +124,18 @@ def test_widened_design_space_is_said(tmp_path):
     key = "[5.0, 25.4, nan, nan, nan, nan]"
     r = runner.invoke(app, ["simulate", "--design", key, "--out", str(tmp_path)])
     assert r.exit_code == 2 and "allowed: thickness 1-3 mm" in r.output and "--allow-outside-design-space" in r.output
+
+
+def test_the_exact_models_lattice_growth_is_said_on_stderr(capsys):
+    """A calibration on exact physics can solve planes for an hour: the CLI shows the exact
+    model's one line per lattice growth (once, however often the app is set up)."""
+    import logging
+
+    from mfdesign.cli._app import show_lattice_growth
+
+    show_lattice_growth()
+    show_lattice_growth()
+    logging.getLogger("mfdesign.models.exact").info("exact planes: lattice grows to jm 0..1 (test)")
+    captured = capsys.readouterr()
+    assert captured.err.count("exact planes: lattice grows to jm 0..1 (test)") == 1
+    assert "lattice grows" not in captured.out  # stderr: stdout stays the command's output
