@@ -44,7 +44,7 @@ def main():
     args = ap.parse_args()
 
     from mfdesign.design import Membrane
-    from mfdesign.physics.fe import fe_force
+    from mfdesign.physics.fe import fe_forces
     from mfdesign.physics.params import SimParams
     from mfdesign.physics.solve import force_at
 
@@ -59,6 +59,22 @@ def main():
     df, keys, sample = lifts.df, lifts.keys, lifts.rows
     ringed = [k for k in keys if Membrane.from_key(k).rings]
     clock = Timing()
+    rows = {key: df.iloc[sample[key]] for key in ringed}
+    pts = {key: tuple(rows[key][c].to_numpy() for c in ("height_mm", "pressure_pa", "force_n")) for key in ringed}
+    # every rubber x membrane x factor in one solve (the meshes stack: fe_forces)
+    cases = [(name, key, fac) for name in rubbers for key in ringed for fac in args.ring_factors]
+    jobs = [
+        (Membrane.from_key(key), dataclasses.replace(rubbers[name], ring_mu_pa=rubbers[name].ring_mu_pa * fac))
+        for name, key, fac in cases
+    ]
+    solved = dict(
+        zip(
+            cases,
+            fe_forces(
+                jobs, [pts[k][0] for _, k, _ in cases], [pts[k][1] for _, k, _ in cases], args.elements, progress=True
+            ),
+        )
+    )
     out_rows = {}
     # per rubber and factor: the residuals [N] of the rows every factor solved, membrane after membrane
     solved_res = {name: {fac: [] for fac in args.ring_factors} for name in rubbers}
@@ -66,13 +82,11 @@ def main():
         out_rows[name] = {}
         for key in ringed:
             m = Membrane.from_key(key)
-            rows = df.iloc[sample[key]]
-            h, p, f = (rows[c].to_numpy() for c in ("height_mm", "pressure_pa", "force_n"))
+            h, p, f = pts[key]
             edges = [(g.inner_mm + inset, g.outer_mm - inset) for g in m.rings]
             forces, hoop = {}, {}
             for fac in args.ring_factors:
-                params = dataclasses.replace(base, ring_mu_pa=base.ring_mu_pa * fac)
-                res = fe_force(m, h, p, params, n_elements=args.elements)
+                res = solved[name, key, fac]
                 # a plate the membrane does not reach carries nothing (the rig reads 0)
                 forces[fac] = np.maximum(np.asarray(res.force_n), 0.0)
                 r, R = np.asarray(res.r_mm).reshape(-1, res.R_mm.shape[-1])[0], np.asarray(res.R_mm)  # one mesh

@@ -540,13 +540,119 @@ def _tree_reshape(res, shape):
     )
 
 
+def _point(mesh: Mesh, hh, pp, n_steps: int, max_steps: int):
+    """One plate-held equilibrium (see :func:`fe_force` for the start and the path)."""
+    mask = _plate_mask(mesh.r.shape[0])
+    X0 = _initial_nodes(hh, mesh, pp / n_steps)
+    return _continuation(X0, jnp.asarray(0.0), pp, mesh, mask, n_steps, max_steps)
+
+
+@eqx.filter_jit
+def _points(meshes: Mesh, which, h, p, n_steps: int, max_steps: int):
+    """Every point at once: point ``i`` on mesh ``which[i]`` of the stacked ``meshes``."""
+
+    def one(i, hh, pp):
+        return _point(jax.tree_util.tree_map(lambda a: a[i], meshes), hh, pp, n_steps, max_steps)
+
+    return jax.vmap(one)(which, h, p)
+
+
+def fe_forces(
+    jobs,
+    h_mm,
+    p_pa,
+    n_elements: int = 400,
+    n_steps: int = 8,
+    max_steps: int = 200,
+    plate_contact_k=0.0,
+    batch: int = 16,
+    progress: bool = False,
+) -> list[FEResult]:
+    """:func:`fe_force` of many membranes and constants at once, each with its own points.
+
+    Every job's mesh has ``n_elements`` elements, so the meshes stack into one array and
+    the points, in batches of ``batch``, are solved by one vmapped kernel compiled once;
+    the batches run one a core on threads (XLA releases the GIL) or device.
+
+    Arguments:
+        jobs: ``(design, params)`` pairs (a :class:`~mfdesign.design.Membrane` and its
+            :class:`~mfdesign.physics.params.SimParams`).
+        h_mm: per job, plate heights [mm] (an array or a scalar).
+        p_pa: per job, gauge pressures [Pa], broadcast with that job's heights.
+        n_elements: finite elements along ``r`` (as :func:`build_mesh`).
+        n_steps: pressure increments of the quasi-static path from ``p = 0``.
+        max_steps: Newton steps allowed per increment.
+        plate_contact_k: plate-contact penalty [N/mm^3], one for every job or one per job
+            (0: the plate touches the disk only; see :func:`fe_force`).
+        batch: points a vmapped batch. A batch's Newton loops run as long as its slowest
+            point's, so on a CPU small batches waste less on points that need every step:
+            192 points of the real lifts in one batch took 2.0x the CPU of batches of 16,
+            64 took 1.44x, 8 1.05x, 1 1.26x (``experiments/bench_fe_batch.py``, 2-core
+            CPU, load 3-4). A GPU wants large batches.
+        progress: a tqdm bar over the batches.
+
+    Returns one :class:`FEResult` per job, its fields shaped like the job's broadcast
+    points (plus the node axis for ``r_mm``, ``R_mm``, ``Z_mm``).
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    # a worker count only: nothing of the shooting solver's physics is shared
+    from mfdesign.physics.solve import n_workers
+
+    enable_x64()  # float64 physics: mfdesign._x64
+    jobs = list(jobs)
+    if not (len(jobs) == len(h_mm) == len(p_pa)):
+        raise ValueError(f"fe_forces: {len(jobs)} jobs but {len(h_mm)} height and {len(p_pa)} pressure arrays")
+    ks = np.broadcast_to(np.asarray(plate_contact_k, dtype=np.float64), (len(jobs),))
+    meshes = [build_mesh(d, prm, n_elements, plate_contact_k=float(k)) for (d, prm), k in zip(jobs, ks)]
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *meshes)
+    pts = [np.broadcast_arrays(np.asarray(h, np.float64), np.asarray(p, np.float64)) for h, p in zip(h_mm, p_pa)]
+    shapes = [h.shape for h, _ in pts]
+    which = np.concatenate([np.full(h.size, j) for j, (h, _) in enumerate(pts)]).astype(np.int32)
+    h_all = np.concatenate([h.ravel() for h, _ in pts])
+    p_all = np.concatenate([p.ravel() for _, p in pts])
+    n = h_all.size
+    # equal batches (the last padded by repeating a point) so that one compilation serves all
+    size = max(1, min(int(batch), n))
+    pad = np.concatenate([np.arange(n), np.full(-n % size, n - 1)]).reshape(-1, size)
+
+    def run(sl):
+        out = _points(
+            stacked, jnp.asarray(which[sl]), jnp.asarray(h_all[sl]), jnp.asarray(p_all[sl]), n_steps, max_steps
+        )
+        if bar is not None:
+            bar.update(1)
+        return out
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(pad), desc="FE batches", unit="batch")
+    lanes = max(1, min(n_workers(), len(pad)))
+    if lanes == 1:
+        parts = [run(sl) for sl in pad]
+    else:
+        with ThreadPoolExecutor(lanes) as pool:
+            parts = list(pool.map(run, pad))
+    if bar is not None:
+        bar.close()
+    res = jax.tree_util.tree_map(lambda *a: np.concatenate(a)[:n], *parts)
+    ends = np.cumsum([int(np.prod(s)) for s in shapes])
+
+    def job(j):  # job j's slice of the points, in its own shape
+        lo, shape = ends[j] - int(np.prod(shapes[j])), shapes[j]
+        return jax.tree_util.tree_map(lambda a: jnp.asarray(a[lo : ends[j]].reshape(shape + a.shape[1:])), res)
+
+    return [job(j) for j in range(len(jobs))]
+
+
 def fe_force(
     design: Membrane,
     h_mm,
     p_pa,
     params: SimParams = SimParams(),
     n_elements: int = 400,
-    init: FEResult | None = None,
     n_steps: int = 8,
     max_steps: int = 200,
     plate_contact_k: float = 0.0,
@@ -559,33 +665,15 @@ def fe_force(
     against, and the force then includes its reaction.
 
     ``h_mm`` and ``p_pa`` may be arrays (broadcast together; solved in parallel with
-    ``vmap``). Without ``init`` each point follows quasi-static inflation at fixed ``h``
-    from ``p = 0`` in ``n_steps`` equal pressure increments, starting from the
-    logarithmic cone ``Z = h ln(r_out/r)/ln(r_out/r0)``, ``R = r``, plus a small-strain
-    bulge for the first pressure step (see :func:`_initial_nodes`). With ``init`` (a
-    converged scalar result on the same mesh) it starts from that state, its ``Z``
-    shifted by ``(h - init.h) ln(r_out/r)/ln(r_out/r0)``, raising the pressure linearly
-    from ``init.p_pa``. Unconverged points (extension limit, minimiser failure,
-    unstable state) have ``converged = False`` and NaN forces and shapes.
+    ``vmap``; :func:`fe_forces` takes many designs and constants at once). Each point
+    follows quasi-static inflation at fixed ``h`` from ``p = 0`` in ``n_steps`` equal
+    pressure increments, starting from the logarithmic cone
+    ``Z = h ln(r_out/r)/ln(r_out/r0)``, ``R = r``, plus a small-strain bulge for the first
+    pressure step (see :func:`_initial_nodes`). Unconverged points (extension limit,
+    minimiser failure, unstable state) have ``converged = False`` and NaN forces and
+    shapes.
     """
-    enable_x64()  # float64 physics: mfdesign._x64
-    mesh = build_mesh(design, params, n_elements, plate_contact_k=plate_contact_k)
-    h, p = jnp.broadcast_arrays(jnp.asarray(h_mm, dtype=jnp.float64), jnp.asarray(p_pa, dtype=jnp.float64))
-    mask = _plate_mask(mesh.r.shape[0])
-
-    def one(hh, pp):
-        if init is None:
-            X0, p0 = _initial_nodes(hh, mesh, pp / n_steps), jnp.asarray(0.0)
-        else:
-            r = mesh.r
-            shift = (hh - init.h_mm) * jnp.log(r[-1] / r) / jnp.log(r[-1] / r[0])
-            X0 = jnp.stack([init.R_mm, init.Z_mm + shift], axis=-1)
-            p0 = jnp.asarray(init.p_pa, dtype=jnp.float64)
-        return _continuation(X0, p0, pp, mesh, mask, n_steps, max_steps)
-
-    if h.ndim == 0:
-        return one(h, p)
-    return _tree_reshape(jax.vmap(one)(h.ravel(), p.ravel()), h.shape)
+    return fe_forces([(design, params)], [h_mm], [p_pa], n_elements, n_steps, max_steps, plate_contact_k)[0]
 
 
 def fe_free_inflation(
@@ -635,6 +723,7 @@ __all__ = [
     "build_mesh",
     "enclosed_volume",
     "fe_force",
+    "fe_forces",
     "fe_free_inflation",
     "potential_nodes",
 ]

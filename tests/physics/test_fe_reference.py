@@ -21,7 +21,7 @@ from scipy.integrate import solve_bvp
 
 from hencky import hencky
 from mfdesign.design import Membrane
-from mfdesign.physics.fe import fe_force, fe_free_inflation
+from mfdesign.physics.fe import fe_force, fe_forces, fe_free_inflation
 from mfdesign.physics.params import SimParams
 
 RINGLESS = "[2.0, 25.4, nan, nan, nan, nan]"
@@ -159,6 +159,31 @@ def test_fe_plate_contact_inactive_below_the_plate():
     assert np.all(np.asarray(free.Z_mm).max(1) <= h)
     touch = fe_force(design, h, p, n_elements=400, plate_contact_k=10.0)
     np.testing.assert_allclose(touch.force_n, free.force_n, rtol=0, atol=1e-9)
+
+
+def test_many_designs_in_one_call_match_one_at_a_time():
+    """``fe_forces`` stacks the meshes of unlike jobs (a ringless and a ringed membrane,
+    other rubbers, a plate contact) and solves every point in one kernel; each job's
+    result must be that job's own solve, in its own shape (a scalar, a vector, a 2 x 1
+    grid broadcast against a row), never a neighbour's mesh or points."""
+    ring, plain = Membrane.from_key(TWO_RINGS), Membrane.from_key(RINGLESS)
+    soft = SimParams(mu_pa=25e3, jm=30.0)
+    jobs = [(ring, SimParams()), (plain, soft), (ring, soft)]
+    hs = [40.0, np.array([20.0, 40.0, 30.0]), np.array([[30.0], [50.0]])]
+    ps = [8000.0, np.array([5000.0, 8000.0, 6000.0]), np.array([4000.0, 7000.0])]
+    ks = [0.0, 10.0, 0.0]
+    many = fe_forces(jobs, hs, ps, n_elements=100, plate_contact_k=ks)
+    assert [np.shape(r.force_n) for r in many] == [(), (3,), (2, 2)]
+    assert many[2].R_mm.shape == (2, 2, 101)
+    for (d, prm), h, p, k, got in zip(jobs, hs, ps, ks, many):
+        one = fe_force(d, h, p, prm, n_elements=100, plate_contact_k=k)
+        assert np.all(np.asarray(one.converged))
+        np.testing.assert_allclose(got.force_n, one.force_n, rtol=1e-10)
+        np.testing.assert_allclose(got.Z_mm, one.Z_mm, rtol=1e-10, atol=1e-10)
+    # the jobs differ, so a mix-up of meshes could not pass unseen
+    assert abs(float(many[0].force_n) - float(many[2].force_n[1, 0])) > 1.0
+    with pytest.raises(ValueError, match="2 jobs but 1 height"):
+        fe_forces(jobs[:2], hs[:1], ps[:2], n_elements=100)
 
 
 @pytest.mark.slow
