@@ -165,6 +165,7 @@ HELD_OUT_TABLES = {
     "held out (rubber free, no latents)": "real_mass_lift_nolatents",
     "held out (rubber free, no latents, stiff rings)": "real_mass_lift_rings",
     "held out (coupons' rubber, no latents, stiff rings)": "real_mass_lift_rings_coupons",
+    "held out (coupons' rubber, no latents, stiff rings, tensor lattice)": "real_mass_lift_rings_coupons_tensor",
 }
 
 
