@@ -594,10 +594,8 @@ def fe_forces(
     Returns one :class:`FEResult` per job, its fields shaped like the job's broadcast
     points (plus the node axis for ``r_mm``, ``R_mm``, ``Z_mm``).
     """
-    from concurrent.futures import ThreadPoolExecutor
-
-    # a worker count only: nothing of the shooting solver's physics is shared
-    from mfdesign.physics.solve import n_workers
+    # batching and worker count only: nothing of the shooting solver's physics is shared
+    from mfdesign.physics.solve import in_batches, n_workers
 
     enable_x64()  # float64 physics: mfdesign._x64
     jobs = list(jobs)
@@ -612,32 +610,22 @@ def fe_forces(
     h_all = np.concatenate([h.ravel() for h, _ in pts])
     p_all = np.concatenate([p.ravel() for _, p in pts])
     n = h_all.size
-    # equal batches (the last padded by repeating a point) so that one compilation serves all
-    size = max(1, min(int(batch), n))
-    pad = np.concatenate([np.arange(n), np.full(-n % size, n - 1)]).reshape(-1, size)
-
-    def run(sl):
-        out = _points(
-            stacked, jnp.asarray(which[sl]), jnp.asarray(h_all[sl]), jnp.asarray(p_all[sl]), n_steps, max_steps
-        )
-        if bar is not None:
-            bar.update(1)
-        return out
-
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(pad), desc="FE batches", unit="batch")
-    lanes = max(1, min(n_workers(), len(pad)))
-    if lanes == 1:
-        parts = [run(sl) for sl in pad]
-    else:
-        with ThreadPoolExecutor(lanes) as pool:
-            parts = list(pool.map(run, pad))
+        bar = tqdm(total=-(-n // max(1, min(int(batch), n))), desc="FE batches", unit="batch")
+    res = in_batches(
+        lambda w, hh, pp: _points(stacked, jnp.asarray(w), jnp.asarray(hh), jnp.asarray(pp), n_steps, max_steps),
+        which,
+        h_all,
+        p_all,
+        size=batch,
+        lanes=n_workers(),
+        bar=bar,
+    )
     if bar is not None:
         bar.close()
-    res = jax.tree_util.tree_map(lambda *a: np.concatenate(a)[:n], *parts)
     ends = np.cumsum([int(np.prod(s)) for s in shapes])
 
     def job(j):  # job j's slice of the points, in its own shape

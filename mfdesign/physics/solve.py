@@ -458,15 +458,32 @@ def _in_parts(kernel, *batch: np.ndarray, parts: int | None = None) -> list[np.n
     parts = min(parts, max(1, n // (PARALLEL_MIN_ROWS // 2)))
     if n < PARALLEL_MIN_ROWS or parts < 2:
         return jax.tree.map(np.asarray, kernel(*batch))
-    size = -(-n // parts)
-    padded = [np.concatenate([a, np.repeat(a[-1:], size * parts - n, axis=0)]) for a in batch]
+    return in_batches(kernel, *batch, size=-(-n // parts), lanes=parts)
+
+
+def in_batches(kernel, *batch: np.ndarray, size: int, lanes: int, bar=None):
+    """``kernel(*batch)`` in batches of ``size`` along the leading axis, ``lanes`` at a time
+    on threads (XLA releases the GIL). The last batch is padded by repeating the last row,
+    so that one compilation serves all; every output is cut back to the batch's length.
+    ``bar``: a tqdm bar advanced once a batch."""
+    n = batch[0].shape[0]
+    size = max(1, min(int(size), n))
+    count = -(-n // size)
+    padded = [np.concatenate([a, np.repeat(a[-1:], size * count - n, axis=0)]) for a in batch]
 
     def run(k):
         sl = slice(k * size, (k + 1) * size)
-        return jax.tree.map(np.asarray, kernel(*(a[sl] for a in padded)))
+        out = jax.tree.map(np.asarray, kernel(*(a[sl] for a in padded)))
+        if bar is not None:
+            bar.update(1)
+        return out
 
-    with ThreadPoolExecutor(parts) as pool:
-        chunks = list(pool.map(run, range(parts)))
+    lanes = max(1, min(int(lanes), count))
+    if lanes == 1:
+        chunks = [run(k) for k in range(count)]
+    else:
+        with ThreadPoolExecutor(lanes) as pool:
+            chunks = list(pool.map(run, range(count)))
     return jax.tree.map(lambda *outs: np.concatenate(outs)[:n], *chunks)
 
 
