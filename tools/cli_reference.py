@@ -54,6 +54,8 @@ def render() -> str:
         "help (a test keeps it in sync). Units: mm, Pa, N. Every command prints one line and exits",
         "with status 2 on bad input.",
         "",
+        (cmd.epilog or "").strip(),
+        "",
     ]
     _render(cmd, "mfdesign", out)
     return "\n".join(out).rstrip() + "\n"

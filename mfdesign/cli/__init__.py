@@ -8,7 +8,7 @@ else names a log file with the traceback and exits with status 1.
 """
 
 from mfdesign.cli import _contract, calibrate, data, demo, diagnose, optimize, propose, rig, simulate
-from mfdesign.cli._app import app
+from mfdesign.cli._app import app, plain_help
 
 __all__ = ["app"]
 
@@ -16,3 +16,4 @@ __all__ = ["app"]
 for _module in (simulate, demo, data, rig, calibrate, diagnose, propose, optimize):
     _module.register(app)
 _contract.apply(app)  # every command: --out checked and locked before computing
+plain_help(app)  # every command, sub-apps too: brackets shown as written, the design key and units

@@ -17,13 +17,39 @@ import typer
 
 from mfdesign.cli._contract import ContractGroup
 
+# Said at the foot of every command's --help (:func:`plain_help`): the design key and the
+# units are what a new user needs first, whichever command they opened.
+UNITS_EPILOG = (
+    'Designs are the key "[t, c, r1, w1, r2, w2]" in mm: thickness, contact radius, then each '
+    "ring's centre radius and half-width, nan for an absent ring. Units: heights and lengths "
+    "in mm, pressures in Pa, forces in N."
+)
+
 # ContractGroup turns whatever escapes a command into the one-line contract (module doc).
+# rich_markup_mode=None: Rich markup reads "[t, c, r1, w1, r2, w2]" and "[mm]" as style
+# tags and prints nothing for them, and puts a "<bool>" placeholder on flags; plain click
+# help prints the text as written (and does not import rich, which keeps --help fast).
 app = typer.Typer(
     help="Multi-fidelity Bayesian design of soft pneumatic actuators.",
     no_args_is_help=True,
     add_completion=False,
     cls=ContractGroup,
+    rich_markup_mode=None,
+    epilog=UNITS_EPILOG,
 )
+
+
+def plain_help(typer_app: typer.Typer) -> None:
+    """Plain help text (no Rich markup, see ``app``) for ``typer_app`` and every sub-app,
+    with :data:`UNITS_EPILOG` under every command that has no epilog of its own."""
+    typer_app.rich_markup_mode = None
+    typer_app.info.epilog = typer_app.info.epilog or UNITS_EPILOG
+    for command in typer_app.registered_commands:
+        command.epilog = command.epilog or UNITS_EPILOG
+    for group in typer_app.registered_groups:
+        if group.typer_instance is not None:
+            group.epilog = group.epilog or UNITS_EPILOG
+            plain_help(group.typer_instance)
 
 
 def enable_compilation_cache() -> Path:
