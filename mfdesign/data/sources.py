@@ -92,8 +92,11 @@ def _pickle_kind(obj, where: str) -> str:
             f"{where}: a pickle, but not an SPA_Design data dictionary (a non-empty dict of "
             f"design key -> ((us, ys), Fs, ws)); got {type(obj).__name__}; {_ALLOWED}"
         )
+    from mfdesign.data.spa_design import checked_entries
+
     lift = []
-    for key, value in obj.items():
+    for design, value in checked_entries(obj, where):
+        key = design.key()
         try:
             (us, _), fs, _ = value
             f = np.asarray(fs, dtype=np.float64).reshape(-1)
@@ -178,7 +181,7 @@ def read_characterisation(source, where: str | None = None) -> Measurements:
     Measurements: experiment "force", source "file", one trial per (membrane, set height)
     numbered in order of first appearance, ``height_set_mm = height_mm = us[:, 0]``,
     phase "inflate", no time stamps, weights ``ws``."""
-    from mfdesign.data.spa_design import _column, _design_of, restricted_load
+    from mfdesign.data.spa_design import _column, checked_entries, restricted_load
 
     if isinstance(source, (str, os.PathLike)):
         where = where or str(source)
@@ -187,8 +190,8 @@ def read_characterisation(source, where: str | None = None) -> Measurements:
     if not isinstance(source, dict) or not source:
         raise InputError(f"{where}: expected a non-empty dict of membranes, got {type(source).__name__}")
     frames = []
-    for key, value in source.items():
-        design = _design_of(key, where)
+    for design, value in checked_entries(source, where):
+        key = design.key()
         try:
             (us, ys), fs, ws = value
             us = np.asarray(us, dtype=np.float64)

@@ -32,6 +32,7 @@ import pandas as pd
 
 from mfdesign.design import DesignError, Membrane
 from mfdesign.data.measurements import Measurements
+from mfdesign.data.plausible import check_rows
 from mfdesign.errors import InputError
 
 __all__ = [
@@ -43,6 +44,7 @@ __all__ = [
     "SimPlane",
     "UnsafePickleError",
     "load_mass_lift",
+    "checked_entries",
     "load_sim_planes",
     "restricted_load",
     "restricted_loads",
@@ -100,6 +102,7 @@ MAX_OPCODES = 5_000_000
 MAX_NODES = 1_000_000  # distinct containers and arrays (shared ones counted once)
 MAX_TREE_NODES = 10_000_000  # the structure unfolded into a tree (what np.asarray would walk)
 MAX_DEPTH = 32
+MAX_MEMO_GETS = 100_000  # real files: < 400 re-uses of a memoised object
 # Opcodes that build things outside "numeric arrays in dict / list / tuple of str / bytes /
 # numbers": refused before anything is loaded, with what they would have built.
 _REFUSED_OPCODES = {
@@ -240,17 +243,111 @@ class _RestrictedUnpickler(pickle.Unpickler):
         return target
 
 
+class _Sym:
+    """What the prescan knows of one stack item: its kind and how deep it nests."""
+
+    __slots__ = ("kind", "depth")
+
+    def __init__(self, kind: str, depth: int = 0):
+        self.kind, self.depth = kind, depth
+
+
+_MARK = _Sym("mark")
+_STR_OPS = {"STRING", "BINSTRING", "SHORT_BINSTRING", "UNICODE", "BINUNICODE", "SHORT_BINUNICODE", "BINUNICODE8"}
+_KIND_OF = {"TUPLE": "tuple", "EMPTY_TUPLE": "tuple", "TUPLE1": "tuple", "TUPLE2": "tuple", "TUPLE3": "tuple"}
+_KIND_OF |= {"EMPTY_LIST": "list", "LIST": "list", "EMPTY_DICT": "dict", "DICT": "dict"}
+_KIND_OF |= dict.fromkeys(_STR_OPS, "str")
+# Opcodes that hand back the object they were given (mutated): it keeps its identity.
+_SAME_OBJECT = {"APPEND", "APPENDS", "SETITEM", "SETITEMS", "BUILD", "MEMOIZE"}
+
+
 def _prescan(data: bytes) -> None:
-    """Refuse set / instance / extension opcodes and overlong streams before loading."""
-    try:
-        for n, (op, _, _) in enumerate(pickletools.genops(data)):
-            if op.name in _REFUSED_OPCODES:
+    """Refuse set / instance / extension opcodes, overlong streams, non-string dict keys,
+    deep nesting and heavy memo re-use, before anything is built.
+
+    Why a symbolic run of the stack: the unpickler hashes a dict key the moment it sets
+    it, and hashing a tuple is recursive C. A key that is a 100-level DAG of shared tuples
+    costs 2^100 hash steps (a hang); a 400,000-deep tuple overflows the C stack (SIGSEGV).
+    Both happen inside ``Unpickler.load``, before any check on the result could run, so
+    the keys' kinds and the nesting depth are followed here, on the opcodes alone."""
+    stack: list[_Sym] = []
+    memo: dict[object, _Sym] = {}
+    gets = 0
+
+    def pop_to_mark() -> list[_Sym]:
+        items = []
+        while stack and stack[-1] is not _MARK:
+            items.append(stack.pop())
+        if not stack:
+            raise pickle.UnpicklingError("not a valid pickle (truncated or corrupt): MARK missing")
+        stack.pop()
+        return items[::-1]
+
+    def pop(n: int) -> list[_Sym]:
+        if len(stack) < n:
+            raise pickle.UnpicklingError("not a valid pickle (truncated or corrupt): stack underflow")
+        items = stack[len(stack) - n :]
+        del stack[len(stack) - n :]
+        return items
+
+    def check_keys(keys: list[_Sym]) -> None:
+        for key in keys:
+            if key.kind != "str":
                 raise UnsafePickleError(
-                    f"the pickle builds {_REFUSED_OPCODES[op.name]} (opcode {op.name}); " + _ALLOWED_WORDS
+                    f"the pickle uses a {key.kind} as a dict key; allowed: string keys only (" + _ALLOWED_WORDS + ")"
+                )
+
+    try:
+        for n, (op, arg, _) in enumerate(pickletools.genops(data)):
+            name = op.name
+            if name in _REFUSED_OPCODES:
+                raise UnsafePickleError(
+                    f"the pickle builds {_REFUSED_OPCODES[name]} (opcode {name}); " + _ALLOWED_WORDS
                 )
             if n >= MAX_OPCODES:
                 raise UnsafePickleError(f"the pickle has more than {MAX_OPCODES:,} opcodes; allowed: fewer")
-    except UnsafePickleError:
+            if name == "MARK":
+                stack.append(_MARK)
+                continue
+            if name in ("PUT", "BINPUT", "LONG_BINPUT", "MEMOIZE"):
+                if not stack:
+                    raise pickle.UnpicklingError("not a valid pickle (truncated or corrupt): memo of nothing")
+                memo[len(memo) if name == "MEMOIZE" else arg] = stack[-1]
+                continue
+            if name in ("GET", "BINGET", "LONG_BINGET"):
+                gets += 1
+                if gets > MAX_MEMO_GETS:
+                    raise UnsafePickleError(
+                        f"the pickle re-uses memoised objects more than {MAX_MEMO_GETS:,} times; allowed: fewer"
+                    )
+                if arg not in memo:
+                    raise pickle.UnpicklingError(f"not a valid pickle (truncated or corrupt): memo {arg} unset")
+                stack.append(memo[arg])
+                continue
+            if name == "DUP":
+                stack.append(pop(1)[0])
+                stack.append(stack[-1])
+                continue
+            before, after = op.stack_before, op.stack_after
+            if pickletools.stackslice in before:
+                items = pop_to_mark()
+                below = pop(before.index(pickletools.markobject))
+            else:
+                items, below = pop(len(before)), []
+            if name in ("SETITEM", "SETITEMS", "DICT"):
+                check_keys(items[0::2] if name != "SETITEM" else items[1:2])  # [dict, key, value]
+            target = None
+            if name in _SAME_OBJECT:  # the container (or array) is below the mark, else first
+                target = below[0] if below else items.pop(0)
+            depth = 1 + max((i.depth for i in items), default=0)
+            if depth > MAX_DEPTH:
+                raise UnsafePickleError(f"pickle nests containers deeper than {MAX_DEPTH} levels")
+            if target is not None:
+                target.depth = max(target.depth, depth)
+                stack.append(target)
+            elif after:
+                stack.extend(_Sym(_KIND_OF.get(name, "other"), depth if len(items) else 0) for _ in after)
+    except (UnsafePickleError, pickle.UnpicklingError):
         raise
     except Exception as err:  # noqa: BLE001 -- pickletools raises ValueError and worse on junk
         raise pickle.UnpicklingError(f"not a valid pickle (truncated or corrupt): {err}") from None
@@ -354,6 +451,41 @@ def _design_of(key: str, where: str) -> Membrane:
         raise InputError(f"{where}: {key!r} is not a valid design: {err}") from None
 
 
+def _rows_of(value) -> int:
+    """Rows an entry ``((us, ys), Fs, ws)`` will expand to (0 when malformed: the reader
+    then says what is wrong with it)."""
+    try:
+        (us, _), _, _ = value
+        return len(us)
+    except (TypeError, ValueError):
+        return 0
+
+
+def checked_entries(data: dict, where: str) -> list[tuple[Membrane, object]]:
+    """The entries of an SPA_Design data dictionary as (design, value), refused in one line
+    when two keys spell one design or the entries expand to too many rows.
+
+    Why before any frame is built: entries can share one value through the pickle's memo,
+    so a 470 kB file of 2,000 spellings of one key (``2``, ``2.0``, ``+2.0``, ...) over one
+    10,000-row value expands to 2e7 rows and gigabytes of frames. Canonical keys make the
+    spellings one design; the row count is summed from the entries' lengths alone."""
+    seen: dict[str, str] = {}
+    out, rows = [], 0
+    for key, value in data.items():
+        design = _design_of(key, where)
+        canonical = design.key()
+        if canonical in seen:
+            raise InputError(
+                f"{where}: keys {seen[canonical]!r} and {key!r} are one design {canonical}; "
+                "allowed: one entry per membrane"
+            )
+        seen[canonical] = key
+        rows += _rows_of(value)
+        check_rows(rows, where)
+        out.append((design, value))
+    return out
+
+
 def _column(a, n: int, what: str) -> np.ndarray:
     try:
         a = np.asarray(a, dtype=np.float64)
@@ -387,8 +519,8 @@ def load_mass_lift(path: str | os.PathLike | None = None) -> Measurements:
             f"of {len(data) if hasattr(data, '__len__') else '?'} entries"
         )
     frames = []
-    for key, value in data.items():
-        design = _design_of(key, str(p))
+    for design, value in checked_entries(data, str(p)):
+        key = design.key()
         try:
             (us, ys), fs, ws = value
         except (TypeError, ValueError):
@@ -471,7 +603,7 @@ def load_sim_planes(path: str | os.PathLike | None = None) -> list[SimPlane]:
             f"{p}: expected a list of at least 7 (name, (F, p, h)), got {type(data).__name__} "
             f"of {len(data) if hasattr(data, '__len__') else '?'} entries"
         )
-    names, arrays = [], []
+    names, arrays, rows = [], [], 0
     for i, entry in enumerate(data):
         try:
             name, (f, pr, h) = entry
@@ -485,6 +617,8 @@ def load_sim_planes(path: str | os.PathLike | None = None) -> list[SimPlane]:
             raise InputError(f"{p}: entry {i + 1}: F, p, h lengths {len(f)}, {len(pr)}, {len(h)} differ")
         names.append(str(name))
         arrays.append((f, pr, h * 1e3))  # file: metres -> mm
+        rows += len(f)
+        check_rows(rows, str(p))  # entries may share one array: bound what they expand to
     designs = _fixed_designs(names, str(p))
     return [SimPlane(d, f, pr, h, label_in_file=n) for d, n, (f, pr, h) in zip(designs, names, arrays)]
 

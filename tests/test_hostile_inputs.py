@@ -1,0 +1,114 @@
+"""Hostile inputs of issue 44, one class at a time: each test names its class.
+
+Every probe is small and built here, as a user or an attacker would build it. A probe that
+once hung or crashed the interpreter runs in a child process under a timeout, so that a
+regression fails this test instead of taking the test run down with it."""
+
+from __future__ import annotations
+
+import pickle
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from mfdesign.errors import InputError
+
+DESIGN = "[2.0, 25.4, nan, nan, nan, nan]"
+
+
+# -- class 1: the restricted unpickler --------------------------------------------------
+def tuple_dag_key(levels: int) -> bytes:
+    """{key: 1} where key is tuple k = (tuple k-1, tuple k-1): a DAG of ``levels`` tuples
+    in ~6 bytes a level; hashing it visits 2^levels nodes."""
+    out = b"\x80\x02}" + b"K\x01\x85q\x00"  # PROTO 2; EMPTY_DICT; (1,); BINPUT 0
+    for i in range(1, levels):
+        out += b"h" + bytes([i - 1]) + b"h" + bytes([i - 1]) + b"\x86q" + bytes([i])  # TUPLE2; BINPUT i
+    return out + b"K\x01s."  # value 1; SETITEM; STOP
+
+
+def deep_tuple_key(depth: int) -> bytes:
+    """{((((1,),),)...): 1}, ``depth`` levels: hashing it recurses ``depth`` deep in C."""
+    return b"\x80\x02}K\x01" + b"\x85" * depth + b"K\x01s."
+
+
+def _load_in_child(path, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    code = (
+        "import sys\n"
+        "from mfdesign.data.spa_design import restricted_load, UnsafePickleError\n"
+        "try:\n    restricted_load(sys.argv[1])\n"
+        "except UnsafePickleError as err:\n    print('REFUSED', err); sys.exit(2)\n"
+    )
+    return subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize(
+    "name, data, match",
+    [
+        ("dag", tuple_dag_key(100), "deeper than 32 levels"),
+        ("shallow", tuple_dag_key(20), "tuple as a dict key"),
+        ("deep", deep_tuple_key(400_000), "deeper than 32 levels|tuple as a dict key"),
+    ],
+)
+def test_class1_tuple_keys_refused_without_hanging_or_crashing(tmp_path, name, data, match):
+    path = tmp_path / f"{name}.pkl"
+    path.write_bytes(data)
+    assert len(data) < 500_000
+    t0 = time.perf_counter()
+    try:
+        run = _load_in_child(path)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"{name}: the unpickler hung")
+    assert run.returncode == 2, (run.returncode, run.stdout[-300:], run.stderr[-300:])  # not -11 (SIGSEGV)
+    assert "REFUSED" in run.stdout and __import__("re").search(match, run.stdout), run.stdout
+    assert time.perf_counter() - t0 < 30
+
+
+def test_class1_memo_reuse_is_bounded():
+    from mfdesign.data.spa_design import MAX_MEMO_GETS, UnsafePickleError, restricted_loads
+
+    body = b"\x80\x02K\x01q\x00]q\x01(" + b"h\x00" * (MAX_MEMO_GETS + 1) + b"e."  # [1, 1, 1, ...] by memo
+    with pytest.raises(UnsafePickleError, match="re-uses memoised objects"):
+        restricted_loads(body)
+
+
+def _dict_pickle(keys: list[str], rows: int) -> bytes:
+    """SPA_Design data dictionary whose entries all share ONE value of ``rows`` rows."""
+    us = np.tile(np.r_[0.0, 2.0, 25.4, np.nan, np.nan, np.nan, np.nan], (rows, 1))
+    us[:, 0] = np.arange(rows) % 50
+    value = ((us, np.full((rows, 1), 5e3)), np.full((rows, 1), 14.715), np.ones((rows, 1)))
+    return pickle.dumps({k: value for k in keys}, protocol=4)
+
+
+def test_class1_spellings_of_one_design_are_one_key(tmp_path):
+    from mfdesign.data.sources import read_source
+
+    spellings = [DESIGN, "[2, 25.4, nan, nan, nan, nan]", "[+2.0, 25.4, NaN, nan, nan, nan]"]
+    path = tmp_path / "dupes.pkl"
+    path.write_bytes(_dict_pickle(spellings, 60))
+    for fmt in ("auto", "mass-lift", "characterisation"):
+        with pytest.raises(InputError, match=r"are one design \[2.0, 25.4"):
+            read_source(path, fmt)
+
+
+def test_class1_rows_bounded_before_frames_are_built(tmp_path):
+    from mfdesign.data import plausible
+    from mfdesign.data.sources import read_source
+
+    # 2,000 spellings of one design sharing one 10k-row value: 470 kB, 2e7 rows once expanded
+    spellings = [f"[2.0,{' ' * k}25.4, nan, nan, nan, nan]" for k in range(2000)]
+    path = tmp_path / "spellings.pkl"
+    path.write_bytes(_dict_pickle(spellings, 10_000))
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match="one design"):
+        read_source(path, "mass-lift")
+    # distinct designs over one shared value: refused by the row bound, before any frame
+    keys = [f"[{1.0 + k * 0.008:.3f}, 25.4, nan, nan, nan, nan]" for k in range(250)]
+    path.write_bytes(_dict_pickle(keys, 10_000))
+    assert 250 * 10_000 > plausible.MAX_ROWS
+    for fmt in ("auto", "mass-lift", "characterisation"):
+        with pytest.raises(InputError, match=f"allowed: at most {plausible.MAX_ROWS:,} rows"):
+            read_source(path, fmt)
+    assert time.perf_counter() - t0 < 20
