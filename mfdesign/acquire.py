@@ -295,7 +295,9 @@ class Run:
     ``rank``: 1 = the largest reduction; ``reduction_n``: what it adds to the batch's
     utility after the runs ranked above it and the pending membranes (N; the runs' sum is
     :attr:`Proposal.utility`); ``alone_n``: its reduction on its own beyond the pending
-    membranes (N); ``cost``; ``reason``: one sentence computed from the members on the grid.
+    membranes (N); ``cost``; ``reason``: one sentence computed from the members on the grid;
+    ``reduction_rms_n``: ``reduction_n`` as a spread, N RMS per member and grid point
+    (:func:`per_point`).
     """
 
     rank: int
@@ -305,6 +307,7 @@ class Run:
     alone_n: float
     cost: float
     reason: str
+    reduction_rms_n: float | None = None
 
     def to_json(self) -> dict:
         return {
@@ -312,6 +315,7 @@ class Run:
             "design": self.design.key(),
             "fidelity": self.fidelity,
             "reduction_n": self.reduction_n,
+            "reduction_rms_n": self.reduction_rms_n,
             "alone_n": self.alone_n,
             "cost": self.cost,
             "reason": self.reason,
@@ -519,15 +523,30 @@ def explain(predictor: AbstractPredictor, design, fidelity: str, grid: Grid = Gr
     return phrase, {"h_mm": hs, "p_pa": ps, "std_n": top}
 
 
-def _reason(phrase: str, gain: float, alone: float, rank: int) -> str:
-    """One sentence for a ranked run (numbers from :func:`explain` and :func:`_rank`)."""
+def per_point(score_n: float, n_members: int, n_points: int) -> float:
+    """A score of :func:`batch_utility` (N: a sum over ``n_members`` of L2 norms over
+    ``n_points`` grid points) as a spread in newtons: the members' RMS deviation from their
+    mean per grid point, averaged over the members, ``score / (M sqrt(G))``."""
+    return float(score_n) / (max(n_members, 1) * math.sqrt(max(n_points, 1)))
+
+
+def _reason(phrase: str, gain: float, alone: float, rank: int, n_members: int = 1, n_points: int = 1) -> str:
+    """One sentence for a ranked run (numbers from :func:`explain` and :func:`_rank`). The
+    paper's score is a sum over members of grid norms, not a spread anyone can read off a
+    plot: the sentence gives it per member and grid point (:func:`per_point`) and says what
+    the sum is."""
     if gain <= 1e-9 * max(alone, 1e-300) or gain <= 0.0:
         return (
-            f"adds no reduction beyond the runs ranked above and the pending membranes (alone {alone:.3g} N); "
+            f"adds no reduction beyond the runs ranked above and the pending membranes (alone "
+            f"{per_point(alone, n_members, n_points):.3g} N per member and grid point); "
             f"the most uncertain distinct design left, {phrase}"
         )
     after = "" if rank == 1 else " beyond the runs ranked above"
-    return f"reduces the spread by {gain:.3g} N{after}, most {phrase}"
+    return (
+        f"reduces the spread by {per_point(gain, n_members, n_points):.3g} N RMS per member and grid point{after} "
+        f"(the paper's score {gain:.3g} N is that summed over {n_members} members' L2 norms on the "
+        f"{n_points}-point grid), most {phrase}"
+    )
 
 
 def propose(
@@ -696,11 +715,21 @@ def propose(
     cost = float(sum(costs[f] for f in fids))
     scores = tuple(float(dev[j].sum() / costs[fids[j]]) for j in range(q))
     order, gains, alone = _rank(np.where(np.isfinite(dev), dev, 0.0), base)
+    n_points = len(grid.h_mm) * len(grid.p_pa)
     runs = []
     for rank, (j, gain) in enumerate(zip(order, gains), start=1):
         phrase, _ = explain(predictor, designs[j], fids[j], grid)
         runs.append(
-            Run(rank, designs[j], fids[j], gain, alone[j], float(costs[fids[j]]), _reason(phrase, gain, alone[j], rank))
+            Run(
+                rank,
+                designs[j],
+                fids[j],
+                gain,
+                alone[j],
+                float(costs[fids[j]]),
+                _reason(phrase, gain, alone[j], rank, dev.shape[1], n_points),
+                per_point(gain, dev.shape[1], n_points),
+            )
         )
     return Proposal(
         designs,

@@ -340,6 +340,7 @@ def test_budget_gives_each_fidelity_its_runs_ranked_with_reasons():
     for r in prop.runs:
         assert r.cost == COSTS[r.fidelity] and r.alone_n >= r.reduction_n - 1e-12
         assert "mm" in r.reason and "kPa" in r.reason and " N" in r.reason
+        assert r.reduction_rms_n == pytest.approx(r.reduction_n / (M * np.sqrt(6)))  # GRID: 3 x 2 points
     out = prop.to_json()
     assert [r["fidelity"] for r in out["fabricate"]] == ["rig"]
     assert all(r["made_by"].startswith("the tool") for r in out["simulate"])
@@ -364,6 +365,23 @@ def test_reason_names_where_the_members_disagree():
     assert where["h_mm"] == [40.0] and where["p_pa"] == [5000.0]
     assert where["std_n"] == pytest.approx(6.0)  # members +-(1 + 2) * 2 mm
     assert phrase.startswith("at 40 mm, 5 kPa where the members disagree most (member std up to 6 N)")
+
+
+def test_reduction_is_reported_as_a_spread_in_newtons():
+    """The paper's score sums L2 grid norms over members ("reduces the spread by 16.9 N" read
+    as a spread was ~M sqrt(G) times too large): members that sit +-1.5 N off their mean at
+    every grid point give a reduction of 1.5 N per member and grid point, whatever M and G."""
+    from mfdesign.acquire import _reason, batch_utility, per_point
+
+    signs = np.array([1.0, -1.0, 1.0, -1.0])
+    members = 1.5 * signs[:, None] * np.ones((4, len(GRID.h_mm) * len(GRID.p_pa)))  # [M, G]
+    dev = np.linalg.norm(members - members.mean(0), axis=1)[:, None]  # [M, q=1]
+    score = float(batch_utility(jnp.asarray(dev)))
+    assert score == pytest.approx(4 * 1.5 * np.sqrt(6))  # the paper's sum, not a spread
+    assert per_point(score, 4, 6) == pytest.approx(1.5)
+    words = _reason("at 40 mm, 5 kPa", score, score, 1, 4, 6)
+    assert words.startswith("reduces the spread by 1.5 N RMS per member and grid point")
+    assert f"the paper's score {score:.3g} N is that summed over 4 members' L2 norms on the 6-point grid" in words
 
 
 def _split_folder(path):

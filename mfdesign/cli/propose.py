@@ -265,7 +265,7 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"{title}:")
             for r in runs:
                 typer.echo(
-                    f"  {r.rank}. {r.design.key()}  expected reduction {r.reduction_n:.4g} N, cost {r.cost:g}: {r.reason}"
+                    f"  {r.rank}. {r.design.key()}  expected reduction {r.reduction_rms_n:.3g} N RMS per member and grid point, cost {r.cost:g}: {r.reason}"
                 )
                 if r.rank in lines:
                     typer.echo(f"     {lines[r.rank]}")

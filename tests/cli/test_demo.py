@@ -26,7 +26,7 @@ def assert_page_shows_the_numbers(lines: list[str], out: Path) -> None:
     medians and 90 % intervals, convergence (tau, R-hat, ESS), RMSE before / after and the
     noise floor, the verdict, the effects found and each round's screen, truths, proposals."""
     from mfdesign.calibration.posterior import convergence_rows
-    from mfdesign.cli._demo import _num, _short
+    from mfdesign.cli._demo import _num, _optimum_headline, _short
     from mfdesign.report.render import cell
 
     summary = json.loads((out / "summary.json").read_text())
@@ -96,7 +96,7 @@ def assert_page_shows_the_numbers(lines: list[str], out: Path) -> None:
         assert f"The multi-fidelity model's {summary['discrepancy_gate']}." in lines
     for why in summary["optimum"].get("limits") or []:
         assert f"At a limit: {why}" in lines
-    assert f"Optimised for lift task A: {_short(summary['optimum']['design'])}." in lines
+    assert _optimum_headline(summary["optimum"]) in lines
     assert ", ".join(f"{n} {c:.2f}" for n, c in summary["coverage_90"].items()) in text
 
 
@@ -118,6 +118,10 @@ def test_quick_demo_writes_a_report_chromium_can_show(tmp_path):
         assert [r["parameter"] for r in truths["table"]] == list(summary["truth_check"])
     if not all(c["converged"] for c in summary["convergence"].values()):
         assert any("has not converged" in b for b in report["banners"])
+    # The optimum shown is the simulator's check of the emulator's answer, never its word alone.
+    optimum = json.loads((tmp_path / "optimize" / "optimum.json").read_text())
+    assert optimum["simulator"] is not None and summary["optimum"]["simulator"] is not None
+    assert "the simulator (calibrated constants) lifts the loads to" in report["summary"][3]
     assert all(p["fidelity"] == "rig" and p["reason"] for p in summary["proposals"])  # to build, with why
     # Both fits reach ArviZ and Posterior.load in physical units (mu in Pa, J_m > 1).
     import arviz as az
@@ -239,3 +243,100 @@ def test_calibrate_draws_truth_lines_only_for_the_bundled_dataset():
     assert truths["mu_pa"] == 31700.0 and truths["pressure_sensor.offset_pa"] == 150.0
     assert _bundled_truths([bundled_path()]) == truths
     assert _bundled_truths([Path("mine.parquet")]) == {} and _bundled_truths([Path("bundled")] * 2) == {}
+
+
+def _optimum(**kw):
+    """An optimum as summary.json holds it (numbers made up for the test)."""
+    opt = {
+        "design": "[1.5, 26.5, nan, nan, nan, nan]",
+        "task": "A",
+        "limits": [],
+        "alternatives": [],
+        "alternatives_gap_pct": [],
+        "tie_tol_pct": 2.0,
+        "force_n": [9.81, 14.7, 19.6],
+        "p_pa": [6900.0, 6900.0, 8300.0],
+        "h_model_mm": [60.0, 50.0, 40.0],
+        "simulator": {
+            "h_sim_mm": [61.0, 49.5, 40.2],
+            "status": ["OK"] * 3,
+            "model_error_mm": [-1.0, 0.5, -0.2],
+            "mae_mm": 0.57,
+            "constants": {"constants": "calibrated"},
+        },
+        "unchecked": None,
+    }
+    return opt | kw
+
+
+def test_the_headline_gives_the_simulators_heights_and_the_emulators_error():
+    from mfdesign.cli._demo import _optimum_headline, _optimum_table
+
+    words = _optimum_headline(_optimum())
+    assert words.startswith("Optimised for lift task A: [1.50, 26.50, nan, nan, nan, nan]")
+    assert "the simulator (calibrated constants) lifts the loads to 61.0, 49.5, 40.2 mm" in words
+    assert "the emulator's error there (emulator minus simulator): -1.0 to +0.5 mm" in words
+    unchecked = _optimum_headline(_optimum(simulator=None, unchecked="stand-in physics"))
+    assert "not checked by the simulator (stand-in physics): the heights are the model's word alone" in unchecked
+    rows = _optimum_table(_optimum())
+    assert [r["simulator height [mm]"] for r in rows] == [61.0, 49.5, 40.2]
+    assert list(rows[0]) == [
+        "load [N]",
+        "pressure [kPa]",
+        "emulator height [mm]",
+        "simulator height [mm]",
+        "emulator error [mm]",
+    ]
+
+
+def test_banners_state_the_limits_of_the_optimum_and_of_the_spread():
+    """What the headline must not hide: an optimum at the grid's top and above the rig's
+    travel, a near-tie, a simulator run far off the predicted spread, an unchecked optimum,
+    and a simulator that puts the optimum elsewhere; none of them for a clean one."""
+    from mfdesign.cli._demo import _banners
+
+    good = _diag(1.53, 0.32, 0.283, ["pressure_sensor"], "explained")
+    conv = {"with_effects": {"converged": True}}
+    assert (
+        _banners(
+            good, conv, _optimum(), [{"design": "[2, 30, nan, nan, nan, nan]", "rmse_n": 0.5, "predicted_std_n": 0.4}]
+        )
+        == []
+    )
+    top = "lift height of 9.81 N at 6.9 kPa is at the 80 mm top of the height grid"
+    bad = _optimum(
+        limits=[top, "thickness 1 mm is at the design space's lower bound 1 mm"],
+        alternatives=["[1.6, 27.0, nan, nan, nan, nan]", "[1.4, 26.0, nan, nan, nan, nan]"],
+        simulator=_optimum()["simulator"] | {"h_sim_mm": [None, 45.0, 40.2], "model_error_mm": [None, 5.0, -0.2]},
+    )
+    run = {"design": "[1.5, 30.0, nan, nan, nan, nan]", "rmse_n": 4.39, "predicted_std_n": 0.295}
+    banners = _banners(good, conv, bad, [run])
+    assert len(banners) == 4, banners
+    spread, limit, tie, sim = banners
+    assert "understated" in spread and "4.39 N RMS" in spread and "0.295 N RMS (15x)" in spread
+    assert limit.startswith(f"The optimum for lift task A sits at a limit: {top}") and "1 more limit" in limit
+    assert "near-tie: 2 other design(s) come within 2 % of its loss" in tie
+    assert "simulator beyond the grid, 45.0, 40.2 mm against the emulator's 60.0, 50.0, 40.0 mm" in sim
+    alone = _banners(good, conv, _optimum(simulator=None, unchecked="stand-in physics"))
+    assert alone == ["The optimum for lift task A is the model's answer alone: stand-in physics."]
+
+
+def test_the_page_puts_every_banner_above_the_first_number(tmp_path):
+    """Without a browser: the stored quick demo's page (tests/cli/demo_report) carries its
+    banners (chains, the understated spread, the optimum's limit, near-tie, no check) in
+    the red box above the summary, and the headline says the optimum was not checked."""
+    from markupsafe import escape  # Jinja's own escaping, as the page was written
+
+    from mfdesign.cli._demo import _optimum_headline, demo_report
+
+    shutil.copytree(FIXTURE, tmp_path, dirs_exist_ok=True)
+    _stand_in_pictures(tmp_path)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    demo_report(tmp_path, summary).write(tmp_path)
+    page = (tmp_path / "index.html").read_text()
+    first = page.index(escape(f"{summary['rows']} rows of {summary['membranes']} membranes"))
+    kinds = ("has not converged", "spread is understated", "sits at a limit", "near-tie", "answer alone")
+    for kind in kinds:
+        banner = next(b for b in summary["banners"] if kind in b)
+        assert 0 <= page.index(escape(banner)) < first, kind
+    assert escape(_optimum_headline(summary["optimum"])) in page
