@@ -17,6 +17,7 @@ import contextlib
 import fcntl
 import json
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
@@ -27,8 +28,10 @@ __all__ = [
     "LOCK_NAME",
     "OutputLock",
     "atomic_path",
+    "file_lock",
     "prepare_out_dir",
     "prepare_out_file",
+    "refuse_inputs",
     "savefig",
     "write_bytes",
     "write_json",
@@ -97,9 +100,72 @@ def savefig(fig, path: str | os.PathLike, **kwargs) -> Path:
 
 
 # -- checking outputs before any computation ----------------------------------------------
+def _refuse_special(out: Path, option: str) -> None:
+    """Refuse a path that exists and is neither a regular file nor a folder.
+
+    Why: a write goes through a temporary file renamed onto the target, and a rename
+    replaces whatever the name pointed at: run as root, ``--out /dev/full`` replaced the
+    machine's device node with a regular file. A FIFO or a socket is no output either."""
+    try:
+        mode = os.stat(out).st_mode  # follows links: a link to a device is a device
+    except FileNotFoundError:
+        return
+    except OSError as err:
+        raise InputError(
+            f"{option} {out}: cannot inspect it ({err.strerror or err}); allowed: a path you can write"
+        ) from None
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        kind = next((w for test, w in _SPECIAL if test(mode)), "not a regular file")
+        raise InputError(f"{option} {out} is {kind}; allowed: a regular file or a folder")
+
+
+_SPECIAL = (
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return int(os.pathconf(folder if folder.is_dir() else ".", "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
+
+
+def _check_name_length(out: Path, option: str) -> None:
+    """The temporary file beside the target (``.<name>.XXXXXXXX<suffix>``, :func:`atomic_path`)
+    must fit the file system's name limit too, else the write fails after the computation."""
+    longest = len(f".{out.name}.XXXXXXXX{out.suffix}".encode())
+    limit = _name_max(out.parent)
+    if len(out.name.encode()) > limit or longest > limit:
+        raise InputError(
+            f"{option}: the name {out.name[:40]!r}... is {len(out.name.encode())} bytes long; allowed: at most "
+            f"{limit - len(out.suffix.encode()) - 10} bytes (the file system's limit, less room for a temporary name)"
+        )
+
+
+def refuse_inputs(out: str | os.PathLike, inputs, option: str = "--out") -> None:
+    """Refuse an output that resolves to one of ``inputs`` (paths; missing ones ignored).
+
+    Why: ``mfdesign import x.csv --out x.csv`` replaced the input CSV with Parquet bytes."""
+    out = Path(out)
+    if not out.exists():
+        return
+    for item in inputs:
+        try:
+            same = os.path.samefile(out, item)
+        except (OSError, TypeError, ValueError):
+            continue
+        if same:
+            raise InputError(f"{option} {out} is the input {item}; allowed: an output that is not one of the inputs")
+
+
 def prepare_out_dir(out: str | os.PathLike, option: str = "--out") -> Path:
     """Create the output folder (and parents) or say in one line why it cannot be one."""
     out = Path(out)
+    _refuse_special(out, option)
     if out.exists() and not out.is_dir():
         raise InputError(f"{option} {out} is an existing file, not a folder; allowed: a new or existing folder")
     try:
@@ -113,31 +179,57 @@ def prepare_out_dir(out: str | os.PathLike, option: str = "--out") -> Path:
     return out
 
 
-def prepare_out_file(out: str | os.PathLike, option: str = "--out") -> Path:
-    """Check that a single output file can be written (its folder is created)."""
+def prepare_out_file(out: str | os.PathLike, option: str = "--out", suffixes: tuple[str, ...] | None = None) -> Path:
+    """Check that a single output file can be written (its folder is created).
+
+    ``suffixes``: the file name endings the written format allows (the first one is what
+    the message suggests); why: ``--out name.csv`` holding Parquet bytes misleads every
+    later reader of the name."""
     out = Path(out)
+    _refuse_special(out, option)
     if out.is_dir():
         raise InputError(f"{option} {out} is a folder; allowed: a file name (e.g. metrics.json)")
+    if suffixes and out.suffix.lower() not in suffixes:
+        raise InputError(
+            f"{option} {out}: the name ends in {out.suffix or 'no suffix'!r} but the file written is "
+            f"{suffixes[0].lstrip('.')}; allowed: a name ending in {' or '.join(suffixes)}"
+        )
+    _check_name_length(out, option)
     prepare_out_dir(out.parent, option=f"{option} folder")
     if out.exists() and not os.access(out, os.W_OK):
         raise InputError(f"{option} {out} is not writable; allowed: a file you can write")
     return out
 
 
-class OutputLock:
-    """Exclusive, non-blocking lock on an output folder (see the module doc)."""
+def file_lock(out: str | os.PathLike, option: str = "--out") -> "OutputLock":
+    """The lock of a single output file: ``.<name>.mfdesign.lock`` beside it (the file
+    itself cannot carry the lock: the atomic write replaces its inode)."""
+    out = Path(out)
+    return OutputLock(out.parent, option, lock_name=f".{out.name}{LOCK_NAME}", shown=out)
 
-    def __init__(self, out: str | os.PathLike, option: str = "--out"):
-        self.out, self.option = Path(out), option
+
+class OutputLock:
+    """Exclusive, non-blocking lock on an output folder, or on one file through
+    :func:`file_lock` (see the module doc)."""
+
+    def __init__(
+        self,
+        out: str | os.PathLike,
+        option: str = "--out",
+        lock_name: str = LOCK_NAME,
+        shown: str | os.PathLike | None = None,
+    ):
+        self.out, self.option, self.lock_name = Path(out), option, lock_name
+        self.shown = Path(shown) if shown is not None else self.out
         self._fd: int | None = None
 
     def acquire(self) -> "OutputLock":
-        path = self.out / LOCK_NAME
+        path = self.out / self.lock_name
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as err:
             raise InputError(
-                f"{self.option} {self.out}: cannot create the lock file {LOCK_NAME} "
+                f"{self.option} {self.shown}: cannot create the lock file {self.lock_name} "
                 f"({err.strerror or err}); allowed: a folder you can write"
             ) from None
         try:
@@ -146,8 +238,8 @@ class OutputLock:
             holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
             os.close(fd)
             raise InputError(
-                f"{self.option} {self.out} is in use by another mfdesign run (pid {holder}); "
-                "allowed: one run per output folder at a time (wait for it, or choose another "
+                f"{self.option} {self.shown} is in use by another mfdesign run (pid {holder}); "
+                "allowed: one run per output at a time (wait for it, or choose another "
                 f"{self.option})"
             ) from None
         os.ftruncate(fd, 0)

@@ -112,3 +112,112 @@ def test_class1_rows_bounded_before_frames_are_built(tmp_path):
         with pytest.raises(InputError, match=f"allowed: at most {plausible.MAX_ROWS:,} rows"):
             read_source(path, fmt)
     assert time.perf_counter() - t0 < 20
+
+
+# -- class 2: outputs that replace what they should not --------------------------------
+def _cli(*args: str):
+    from typer.testing import CliRunner
+
+    from mfdesign.cli import app
+
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def _one_line_exit2(r, words: str) -> None:
+    assert r.exit_code == 2, r.output
+    assert len(r.output.strip().splitlines()) == 1, r.output
+    assert words in r.output, r.output
+
+
+@pytest.fixture
+def small_csv(tmp_path):
+    from mfdesign.data.sources import read_source
+
+    path = tmp_path / "in.csv"
+    read_source("bundled").df.head(200).to_csv(path, index=False)
+    return path
+
+
+def test_class2_out_that_is_no_regular_file_or_folder_is_refused(tmp_path, small_csv):
+    import os
+
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    _one_line_exit2(_cli("import", small_csv, "--out", fifo), "is a FIFO (named pipe); allowed: a regular file")
+    _one_line_exit2(_cli("import", small_csv, "--out", "/dev/null"), "is a character device")
+    link = tmp_path / "link.json"
+    link.symlink_to("/dev/null")
+    _one_line_exit2(_cli("cv", small_csv, "--model-type", "curve-fit", "--out", link), "is a character device")
+    _one_line_exit2(_cli("fit", small_csv, "--out", fifo), "is a FIFO")
+    assert fifo.exists() and not fifo.is_file() and os.path.realpath(link) == "/dev/null"
+
+
+def test_class2_out_that_is_an_input_or_the_wrong_suffix_is_refused(tmp_path, small_csv):
+    parquet = tmp_path / "in.parquet"
+    assert _cli("import", small_csv, "--out", parquet).exit_code == 0
+    before = parquet.read_bytes()
+    _one_line_exit2(_cli("import", parquet, "--out", parquet), "is the input")
+    alias = tmp_path / "alias.parquet"
+    alias.symlink_to(parquet)
+    _one_line_exit2(_cli("import", alias, "--out", parquet), "is the input")
+    assert parquet.read_bytes() == before
+    before = small_csv.read_bytes()
+    _one_line_exit2(_cli("import", small_csv, "--out", small_csv), "allowed: a name ending in .parquet")
+    _one_line_exit2(_cli("import", small_csv, "--out", tmp_path / "x.csv"), "the file written is parquet")
+    _one_line_exit2(_cli("cv", small_csv, "--out", tmp_path / "cv.parquet"), "allowed: a name ending in .json")
+    assert small_csv.read_bytes() == before and not (tmp_path / "x.csv").exists()
+
+
+def test_class2_a_file_output_is_locked_like_a_folder(tmp_path, small_csv):
+    from mfdesign.outputs import file_lock
+
+    out = tmp_path / "m.parquet"
+    with file_lock(out):  # another run holds it
+        _one_line_exit2(_cli("import", small_csv, "--out", out), "is in use by another mfdesign run")
+    assert not out.exists()
+    assert _cli("import", small_csv, "--out", out).exit_code == 0 and out.is_file()
+
+
+# -- class 7: the Python API -------------------------------------------------------------
+def test_class7_python_api_bad_input_is_input_error(tmp_path):
+    import mfdesign
+    from mfdesign.data.sources import read_source
+
+    with pytest.raises(InputError, match="allowed"):
+        mfdesign.load(123)
+    m = mfdesign.Membrane(2.0, 25.4)
+    with pytest.raises(InputError, match="allowed"):
+        mfdesign.force_plane(m, [], [])
+    with pytest.raises(InputError, match="does not exist"):
+        read_source("bundled").to_parquet(tmp_path / "missing" / "m.parquet")
+    with pytest.raises(FileNotFoundError):  # still one, for callers that catch it
+        read_source("bundled").to_parquet(tmp_path / "missing" / "m.parquet")
+
+
+# -- class 8: the rig's port --------------------------------------------------------------
+@pytest.mark.parametrize(
+    "port, words",
+    [
+        ("/etc/passwd", "is a regular file, not a serial device"),
+        ("loop://", "pyserial's loopback"),
+        ("/", "is a folder, not a serial device"),
+    ],
+)
+def test_class8_a_port_that_is_no_rig_is_a_bad_argument(tmp_path, port, words):
+    for command in (["characterize", "--heights", "0"], ["lift", "--mass-kg", "1"]):
+        r = _cli("rig", *command, "--port", port, "--design", DESIGN, "--out", tmp_path / "job", "--no-progress")
+        _one_line_exit2(r, words)
+    assert not (tmp_path / "job").exists()
+
+
+def test_class6_rig_out_that_cannot_be_a_job_folder(tmp_path):
+    import os
+
+    (tmp_path / "file").write_text("x")
+    r = _cli("rig", "characterize", "--port", "/dev/null", "--design", DESIGN, "--out", tmp_path / "file")
+    _one_line_exit2(r, "is an existing file, not a folder")
+    if os.geteuid() != 0:  # root writes anywhere
+        ro = tmp_path / "ro"
+        ro.mkdir(mode=0o500)
+        r = _cli("rig", "characterize", "--port", "/dev/null", "--design", DESIGN, "--out", ro / "job")
+        _one_line_exit2(r, "cannot create the folder")

@@ -29,8 +29,8 @@ from mfdesign.errors import anticipated, one_line
 
 __all__ = ["ContractCommand", "ContractGroup", "apply", "item_parser", "effect_name", "log_dir"]
 
-# Commands whose --out is one file, not a folder.
-FILE_OUTPUTS = {"cv", "import"}
+# Commands whose --out is one file, not a folder, and the name endings of what they write.
+FILE_OUTPUTS = {"cv": (".json",), "import": (".parquet",)}
 _LOG_DIR_KEY = "mfdesign.log_dir"
 
 
@@ -58,7 +58,7 @@ class ContractCommand(TyperCommand):
 
     def invoke(self, ctx):
         from mfdesign._x64 import enable_x64
-        from mfdesign.outputs import OutputLock, prepare_out_dir, prepare_out_file
+        from mfdesign.outputs import OutputLock, file_lock, prepare_out_dir, prepare_out_file, refuse_inputs
 
         # The one place the CLI switches JAX to float64: when a command really runs (never
         # for --help), before it creates any array.
@@ -67,14 +67,30 @@ class ContractCommand(TyperCommand):
         out = ctx.params.get("out")
         if out is None:
             return super().invoke(ctx)
+        inputs = _input_paths(ctx.params)
         if self.name in FILE_OUTPUTS:
-            prepare_out_file(out)
-            ctx.meta[_LOG_DIR_KEY] = Path(out).parent
-            return super().invoke(ctx)
+            prepare_out_file(out, suffixes=FILE_OUTPUTS[self.name])
+            refuse_inputs(out, inputs)
+            with file_lock(out):  # two runs writing one file: the second is refused, not the last one wins
+                ctx.meta[_LOG_DIR_KEY] = Path(out).parent
+                return super().invoke(ctx)
         prepare_out_dir(out)
+        refuse_inputs(out, inputs)
         with OutputLock(out):
             ctx.meta[_LOG_DIR_KEY] = Path(out)
             return super().invoke(ctx)
+
+
+def _input_paths(params: dict) -> list[Path]:
+    """Every path a command was given other than ``--out`` (its inputs)."""
+    found: list[Path] = []
+    for name, value in params.items():
+        if name == "out":
+            continue
+        for item in value if isinstance(value, (list, tuple)) else [value]:
+            if isinstance(item, Path):
+                found.append(item)
+    return found
 
 
 def _click_exception():

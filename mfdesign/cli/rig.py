@@ -64,8 +64,50 @@ def _signals_as_interrupt() -> None:
         pass
 
 
+# pyserial URL schemes that can reach a rig; loop:// is pyserial's loopback, which only
+# echoes the host's own commands (no rig is ever behind it).
+_PORT_SCHEMES = ("socket", "rfc2217", "spy", "alt", "hwgrep")
+
+
+def check_port(port: str) -> str:
+    """Refuse a ``--port`` that cannot be a rig controller (a bad argument, exit 2), before
+    the job folder is touched: a regular file, a folder, loop://. A device path that does
+    not exist stays a rig fault (an unplugged USB cable: plug it in and resume)."""
+    import os
+    import stat
+
+    from mfdesign.errors import InputError
+
+    allowed = f"allowed: a serial device (e.g. /dev/ttyUSB0) or a pyserial URL ({', '.join(s + '://' for s in _PORT_SCHEMES)})"
+    if "://" in port:
+        scheme = port.split("://", 1)[0].lower()
+        if scheme not in _PORT_SCHEMES:
+            why = (
+                " (pyserial's loopback: it echoes the host's own commands, no rig is behind it)"
+                if scheme == "loop"
+                else ""
+            )
+            raise InputError(f"--port {port!r}: the URL scheme {scheme!r} reaches no rig{why}; {allowed}")
+        return port
+    try:
+        mode = os.stat(port).st_mode
+    except FileNotFoundError:
+        return port
+    except OSError as err:
+        raise InputError(f"--port {port!r}: cannot inspect it ({err.strerror or err}); {allowed}") from None
+    if not stat.S_ISCHR(mode):
+        kind = (
+            "a folder" if stat.S_ISDIR(mode) else "a regular file" if stat.S_ISREG(mode) else "not a character device"
+        )
+        raise InputError(f"--port {port!r} is {kind}, not a serial device; {allowed}")
+    return port
+
+
 def _finish(job_dir: Path, run) -> None:
+    from mfdesign.outputs import prepare_out_dir
     from mfdesign.rig.procedures import JobError, to_measurements
+
+    prepare_out_dir(job_dir)  # an existing file or a read-only folder: one line, before the rig is touched
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     _signals_as_interrupt()
@@ -168,6 +210,7 @@ def characterize(
             f"heights {bad} outside the rig's [{cfg.height_min_mm:g}, {cfg.height_max_mm:g}] mm", param_hint="--heights"
         )
     plan = membrane_plan(d, heights_mm=hs, trials=trials, source=source)
+    check_port(port)
     _finish(out, lambda: run_job(port, out, plan, cfg, progress=progress))
 
 
@@ -194,6 +237,7 @@ def lift(
             f"must be below the hard limit {cfg.hard_pressure_limit_pa:g} Pa", param_hint="--pressure-limit-pa"
         )
     plan = lift_plan(d, mass_kg, trials=trials, pressure_limit_pa=pressure_limit_pa, source=source)
+    check_port(port)
     _finish(out, lambda: run_job(port, out, plan, cfg, progress=progress))
 
 

@@ -85,6 +85,10 @@ class MeasurementError(InputError):
     """A Measurements table that breaks the schema; the message names column, row and rule."""
 
 
+class _PathMissing(FileNotFoundError, InputError):
+    """A file or folder that is not there: bad input (exit 2), still a FileNotFoundError."""
+
+
 # -- validation helpers -------------------------------------------------------------------
 def _first_bad(column: str, values: np.ndarray, bad: np.ndarray, rule: str) -> None:
     if bad.any():
@@ -381,7 +385,7 @@ class Measurements:
 
         path = Path(path)
         if not path.parent.is_dir():
-            raise FileNotFoundError(f"folder {path.parent} does not exist; create it first")
+            raise _PathMissing(f"folder {path.parent} does not exist; allowed: a file in an existing folder")
         table = pa.Table.from_pandas(self._df, preserve_index=False)
         table = table.replace_schema_metadata({**(table.schema.metadata or {}), FORMAT_KEY: FORMAT_VERSION.encode()})
         with atomic_path(path) as tmp:
@@ -399,7 +403,7 @@ class Measurements:
 
         path = Path(path)
         if not path.is_file():
-            raise FileNotFoundError(f"no Measurements file at {path}")
+            raise _PathMissing(f"no Measurements file at {path}; allowed: a file written by to_parquet")
         try:
             table = pq.read_table(path)
         except (pa.ArrowInvalid, OSError) as err:

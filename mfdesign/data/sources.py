@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Sequence
 
 import numpy as np
 import pandas as pd
@@ -281,8 +281,15 @@ def read_source(source: str | os.PathLike, fmt: str = "auto") -> Measurements:
 def load_sources(sources: str | os.PathLike | Sequence[str | os.PathLike], fmt: str = "auto") -> Measurements:
     """Several sources (module doc) as one Measurements; trial ids renumbered per membrane
     when there is more than one source."""
-    items: Iterable = [sources] if isinstance(sources, (str, os.PathLike)) else list(sources)
-    items = list(items)
+    if isinstance(sources, (str, os.PathLike)):
+        items: list = [sources]
+    elif isinstance(sources, (list, tuple)):
+        items = list(sources)
+    else:
+        items = [sources]
+    bad = [s for s in items if not isinstance(s, (str, os.PathLike))]
+    if bad:
+        raise InputError(f"data {bad[0]!r} is a {type(bad[0]).__name__}, not a name or a path; {_ALLOWED}")
     if not items:
         raise InputError(f"no data given; {_ALLOWED}")
     parts = [read_source(s, fmt) for s in items]

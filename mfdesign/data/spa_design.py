@@ -451,14 +451,16 @@ def _design_of(key: str, where: str) -> Membrane:
         raise InputError(f"{where}: {key!r} is not a valid design: {err}") from None
 
 
-def _rows_of(value) -> int:
-    """Rows an entry ``((us, ys), Fs, ws)`` will expand to (0 when malformed: the reader
-    then says what is wrong with it)."""
+def _rows_of(key, value, where: str) -> int:
+    """Rows an entry ``((us, ys), Fs, ws)`` will expand to."""
     try:
         (us, _), _, _ = value
         return len(us)
     except (TypeError, ValueError):
-        return 0
+        raise InputError(
+            f"{where}: entry {key!r} is not ((us, ys), Fs, ws); allowed: an SPA_Design data dictionary "
+            "of design key -> ((us [n, 7], ys [n, 1]), Fs [n, 1], ws [n, 1])"
+        ) from None
 
 
 def checked_entries(data: dict, where: str) -> list[tuple[Membrane, object]]:
@@ -472,6 +474,8 @@ def checked_entries(data: dict, where: str) -> list[tuple[Membrane, object]]:
     seen: dict[str, str] = {}
     out, rows = [], 0
     for key, value in data.items():
+        rows += _rows_of(key, value, where)
+        check_rows(rows, where)
         design = _design_of(key, where)
         canonical = design.key()
         if canonical in seen:
@@ -480,8 +484,6 @@ def checked_entries(data: dict, where: str) -> list[tuple[Membrane, object]]:
                 "allowed: one entry per membrane"
             )
         seen[canonical] = key
-        rows += _rows_of(value)
-        check_rows(rows, where)
         out.append((design, value))
     return out
 

@@ -31,6 +31,7 @@ import optimistix as optx
 
 from mfdesign._x64 import enable_x64
 from mfdesign.design import Membrane
+from mfdesign.errors import InputError
 from mfdesign.physics import shooting as sh
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status
@@ -487,6 +488,18 @@ def in_batches(kernel, *batch: np.ndarray, size: int, lanes: int, bar=None):
     return jax.tree.map(lambda *outs: np.concatenate(outs)[:n], *chunks)
 
 
+def _checked_grid(values, name: str, what: str) -> np.ndarray:
+    """A grid argument as a non-empty 1-D float array, else InputError (an empty grid
+    reached JAX as a zero-size reduction: a traceback, not a message)."""
+    try:
+        grid = np.asarray(values, float).ravel()
+    except (TypeError, ValueError):
+        raise InputError(f"force_plane: {name} is not a list of numbers; allowed: {what}") from None
+    if grid.size == 0:
+        raise InputError(f"force_plane: {name} is empty; allowed: at least one value ({what})")
+    return grid
+
+
 def force_plane(
     design: Membrane,
     h_grid_mm: Sequence[float],
@@ -521,10 +534,12 @@ def force_plane(
     usable), status codes, locking, rise and wrinkling checks.
     """
     enable_x64()  # float64 physics: mfdesign._x64
-    h_grid = np.asarray(h_grid_mm, float).ravel()
-    p_grid = np.asarray(p_grid_pa, float).ravel()
+    if not isinstance(design, Membrane):
+        raise InputError(f"force_plane: design is a {type(design).__name__}; allowed: a Membrane")
+    h_grid = _checked_grid(h_grid_mm, "h_grid_mm", "plate heights [mm]")
+    p_grid = _checked_grid(p_grid_pa, "p_grid_pa", "gauge pressures [Pa], strictly increasing")
     if p_grid.size and np.any(np.diff(p_grid) <= 0):
-        raise ValueError("force_plane needs strictly increasing pressures")
+        raise InputError("force_plane needs strictly increasing pressures; allowed: p_grid_pa sorted, no repeats")
     p_pos = np.where(p_grid > 0, p_grid, np.nan)
     first = np.nanmin(p_pos) if np.any(p_grid > 0) else 1000.0
     # Path: from first/4 up through every grid pressure with substeps in between; at least
