@@ -22,9 +22,36 @@ import pandas as pd
 
 from mfdesign.models.hierarchical import LATENT
 
-__all__ = ["Posterior", "arviz_diagnostics", "convergence_rows", "load_inference_data", "save_inference_data"]
+__all__ = [
+    "Posterior",
+    "arviz_diagnostics",
+    "convergence_rows",
+    "convergence_rule",
+    "load_inference_data",
+    "save_inference_data",
+]
 
 NETCDF_NAME = "posterior.nc"
+
+
+def convergence_rule() -> str:
+    """The one convergence rule, in words: every report (``posterior.json`` ``convergence.rule``,
+    the demo's page, docs/calibration.md) states this sentence and no other threshold.
+
+    Why R-hat and ESS are not part of it: the walkers of an ensemble sampler are not
+    independent chains (each move uses the others), so R-hat across walkers checks mixing
+    but does not prove convergence; emcee's integrated autocorrelation time is the criterion
+    of its authors (Foreman-Mackey et al. 2013, and emcee's "autocorrelation analysis" guide)."""
+    from mfdesign.calibration.mcmc import ACCEPTANCE_RANGE, MIN_TAU_RATIO
+
+    lo, hi = ACCEPTANCE_RANGE
+    return (
+        f"A chain has converged when, after its adaptation steps, it is at least {MIN_TAU_RATIO:g} times its "
+        f"longest integrated autocorrelation time tau long (emcee), its mean acceptance lies in {lo:g}-{hi:g}, "
+        "and no draw presses on the edge of the force model's lattice. R-hat and bulk / tail ESS (ArviZ, "
+        "computed on the draws posterior.nc holds) are reported beside it as checks of mixing, not as part "
+        "of the rule: emcee's walkers are not independent chains."
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,8 +170,27 @@ class Posterior:
             return np.swapaxes(self.chain, 0, 1), np.swapaxes(self.log_prob_chain, 0, 1)
         return self.samples[None], self.log_prob[None]
 
+    def tau_step(self) -> int:
+        """Every how many stored draws one is about one autocorrelation time apart:
+        ``ceil(tau_max / thin)`` (the stored chain is thinned by ``thin`` = tau_min / 2
+        steps, :func:`~mfdesign.calibration.mcmc.calibrate`); 1 when the report lacks them."""
+        c = self.convergence or {}
+        tau, thin = c.get("tau_max"), c.get("thin") or 1
+        if not (isinstance(tau, (int, float)) and np.isfinite(tau) and tau > 0):
+            return 1
+        return max(1, int(np.ceil(float(tau) / float(thin))))
+
+    def file_chains(self) -> tuple[np.ndarray, np.ndarray]:
+        """What ``posterior.nc`` holds: :meth:`chains` thinned to one draw per autocorrelation
+        time (:meth:`tau_step`), every walker and every kept draw otherwise. Draws closer than
+        tau carry little new information and would multiply the pointwise groups' cost (draws
+        x rows force evaluations) for nothing."""
+        x, lp = self.chains()
+        step = self.tau_step() if self.chain is not None else 1
+        return x[:, ::step], lp[:, ::step]
+
     def to_inference_data(
-        self, model=None, data=None, *, max_draws: int | None = 1000, seed: int = 0, max_rows: int | None = 3000
+        self, model=None, data=None, *, max_draws: int | None = None, seed: int = 0, max_rows: int | None = 3000
     ):
         """An ``arviz.InferenceData`` in physical units, dims ``chain x draw`` (walkers as chains).
 
@@ -163,13 +209,14 @@ class Posterior:
         * ``observed_data``: ``force_n`` [row]; ``constant_data``: ``height_mm``,
           ``pressure_pa``, ``weight``, ``membrane`` (index into ``design_keys``).
 
-        Rows of weight 0 (padding) are left out. ``max_draws``: with a model, the draws of
-        every chain are thinned evenly so that chains x draws <= ``max_draws`` (the
-        pointwise groups cost draws x rows force evaluations); ``None`` keeps all.
+        Rows of weight 0 (padding) are left out. Draws: every walker's kept draws, one per
+        autocorrelation time (:meth:`file_chains`); ``max_draws`` (default ``None``: all of
+        them) thins them further, evenly, so that chains x draws <= ``max_draws`` when a model
+        is given (the pointwise groups cost draws x rows force evaluations).
         """
         import arviz as az
 
-        x, lp = self.chains()
+        x, lp = self.file_chains()
         n_chain, n_draw = x.shape[:2]
         if model is not None and data is not None and max_draws is not None and n_chain * n_draw > max_draws:
             step = int(np.ceil(n_chain * n_draw / max_draws))
@@ -222,6 +269,8 @@ class Posterior:
                 "effects": ",".join(self.effects),
                 "design_keys": json.dumps(list(self.design_keys)),
                 "chains_are": "emcee walkers (not independent chains)",
+                "draws_are": f"every {self.tau_step() if self.chain is not None else 1} stored draw(s): "
+                "about one autocorrelation time apart",
                 "n_samples_in_npz": int(len(self.samples)),
             }
         )
@@ -446,9 +495,29 @@ def convergence_rows(convergence: dict[str, Any]) -> list[dict[str, Any]]:
     ]
 
 
+def file_diagnostics(idata, names) -> dict[str, Any]:
+    """:func:`arviz_diagnostics` of the ``posterior`` group of ``idata`` (the draws a
+    ``posterior.nc`` holds), per parameter of ``names`` (``thickness[i]`` is the variable
+    ``thickness`` at membrane ``i``): what ``az.summary`` on the file reports."""
+    post = idata.posterior
+    cols = []
+    for name in names:
+        if name.startswith(LATENT):
+            cols.append(np.asarray(post["thickness"])[..., int(name[len(LATENT) : -1])])
+        else:
+            cols.append(np.asarray(post[name]))
+    x = np.stack(cols, axis=-1)  # [chain, draw, dim]
+    return arviz_diagnostics(np.swapaxes(x, 0, 1), names)
+
+
 def save_inference_data(post: Posterior, path, model=None, data=None, **kwargs) -> Path:
     """``post.to_inference_data(model, data, **kwargs)`` written atomically as netCDF
-    (``posterior.nc``; engine h5netcdf). Reload: :func:`load_inference_data`."""
+    (``posterior.nc``; engine h5netcdf). Reload: :func:`load_inference_data`.
+
+    The R-hat and ESS in ``post.convergence`` are then replaced by those ArviZ computes on
+    the draws just written (:func:`file_diagnostics`), with ``draws_in_file`` and the
+    :func:`convergence_rule`: a report shows the numbers ``az.summary`` gives on the file,
+    not those of other draws. Save ``post`` (:meth:`Posterior.save`) after this."""
     from mfdesign import outputs
 
     path = Path(path)
@@ -456,6 +525,13 @@ def save_inference_data(post: Posterior, path, model=None, data=None, **kwargs) 
         path = path / NETCDF_NAME
     path.parent.mkdir(parents=True, exist_ok=True)
     idata = post.to_inference_data(model, data, **kwargs)
+    post.convergence.update(file_diagnostics(idata, post.names))
+    post.convergence["draws_in_file"] = {
+        "file": path.name,
+        "chains": int(idata.posterior.sizes["chain"]),
+        "draws": int(idata.posterior.sizes["draw"]),
+    }
+    post.convergence["rule"] = convergence_rule()
     with outputs.atomic_path(path) as tmp:
         try:
             idata.to_netcdf(str(tmp), engine="h5netcdf")

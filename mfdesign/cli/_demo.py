@@ -413,6 +413,15 @@ def _truth_table(check: dict, table: list[dict]) -> list[dict]:
     ]
 
 
+def _rule(summary: dict) -> str:
+    """The convergence rule as the chains' reports state it (one rule, stated once:
+    :func:`~mfdesign.calibration.posterior.convergence_rule`)."""
+    from mfdesign.calibration.posterior import convergence_rule
+
+    rules = {c.get("rule") for c in summary["convergence"].values() if c.get("rule")}
+    return "Rule: " + (rules.pop() if len(rules) == 1 else convergence_rule())
+
+
 def _convergence_table(convergence: dict) -> list[dict]:
     """Both chains' per-parameter rows (``summary["convergence"][tag]["parameters"]``: emcee's
     tau, ArviZ's R-hat and ESS) in one table, model first."""
@@ -466,10 +475,9 @@ def demo_report(out: str | Path, summary: dict):
     rep.add(
         "Convergence of the chains: autocorrelation time (emcee), R-hat and ESS (ArviZ)",
         [
-            "Per parameter: the integrated autocorrelation time tau in steps (emcee; the chain must be at "
-            "least 50 tau long), R-hat over the walkers (want < 1.01) and the bulk / tail effective sample "
-            "sizes (ArviZ). The walkers of an ensemble sampler are not independent chains: tau is the "
-            "primary criterion, R-hat a check of mixing.",
+            "Per parameter: the integrated autocorrelation time tau in steps (emcee), R-hat over the walkers "
+            "and the bulk / tail effective sample sizes (ArviZ, on the draws each posterior.nc holds).",
+            _rule(summary),
         ]
         + [
             f"{tag.replace('_', ' ')}: {c['steps_over_tau']:.1f} tau long, acceptance {c['acceptance']:.2f}, "
@@ -670,12 +678,13 @@ def run_demo(
         d.mkdir(parents=True, exist_ok=True)
         post = fit_.posterior
         table = post.summary()
-        # posterior.json + .npz (``Posterior.load``) and posterior.nc (``az.from_netcdf``: the
-        # constrained parameters, chain x draw, and as ``mfdesign calibrate`` writes it the
-        # pointwise groups on the rows the chain saw: log-likelihood, posterior predictive,
-        # observed data). 200 draws keep those cheap (draws x rows force evaluations).
+        # posterior.nc (``az.from_netcdf``: the constrained parameters, chain x draw, every
+        # walker's kept draws one autocorrelation time apart, and as ``mfdesign calibrate``
+        # writes it the pointwise groups on the rows the chain saw: log-likelihood, posterior
+        # predictive, observed data), then posterior.json + .npz (``Posterior.load``): written
+        # second, so that its R-hat and ESS are those ArviZ computes on posterior.nc.
+        save_inference_data(post, d / "posterior.nc", fit_.model, meas, seed=s.seed, max_rows=max_rows)
         post.save(d / "posterior")
-        save_inference_data(post, d / "posterior.nc", fit_.model, meas, max_draws=200, seed=s.seed, max_rows=max_rows)
         keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
         names = [post.names[i] for i in keep]
         corner_plot(
@@ -743,6 +752,8 @@ def run_demo(
                 "rhat_max",
                 "ess_bulk_min",
                 "ess_tail_min",
+                "draws_in_file",
+                "rule",
             )
         }
         | {"parameters": convergence_rows(f.posterior.convergence)}

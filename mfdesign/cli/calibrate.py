@@ -133,6 +133,18 @@ def _run(
                 )
         except ValueError as err:
             fail(str(err))
+    from mfdesign.calibration.posterior import save_inference_data  # ArviZ: az.from_netcdf(OUT/posterior.nc)
+
+    # Written first: the R-hat and ESS printed below and saved in posterior.json are those
+    # ArviZ computes on this file's draws (every walker's kept draws, one per tau).
+    save_inference_data(
+        post,
+        out / "posterior.nc",
+        fit.model if multi_fidelity else model,
+        table,
+        seed=seed,
+        max_rows=max_rows,
+    )
     typer.echo(post.format_table())
     c = post.convergence
     typer.echo(
@@ -145,18 +157,7 @@ def _run(
     )
     for w in caught:
         typer.echo(f"warning: {w.message}", err=True)
-    post.save(out / "posterior")
-    from mfdesign.calibration.posterior import save_inference_data  # ArviZ: az.from_netcdf(OUT/posterior.nc)
-
-    save_inference_data(
-        post,
-        out / "posterior.nc",
-        fit.model if multi_fidelity else model,
-        table,
-        max_draws=500,
-        seed=seed,
-        max_rows=max_rows,
-    )
+    post.save(out / "posterior")  # after posterior.nc: its R-hat and ESS are those of the file
     keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
     names = [post.names[i] for i in keep]
     truths = _bundled_truths(data)  # the bundled data's card knows what made them: red lines

@@ -340,3 +340,8 @@ def test_the_page_puts_every_banner_above_the_first_number(tmp_path):
         banner = next(b for b in summary["banners"] if kind in b)
         assert 0 <= page.index(escape(banner)) < first, kind
     assert escape(_optimum_headline(summary["optimum"])) in page
+    # One convergence rule, stated once (the page once wanted R-hat < 1.01 while summary.json
+    # called a chain with R-hat 1.038 converged).
+    from mfdesign.calibration.posterior import convergence_rule
+
+    assert page.count(str(escape("Rule: " + convergence_rule()))) == 1 and "want &lt; 1.01" not in page
