@@ -1,10 +1,10 @@
 """Pairwise ("corner") plots of posterior samples.
 
-:func:`corner_plot` (matplotlib only; what the commands write): diagonal, histogram of
-each parameter with its 5 / 50 / 95 % quantiles; below the diagonal, 2-d histograms of
-each pair; optional ``truths`` drawn as lines. :func:`pair_plot`: the same with the
-``corner`` package (Foreman-Mackey 2016; the ``[viz]`` extra), from a
-:class:`~mfdesign.calibration.posterior.Posterior` or samples, truths as lines.
+:func:`corner_plot` (what the commands write): ArviZ's ``plot_pair`` (marginal histograms
+on the diagonal, 2-d densities below it) in the figures' units (Pa shown as kPa, every
+label with its unit; docs/figures.md), optional ``truths`` drawn as lines.
+:func:`pair_plot`: the same with the ``corner`` package (Foreman-Mackey 2016; the
+``[viz]`` extra), from a :class:`~mfdesign.calibration.posterior.Posterior` or samples.
 
 :func:`pit` and :func:`predictive_check_plot`: is the posterior predictive calibrated? The
 probability integral transform of each observed force under its replicated forces (an
@@ -21,22 +21,59 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["corner_plot", "pair_plot", "pit", "pit_coverage", "predictive_check_plot"]
+__all__ = ["corner_plot", "display_label", "pair_plot", "pit", "pit_coverage", "predictive_check_plot"]
 
 LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95)
 
 
+# Units the figures show instead of the stored ones (docs/figures.md): pascals read as
+# "3.364e+04 Pa" and their tick labels run into each other; kPa reads as 33.64.
+DISPLAY_UNITS = {"Pa": ("kPa", 1e-3)}
+
+
+def display_label(name: str, unit: str | None) -> tuple[str, float]:
+    """``(axis label, factor)`` of a parameter in the figures' units: ``mu_pa`` in Pa ->
+    ``("mu [kPa]", 1e-3)``; a parameter without a unit keeps its name."""
+    if not unit or unit == "1":
+        return name, 1.0
+    shown, factor = DISPLAY_UNITS.get(unit, (unit, 1.0))
+    base = name[: -len("_pa")] if unit == "Pa" and name.endswith("_pa") else name
+    return f"{base} [{shown}]", factor
+
+
+def _reach(lims, value: float, margin: float = 0.05) -> tuple[float, float]:
+    """Axis limits ``lims`` widened to include ``value`` with a margin (unchanged if inside)."""
+    lo, hi = lims
+    if lo <= value <= hi:
+        return lo, hi
+    lo, hi = min(lo, value), max(hi, value)
+    return lo - margin * (hi - lo), hi + margin * (hi - lo)
+
+
 def corner_plot(
-    samples, names: Sequence[str], path, truths: Sequence[float] | None = None, bins: int = 30, title: str | None = None
+    samples,
+    names: Sequence[str],
+    path,  # a PNG path, or None for the figure
+    truths: Sequence[float | None] | None = None,
+    bins: int = 30,
+    title: str | None = None,
+    units: Sequence[str] | None = None,
 ) -> Path:
     """Write a pairwise plot of ``samples`` [S, d] to ``path`` (PNG) and return the path.
 
-    ``truths``: one value per parameter, drawn as red lines; None (or NaN) for a parameter
-    whose truth is unknown draws no line for it."""
+    Drawn by ArviZ (``az.plot_pair``: 2-d KDE below the diagonal, marginal densities on it),
+    a dependency already, rather than by hand. ``units``: one per parameter (e.g. a
+    Posterior's ``units``); Pa is shown in kPa and every axis label carries its unit
+    (:func:`display_label`). At most three ticks per axis, rotated, so that their labels
+    do not run into each other. ``truths``: one value per parameter (stored units), drawn
+    as red lines; None (or NaN) draws no line for that parameter. ``bins``: the marginal
+    histograms' bins. ``path`` None: return the matplotlib figure instead of writing it."""
+    import arviz as az
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     samples = np.asarray(samples, float)
     if samples.ndim != 2 or samples.shape[1] != len(names):
@@ -44,48 +81,58 @@ def corner_plot(
     d = samples.shape[1]
     if truths is not None and len(truths) != d:
         raise ValueError(f"{len(truths)} truths for {d} parameters {list(names)}")
-    truth = (
-        [None if t is None or not np.isfinite(t) else float(t) for t in truths] if truths is not None else [None] * d
-    )
-    fig, axes = plt.subplots(d, d, figsize=(1.9 * d + 1, 1.9 * d + 1), squeeze=False)
-    lims = [np.quantile(samples[:, i], [0.002, 0.998]) for i in range(d)]
-    lims = [(lo, hi) if hi > lo else (lo - 1e-9 - abs(lo) * 1e-3, hi + 1e-9 + abs(hi) * 1e-3) for lo, hi in lims]
-    # A truth outside the posterior's bulk still shows: the axis reaches it (with a margin).
-    lims = [
-        (lo, hi)
-        if t is None or lo <= t <= hi
-        else (min(lo, t) - 0.05 * (max(hi, t) - min(lo, t)), max(hi, t) + 0.05 * (max(hi, t) - min(lo, t)))
-        for (lo, hi), t in zip(lims, truth)
+    if units is not None and len(units) != d:
+        raise ValueError(f"{len(units)} units for {d} parameters {list(names)}")
+    shown = [display_label(n, None if units is None else units[i]) for i, n in enumerate(names)]
+    labels = [lab for lab, _ in shown]
+    x = samples * np.array([f for _, f in shown])
+    truth = [
+        None if truths is None or truths[i] is None or not np.isfinite(truths[i]) else float(truths[i]) * shown[i][1]
+        for i in range(d)
     ]
+    size = 1.9 * d + 1.2
+    data = {lab: x[None, :, i] for i, lab in enumerate(labels)}  # one chain: the draws are pooled
+    axes = az.plot_pair(
+        data,
+        kind="kde" if len(x) >= 20 else "scatter",
+        marginals=True,
+        figsize=(size, size),
+        textsize=8,
+        marginal_kwargs={"kind": "hist", "hist_kwargs": {"bins": bins, "color": "0.45"}},
+        kde_kwargs={
+            "contour": True,
+            "fill_last": False,
+            "contourf_kwargs": {"cmap": "Greys"},
+            "contour_kwargs": {"colors": "0.3", "linewidths": 0.5},
+        },
+        backend_kwargs={"layout": "constrained"},
+        show=False,
+    )
+    axes = np.atleast_2d(axes)
+    fig = axes.ravel()[0].figure
     for i in range(d):
         for j in range(d):
             ax = axes[i, j]
-            if j > i:
-                ax.set_axis_off()
+            if ax is None or not ax.get_visible() or j > i:
                 continue
-            if i == j:
-                ax.hist(samples[:, i], bins=bins, range=lims[i], color="0.35", histtype="step")
-                for q in np.quantile(samples[:, i], [0.05, 0.5, 0.95]):
-                    ax.axvline(q, color="C0", lw=0.8, ls="--")
-                ax.set_yticks([])
-            else:
-                ax.hist2d(samples[:, j], samples[:, i], bins=bins, range=[lims[j], lims[i]], cmap="Greys")
-                if truth[i] is not None:
-                    ax.axhline(truth[i], color="C3", lw=0.8)
+            # a truth outside the posterior's bulk still shows: the axis reaches it
             if truth[j] is not None:
                 ax.axvline(truth[j], color="C3", lw=0.8)
-            ax.tick_params(labelsize=6)
-            if i == d - 1:
-                ax.set_xlabel(names[j], fontsize=7)
+                ax.set_xlim(_reach(ax.get_xlim(), truth[j]))
+            if i == j:
+                ax.set_yticks([])  # a marginal's density scale says nothing here
             else:
-                ax.set_xticklabels([])
-            if j == 0 and i > 0:
-                ax.set_ylabel(names[i], fontsize=7)
-            elif j > 0:
-                ax.set_yticklabels([])
+                ax.yaxis.set_major_locator(MaxNLocator(3))
+                if truth[i] is not None:
+                    ax.axhline(truth[i], color="C3", lw=0.8)
+                    ax.set_ylim(_reach(ax.get_ylim(), truth[i]))
+            ax.xaxis.set_major_locator(MaxNLocator(3))
+            ax.tick_params(axis="x", labelrotation=45, labelsize=7)
+            ax.tick_params(axis="y", labelsize=7)
     if title:
         fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    if path is None:  # the figure itself (tests measure its tick labels)
+        return fig
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     from mfdesign import outputs

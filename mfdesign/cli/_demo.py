@@ -394,23 +394,49 @@ OPTIMUM_ERROR_MM = 2.0
 
 
 def _num(v: float) -> str:
-    """A number for people: whole numbers from 1000 up (Pa), 4 significant digits below."""
+    """A number for people: whole numbers from 1000 up, 4 significant digits below."""
     return f"{v:.0f}" if abs(v) >= 1000 else f"{v:.4g}"
 
 
+def _shown(value, factor: float):
+    """A stored number in the page's units (Pa as kPa: docs/figures.md), 4 significant digits."""
+    return None if value is None else float(f"{value * factor:.4g}")
+
+
+def _display_rows(rows: list[dict]) -> list[dict]:
+    """Posterior rows (``summary.json``: stored units, Pa) as the page shows them: pressures
+    and moduli in kPa (``3.364e+04 Pa`` read badly beside ``39.6``), other units as stored."""
+    from mfdesign.calibration.plots import DISPLAY_UNITS
+
+    out = []
+    for r in rows:
+        unit, factor = DISPLAY_UNITS.get(r.get("unit") or "", (r.get("unit"), 1.0))
+        out.append(r | {"unit": unit} | {k: _shown(r[k], factor) for k in ("median", "q05", "q95") if k in r})
+    return out
+
+
 def _truth_table(check: dict, table: list[dict]) -> list[dict]:
-    """``_truth_check``'s rows beside the posterior medians (``table``: the posterior rows)."""
-    median = {r["parameter"]: r["median"] for r in table}
-    return [
-        {
-            "parameter": name,
-            "truth": c["truth"],
-            "median": median.get(name),
-            "90 % interval": f"{_num(c['q05'])} to {_num(c['q95'])}",
-            "inside": "yes" if c["inside"] else "NO",
-        }
-        for name, c in check.items()
-    ]
+    """``_truth_check``'s rows beside the posterior medians (``table``: the posterior rows),
+    every number in the page's units (Pa as kPa), the interval in the same format as the truth."""
+    from mfdesign.calibration.plots import DISPLAY_UNITS
+
+    rows = {r["parameter"]: r for r in table}
+    out = []
+    for name, c in check.items():
+        unit, factor = DISPLAY_UNITS.get((rows.get(name) or {}).get("unit") or "", (None, 1.0))
+        if unit is None:
+            unit = (rows.get(name) or {}).get("unit") or ""
+        out.append(
+            {
+                "parameter": name,
+                "unit": unit,
+                "truth": _shown(c["truth"], factor),
+                "median": _shown((rows.get(name) or {}).get("median"), factor),
+                "90 % interval": f"{_num(c['q05'] * factor)} to {_num(c['q95'] * factor)}",
+                "inside": "yes" if c["inside"] else "NO",
+            }
+        )
+    return out
 
 
 def _rule(summary: dict) -> str:
@@ -469,7 +495,7 @@ def demo_report(out: str | Path, summary: dict):
     rep.add(
         "Calibration (plain model)",
         ["Posterior of the global parameters (emcee)."],
-        table=post0,
+        table=_display_rows(post0),
         images=[(out / "plain" / "corner.png", "posterior, plain model")],
     )
     rep.add(
@@ -538,7 +564,7 @@ def demo_report(out: str | Path, summary: dict):
             if d["rmse_after_n"] is not None
             else []
         ),
-        table=post1,
+        table=_display_rows(post1),
         images=(figure(diag_dir / "maps_after.png", "residual maps after") if d["rmse_after_n"] is not None else [])
         + (figure(out / "with_effects" / "corner.png", "posterior with effects") if found else []),
     )
@@ -691,6 +717,7 @@ def run_demo(
             post.samples[:, keep],
             names,
             d / "corner.png",
+            units=[post.units[i] for i in keep],
             truths=[truths.get(n) for n in names] if truths else None,
             title="red lines: the values the data were made with" if truths else None,
         )

@@ -165,6 +165,7 @@ def _run(
         post.samples[:, keep],
         names,
         out / "corner.png",
+        units=[post.units[i] for i in keep],
         truths=[truths.get(n) for n in names] if truths else None,
         title=f"{data}: effects {effects or 'none'}" + (" (red: the values the data were made with)" if truths else ""),
     )

@@ -26,7 +26,7 @@ def assert_page_shows_the_numbers(lines: list[str], out: Path) -> None:
     medians and 90 % intervals, convergence (tau, R-hat, ESS), RMSE before / after and the
     noise floor, the verdict, the effects found and each round's screen, truths, proposals."""
     from mfdesign.calibration.posterior import convergence_rows
-    from mfdesign.cli._demo import _num, _optimum_headline, _short
+    from mfdesign.cli._demo import _display_rows, _optimum_headline, _short, _truth_table
     from mfdesign.report.render import cell
 
     summary = json.loads((out / "summary.json").read_text())
@@ -64,8 +64,8 @@ def assert_page_shows_the_numbers(lines: list[str], out: Path) -> None:
     # Posterior medians and 90 % intervals: the summary's rows are posterior.json's, rounded.
     for tag in ("plain", "with_effects"):
         rows = summary[f"posterior_{tag}"]
-        for r in rows:
-            assert row(r["parameter"], r["unit"], r["median"], r["q05"], r["q95"]) in lines
+        for r, shown in zip(rows, _display_rows(rows)):  # the page shows Pa as kPa
+            assert row(r["parameter"], shown["unit"], shown["median"], shown["q05"], shown["q95"]) in lines
         stored = out / tag / "posterior.json"
         if not stored.is_file():
             continue
@@ -84,8 +84,8 @@ def assert_page_shows_the_numbers(lines: list[str], out: Path) -> None:
             f"{tag.replace('_', ' ')}: {conv['steps_over_tau']:.1f} tau long, acceptance {conv['acceptance']:.2f}, "
             f"R-hat max {conv['rhat_max']:.3f}" in text
         )
-    for name, c in (summary.get("truth_check") or {}).items():
-        assert f"{_num(c['q05'])} to {_num(c['q95'])}" in text and name in text
+    for r in _truth_table(summary.get("truth_check") or {}, summary["posterior_with_effects"]):
+        assert r["90 % interval"] in text and r["parameter"] in text
     for p in summary["proposals"]:  # membranes to build, each with why
         assert f"{_short(p['design'])}: {p['fidelity']}" in lines
         assert f"because it {p['reason']} (cost {p['cost']:g})" in lines
@@ -220,17 +220,31 @@ def test_one_verdict_from_every_round_and_banners_that_say_what_is_wrong():
 def test_truth_table_puts_each_truth_beside_the_posterior():
     from mfdesign.cli._demo import _truth_table
 
-    check = {"mu_pa": {"truth": 31700.0, "q05": 30000.0, "q95": 33000.0, "inside": True}}
-    rows = _truth_table(check, [{"parameter": "mu_pa", "median": 31500.0}, {"parameter": "jm", "median": 40.0}])
-    assert rows == [
-        {
-            "parameter": "mu_pa",
-            "truth": 31700.0,
-            "median": 31500.0,
-            "90 % interval": "30000 to 33000",
-            "inside": "yes",
-        }
-    ]
+    check = {
+        "mu_pa": {"truth": 31700.0, "q05": 31597.0, "q95": 31818.0, "inside": True},
+        "jm": {"truth": 39.6, "q05": 39.5, "q95": 39.67, "inside": True},
+    }
+    table = [{"parameter": "mu_pa", "unit": "Pa", "median": 31700.4}, {"parameter": "jm", "unit": "1", "median": 40.0}]
+    rows = _truth_table(check, table)
+    # one format per row: the truth, the median and the interval all in kPa (the page once
+    # showed "3.17e+04" beside "31597 to 31818")
+    assert rows[0] == {
+        "parameter": "mu_pa",
+        "unit": "kPa",
+        "truth": 31.7,
+        "median": 31.7,
+        "90 % interval": "31.6 to 31.82",
+        "inside": "yes",
+    }
+    assert rows[1]["unit"] == "1" and rows[1]["90 % interval"] == "39.5 to 39.67"
+
+
+def test_posterior_tables_show_pascals_as_kilopascals():
+    from mfdesign.cli._demo import _display_rows
+
+    rows = [{"parameter": "mu_pa", "unit": "Pa", "median": 33640.0, "q05": 33100.0, "q95": 34210.5}]
+    assert _display_rows(rows) == [{"parameter": "mu_pa", "unit": "kPa", "median": 33.64, "q05": 33.1, "q95": 34.21}]
+    assert _display_rows([{"parameter": "jm", "unit": "1", "median": 39.6}])[0]["median"] == 39.6
 
 
 def test_calibrate_draws_truth_lines_only_for_the_bundled_dataset():
