@@ -221,3 +221,105 @@ def test_class6_rig_out_that_cannot_be_a_job_folder(tmp_path):
         ro.mkdir(mode=0o500)
         r = _cli("rig", "characterize", "--port", "/dev/null", "--design", DESIGN, "--out", ro / "job")
         _one_line_exit2(r, "cannot create the folder")
+
+
+# -- class 5: silent wrong imports -------------------------------------------------------
+def _bundled_rows(experiment: str, n: int = 300):
+    from mfdesign.data.sources import read_source
+
+    df = read_source("bundled").df
+    df = df[df["experiment"] == experiment]
+    first = df[["design_key", "trial"]].iloc[0]
+    one = df[(df["design_key"] == first["design_key"]) & (df["trial"] == first["trial"])]
+    return one.head(n).reset_index(drop=True)
+
+
+def _spoil(df, column: str, how):
+    df = df.copy()
+    df[column] = how(df[column])
+    return df
+
+
+@pytest.mark.parametrize(
+    "experiment, column, how, words",
+    [
+        ("force", "time_s", lambda c: c + 3.99e10, "looks like a clock time stamp"),
+        ("force", "pressure_pa", lambda c: c > 3000, "holds True/False values"),
+        ("force", "height_mm", lambda c: c / 1000, "looks like metres"),
+        ("force", "pressure_pa", lambda c: c / 1000, "looks like kPa"),
+        ("force", "pressure_pa", lambda c: -c - 9e3, "with a force of"),
+        ("force", "force_n", lambda c: c * 0 + 999.0, "stays at one value through force trial"),
+        ("lift", "force_n", lambda c: c + np.arange(len(c)) * 0.01, "changes within lift trial"),
+    ],
+)
+def test_class5_implausible_columns_are_refused_naming_the_column(tmp_path, experiment, column, how, words):
+    df = _spoil(_bundled_rows(experiment), column, how)
+    path = tmp_path / "in.csv"
+    df.to_csv(path, index=False)
+    r = _cli("import", path, "--out", tmp_path / "m.parquet")
+    _one_line_exit2(r, words)
+    assert f"column {column!r}" in r.output
+    df.to_parquet(tmp_path / "in.parquet")  # a plain Parquet table: the same checks
+    _one_line_exit2(_cli("import", tmp_path / "in.parquet", "--out", tmp_path / "m.parquet"), words)
+
+
+def test_class5_the_untouched_tables_still_import(tmp_path):
+    for experiment in ("force", "lift"):
+        _bundled_rows(experiment).to_csv(tmp_path / f"{experiment}.csv", index=False)
+        r = _cli("import", tmp_path / f"{experiment}.csv", "--out", tmp_path / f"{experiment}.parquet")
+        assert r.exit_code == 0, r.output
+
+
+def _lift_pickle() -> bytes:
+    """A mass-lift data dictionary: two masses, the height falling through 0..49 mm at each."""
+    rows = 100
+    us = np.tile(np.r_[0.0, 2.0, 25.4, np.nan, np.nan, np.nan, np.nan], (rows, 1))
+    us[:, 0] = np.r_[np.arange(49, -1, -1), np.arange(49, -1, -1)]
+    fs = np.r_[np.full(50, 14.715), np.full(50, 24.525)][:, None]
+    ys = (3000.0 + 40.0 * us[:, 0])[:, None]
+    return pickle.dumps({DESIGN: ((us, ys), fs, np.ones((rows, 1)))}, protocol=4)
+
+
+def test_class5_format_cannot_turn_lifts_into_force_trials(tmp_path):
+    path = tmp_path / "lift.pkl"
+    path.write_bytes(_lift_pickle())
+    assert _cli("import", path, "--out", tmp_path / "ok.parquet").exit_code == 0
+    r = _cli("import", path, "--format", "characterisation", "--out", tmp_path / "m.parquet")
+    _one_line_exit2(r, "--format characterisation, but the file holds mass-lift trials")
+    assert not (tmp_path / "m.parquet").exists()
+
+
+@pytest.mark.parametrize("text", ["1_000", "１２３"])
+def test_class6_csv_numbers_pandas_cannot_read_are_bad_input(tmp_path, text):
+    df = _bundled_rows("force", 20).astype({"pressure_pa": object})
+    df.loc[3, "pressure_pa"] = text
+    df.to_csv(tmp_path / "in.csv", index=False)
+    _one_line_exit2(_cli("import", tmp_path / "in.csv", "--out", tmp_path / "m.parquet"), "column 'pressure_pa': row 3")
+
+
+@pytest.mark.parametrize(
+    "theta, words",
+    [
+        ('{"pressure_sensor.offset_pa": NaN}', "allowed: a finite number"),
+        ('{"pressure_sensor.offset_pa": Infinity}', "allowed: a finite number"),
+        ('{"pressure_sensor.offset_pa": "150"}', "allowed: a finite number"),
+    ],
+)
+def test_class5_diagnose_theta_must_be_finite(tmp_path, theta, words):
+    r = _cli("diagnose", "bundled", "--effects", "pressure_sensor", "--theta", theta, "--out", tmp_path / "d")
+    _one_line_exit2(r, words)
+
+
+@pytest.mark.parametrize(
+    "toml, words",
+    [
+        ("effects = 3\n", "effects is 3; allowed: a string or a list of strings"),
+        ("model = 5\n", "model is 5; allowed: a string"),
+        ('[theta]\n"pressure_sensor.offset_pa" = "x"\n', "allowed: a finite number"),
+        ("effects_module = [1]\n", "allowed: a string or a list of strings"),
+    ],
+)
+def test_class6_config_of_wrong_types_is_bad_input(tmp_path, toml, words):
+    (tmp_path / "c.toml").write_text(toml)
+    r = _cli("diagnose", "bundled", "--config", tmp_path / "c.toml", "--out", tmp_path / "d")
+    _one_line_exit2(r, words)

@@ -17,6 +17,7 @@ unless ``--theta`` fixes every parameter), giving a before/after report. A confi
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import List, Optional
 
@@ -50,7 +51,30 @@ def load_config(path: Path) -> dict:
     bad = sorted(set(cfg) - allowed)
     if bad:
         raise ValueError(f"config file {path}: unknown key(s) {bad}; allowed: {sorted(allowed)}")
+    for key in ("effects", "effects_module", "candidates"):
+        value = cfg.get(key, [])
+        if not (isinstance(value, str) or (isinstance(value, list) and all(isinstance(v, str) for v in value))):
+            raise ValueError(f"config file {path}: {key} is {value!r}; allowed: a string or a list of strings")
+    for key in ("model", "physics"):
+        if key in cfg and not isinstance(cfg[key], str):
+            raise ValueError(f"config file {path}: {key} is {cfg[key]!r}; allowed: a string")
+    if "theta" in cfg:
+        check_theta(cfg["theta"], f"config file {path}: theta")
     return cfg
+
+
+def check_theta(theta, where: str = "--theta") -> dict:
+    """Effect parameters: an object of "effect.parameter" -> a finite number.
+
+    Why finite: a NaN parameter made every predicted force NaN, and diagnose wrote an
+    "after" of n = 0 rows with RMSE NaN instead of refusing."""
+    if not isinstance(theta, dict):
+        raise ValueError(f'{where} must be an object {{"effect.parameter": value}}, got {type(theta).__name__}')
+    for name, value in theta.items():
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if not ok:
+            raise ValueError(f"{where}: {name!r} is {value!r}; allowed: a finite number")
+    return theta
 
 
 def load_effects_module(path: Path) -> None:
@@ -144,8 +168,7 @@ def register(app: typer.Typer) -> None:
                     th = json.loads(theta)
                 except json.JSONDecodeError as err:
                     raise ValueError(f"--theta is not valid JSON: {err}") from None
-            if not isinstance(th, dict):
-                raise ValueError('theta must be an object {"effect.parameter": value}')
+            check_theta(th, "--theta" if theta else "theta")
             fx.split_theta(names, th) if names else (th and fx.split_theta([], th))
             sim_name = cfg.get("physics", physics) if physics == "exact" else physics
             if sim_name not in PHYSICS:

@@ -114,11 +114,13 @@ def _check_float(column: str, series: pd.Series) -> np.ndarray:
     except (TypeError, ValueError):
         raw = series.to_numpy(dtype=object)
         for i, v in enumerate(raw):
-            try:
-                float(v)
+            try:  # what pandas cannot parse (float() takes '1_000' and full-width digits)
+                pd.to_numeric(pd.Series([v], dtype=object), errors="raise")
             except (TypeError, ValueError):
-                raise MeasurementError(f"column {column!r}: row {i} has value {v!r}; allowed: a number") from None
-        raise
+                raise MeasurementError(
+                    f"column {column!r}: row {i} has value {v!r}; allowed: a number (ASCII digits, no '_')"
+                ) from None
+        raise MeasurementError(f"column {column!r}: not a column of numbers; allowed: numbers") from None
     nan = np.isnan(values)
     rng = f"[{low:g}, {high:g}]" + (" or NaN" if nan_ok else ", finite (no NaN/inf)")
     if not nan_ok:

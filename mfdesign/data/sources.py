@@ -39,6 +39,7 @@ import numpy as np
 import pandas as pd
 
 from mfdesign.data.measurements import COLUMNS, MeasurementError, Measurements
+from mfdesign.data.plausible import check_columns
 from mfdesign.data.shipped import BUNDLED_NAME, bundled_path
 from mfdesign.errors import InputError
 
@@ -145,6 +146,7 @@ def _checked_frame(df: pd.DataFrame, where: str) -> Measurements:
             f"{where}: missing column(s) {missing}; allowed: a table with the Measurements columns "
             f"{list(COLUMNS)} (docs/data.md)"
         )
+    check_columns(df, where)  # on the raw table: units, booleans, lifts (mfdesign.data.plausible)
     try:
         return Measurements(df[list(COLUMNS)])
     except MeasurementError as err:
@@ -257,6 +259,14 @@ def read_source(source: str | os.PathLike, fmt: str = "auto") -> Measurements:
     p = Path(source)
     if fmt != "auto" and not p.exists():
         raise InputError(f"data {p} does not exist; {_ALLOWED}")
+    m = _read_kind(p, kind)
+    if kind != "csv":  # a CSV was checked on its raw table (_checked_frame)
+        check_columns(m.df, str(p))
+    return m
+
+
+def _read_kind(p: Path, kind: str) -> Measurements:
+    """One source of a known format (module doc)."""
     if kind == "rig-job":
         if not _is_rig_job(p):
             raise InputError(f"{p} is not a rig job folder (no job.json or measurements.parquet)")
@@ -267,15 +277,40 @@ def read_source(source: str | os.PathLike, fmt: str = "auto") -> Measurements:
         return _read_parquet(p)
     if kind == "csv":
         return read_csv(p)
-    if kind == "mass-lift":
-        from mfdesign.data.spa_design import load_mass_lift
+    if kind in ("mass-lift", "characterisation"):
+        from mfdesign.data.spa_design import load_mass_lift, restricted_load
 
-        return load_mass_lift(p)
+        obj = restricted_load(p)
+        found = _pickle_kind_or_mixed(obj, str(p))
+        if found not in (kind, None):
+            # --format must not turn lifts (the force held: the mass) into force trials, or back
+            raise InputError(
+                f"{p}: --format {kind}, but the file holds {found} trials (" + _KIND_WHY[found] + "); "
+                f"allowed: --format {found} or auto"
+            )
+        return load_mass_lift(p) if kind == "mass-lift" else read_characterisation(obj, str(p))
     if kind == "sim-planes":
         from mfdesign.data.spa_design import sim_planes_as_measurements
 
         return sim_planes_as_measurements(p)
-    return read_characterisation(p)
+    raise InputError(f"--format {kind!r} is not known; allowed: auto, {', '.join(FORMATS)}")
+
+
+_KIND_WHY = {
+    "mass-lift": "every membrane has fewer distinct forces than heights: masses lifted",
+    "characterisation": "every membrane has more distinct forces than heights: the plate held",
+    "sim-planes": "a list of simulated planes",
+}
+
+
+def _pickle_kind_or_mixed(obj, where: str) -> str | None:
+    """:func:`_pickle_kind`, or None where membranes disagree (an explicit --format decides)."""
+    try:
+        return _pickle_kind(obj, where)
+    except InputError as err:
+        if "some membranes look like" in str(err):
+            return None
+        raise
 
 
 def load_sources(sources: str | os.PathLike | Sequence[str | os.PathLike], fmt: str = "auto") -> Measurements:

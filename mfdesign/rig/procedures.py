@@ -480,6 +480,13 @@ class _TrialState:
     t_rise: float | None = None
     t_deflate: float = math.nan
     held: float = math.nan
+    # host clock (time.monotonic) when the pump was switched on, and the rig time of the
+    # first sample received after it: the timeouts count from there. Why not from the first
+    # sample (t0): samples queued while the host was busy before switching the pump on (a
+    # slow fsync of the journal on a loaded machine) are older than the command, and at 25x
+    # emulated time one second of such a backlog read as "15 s pumping, still 4 Pa".
+    pump_sent: float = -math.inf
+    t_pump: float | None = None
 
     def see(self, smp: Sample) -> tuple[tuple, str | None, RigFault | None, bool]:
         """``(journal row, action, fault, done)`` for one sample; action is ``"burst"``,
@@ -498,6 +505,9 @@ class _TrialState:
 
     def _inflating(self, smp: Sample) -> tuple[str | None, RigFault | None, bool]:
         cfg, spec, p, t = self.cfg, self.spec, smp.pressure_pa, smp.rig_time_s
+        if self.t_pump is None and smp.host_time >= self.pump_sent:
+            self.t_pump = t
+        pumping = t - self.t_pump if self.t_pump is not None else 0.0
         self.peak = max(self.peak, p)
         if self.t_rise is None and p > cfg.burst_min_peak_pa:
             self.t_rise = t
@@ -511,10 +521,10 @@ class _TrialState:
             self.reason = "contact"
         elif spec.experiment == "lift" and smp.height_mm >= cfg.height_max_mm:
             self.reason = "height_limit"
-        elif self.t_rise is None and t - self.t0 > cfg.pressurise_timeout_s:
+        elif self.t_rise is None and pumping > cfg.pressurise_timeout_s:
             why = f"pressure still {p:.0f} Pa after pumping {cfg.pressurise_timeout_s:g} s (leak, pump failure or burst membrane)"
             return None, TrialTimeout(f"trial {spec.key}: {why}"), False
-        elif t - self.t0 > cfg.trial_timeout_s:
+        elif pumping > cfg.trial_timeout_s:
             why = f"{spec.pressure_limit_pa:.0f} Pa not reached in {cfg.trial_timeout_s:g} s (at {p:.0f} Pa)"
             return None, TrialTimeout(f"trial {spec.key}: {why}"), False
         if not self.reason:
@@ -560,6 +570,7 @@ def run_trial(conn: RigConnection, journal: Journal, spec: TrialSpec, attempt: i
     try:
         conn.send(Command.VALVE_CLOSE)
         conn.send(Command.PUMP_ON)
+        state.pump_sent = time.monotonic()
         done = False
         while not done:
             # Everything received so far: decide on the newest data first, then journal it all

@@ -176,3 +176,31 @@ def test_emulate_prints_port_and_serves_until_ctrl_c(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_characterize_survives_a_slow_host_before_the_pump(tmp_path, monkeypatch):
+    """Issue 44, class 8: under load the host was slow (a journal fsync) just before
+    switching the pump on; the samples queued meanwhile are older than the command, and at
+    25x emulated time one wall second of them read as "pressure still 4 Pa after pumping
+    15 s". The pressurise clock now starts at the first sample after the command. The
+    stall is made deterministic here: the host sleeps 1.2 s (30 rig s) at every trial start."""
+    import time
+
+    from mfdesign.rig import procedures
+
+    event = procedures.Journal.event
+
+    def slow_event(self, **fields):
+        out = event(self, **fields)
+        if fields.get("event") == "start":
+            time.sleep(1.2)
+        return out
+
+    monkeypatch.setattr(procedures.Journal, "event", slow_event)
+    args = ["--design", RINGLESS, "--config", str(_cfg_file(tmp_path)), "--trials", "1", "--no-progress"]
+    with emulator(config=fast_config()) as em:
+        r = runner.invoke(
+            rig_app, ["characterize", "--port", em.port, "--out", str(tmp_path / "c"), "--heights", "10", *args]
+        )
+    assert r.exit_code == 0, r.output
+    assert "complete: 1 trials now" in r.output
