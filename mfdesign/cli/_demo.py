@@ -121,9 +121,10 @@ class _Log:
         return _Stage()
 
 
-def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
-    """Force vs pressure of a few membranes at their set heights: data, each model's mean and
-    the last model's 90 % posterior-predictive band.
+def _plane_figure(meas, fits: dict, path: Path, columns: int = 3) -> None:
+    """Force vs pressure of every measured membrane at (every other of) its set heights:
+    data, each model's mean and the last model's 90 % posterior-predictive band; one colour
+    per plate height, with its key (a colour bar in mm).
 
     ``fits``: name -> :class:`~mfdesign.models.predictive.MultiFidelity` (thinned). Each
     measured membrane is predicted with its own posterior thickness (``predict``; the
@@ -131,19 +132,29 @@ def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
     bands ten times the data). The band holds the last fit's draws (physics + discrepancy)
     plus its Gaussian observation noise ``noise_n``: where the dots leave it, the model does
     not know what it does not know."""
+    import math
+
+    from matplotlib.colors import Normalize
+
     plt = _plt()
     rng = np.random.default_rng(0)  # noise draws for the band only: no demo number uses them
     df = meas.df
     df = df[df["experiment"] == "force"]
-    keys = list(dict.fromkeys(df["design_key"]))[:n_membranes]
-    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6), squeeze=False, layout="constrained")
+    keys = list(dict.fromkeys(df["design_key"]))  # every measured membrane (docs/figures.md)
+    cols = min(columns, max(len(keys), 1))
+    rows = max(math.ceil(len(keys) / cols), 1)
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(4.2 * cols + 0.8, 3.4 * rows + 0.4), squeeze=False, layout="constrained"
+    )
+    heights_all = df["height_set_mm"].dropna()
+    norm = Normalize(float(heights_all.min()), float(heights_all.max())) if len(heights_all) else Normalize(0, 1)
     names = list(fits)
-    for ax, key in zip(axes[0], keys):
+    for ax, key in zip(axes.ravel(), keys):
         sub = df[df["design_key"] == key]
         heights = sorted(sub["height_set_mm"].dropna().unique())[::2]
         for i, hs in enumerate(heights):
             s = sub[sub["height_set_mm"] == hs]
-            c = plt.cm.viridis(i / max(1, len(heights) - 1))
+            c = plt.cm.viridis(norm(hs))
             ax.plot(s["pressure_pa"] / 1e3, s["force_n"], ".", ms=1.5, color=c, alpha=0.4)
             p = np.linspace(max(50.0, s["pressure_pa"].min()), s["pressure_pa"].max(), 40)
             design = np.tile(Membrane.from_key(key).to_array(), (p.size, 1))
@@ -156,12 +167,18 @@ def _plane_figure(meas, fits: dict, path: Path, n_membranes: int = 4) -> None:
                     ax.fill_between(
                         p / 1e3, lo, hi, color=c, alpha=0.15, lw=0, label=f"{name}: 90 % band" if i == 0 else None
                     )
-        ax.set_title(key, fontsize=8)
+        ax.set_title(_short(key) + " mm", fontsize=8)
         ax.set_xlabel("pressure [kPa]")
         ax.set_ylabel("force [N]")
+    for ax in axes.ravel()[len(keys) :]:
+        ax.set_axis_off()
     axes[0][0].legend(fontsize=7)
+    bar = fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap="viridis"), ax=axes, shrink=0.8)
+    bar.set_label("plate height [mm]")
     fig.suptitle(
-        f"data (dots) vs model means, {names[-1]}: 90 % predictive band; one colour per plate height", fontsize=9
+        f"all {len(keys)} measured membranes: data (dots) vs model means, {names[-1]}: 90 % predictive band; "
+        "every other set height shown",
+        fontsize=9,
     )
     outputs.savefig(fig, path, dpi=110)
     plt.close(fig)

@@ -359,3 +359,26 @@ def test_the_page_puts_every_banner_above_the_first_number(tmp_path):
     from mfdesign.calibration.posterior import convergence_rule
 
     assert page.count(str(escape("Rule: " + convergence_rule()))) == 1 and "want &lt; 1.01" not in page
+
+
+def test_planes_figure_shows_every_measured_membrane_with_a_height_key(tmp_path, monkeypatch):
+    """The demo's planes figure once showed 4 of the 6 bundled membranes, with no key for
+    the colours of the plate heights."""
+    from types import SimpleNamespace
+
+    from mfdesign.cli import _demo
+    from mfdesign.data.store import read_parquet
+
+    meas = read_parquet(_demo.BUNDLED)
+    flat = SimpleNamespace(predict=lambda design, h, p: np.zeros((2, len(h))), noise_n=0.2)
+    drawn = {}
+    monkeypatch.setattr(_demo.outputs, "savefig", lambda fig, path, **kw: drawn.setdefault("fig", fig))
+    _demo._plane_figure(meas, {"plain": flat, "with effects": flat}, tmp_path / "planes.png")
+    fig = drawn["fig"]
+    titles = [ax.get_title() for ax in fig.axes if ax.get_title()]
+    assert len(titles) == len(meas.design_keys) == 6
+    assert {_demo._short(k) + " mm" for k in meas.design_keys} == set(titles)
+    assert any(ax.get_ylabel() == "plate height [mm]" for ax in fig.axes)  # the colour bar
+    assert all(
+        ax.get_xlabel() == "pressure [kPa]" and ax.get_ylabel() == "force [N]" for ax in fig.axes if ax.get_title()
+    )

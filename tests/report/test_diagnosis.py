@@ -123,3 +123,51 @@ def test_a_model_above_the_noise_floor_gets_a_banner(tmp_path):
         tmp_path / "r.html", "diagnosis.html.j2", title="t", data=DATA, images={}, banners=[words]
     ).read_text()
     assert page.index('class="banner"') < page.index("Where it fails")
+
+
+def _figure_of(draw, monkeypatch, *args):
+    """The matplotlib figure ``draw(*args, path)`` makes (its writer captured, not saved)."""
+    from mfdesign.report import diagnosis
+
+    seen = {}
+    monkeypatch.setattr(diagnosis, "_save", lambda fig, path: seen.setdefault("fig", fig))
+    draw(*args)
+    return seen["fig"]
+
+
+@pytest.fixture(scope="module")
+def small_residuals():
+    import numpy as np
+
+    from mfdesign.cli._demo import BUNDLED
+    from mfdesign.data.store import read_parquet
+    from mfdesign.diagnose.residuals import compute_residuals
+
+    meas = read_parquet(BUNDLED)
+    meas = meas.subset(meas.design_keys[:2])
+    observed = meas.df["force_n"].to_numpy(float)
+    wrong = observed + 1.5 * np.sin(meas.df["pressure_pa"].to_numpy(float) / 1e3)  # a ~1.5 N misfit
+    return compute_residuals(meas, wrong)
+
+
+def test_parity_shows_the_residuals_on_their_own_scale(small_residuals, monkeypatch, tmp_path):
+    """On the parity plot's 0-200 N axes a 1.5 N residual is invisible: a second panel
+    shows observed - model against the model force, in N, with the noise floor."""
+    from mfdesign.report.diagnosis import parity
+
+    fig = _figure_of(parity, monkeypatch, small_residuals, tmp_path / "p.png")
+    resid = next(ax for ax in fig.axes if ax.get_ylabel() == "residual: observed - model [N]")
+    lo, hi = resid.get_ylim()
+    assert hi - lo < 10.0  # its own scale: a few N, not the forces' 0-200 N
+    assert resid.get_xlabel() == "model force [N]"
+
+
+def test_breakdown_bars_have_readable_ticks_and_newtons(small_residuals, monkeypatch, tmp_path):
+    from mfdesign.report.diagnosis import breakdown_plot
+
+    fig = _figure_of(breakdown_plot, monkeypatch, small_residuals, tmp_path / "b.png")
+    fig.canvas.draw()
+    for ax in fig.axes:
+        assert ax.get_ylabel() == "RMS residual [N]"
+        assert all(t.get_fontsize() >= 8 for t in ax.get_xticklabels())
+    plt.close(fig)
