@@ -5,18 +5,21 @@ or a crash half-way through must never see a torn file. Every writer puts its by
 temporary file beside the target (same folder, so same file system) and ``os.replace``s
 it into place, which POSIX makes atomic.
 
-Why a lock: two runs writing into one ``--out`` would mix their files. The lock is a
-``fcntl.flock`` on ``OUT/.mfdesign.lock``: the OS drops it when the holding process dies,
-so a killed run never leaves a stale lock behind. The file itself stays (deleting it
-would let a third run lock a fresh inode while a second still holds the old one).
+Why a lock: two runs writing into one ``--out`` would mix their files. The lock is the
+file ``OUT/.mfdesign.lock`` itself, created with ``O_CREAT | O_EXCL`` (atomic on POSIX and
+Windows, unlike ``fcntl``, which is Unix-only) and holding the owner's pid and host; the
+run removes it when it ends, so no output folder keeps one. A run killed outright leaves
+it behind: the next run finds that pid gone (same host) and takes the lock over. Two runs
+that take over one stale lock at the very same moment could both win (the check and the
+removal are two steps); that needs a killed run and two new ones within microseconds.
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import os
+import socket
 import stat
 import tempfile
 from pathlib import Path
@@ -208,6 +211,41 @@ def file_lock(out: str | os.PathLike, option: str = "--out") -> "OutputLock":
     return OutputLock(out.parent, option, lock_name=f".{out.name}{LOCK_NAME}", shown=out)
 
 
+def _read_owner(path: Path) -> tuple[str, str] | None:
+    """``(pid, host)`` written in a lock file, or None when it is unreadable or half written."""
+    try:
+        parts = path.read_text().split()
+    except (OSError, UnicodeDecodeError):
+        return None
+    return (parts[0], parts[1]) if len(parts) == 2 and parts[0].isdigit() else None
+
+
+def _stale(owner: tuple[str, str]) -> bool:
+    """Whether the run that wrote a lock is gone: same host and its pid no longer runs. A lock
+    from another host (a shared folder) is never taken over: its pid means nothing here."""
+    pid, host = int(owner[0]), owner[1]
+    if host != socket.gethostname():
+        return False
+    if os.name == "nt":  # pragma: no cover -- os.kill(pid, 0) would terminate it on Windows
+        import ctypes
+
+        kernel32 = ctypes.windll.kernel32  # type: ignore[attr-defined]  # Windows only
+        handle = kernel32.OpenProcess(0x1000, False, pid)  # PROCESS_QUERY_LIMITED_INFORMATION
+        if not handle:
+            return True
+        code = ctypes.c_ulong()
+        kernel32.GetExitCodeProcess(handle, ctypes.byref(code))
+        kernel32.CloseHandle(handle)
+        return code.value != 259  # STILL_ACTIVE
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # alive, another user's
+        return False
+    return False
+
+
 class OutputLock:
     """Exclusive, non-blocking lock on an output folder, or on one file through
     :func:`file_lock` (see the module doc)."""
@@ -221,36 +259,41 @@ class OutputLock:
     ):
         self.out, self.option, self.lock_name = Path(out), option, lock_name
         self.shown = Path(shown) if shown is not None else self.out
-        self._fd: int | None = None
+        self._path: Path | None = None
 
     def acquire(self) -> "OutputLock":
         path = self.out / self.lock_name
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as err:
-            raise InputError(
-                f"{self.option} {self.shown}: cannot create the lock file {self.lock_name} "
-                f"({err.strerror or err}); allowed: a folder you can write"
-            ) from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
-            os.close(fd)
-            raise InputError(
-                f"{self.option} {self.shown} is in use by another mfdesign run (pid {holder}); "
-                "allowed: one run per output at a time (wait for it, or choose another "
-                f"{self.option})"
-            ) from None
-        os.ftruncate(fd, 0)
-        os.write(fd, str(os.getpid()).encode())
-        self._fd = fd
-        return self
+        owner = f"{os.getpid()} {socket.gethostname()}"
+        for _ in range(3):  # a stale lock taken over, then created again
+            try:
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                holder = _read_owner(path)
+                if holder is not None and not _stale(holder):
+                    raise InputError(
+                        f"{self.option} {self.shown} is in use by another mfdesign run (pid {holder[0]}); "
+                        "allowed: one run per output at a time (wait for it, or choose another "
+                        f"{self.option})"
+                    ) from None
+                with contextlib.suppress(FileNotFoundError):  # a killed run's lock (or one just released)
+                    os.unlink(path)
+                continue
+            except OSError as err:
+                raise InputError(
+                    f"{self.option} {self.shown}: cannot create the lock file {self.lock_name} "
+                    f"({err.strerror or err}); allowed: a folder you can write"
+                ) from None
+            with os.fdopen(fd, "w") as fh:
+                fh.write(owner)
+            self._path = path
+            return self
+        raise InputError(f"{self.option} {self.shown}: could not take the lock {self.lock_name}; try again")
 
     def release(self) -> None:
-        if self._fd is not None:
-            os.close(self._fd)  # closing the descriptor drops the flock
-            self._fd = None
+        if self._path is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self._path)  # the folder keeps no lock file once the run ends
+            self._path = None
 
     def __enter__(self) -> "OutputLock":
         return self.acquire()

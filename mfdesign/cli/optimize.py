@@ -164,7 +164,7 @@ def register(app: typer.Typer) -> None:
         rings: list[int] = typer.Option(
             [0, 1, 2], parser=item_parser(int, "a ring count"), help="Ring counts to try (repeat): 0, 1, 2."
         ),
-        starts: int = typer.Option(2500, min=1, help="Random starts per ring count."),
+        starts: int = typer.Option(2500, min=1, help="Sobol starts per ring count (scipy.stats.qmc)."),
         refine: int = typer.Option(64, min=0, help="Starts refined by gradient steps (0 = all)."),
         steps: int = typer.Option(100, "--opt-steps", min=0, help="Projected Adam steps per refined start."),
         seed: int = typer.Option(0, help="Random seed of the starts."),
