@@ -56,6 +56,13 @@ def render() -> str:
         "",
         (cmd.epilog or "").strip(),
         "",
+        "Options before the command (`mfdesign [OPTIONS] COMMAND`); every command with `--out` writes",
+        "`run.log` beside its outputs (version, command line, settings, log records, exit status):",
+        "",
+        "| name | kind | meaning |",
+        "| --- | --- | --- |",
+        *_params(cmd),
+        "",
     ]
     _render(cmd, "mfdesign", out)
     return "\n".join(out).rstrip() + "\n"

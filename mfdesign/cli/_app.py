@@ -131,11 +131,28 @@ def show_lattice_growth() -> None:
         log.setLevel(logging.INFO)
 
 
+# Where the group callback leaves --verbose / --quiet for the command's run log.
+VERBOSITY_KEY = "mfdesign.verbosity"
+
+
 @app.callback()
 def _main(
+    ctx: typer.Context,
     version: bool = typer.Option(
         False, "--version", callback=_print_version, is_eager=True, help="Print the version and exit."
     ),
+    verbose: bool = typer.Option(
+        False, "--verbose", "-v", help="Every log record on stderr (DEBUG); run.log holds them too."
+    ),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Only warnings and errors on stderr."),
 ) -> None:
+    """Every command with --out writes run.log beside its outputs: version, command line,
+    settings, log records, exit status (mfdesign.cli._runlog)."""
+    from mfdesign.cli._runlog import console
+
+    if verbose and quiet:
+        fail("--verbose and --quiet exclude each other; give one")
     enable_compilation_cache()
     show_lattice_growth()
+    console(verbose, quiet)
+    ctx.meta[VERBOSITY_KEY] = "verbose" if verbose else "quiet" if quiet else "normal"

@@ -64,6 +64,8 @@ class ContractCommand(TyperCommand):
         # for --help), before it creates any array.
         enable_x64()
 
+        flags = {p.name: next((o for o in p.opts if o.startswith("--")), None) for p in self.params}
+        check_option_ranges(ctx.params, flags)
         out = ctx.params.get("out")
         if out is None:
             return super().invoke(ctx)
@@ -73,12 +75,97 @@ class ContractCommand(TyperCommand):
             refuse_inputs(out, inputs)
             with file_lock(out):  # two runs writing one file: the second is refused, not the last one wins
                 ctx.meta[_LOG_DIR_KEY] = Path(out).parent
-                return super().invoke(ctx)
+                with _run_log(ctx, Path(out), is_file=True):
+                    return super().invoke(ctx)
         prepare_out_dir(out)
         refuse_inputs(out, inputs)
         with OutputLock(out):
             ctx.meta[_LOG_DIR_KEY] = Path(out)
-            return super().invoke(ctx)
+            with _run_log(ctx, Path(out), is_file=False):
+                return super().invoke(ctx)
+
+
+# Upper bounds of the numeric options, by parameter name (every command alike); why: a
+# value the machine cannot hold (``--q 1000000``, ``--batch 1e9``, ``--walkers 100000``)
+# ended in an out-of-memory kill or a traceback hours later, not a message. Each bound is
+# far above any useful value (the docs' largest in brackets) and far below exhaustion.
+OPTION_MAX: dict[str, float] = {
+    "seed": 2**32 - 1,
+    "members": 1024,  # ensemble members [32]
+    "steps": 1_000_000,  # training / emcee / optimiser steps [10,000]
+    "delta_steps": 1_000_000,  # [3,000]
+    "batch": 100_000,  # minibatch rows [100]
+    "walkers": 1024,  # emcee walkers [28]
+    "max_rows": 2_000_000,  # rows a calibration keeps [3,000]; mfdesign.data.plausible.MAX_ROWS
+    "folds": 1000,  # [7]
+    "check_top": 100,  # [3]
+    "max_steps": 100,  # [2]
+    "q": 256,  # batch of proposals [2]
+    "membranes": 256,  # [2]
+    "sim_runs": 10_000,  # [4]
+    "restarts": 1_000_000,  # [1,000]
+    "refine": 100_000,  # [64]
+    "starts": 10_000_000,  # [2,500]
+    "sim_heights": 400,  # as simulate --n-heights
+    "sim_pressures": 2000,  # as simulate --n-pressures
+    "cost_rig": 1e12,
+    "cost_sim": 1e12,
+    "tie_tol": 1.0,
+    "h_max_mm": 200.0,  # the Measurements range of heights
+    "p_max_pa": 200e3,  # the Measurements range of pressures
+    "mu_pa": 1e9,
+    "jm": 1e6,
+}
+# ... and the least value of those that had none (a negative seed or count is no value).
+OPTION_MIN: dict[str, float] = {
+    "seed": 0,
+    "restarts": 1,
+    "refine": 0,
+    "steps": 0,
+    "q": 1,
+    "membranes": 0,
+    "sim_runs": 0,
+    "sim_heights": 2,
+    "sim_pressures": 2,
+    "cost_rig": 0.0,
+    "cost_sim": 0.0,
+    "tie_tol": 0.0,
+}
+
+
+def check_option_ranges(params: dict, flags: dict[str, str] | None = None) -> None:
+    """Refuse a numeric option outside :data:`OPTION_MIN` / :data:`OPTION_MAX`, or a float
+    option that is not finite, in one line naming the option."""
+    import math
+
+    from mfdesign.errors import InputError
+
+    for name, value in params.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            continue
+        flag = (flags or {}).get(name) or "--" + name.replace("_", "-")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise InputError(f"{flag} {value}: allowed: a finite number")
+        low, high = OPTION_MIN.get(name, -math.inf), OPTION_MAX.get(name, math.inf)
+        if not low <= value <= high:
+            shown = [f"{v:,}" if float(v).is_integer() else f"{v:g}" for v in (value, low, high)]
+            rule = f"at most {shown[2]}" if low == -math.inf else f"{shown[1]} to {shown[2]}"
+            raise InputError(f"{flag} {shown[0]}: allowed: {rule}")
+
+
+def _run_log(ctx, out: Path, is_file: bool):
+    """The command's ``run.log`` (:mod:`mfdesign.cli._runlog`), at the verbosity the group
+    callback left in ``ctx.meta``."""
+    import sys
+
+    from mfdesign.cli._app import VERBOSITY_KEY
+    from mfdesign.cli._runlog import log_path, run_log
+
+    # the command line as typed when run as `mfdesign ...` / `python -m mfdesign.cli ...`;
+    # under a test runner sys.argv is the runner's, and the settings line says it all
+    typed = Path(sys.argv[0]).name in ("mfdesign", "__main__.py")
+    command = " ".join(["mfdesign", *sys.argv[1:]]) if typed else ctx.command_path
+    return run_log(log_path(out, is_file), command, ctx.params, verbose=ctx.meta.get(VERBOSITY_KEY) == "verbose")
 
 
 def _input_paths(params: dict) -> list[Path]:
