@@ -86,9 +86,9 @@ def corner_plot(
     shown = [display_label(n, None if units is None else units[i]) for i, n in enumerate(names)]
     labels = [lab for lab, _ in shown]
     x = samples * np.array([f for _, f in shown])
-    truth = [
-        None if truths is None or truths[i] is None or not np.isfinite(truths[i]) else float(truths[i]) * shown[i][1]
-        for i in range(d)
+    given = [None] * d if truths is None else list(truths)
+    truth: list[float | None] = [
+        None if t is None or not np.isfinite(t) else float(t) * factor for t, (_, factor) in zip(given, shown)
     ]
     size = 1.9 * d + 1.2
     data = {lab: x[None, :, i] for i, lab in enumerate(labels)}  # one chain: the draws are pooled
@@ -116,16 +116,17 @@ def corner_plot(
             if ax is None or not ax.get_visible() or j > i:
                 continue
             # a truth outside the posterior's bulk still shows: the axis reaches it
-            if truth[j] is not None:
-                ax.axvline(truth[j], color="C3", lw=0.8)
-                ax.set_xlim(_reach(ax.get_xlim(), truth[j]))
+            tx, ty = truth[j], truth[i]
+            if tx is not None:
+                ax.axvline(tx, color="C3", lw=0.8)
+                ax.set_xlim(_reach(ax.get_xlim(), tx))
             if i == j:
                 ax.set_yticks([])  # a marginal's density scale says nothing here
             else:
                 ax.yaxis.set_major_locator(MaxNLocator(3))
-                if truth[i] is not None:
-                    ax.axhline(truth[i], color="C3", lw=0.8)
-                    ax.set_ylim(_reach(ax.get_ylim(), truth[i]))
+                if ty is not None:
+                    ax.axhline(ty, color="C3", lw=0.8)
+                    ax.set_ylim(_reach(ax.get_ylim(), ty))
             ax.xaxis.set_major_locator(MaxNLocator(3))
             ax.tick_params(axis="x", labelrotation=45, labelsize=7)
             ax.tick_params(axis="y", labelsize=7)

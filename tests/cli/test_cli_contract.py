@@ -14,7 +14,7 @@ from pathlib import Path
 from typer.testing import CliRunner
 
 from mfdesign.cli import app
-from mfdesign.outputs import LOCK_NAME, OutputLock
+from mfdesign.outputs import OutputLock
 
 runner = CliRunner()
 ROOT = Path(__file__).resolve().parents[2]
