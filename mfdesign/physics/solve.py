@@ -30,11 +30,11 @@ import numpy as np
 import optimistix as optx
 
 from mfdesign._x64 import enable_x64
-from mfdesign.design import Membrane
+from mfdesign.design import OUTER_RADIUS_MM, Membrane
 from mfdesign.errors import InputError
 from mfdesign.physics import shooting as sh
 from mfdesign.physics.params import SimParams
-from mfdesign.physics.status import Status
+from mfdesign.physics.status import Status, force_bound_n
 from mfdesign.units import PA_TO_MPA
 
 WRINKLE_TOL = 1e-9  # MPa: a principal stress more negative than this is compression
@@ -276,7 +276,11 @@ def _descent_kernel(geom, params, h_low, x_start, start_ok, p_rep_mpa, locking_s
     return jax.vmap(one_p)(x_start, start_ok, p_rep_mpa, locking_start)
 
 
-def _classify(h, p, sol: PointSolution, signed: bool = False) -> SimResult:
+# Relative slack of the force bound p pi R^2 (status.force_bound_n): rounding only.
+FORCE_BOUND_RTOL = 1e-6
+
+
+def _classify(h, p, sol: PointSolution, signed: bool = False, outer_radius_mm: float = OUTER_RADIUS_MM) -> SimResult:
     """Status codes and the reported force of every point from what its kernel found."""
     conv, passed, force, wrinkled = sol.converged, sol.passed, sol.force_n, sol.wrinkled
     locking, rise, ok_prof = sol.locking, sol.rise_mm, sol.profile_ok
@@ -291,6 +295,11 @@ def _classify(h, p, sol: PointSolution, signed: bool = False) -> SimResult:
     status[~conv & np.isfinite(locking) & (locking > 0.9)] = Status.EXTENSION_LIMIT
     status[conv & ~ok_prof] = Status.ODE_FAILURE
     status[passed] = Status.LIMIT_POINT
+    # Converged, but more force than p pi R^2: outside the physical model (status.py says
+    # why). Never OK, so never a data point of a fit. A signed plane keeps the number (its
+    # interpolation needs a smooth surface); its status says the node is outside.
+    outside = (status == Status.OK) & (force > force_bound_n(p, outer_radius_mm) * (1 + FORCE_BOUND_RTOL))
+    status[outside] = Status.OUTSIDE_MODEL
     usable = status == Status.OK
     no_contact = usable & (force < 0)
     status[no_contact] = Status.NO_CONTACT
@@ -298,7 +307,7 @@ def _classify(h, p, sol: PointSolution, signed: bool = False) -> SimResult:
     # membrane reaches it; unlike the clipped force it is smooth across the contact
     # boundary, so planes of it interpolate to simulator accuracy (clip after interpolating).
     force[no_contact] = force[no_contact] if signed else 0.0
-    force[~usable] = np.nan
+    force[~usable & ~(signed & outside)] = np.nan
     zero_p = np.isfinite(p) & (p == 0) & np.isfinite(h) & (h >= 0)
     status[zero_p] = Status.NO_CONTACT  # no pressure: the membrane lies still
     force[zero_p] = np.nan if signed else 0.0  # signed: unknown (the path starts above 0)
@@ -361,7 +370,7 @@ def force_at(
         empty = np.zeros(shape_)
         return SimResult(empty, empty.astype(np.int8), empty, empty, empty.astype(bool))
     out = _solve_points(design, hs, ps, params, path_steps)
-    res = _classify(h.ravel(), p.ravel(), out, signed=signed)
+    res = _classify(h.ravel(), p.ravel(), out, signed=signed, outer_radius_mm=design.outer_radius_mm)
     return jax.tree.map(lambda a: a.reshape(shape_), res)
 
 
@@ -585,7 +594,7 @@ def force_plane(
 
         out = jax.tree.map(merge, out, down)
     H, P = np.meshgrid(h_grid, p_grid, indexing="ij")
-    return _classify(H, P, out, signed=signed)
+    return _classify(H, P, out, signed=signed, outer_radius_mm=design.outer_radius_mm)
 
 
 def force_planes(

@@ -22,6 +22,7 @@ class Status(enum.IntEnum):
     NOT_LIFTED = 8  # mass-lift: the membrane's force at h = 0 is below the load, h = 0
     SNAP_THROUGH = 9  # mass-lift: the quasi-static branch jumped over a fold to reach h
     BEYOND_GRID = 10  # mass-lift: force above the load at every height up to h_max: h > h_max
+    OUTSIDE_MODEL = 11  # converged, but F > p pi R^2: the membrane dips below the clamp plane
 
     @property
     def reason(self) -> str:
@@ -39,7 +40,24 @@ _REASONS = {
     Status.NOT_LIFTED: "the membrane cannot lift the load at this pressure: h = 0",
     Status.SNAP_THROUGH: "reached by snap-through over a fold of the p-h curve",
     Status.BEYOND_GRID: "the membrane carries the load past the highest height solved (h > h_max_mm)",
+    Status.OUTSIDE_MODEL: (
+        "force above p pi R^2 (R the clamp radius): the membrane leaves the clamp heading "
+        "below the clamp plane, outside the physical model"
+    ),
 }
+
+
+def force_bound_n(p_pa, outer_radius_mm: float):
+    """The most force a membrane clamped at ``outer_radius_mm`` can put on the plate at
+    gauge pressure ``p_pa``: ``p pi R^2`` [N].
+
+    Why it bounds: the plate and the membrane enclose the air; the plate's force is the
+    pressure on the area the membrane covers, less the membrane's pull. While the membrane
+    stays inside the clamp radius and above the clamp plane that area is at most pi R^2, so
+    a larger force means a state the rig cannot hold (seen: 208 N against 154 N at 10 kPa,
+    the membrane ballooning to R ~ 119 mm)."""
+    return np.asarray(p_pa, float) * 1e-6 * np.pi * float(outer_radius_mm) ** 2
+
 
 VALID = (Status.OK, Status.NO_CONTACT, Status.NOT_LIFTED, Status.SNAP_THROUGH)
 
