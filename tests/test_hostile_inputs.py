@@ -323,3 +323,77 @@ def test_class6_config_of_wrong_types_is_bad_input(tmp_path, toml, words):
     (tmp_path / "c.toml").write_text(toml)
     r = _cli("diagnose", "bundled", "--config", tmp_path / "c.toml", "--out", tmp_path / "d")
     _one_line_exit2(r, words)
+
+
+# -- class 6: options and files beyond what the machine can hold -------------------------
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["propose", "--model", "m", "--q", "1000000"], "--q 1,000,000: allowed: 1 to 256"),
+        (["fit", "bundled", "--out", "{tmp}/f", "--batch", "1000000000"], "--batch 1,000,000,000: allowed: at most"),
+        (["calibrate", "bundled", "--out", "{tmp}/c", "--walkers", "100000"], "--walkers 100,000: allowed"),
+        (["calibrate", "bundled", "--out", "{tmp}/c", "--mcmc-steps", "100000000"], "--mcmc-steps 100,000,000"),
+        (["propose", "--model", "m", "--cost-sim", "nan"], "--cost-sim nan: allowed: a finite number"),
+        (["fit", "bundled", "--out", "{tmp}/f", "--seed", "-1"], "--seed -1: allowed: 0 to"),
+        (["simulate", "--out", "{tmp}/s", "--p-max-pa", "1e12"], "--p-max-pa"),
+    ],
+)
+def test_class6_every_option_has_an_upper_bound(tmp_path, args, words):
+    _one_line_exit2(_cli(*[a.format(tmp=tmp_path) for a in args]), words)
+
+
+def test_class6_files_of_too_many_rows_are_refused_before_reading(tmp_path, monkeypatch, small_csv):
+    from mfdesign.data import plausible, sources
+
+    monkeypatch.setattr(plausible, "MAX_ROWS", 150)
+    monkeypatch.setattr(sources, "MAX_ROWS", 150)
+    _one_line_exit2(_cli("import", small_csv, "--out", tmp_path / "m.parquet"), "more than 150 rows")
+    import pandas as pd
+
+    pd.read_csv(small_csv).to_parquet(tmp_path / "big.parquet")
+    _one_line_exit2(_cli("import", tmp_path / "big.parquet", "--out", tmp_path / "m.parquet"), "200 rows; allowed")
+
+
+# -- class 4: models that load but predict nonsense --------------------------------------
+def _spoilt_model(folder, how: str):
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from tiny_models import tiny_ensemble
+
+    import equinox as eqx
+    import jax
+
+    ens = tiny_ensemble()
+    if how == "zeros":  # all-zero weights: NaN everywhere (the first probe)
+        ens = jax.tree.map(lambda a: a * 0 if eqx.is_inexact_array(a) else a, ens)
+    ens.save(folder)
+    meta = json.loads((folder / "ensemble.json").read_text())
+    if how == "beta":
+        meta["beta"] = -1e9
+    (folder / "ensemble.json").write_text(json.dumps(meta))
+    return folder
+
+
+@pytest.mark.parametrize("how, words", [("zeros", "NaN or infinite forces"), ("beta", "predicts forces from")])
+def test_class4_a_model_predicting_nonsense_is_refused_naming_the_folder(tmp_path, how, words):
+    model = _spoilt_model(tmp_path / "model", how)
+    r = _cli(
+        "optimize", "--model", model, "--target-set", "A", "--starts", "8", "--refine", "2", "--out", tmp_path / "o"
+    )
+    _one_line_exit2(r, f"model {model} {'predicts ' if 'NaN' in words else ''}{words}")
+    r = _cli("propose", "--model", model, "--q", "1", "--restarts", "2", "--out", tmp_path / "p")
+    _one_line_exit2(r, f"model {model}")
+    assert "thickness must be finite" not in r.output
+
+
+def test_class4_a_sound_model_passes_the_check(tmp_path):
+    from mfdesign.models.ensemble import Ensemble
+    from mfdesign.models.predictor import EnsemblePredictor
+    from mfdesign.models.sanity import check_predictor
+
+    model = _spoilt_model(tmp_path / "model", "none")
+    predictor = EnsemblePredictor(Ensemble.load(model))
+    assert check_predictor(predictor, str(model)) is predictor

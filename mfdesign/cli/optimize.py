@@ -82,12 +82,15 @@ def load_model(path: Path, fit=None):
     path = Path(path)
     if not path.is_dir():
         raise ValueError(f"model folder {path} does not exist (fit one with `mfdesign fit` or `mfdesign fit-mf`)")
+    from mfdesign.models.sanity import check_predictor
+
     if (path / "mf.json").is_file():
-        return (load_fit(path) if fit is None else fit).mf.predictor(16)
+        return check_predictor((load_fit(path) if fit is None else fit).mf.predictor(16), str(path))
     try:
-        return EnsemblePredictor(Ensemble.load(path))
+        predictor = EnsemblePredictor(Ensemble.load(path))
     except (FileNotFoundError, ValueError, KeyError) as err:
         raise ValueError(f"cannot load a model from {path}: {err}") from None
+    return check_predictor(predictor, str(path))
 
 
 def simulator_for_check(model: Path) -> tuple[bool, str]:

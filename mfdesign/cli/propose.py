@@ -44,17 +44,20 @@ def load_predictor(model: Path, fit=None):
     from mfdesign.models.predictor import EnsemblePredictor, SplitPredictor
     from mfdesign.models.ensemble import Ensemble
 
+    from mfdesign.models.sanity import check_predictor
+
     model = Path(model)
     if not model.is_dir():
         raise ValueError(f"--model {model} is not a folder (give the output folder of 'mfdesign fit')")
     if (model / "mf.json").is_file():
         from mfdesign.cli.optimize import load_fit
 
-        return (load_fit(model) if fit is None else fit).mf.predictor(16)
+        return check_predictor((load_fit(model) if fit is None else fit).mf.predictor(16), str(model))
     if (model / "ensemble.json").is_file():
-        return EnsemblePredictor(Ensemble.load(model))
+        return check_predictor(EnsemblePredictor(Ensemble.load(model)), str(model))
     if (model / "sim" / "ensemble.json").is_file() and (model / "discrepancy" / "ensemble.json").is_file():
-        return SplitPredictor(Ensemble.load(model / "sim"), Ensemble.load(model / "discrepancy"))
+        split = SplitPredictor(Ensemble.load(model / "sim"), Ensemble.load(model / "discrepancy"))
+        return check_predictor(split, str(model))
     found = sorted(p.name for p in model.iterdir() if p.name != ".mfdesign.lock")[:8]
     raise ValueError(
         f"--model {model} holds no ensemble.json, mf.json, nor sim/ and discrepancy/ ensembles; found {found}"

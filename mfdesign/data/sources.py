@@ -39,7 +39,7 @@ import numpy as np
 import pandas as pd
 
 from mfdesign.data.measurements import COLUMNS, MeasurementError, Measurements
-from mfdesign.data.plausible import check_columns
+from mfdesign.data.plausible import MAX_ROWS, check_columns, check_rows
 from mfdesign.data.shipped import BUNDLED_NAME, bundled_path
 from mfdesign.errors import InputError
 
@@ -157,9 +157,16 @@ def read_csv(path: str | os.PathLike) -> Measurements:
     """A CSV with the Measurements columns (any order, extra columns ignored; docs/data.md)."""
     p = Path(path)
     try:
-        df = pd.read_csv(p, dtype={"design_key": str, "experiment": str, "phase": str, "source": str})
+        # one row past the bound is enough to refuse: a 10-million-row file is not read whole
+        df = pd.read_csv(
+            p, dtype={"design_key": str, "experiment": str, "phase": str, "source": str}, nrows=MAX_ROWS + 1
+        )
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, ValueError) as err:
         raise InputError(f"{p}: not a readable CSV ({type(err).__name__}: {str(err)[:160]})") from None
+    if len(df) > MAX_ROWS:
+        raise InputError(
+            f"{p}: more than {MAX_ROWS:,} rows; allowed: at most {MAX_ROWS:,} rows per source (split the file)"
+        )
     return _checked_frame(df, str(p))
 
 
@@ -171,6 +178,7 @@ def _read_parquet(path: Path) -> Measurements:
 
     try:
         meta = pq.read_schema(path).metadata or {}
+        check_rows(pq.read_metadata(path).num_rows, str(path))  # from the footer, before reading
     except (pa.ArrowInvalid, OSError) as err:
         raise MeasurementError(f"{path} is not a readable Parquet file: {err}") from None
     if FORMAT_KEY in meta:
