@@ -397,3 +397,18 @@ def test_class4_a_sound_model_passes_the_check(tmp_path):
     model = _spoilt_model(tmp_path / "model", "none")
     predictor = EnsemblePredictor(Ensemble.load(model))
     assert check_predictor(predictor, str(model)) is predictor
+
+
+# -- class 9: a config file runs code, and says so where --config is documented -----------
+def test_class9_config_effects_module_is_documented_as_code():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    cli_md = root / "docs" / "cli.md"
+    config_row = next(
+        line for line in cli_md.read_text().splitlines() if line.startswith("| `--config` | option | TOML")
+    )
+    assert "runs the Python files" in config_row
+    assert "A config file can run code" in (root / "docs" / "diagnose.md").read_text()
+    r = _cli("diagnose", "--help")
+    assert r.exit_code == 0 and "runs the Python files it names" in " ".join(r.output.replace("│", " ").split())

@@ -11,7 +11,9 @@ emulator, about 1 N RMS off the simulator: fast, but its error is as large as th
 diagnosis looks for) or ``standin`` (a cheap stand-in, for trials); ``--effects`` adds effects to it (calibrated
 unless ``--theta`` fixes every parameter), giving a before/after report. A config file
 (TOML or JSON) may hold any of ``effects``, ``theta``, ``effects_module``, ``model``,
-``physics``, ``candidates``; command-line values win.
+``physics``, ``candidates``; command-line values win. ``effects_module`` (like
+``--effects-module``) imports the Python files it names, so a config file runs code: treat
+one from elsewhere as a script (docs/diagnose.md).
 """
 
 from __future__ import annotations
@@ -118,9 +120,12 @@ def register(app: typer.Typer) -> None:
         theta: Optional[str] = typer.Option(
             None, help="Effect parameters as JSON, e.g. '{\"pressure_sensor.offset_pa\": 150}'."
         ),
-        config: Optional[Path] = typer.Option(None, help="TOML/JSON file with effects, theta, effects_module, ..."),
+        config: Optional[Path] = typer.Option(
+            None,
+            help="TOML/JSON file with effects, theta, effects_module, ... (its effects_module runs the Python files it names: treat a config as code).",
+        ),
         effects_module: Optional[List[Path]] = typer.Option(
-            None, "--effects-module", help="Python file(s) registering new effects."
+            None, "--effects-module", help="Python file(s) registering new effects (imported: their code runs)."
         ),
         candidates: Optional[List[str]] = typer.Option(
             None,
