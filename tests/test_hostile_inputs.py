@@ -412,3 +412,169 @@ def test_class9_config_effects_module_is_documented_as_code():
     assert "A config file can run code" in (root / "docs" / "diagnose.md").read_text()
     r = _cli("diagnose", "--help")
     assert r.exit_code == 0 and "runs the Python files it names" in " ".join(r.output.replace("│", " ").split())
+
+
+# -- fuzz over the classes (slow) ---------------------------------------------------------
+_FUZZ_CHILD = """
+import pickle, sys, time
+from mfdesign.errors import InputError
+from mfdesign.data.sources import read_source
+for path in sys.argv[1:]:
+    t0 = time.perf_counter()
+    try:
+        read_source(path)
+        what = "ok"
+    except (InputError, pickle.UnpicklingError):
+        what = "refused"
+    except BaseException as err:
+        what = f"BUG {type(err).__name__}: {err}"[:200]
+    print(path, round(time.perf_counter() - t0, 3), what, flush=True)
+"""
+
+
+def _mutants(rng, base: bytes, n: int) -> list[bytes]:
+    """Pickles a byte or a few away from ``base``, and opcode soups built to nest and share."""
+    out = []
+    ops = [b"(", b")", b"\x85", b"\x86", b"\x87", b"t", b"]", b"}", b"e", b"a", b"s", b"u", b"l", b"d", b"0", b"2"]
+    for _ in range(n):
+        kind = rng.integers(4)
+        data = bytearray(base)
+        if kind == 0:  # flip bytes
+            for i in rng.integers(2, len(data), size=rng.integers(1, 6)):
+                data[i] = rng.integers(256)
+        elif kind == 1:  # truncate
+            data = data[: rng.integers(1, len(data))]
+        elif kind == 2:  # splice opcodes after the protocol header
+            at = int(rng.integers(2, len(data)))
+            data[at:at] = b"".join(ops[i] for i in rng.integers(len(ops), size=rng.integers(1, 40)))
+        else:  # a soup that nests, memoises and re-uses: tuples and lists as dict keys and values
+            soup = b"\x80\x02}q\x00K\x01q\x01"
+            parts = [b"h\x01", b"\x85", b"\x86", b"]", b"(h\x01h\x01t", b"q\x01", b"X\x01\x00\x00\x00a"]
+            for _ in range(int(rng.integers(5, 400))):
+                soup += parts[int(rng.integers(len(parts)))]
+            data = bytearray(soup + b"s.")
+        out.append(bytes(data))
+    return out
+
+
+@pytest.mark.slow
+def test_fuzz_hostile_inputs(tmp_path):
+    """Seeded: mutated and generated pickles (class 1), bad --out targets and corrupt tables
+    (2, 5, 6), option values (6), API calls (7), classification of synthetic solver points
+    (3), ports (8). Every probe ends in a result or one InputError line: no hang, no crash,
+    no exit 1."""
+    import os
+
+    rng = np.random.default_rng(44)
+    # class 1: in a child process, so that a crash fails the test instead of ending it
+    base = _dict_pickle([DESIGN, "[1.5, 30.0, nan, nan, nan, nan]"], 40)
+    paths = []
+    for i, data in enumerate(_mutants(rng, base, 400) + [tuple_dag_key(int(k)) for k in rng.integers(5, 120, 20)]):
+        paths.append(tmp_path / f"m{i}.pkl")
+        paths[-1].write_bytes(data)
+    run = subprocess.run(
+        [sys.executable, "-c", _FUZZ_CHILD, *map(str, paths)], capture_output=True, text=True, timeout=600
+    )
+    assert run.returncode == 0, (run.returncode, run.stderr[-2000:])
+    lines = run.stdout.strip().splitlines()
+    assert len(lines) == len(paths)
+    bugs = [line for line in lines if " BUG " in line]
+    slow = [line for line in lines if float(line.split()[1]) > 5.0]
+    assert not bugs and not slow, (bugs[:5], slow[:5])
+
+    # classes 2, 5, 6: import with corrupt tables and bad outputs; exit 0 or one line exit 2
+    df = _bundled_rows("force", 120)
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    outs = [tmp_path / "o.parquet", tmp_path / "o.csv", fifo, "/dev/null", tmp_path / ("x" * 300 + ".parquet")]
+    spoilers = [
+        lambda c: c * 1e-3,
+        lambda c: c * 1e3,
+        lambda c: -c,
+        lambda c: c > c.median(),
+        lambda c: c.astype(str).str.replace("0", "_0"),
+        lambda c: c * np.nan,
+        lambda c: c * np.inf,
+        lambda c: c + 4e10,
+        lambda c: c.sample(frac=1.0, random_state=1).to_numpy(),
+    ]
+    for i in range(60):
+        column = rng.choice(["time_s", "height_mm", "height_set_mm", "pressure_pa", "force_n", "weight", "trial"])
+        bad = _spoil(df, str(column), spoilers[int(rng.integers(len(spoilers)))])
+        src = tmp_path / f"in{i}.csv"
+        bad.to_csv(src, index=False)
+        out = outs[int(rng.integers(len(outs)))] if rng.random() < 0.3 else tmp_path / f"out{i}.parquet"
+        r = _cli("import", src, "--out", out)
+        assert r.exit_code in (0, 2), r.output
+        if r.exit_code == 2:
+            assert len(r.output.strip().splitlines()) == 1, r.output
+
+    # class 6: numeric options beyond their ranges are refused before any work
+    from mfdesign.cli._contract import OPTION_MAX
+
+    for i in range(40):
+        name = str(rng.choice(["members", "batch", "seed"]))
+        value = rng.choice([-(10 ** int(rng.integers(1, 12))), OPTION_MAX[name] + int(rng.integers(1, 10**9))])
+        flag = {"members": "--members", "batch": "--batch", "seed": "--seed"}[name]
+        _one_line_exit2(_cli("fit", small_csv_path(tmp_path, df), "--out", tmp_path / f"f{i}", flag, value), flag)
+
+    # class 7: the API's bad input is an InputError
+    import mfdesign
+
+    m = mfdesign.Membrane(2.0, 25.4)
+    for junk in (123, 1.5, None, {"a": 1}, b"bytes", object(), [1, 2]):
+        with pytest.raises(InputError):
+            mfdesign.load(junk)
+    for grid in ([], (), np.zeros(0), "abc", [[]]):
+        with pytest.raises(InputError):
+            mfdesign.force_plane(m, grid, grid)
+
+    # class 3: whatever the solver returns, an OK point never carries more than p pi R^2
+    from mfdesign.physics.solve import PointSolution, _classify
+    from mfdesign.physics.status import Status, force_bound_n
+
+    n = 5000
+    h, p = rng.uniform(-5, 90, n), rng.uniform(-100, 20e3, n)
+    sol = PointSolution(
+        converged=rng.random(n) < 0.9,
+        passed=rng.random(n) < 0.05,
+        force_n=rng.uniform(-50, 400, n),
+        wrinkled=rng.random(n) < 0.2,
+        locking=rng.uniform(0, 1.2, n),
+        rise_mm=rng.uniform(0, 5, n),
+        profile_ok=rng.random(n) < 0.95,
+        state=np.zeros((n, 2)),
+    )
+    for signed in (False, True):
+        res = _classify(h, p, sol, signed=signed)
+        ok = np.asarray(res.status) == Status.OK
+        assert np.all(np.asarray(res.force_n)[ok] <= force_bound_n(p[ok], 70.0) * (1 + 1e-6))
+        outside = np.asarray(res.status) == Status.OUTSIDE_MODEL
+        assert outside.any() and (signed or np.all(np.isnan(np.asarray(res.force_n)[outside])))
+
+    # class 8: any --port string is accepted as a device/URL or refused as bad input
+    from mfdesign.cli.rig import check_port
+
+    for port in [
+        "loop://",
+        "LOOP://x",
+        "/etc/passwd",
+        "/",
+        "/dev/null",
+        "socket://h:1",
+        "x" * 5000,
+        "\\x00",
+        "://",
+        "a://b",
+    ]:
+        try:
+            check_port(port)
+        except InputError:
+            pass
+
+
+def small_csv_path(tmp_path, df):
+    path = tmp_path / "fuzz_small.csv"
+    if not path.exists():
+        df.to_csv(path, index=False)
+    return path
