@@ -18,6 +18,13 @@ candidate is "explains" if its held-out RMSE is within ``floor_factor`` x the no
 under that candidate (its own residuals' floor, never below the tested model's: in a lift
 the force error is slope x height error, and the slope is the model's), else "explains
 part".
+
+Sets of different sizes (single effects and pairs fitted jointly) are nested models: the
+best set of each size is taken, smallest first, and a larger set replaces the smaller only
+if it beats it by the same margins (BIC by more than ``bic_margin``, held-out RMSE by more
+than ``min_gain``): a second effect must earn its place. Two sets of the claimed size that
+the data cannot tell apart (held-out RMSE within ``tie`` of each other and BIC within
+``bic_margin``) are both named, never one silently (``"alternatives"``).
 """
 
 from __future__ import annotations
@@ -33,6 +40,35 @@ from mfdesign.diagnose.residuals import Residuals, shape_words
 __all__ = ["CheckResult", "calibrate_effects", "full_check", "verdict"]
 
 FLOOR_FACTOR = 1.2
+TIE = 0.05  # held-out RMSEs within 5 % of each other: a tie on these data (with BIC within the margin)
+
+
+def _pick(good: Sequence[CheckResult], min_gain: float, bic_margin: float) -> CheckResult:
+    """The claimed set among ``good``: the best of each size, smallest first; a larger set
+    replaces the smaller only if it beats it by the claim's margins (module doc)."""
+    best = None
+    for k in sorted({len(c.effects) for c in good}):
+        cand = min((c for c in good if len(c.effects) == k), key=lambda c: (c.heldout_rmse_n, c.delta_bic))
+        if best is None or (
+            cand.delta_bic < best.delta_bic - bic_margin and cand.heldout_rmse_n < (1 - min_gain) * best.heldout_rmse_n
+        ):
+            best = cand
+    assert best is not None
+    return best
+
+
+def ties(best: CheckResult, checks: Sequence[CheckResult], tie: float = TIE, bic_margin: float = 10.0) -> list:
+    """Sets of ``best``'s size, other than it, that the data cannot tell from it (module doc)."""
+    return [
+        c
+        for c in checks
+        if c is not best
+        and len(c.effects) == len(best.effects)
+        and set(c.effects) != set(best.effects)
+        and np.isfinite(c.heldout_rmse_n)
+        and c.heldout_rmse_n <= (1 + tie) * best.heldout_rmse_n
+        and c.delta_bic <= best.delta_bic + bic_margin
+    ]
 
 
 def verdict(
@@ -41,6 +77,7 @@ def verdict(
     floor_factor: float = FLOOR_FACTOR,
     min_gain: float = 0.1,
     bic_margin: float = 10.0,
+    tie: float = TIE,
 ) -> dict:
     """What may be claimed (see the module doc): ``{"status", "effects", "words", ...}``."""
     floor = res.noise_floor_n
@@ -60,13 +97,16 @@ def verdict(
     # never ranked: NaN compares False, so min() would pick one silently
     failed = [c for c in checks if not (np.isfinite(c.heldout_rmse_n) and np.isfinite(c.delta_bic))]
     checks = [c for c in checks if c not in failed]
+    # the planes grow to whatever a fit needs and the FE reference fills the nodes the
+    # shooting cannot solve, so what is left is a genuine failure of both: name the rows
     not_evaluated = (
-        "; not evaluated (non-finite forces in the refit: the simulator did not converge there): "
-        + ", ".join("+".join(c.effects) for c in failed)
+        "; not evaluated (neither the simulator nor the FE reference has a value there): "
+        + ", ".join(f"{'+'.join(c.effects)} at {c.undefined or 'its rows'}" for c in failed)
         if failed
         else ""
     )
     base["not_evaluated"] = [list(c.effects) for c in failed]
+    base["not_evaluated_rows"] = {"+".join(c.effects): c.undefined for c in failed}
     good = [
         c for c in checks if c.delta_bic < -bic_margin and c.heldout_rmse_n < (1 - min_gain) * c.heldout_rmse_base_n
     ]
@@ -89,10 +129,23 @@ def verdict(
                 f"{floor:.3f} N{extra}{not_evaluated}; the residual's shape: {shape_words(res)}"
             ),
         }
-    best = min(good, key=lambda c: (c.heldout_rmse_n, c.delta_bic))
+    best = _pick(good, min_gain, bic_margin)
     floor = max(floor, best.noise_floor_n)  # the floor under the candidate (refit.full_check)
     full = floor > 0 and best.heldout_rmse_n <= floor_factor * floor
     th = ", ".join(f"{k} = {v:.4g} +- {best.stderr.get(k, float('nan')):.2g}" for k, v in best.theta.items())
+    alts = ties(best, good, tie, bic_margin)
+    either = (
+        (
+            "; the data cannot tell it from "
+            + ", ".join(
+                f"{'+'.join(c.effects)} (held-out RMSE {c.heldout_rmse_n:.3f} N, delta BIC {c.delta_bic:+.1f})"
+                for c in alts
+            )
+            + ": both are named, neither is preferred"
+        )
+        if alts
+        else ""
+    )
     return {
         **base,
         "status": "explained" if full else "partly_explained",
@@ -102,10 +155,20 @@ def verdict(
         "heldout_rmse_n": best.heldout_rmse_n,
         "heldout_rmse_base_n": best.heldout_rmse_base_n,
         "delta_bic": best.delta_bic,
+        "alternatives": [
+            {
+                "effects": list(c.effects),
+                "theta": c.theta,
+                "stderr": c.stderr,
+                "heldout_rmse_n": c.heldout_rmse_n,
+                "delta_bic": c.delta_bic,
+            }
+            for c in alts
+        ],
         "words": (
             f"{'+'.join(best.effects)} {'explains' if full else 'explains part of'} the residual: {th}; "
             f"held-out RMSE {best.heldout_rmse_base_n:.3f} -> {best.heldout_rmse_n:.3f} N "
             f"(noise floor {floor:.3f} N, ratio {best.heldout_over_noise:.2f}), delta BIC {best.delta_bic:+.1f}"
-            f"{not_evaluated}"
+            f"{either}{not_evaluated}"
         ),
     }

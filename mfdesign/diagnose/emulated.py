@@ -70,6 +70,7 @@ __all__ = [
 ]
 
 LATTICE_ROUNDS = 4  # refits while the exact model's lattice grows around the optima
+UNDEFINED_ROW_COST = 10.0  # residual, in noise floors, of a row whose force is NaN at the trial parameters
 CHUNK = 4096  # rows per compiled call (bounds the memory of the emulator's activations)
 
 
@@ -190,7 +191,10 @@ def _fit_batch(force_model, order, names, base, design, rows, obs, sigma, t0, P,
     def resid(x, args):
         t0_, P_, w_, tau_ = args
         f = _forward(force_model, order, names, base, t0_, P_, x, design, rows)
-        r = jnp.sqrt(w_) * jnp.nan_to_num(obs - f) / sigma
+        # A row the model has no number for costs a fixed miss, not nothing: with a zero
+        # residual there, a fit would be drawn to parameters that leave the hard rows
+        # undefined (a thinner membrane past the Gent limit "fits" every row it blanks).
+        r = jnp.sqrt(w_) * jnp.where(jnp.isfinite(f), (obs - f) / sigma, UNDEFINED_ROW_COST)
         return jnp.concatenate([r, x / tau_])
 
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6)
@@ -253,9 +257,21 @@ class GrowingLattice:
         self.model = model
         self.progress = progress
 
-    def cover(self, params: SimParams) -> bool:
-        """Grow the model to hold every constant of ``params`` (fields of any shape); whether it grew."""
+    def cover(self, params: SimParams, p_max_pa: float | None = None) -> bool:
+        """Grow the model to hold every constant of ``params`` (fields of any shape) and, for
+        gauge pressures up to ``p_max_pa`` [Pa], every reduced pressure ``p / s`` they need
+        (``s = (mu / mu0) tf``: a thinner membrane reads planes above the data's pressures);
+        whether it grew."""
         grown = self.model.covering(params, progress=self.progress)
+        reaching = getattr(grown, "reaching", None)
+        if p_max_pa is not None and reaching is not None:
+            mu, tf = np.asarray(params.mu_pa, float), np.asarray(params.thickness_factor, float)
+            nd = max(mu.ndim, tf.ndim)  # fields per draw [B] and per draw and row [B, N] align on the left
+            mu, tf = (a.reshape(a.shape + (1,) * (nd - a.ndim)) for a in (mu, tf))
+            s = (mu / float(grown.base.mu_pa) * tf).ravel()
+            s = s[np.isfinite(s) & (s > 0)]
+            if s.size:
+                grown = reaching(float(p_max_pa) / float(np.min(s)), progress=self.progress)
         changed = grown is not self.model
         self.model = grown
         return changed
@@ -488,7 +504,10 @@ class ExactForwardModel(ForwardModel):
 
     def cover(self, meas: Measurements, order: tuple, thetas: np.ndarray, rows: np.ndarray | None = None) -> bool:
         _, rws = self.table(meas, rows)
-        return self.lattice.cover(_row_params(order, parameter_names(order), self.base_params, rws, thetas))
+        params = _row_params(order, parameter_names(order), self.base_params, rws, thetas)
+        # the rows' highest gauge pressure: at s it reads the planes at p / s (the planes
+        # start at twice the data's top, room for the pressure chain's gain)
+        return self.lattice.cover(params, p_max_pa=float(np.nanmax(np.asarray(rws.p_pa, float), initial=0.0)))
 
 
 def forward_model(physics: str, meas: Measurements, *, cache=None, progress: bool = False) -> ForwardModel:

@@ -7,10 +7,18 @@
 * ``before``: residuals of the model as given; ``after``: with the user's effects
   (calibrated) or, when the search claims one, with the claimed effects;
 * ``steps``: forward selection (Efroymson 1960), at most ``max_steps`` rounds of: screen
-  every candidate on the current residuals (:func:`~mfdesign.diagnose.screen.screen`), full
-  check of the ``check_top`` best (:func:`~mfdesign.diagnose.check.full_check`), verdict
-  (:func:`~mfdesign.diagnose.check.verdict`); a claimed effect joins the model and the next
+  every candidate on the current residuals (:func:`~mfdesign.diagnose.screen.screen`) and
+  every pair of candidates jointly (:func:`~mfdesign.diagnose.screen.screen_pairs`), full
+  check of the ``check_top`` best single effects and the ``check_pairs`` best pairs
+  (:func:`~mfdesign.diagnose.check.full_check`), verdict
+  (:func:`~mfdesign.diagnose.check.verdict`: a pair is claimed only where it beats the best
+  single effect by the claim's margins); claimed effects join the model and the next
   round asks what is still missing. It stops at the first round that claims nothing.
+
+The rule, stated once: refit the top ``check_top`` singles and ``check_pairs`` pairs of the
+linear screens (never only the first: two effects acting together can each screen as
+something else); claim the smallest set that clears the margins; name every set the data
+cannot tell from it.
 """
 
 from __future__ import annotations
@@ -35,13 +43,15 @@ from mfdesign.diagnose.residuals import (
     trend_words,
     worst_regions,
 )
-from mfdesign.diagnose.screen import screen
+from mfdesign.diagnose.screen import screen, screen_pairs
 from mfdesign.physics import effects as fx
 
 if TYPE_CHECKING:
     from mfdesign.diagnose.emulated import ForwardModel
 
 __all__ = ["Diagnosis", "diagnose"]
+
+PAIRS_REPORTED = 10  # pairs of the joint screen kept in diagnosis.json (of up to n (n - 1) / 2)
 
 
 @dataclass(frozen=True)
@@ -86,6 +96,7 @@ class Diagnosis:
                 {
                     "base_effects": s["base_effects"],
                     "screen": [r.to_json() for r in s["screen"]],
+                    "pair_screen": [r.to_json() for r in s.get("pair_screen", [])[:PAIRS_REPORTED]],
                     "checks": [c.to_json() for c in s["checks"]],
                     "verdict": s["verdict"],
                 }
@@ -124,6 +135,41 @@ def unmodelled(names: Sequence[str], sim: ForwardModel) -> dict[str, str]:
     return out
 
 
+def _degeneracies(sim, meas, res, v: dict, checks, theta0, base_pred, n_folds: int) -> None:
+    """For each set the data cannot tell from the claimed one (``v["alternatives"]``): the
+    force trial that would separate them (:func:`~mfdesign.diagnose.separate.separating_trial`)
+    and their joint posterior (the union refitted jointly; Laplace approximation: the
+    parameters' correlation). Adds them to ``v`` and to its words."""
+    from mfdesign.diagnose.separate import separating_trial
+
+    floor = v.get("noise_floor_n") or res.noise_floor_n
+    words = []
+    for alt in v["alternatives"]:
+        sep = separating_trial(sim, meas, (v["effects"], v["theta"]), (alt["effects"], alt["theta"]), floor)
+        union = list(dict.fromkeys([*v["effects"], *alt["effects"]]))
+        joint = next((c for c in checks if set(c.effects) == set(union)), None)
+        if joint is None:
+            joint = full_check(
+                sim,
+                meas,
+                res,
+                [union],
+                theta0={**theta0, **v["theta"], **alt["theta"]},
+                base_pred=base_pred,
+                n_folds=n_folds,
+            )[0]
+        alt["separated_by"] = sep
+        alt["joint"] = {
+            "effects": list(joint.effects),
+            "theta": joint.theta,
+            "stderr": joint.stderr,
+            "correlation": joint.correlation,
+            "method": "Laplace approximation at the joint refit (exact Jacobian, serial-correlation inflated)",
+        }
+        words.append(sep["words"])
+    v["words"] += "; " + "; ".join(words)
+
+
 def diagnose(
     meas: Measurements,
     sim: ForwardModel | None = None,
@@ -134,6 +180,7 @@ def diagnose(
     candidates: Sequence[str] | None = None,
     search: bool = True,
     check_top: int = 3,
+    check_pairs: int = 3,
     max_steps: int = 2,
     n_folds: int = 3,
     progress: bool = False,
@@ -161,6 +208,7 @@ def diagnose(
     - `candidates`: effects the search may try (default: every registered one).
     - `search`: `False` skips the effect search (residuals and the user's effects only).
     - `check_top`: screened candidates refitted in each round.
+    - `check_pairs`: pairs of the joint screen refitted in each round (0: singles only).
     - `max_steps`: rounds of forward selection.
     - `n_folds`: folds of held-out membranes in the refit.
     - `progress`: progress output.
@@ -215,20 +263,28 @@ def diagnose(
         if verdict(cur_res, [])["status"] == "at_noise_floor":  # nothing to explain: no full check
             out.steps.append({"base_effects": names, "screen": ranked, "checks": [], "verdict": verdict(cur_res, [])})
             break
-        sets = [[*names, r.effect] for r in ranked[:check_top]]
-        # base for the check: the current model (``offset`` carries a non-simulator base model)
+        pairs = screen_pairs(cur_res, meas, sim, cands, cur_effects, cur_theta) if check_pairs > 0 else []
+        picks = ranked[:check_top] + pairs[:check_pairs]
+        sets = [[*names, *r.effects] for r in picks]
+        # base for the check: the current model (``offset`` carries a non-simulator base model);
+        # each set starts from its own screen estimate (a pair from the joint one)
         checks = full_check(
             sim,
             meas,
             cur_res,
             sets,
-            theta0={**cur_theta, **{k: v for r in ranked[:check_top] for k, v in r.theta.items()}},
+            theta0=cur_theta,
+            starts=[r.theta for r in picks],
             base_pred=None if offset is None else e0 + offset,
             n_folds=n_folds,
             progress=progress,
         )
         v = verdict(cur_res, checks)
-        out.steps.append({"base_effects": names, "screen": ranked, "checks": checks, "verdict": v})
+        if v.get("alternatives"):
+            _degeneracies(sim, meas, cur_res, v, checks, cur_theta, None if offset is None else e0 + offset, n_folds)
+        out.steps.append(
+            {"base_effects": names, "screen": ranked, "pair_screen": pairs, "checks": checks, "verdict": v}
+        )
         if v["status"] not in ("explained", "partly_explained"):
             break
         best = next(c for c in checks if list(c.effects) == v["effects"])

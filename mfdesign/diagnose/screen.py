@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 
 SCREEN_ROWS = 10000  # rows the screen differentiates at most
 
-__all__ = ["ScreenResult", "parameter_scale", "parameter_step", "screen"]
+__all__ = ["ScreenResult", "parameter_scale", "parameter_step", "screen", "screen_pairs"]
 
 
 def parameter_scale(p: fx.Parameter) -> float:
@@ -80,15 +80,21 @@ class ScreenResult:
     delta_bic: float
     n_eff: float
     sensitivity_rms_n: dict = field(default_factory=dict)
+    effects: tuple[str, ...] = ()  # the set fitted jointly (one effect, or a pair: :func:`screen_pairs`)
 
     def to_json(self) -> dict:
-        return dict(self.__dict__)
+        d = dict(self.__dict__)
+        d["effects"] = list(self.effects)
+        return d
 
 
-def _fit_one(res: Residuals, J: np.ndarray, e: fx.Effect) -> ScreenResult:
+def _fit_one(res: Residuals, J: np.ndarray, e: fx.Effect | Sequence[fx.Effect]) -> ScreenResult:
+    """The ridge fit of one effect, or of a set of effects jointly (``J``: their columns, in order)."""
+    es = [e] if isinstance(e, fx.Effect) else list(e)
+    pars = [(x, p) for x in es for p in x.parameters]
     r = res.residual
     sigma = res.noise_floor_n if res.noise_floor_n > 0 else max(float(np.std(r)), 1e-9)
-    tau = np.array([parameter_scale(p) for p in e.parameters])
+    tau = np.array([parameter_scale(p) for _, p in pars])
     ok = np.all(np.isfinite(J), axis=1)
     Jo, ro = J[ok], r[ok]
     d = ridge_fit(Jo, ro, sigma, tau)
@@ -106,10 +112,10 @@ def _fit_one(res: Residuals, J: np.ndarray, e: fx.Effect) -> ScreenResult:
     excess = ss0 / n - sigma**2
     struct = (ss0 - ss1) / n / excess if excess > 0 else 0.0
     return ScreenResult(
-        effect=e.name,
-        story=e.story,
-        theta={e.qualified(p.name): float(p.neutral + d[j]) for j, p in enumerate(e.parameters)},
-        stderr={e.qualified(p.name): float(se[j]) for j, p in enumerate(e.parameters)},
+        effect="+".join(x.name for x in es),
+        story="; ".join(x.story for x in es),
+        theta={x.qualified(p.name): float(p.neutral + d[j]) for j, (x, p) in enumerate(pars)},
+        stderr={x.qualified(p.name): float(se[j]) for j, (x, p) in enumerate(pars)},
         explained_fraction=float(1.0 - ss1 / ss0) if ss0 > 0 else 0.0,
         structure_explained_fraction=float(min(struct, 1.5)),
         rms_before_n=float(math.sqrt(ss0 / n)),
@@ -117,9 +123,29 @@ def _fit_one(res: Residuals, J: np.ndarray, e: fx.Effect) -> ScreenResult:
         delta_bic=float(dbic),
         n_eff=float(n_eff),
         sensitivity_rms_n={
-            e.qualified(p.name): float(np.sqrt(np.mean(Jo[:, j] ** 2))) for j, p in enumerate(e.parameters)
+            x.qualified(p.name): float(np.sqrt(np.mean(Jo[:, j] ** 2))) for j, (x, p) in enumerate(pars)
         },
+        effects=tuple(x.name for x in es),
     )
+
+
+def _sensitivities(res, meas, sim, candidates, base_effects, base_theta, max_rows):
+    """``(residuals on at most max_rows rows, candidate effects, J [rows, their parameters])``:
+    one ``jacfwd`` for every candidate's parameters at once."""
+    if len(res.frame) > max_rows:
+        res = res.take(subsample(res.frame, max_rows))
+    base = [fx.effect(b) for b in base_effects]
+    names = {b.name for b in base}
+    cands = [fx.effect(c) for c in (candidates if candidates is not None else sorted(fx.EFFECTS))]
+    cands = [c for c in cands if c.name not in names]
+    rows = res.frame["row"].to_numpy()
+    free = [c.qualified(p.name) for c in cands for p in c.parameters]
+    J_all = sim.jacobian(meas, free, base, base_theta, rows=rows)
+    cols, j = {}, 0
+    for c in cands:
+        cols[c.name] = slice(j, j + len(c.parameters))
+        j += len(c.parameters)
+    return res, cands, J_all, cols
 
 
 def screen(
@@ -136,19 +162,34 @@ def screen(
     fraction of the residual ``res`` each explains to first order; best first. At most
     ``max_rows`` rows, evenly spaced within each trial (neighbouring samples of a 10 Hz
     ramp add little: the lag-1 correlation of the remainder sets ``n_eff`` anyway)."""
-    if len(res.frame) > max_rows:
-        res = res.take(subsample(res.frame, max_rows))
-    base = [fx.effect(b) for b in base_effects]
-    names = {b.name for b in base}
-    cands = [fx.effect(c) for c in (candidates if candidates is not None else sorted(fx.EFFECTS))]
-    cands = [c for c in cands if c.name not in names]
-    rows = res.frame["row"].to_numpy()
-    free = [c.qualified(p.name) for c in cands for p in c.parameters]
-    J_all = sim.jacobian(meas, free, base, base_theta, rows=rows)  # one jacfwd for every candidate
-    out, j = [], 0
-    for c in cands:
-        k = len(c.parameters)
-        out.append(_fit_one(res, J_all[:, j : j + k], c))
-        j += k
+    res, cands, J_all, cols = _sensitivities(res, meas, sim, candidates, base_effects, base_theta, max_rows)
+    out = [_fit_one(res, J_all[:, cols[c.name]], c) for c in cands]
+    out.sort(key=lambda s: -s.explained_fraction)
+    return out
+
+
+def screen_pairs(
+    res: Residuals,
+    meas: Measurements,
+    sim: ForwardModel,
+    candidates: Sequence[str | fx.Effect] | None = None,
+    base_effects: Sequence[str | fx.Effect] = (),
+    base_theta: Mapping[str, Any] | None = None,
+    max_rows: int = SCREEN_ROWS,
+) -> list[ScreenResult]:
+    """Every pair of ``candidates`` fitted jointly to first order (the same ridge fit on both
+    effects' sensitivity columns at once), best first.
+
+    Why: two effects acting together can each look like something else on its own. A
+    one-at-a-time screen then ranks wrong candidates first (a pressure offset plus a thinner
+    membrane read as a rubber effect), and the right pair is never refitted. An exhaustive
+    best-subset search of size two (Furnival & Wilson 1974) costs only small least-squares
+    solves on the Jacobian the screen computes anyway."""
+    res, cands, J_all, cols = _sensitivities(res, meas, sim, candidates, base_effects, base_theta, max_rows)
+    out = [
+        _fit_one(res, np.concatenate([J_all[:, cols[a.name]], J_all[:, cols[b.name]]], axis=1), (a, b))
+        for i, a in enumerate(cands)
+        for b in cands[i + 1 :]
+    ]
     out.sort(key=lambda s: -s.explained_fraction)
     return out

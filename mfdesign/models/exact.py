@@ -285,6 +285,35 @@ class ExactForceModel(ForceModel):
             self.design_keys, self.base, t_nodes, a_nodes, self.grid, self.outside, self.cache, progress, self.grow
         )
 
+    def reaching(self, p_reduced_pa: float, progress: bool = False) -> "ExactForceModel":
+        """The model with its planes reaching reduced pressure ``p_reduced_pa`` [Pa] (``p /
+        s``; returns ``self`` when they already do). A thinner or softer membrane (``s < 1``)
+        needs planes above the data's pressures; where a fit goes there, the planes grow
+        rather than the candidate being dropped as NaN. Every plane is solved again on the
+        taller grid (a plane is one continuation path from 0 Pa; cached ones are reused), so
+        the top is raised with a quarter to spare: one growth, not one per fit."""
+        if p_reduced_pa <= self.grid.p_top_pa + _TOL:
+            return self
+        grid = pl.PlaneGrid.covering(self.grid.h_top_mm, 1.25 * p_reduced_pa, p_margin=1.0)
+        log.info(
+            "exact planes: reduced pressure %.0f Pa is above the planes' top %.0f Pa; they grow to %.0f Pa",
+            p_reduced_pa,
+            self.grid.p_top_pa,
+            grid.p_top_pa,
+        )
+        nodes = lambda axes: {a.name: (a.k0, a.k0 + a.n - 1) for a in axes}  # noqa: E731
+        return _assemble(
+            self.design_keys,
+            self.base,
+            nodes(self.tensor_axes),
+            nodes(self.additive_axes),
+            grid,
+            self.outside,
+            self.cache,
+            progress,
+            self.grow,
+        )
+
     def input_ranges(self) -> dict[str, tuple[float, float]]:
         return {"height_mm": (0.0, self.grid.h_top_mm), "pressure_pa": (0.0, float("inf"))}
 

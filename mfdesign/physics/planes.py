@@ -49,7 +49,9 @@ __all__ = ["AXES", "Axis", "H_STEP_MM", "P_STEP_PA", "PlaneGrid", "cache_dir", "
 
 H_STEP_MM = 2.5
 P_STEP_PA = 250.0
-SCHEMA = 2  # bump when the plane content changes (solver, grid semantics): old cache files are ignored
+# bump when the plane content changes (solver, grid semantics): old cache files are ignored.
+# 3: nodes the shooting solver cannot converge on are taken from the FE reference (_repair)
+SCHEMA = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -241,26 +243,55 @@ def _fill_above_no_contact(f: np.ndarray) -> np.ndarray:
 
 _MEMO: dict[str, np.ndarray] = {}
 REPAIR_BATCH = 8  # unconverged plane nodes re-solved per call: force_at's smallest size, shared with other callers
+REPAIR_POINTS = 64  # more unconverged nodes than this in a plane: a region the shooting cannot solve (FE only)
+
+
+FE_ELEMENTS = 300  # the FE reference's mesh for nodes the shooting cannot solve (agrees with 400 to ~1e-3 N)
 
 
 def _repair(design: Membrane, params: SimParams, grid: PlaneGrid, f: np.ndarray, status: np.ndarray) -> None:
-    """Re-solve a plane's unconverged nodes one by one (in place).
+    """Re-solve a plane's unconverged nodes (in place): first by the shooting solver one
+    point at a time, then by the FE reference.
 
     Along a plane's continuation path a step can fail where a point's own path, from
     p / 8 (:func:`~mfdesign.physics.solve.force_at`), converges: at low tension beside a
     stiff ring the shooting is touchy. Left NaN, such a node would blank the
-    interpolation cells around it (rows the simulator can solve). Nodes past the Gent
-    limit or a limit point stay NaN: there the membrane has no such state."""
+    interpolation cells around it (rows the simulator can solve).
+
+    Where the shooting fails on its own path too (a rubber gap of a few tenths of a mm
+    between the disk and a ring: a contact offset or a fabric inset closing it), the node
+    comes from :func:`~mfdesign.physics.fe.fe_forces`: the same physics (energy, Gent
+    rubber and rings, clamp) discretised by finite elements and minimised, which agrees
+    with the shooting solver to ~1e-3 N where both converge (docs/physics.md). Chosen over
+    a finer shooting path because the FE minimiser does not integrate across the gap at
+    all (a short, stiff segment is one more element), so it converges where shooting
+    cannot, and it is already the project's independent check. Nodes past the Gent limit
+    or a limit point stay NaN: there the membrane has no such state (and the FE minimiser
+    would jump to another branch)."""
     from mfdesign.physics.solve import force_at
     from mfdesign.physics.status import Status
 
     H, P = np.meshgrid(grid.h, grid.p[1:], indexing="ij")
-    idx = np.flatnonzero(~np.isfinite(f) & (status.ravel().reshape(f.shape) == Status.NOT_CONVERGED))
+    status = status.ravel().reshape(f.shape)
+    idx = np.flatnonzero(~np.isfinite(f) & (status == Status.NOT_CONVERGED))
+    # point paths mend sporadic failures; where whole regions fail (a narrow gap) they
+    # fail too, eight points at a time: those go to the FE reference at once
+    idx = idx if idx.size <= REPAIR_POINTS else idx[:0]
     for a in range(0, idx.size, REPAIR_BATCH):
         part = idx[a : a + REPAIR_BATCH]
         pad = np.concatenate([part, np.full(REPAIR_BATCH - part.size, part[-1])])
         res = force_at(design, H.ravel()[pad], P.ravel()[pad], params, signed=True)
         f.ravel()[part] = np.asarray(res.force_n, float)[: part.size]
+    solver_failed = np.isin(status, [int(Status.NOT_CONVERGED), int(Status.ODE_FAILURE)])
+    idx = np.flatnonzero(~np.isfinite(f) & solver_failed)
+    if idx.size:
+        from mfdesign.physics.fe import fe_forces
+
+        try:
+            fe = fe_forces([(design, params)], [H.ravel()[idx]], [P.ravel()[idx]], n_elements=FE_ELEMENTS)[0]
+        except ValueError:  # no such membrane: the offset or inset closes the gap to a ring (build_mesh)
+            return
+        f.ravel()[idx] = np.where(np.asarray(fe.converged, bool), np.asarray(fe.force_n, float), np.nan)
 
 
 def solve_planes(

@@ -77,6 +77,9 @@ class Effect(eqx.Module):
     name: ClassVar[str] = ""
     story: ClassVar[str] = ""
     parameters: ClassVar[tuple[Parameter, ...]] = ()
+    # how a lab measures the effect itself, not through the force (what a diagnosis
+    # recommends when force data cannot tell this effect from another)
+    direct_check: ClassVar[str] = ""
 
     # -- hooks ----------------------------------------------------------------------------
     @abc.abstractmethod

@@ -12,6 +12,7 @@ __all__ = ["ClampPrestretch"]
 class ClampPrestretch(MechanicalEffect):
     name = "clamp_prestretch"
     story = "clamping the membrane stretches it radially before inflation"
+    direct_check = "mark radial lines on the membrane and measure their spacing before and after clamping"
     parameters = (Parameter("strain", "1", Uniform(0.0, 0.08), 0.0, 0.02, "hoop stretch at the clamp - 1"),)
 
     def sim_params(self, base, theta, context=None):

@@ -19,6 +19,7 @@ __all__ = ["ContactOffset"]
 class ContactOffset(MechanicalEffect):
     name = "contact_offset"
     story = "the free membrane starts beyond the disk (it sticks to the plate) or inside it (it is not held over the disk's rim)"
+    direct_check = "photograph the membrane at the disk's rim under pressure and measure where it leaves the plate"
     parameters = (Parameter("offset_mm", "mm", Uniform(-6.0, 6.0), 0.0, 2.0, "effective - nominal contact radius"),)
 
     def sim_params(self, base, theta, context=None):

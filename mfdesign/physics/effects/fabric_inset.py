@@ -21,6 +21,9 @@ __all__ = ["FabricInset"]
 class FabricInset(MechanicalEffect):
     name = "fabric_inset"
     story = "each fabric edge bonded to rubber acts inside the fabric (shear lag at the bond, fray), so short rubber gaps strain over a longer span"
+    direct_check = (
+        "section a bonded ring and measure where the fabric starts to carry load (or a hoop test of a bonded ring)"
+    )
     parameters = (Parameter("inset_mm", "mm", Uniform(0.0, 2.0), 0.0, 0.5, "fabric edge's effective inset [mm]"),)
 
     def sim_params(self, base, theta, context=None):

@@ -20,6 +20,7 @@ class Hysteresis(MeasurementEffect):
 
     name = "hysteresis"
     story = "viscoelastic losses: the membrane pushes less on deflation than on inflation"
+    direct_check = "run one trial with a slow and one with a fast ramp, inflation and deflation, at one height"
     parameters = (Parameter("loss", "1", Uniform(0.0, 0.3), 0.0, 0.08, "fractional force deficit on deflation"),)
 
     def observed_force_fn(self, theta, force_fn, rows):

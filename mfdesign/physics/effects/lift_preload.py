@@ -23,6 +23,7 @@ class LiftPreload(MeasurementEffect):
 
     name = "lift_preload"
     story = "a lift also carries the plate, its guide and bearing friction; the force column records only the mass"
+    direct_check = "weigh the plate with its guide and measure the bearing's friction force"
     parameters = (
         Parameter("preload_n", "N", Normal(0.0, 5.0, -20.0, 20.0), 0.0, 3.0, "plate + guide weight [N]"),
         Parameter("friction_n", "N", Normal(0.0, 2.0, 0.0, 10.0), 0.0, 1.0, "bearing friction [N], opposes motion"),

@@ -16,6 +16,7 @@ class LoadCellOffset(MeasurementEffect):
 
     name = "load_cell_offset"
     story = "the load cell was tared with a different preload: every force reading is shifted"
+    direct_check = "read the load cell with the plate off and no pressure"
     parameters = (Parameter("offset_n", "N", Normal(0.0, 1.0), 0.0, 0.8, "reading at zero force"),)
 
     def observed_force_fn(self, theta, force_fn, rows):

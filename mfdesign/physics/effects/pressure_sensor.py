@@ -14,6 +14,7 @@ class PressureSensor(MeasurementEffect):
 
     name = "pressure_sensor"
     story = "the pressure transducer has a zero offset and a gain error"
+    direct_check = "check the pressure transducer against a reference gauge at two pressures"
     parameters = (
         Parameter("offset_pa", "Pa", Normal(0.0, 150.0), 0.0, 150.0, "reading at zero gauge pressure"),
         Parameter("gain", "1", Normal(1.0, 0.03, 0.8, 1.2), 1.0, 1.0, "reading / true pressure"),

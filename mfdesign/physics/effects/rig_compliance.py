@@ -26,6 +26,7 @@ class RigCompliance(MeasurementEffect):
 
     name = "rig_compliance"
     story = "the rig's frame yields under the membrane's push: the plate sits higher than its set-point"
+    direct_check = "measure the plate's displacement under a known load with the membrane removed"
     parameters = (
         Parameter("compliance_mm_per_n", "mm/N", Uniform(0.0, 0.1), 0.0, 0.02, "1 / k, plate displacement per newton"),
     )

@@ -12,6 +12,7 @@ __all__ = ["RingSoftening"]
 class RingSoftening(MechanicalEffect):
     name = "ring_softening"
     story = "the fabric rings partly delaminate from the rubber, so they are less stiff than assumed"
+    direct_check = "a hoop or uniaxial test of a ring cut from a bonded membrane"
     parameters = (
         Parameter("factor", "1", LogNormal(0.5, 1.0, 0.01, 1.0), 1.0, 0.3, "effective / assumed ring shear modulus"),
     )

@@ -29,6 +29,7 @@ class RingStiffening(RingSoftening):
 
     name = "ring_stiffening"
     story = "the fabric rings barely stretch: stiffer than the modelled fabric (1 MPa), so the rubber gaps take more of the stretch"
+    direct_check = "a hoop or uniaxial test of a ring cut from a bonded membrane"
     parameters = (
         Parameter("factor", "1", LogNormal(2.0, 0.7, 1.0, 4.0), 1.0, 2.0, "effective / modelled ring shear modulus"),
     )

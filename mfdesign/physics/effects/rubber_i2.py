@@ -22,6 +22,7 @@ __all__ = ["RubberI2"]
 class RubberI2(MechanicalEffect):
     name = "rubber_i2"
     story = "the rubber's energy has a second-invariant (Mooney-Rivlin) term that uniaxial coupons cannot see: an inflated membrane stiffens at large biaxial stretch"
+    direct_check = "an equibiaxial (bulge) test of a rubber coupon beside the uniaxial one"
     parameters = (
         Parameter("share", "1", Uniform(0.0, 0.8), 0.0, 0.2, "share of the small-strain modulus in the I2 term"),
     )

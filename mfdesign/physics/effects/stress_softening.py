@@ -14,6 +14,7 @@ __all__ = ["StressSoftening"]
 class StressSoftening(MechanicalEffect):
     name = "stress_softening"
     story = "Mullins effect: the virgin rubber of the first inflation is stiffer than in every later trial"
+    direct_check = "compare the first and the third inflation of a fresh membrane at one height"
     parameters = (
         Parameter(
             "stiffening",

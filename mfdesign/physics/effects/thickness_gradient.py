@@ -12,6 +12,7 @@ __all__ = ["ThicknessGradient"]
 class ThicknessGradient(MechanicalEffect):
     name = "thickness_gradient"
     story = "the uncured rubber flows outwards in the mould: the membrane thins (or thickens) towards the clamp"
+    direct_check = "measure each membrane's thickness near the disk and near the clamp"
     parameters = (
         Parameter(
             "gradient",
