@@ -8,7 +8,8 @@ data made with it test the diagnosis on physics it did not make (the two agree t
 
 The adapter returns the :class:`~mfdesign.physics.solve.SimResult` the rig reads: the
 force (0 and ``NO_CONTACT`` where the membrane does not reach the plate, NaN and
-``NOT_CONVERGED`` where the FE minimiser did not converge), the Gent locking measure
+``NOT_CONVERGED`` where the FE minimiser did not converge, NaN and ``OUTSIDE_MODEL`` above
+``p pi R^2`` as the simulator), the Gent locking measure
 ``(I1 - 3) / J_m`` of the most stretched rubber element (the rig's burst model) and the
 membrane's rise above the plate ``max Z - h`` [mm] (the rig ends ringless force trials
 at ``ringless_contact_rise_mm``).
@@ -40,7 +41,8 @@ class fe_plane:  # noqa: N801 -- used like a function: VirtualRig(simulator=fe_p
     n_steps: int = 8
 
     def __repr__(self) -> str:
-        return f"fe_plane(n_elements={self.n_elements}, n_steps={self.n_steps})"
+        # "outside model": points above p pi R^2 are not readings (the cache key changes with it)
+        return f"fe_plane(n_elements={self.n_elements}, n_steps={self.n_steps}, outside model)"
 
     def __call__(self, design: Membrane, h_grid, p_grid, params: SimParams = SimParams()):
         from mfdesign.physics.fe import fe_forces
@@ -60,6 +62,11 @@ class fe_plane:  # noqa: N801 -- used like a function: VirtualRig(simulator=fe_p
         locking = np.max((i1 - 3.0) / float(params.rubber.jm), axis=-1)
         rise = np.max(Z, axis=-1) - H
         status = np.where(conv, np.where(f < 0, int(Status.NO_CONTACT), int(Status.OK)), int(Status.NOT_CONVERGED))
+        # as the simulator: a force above p pi R^2 (the membrane dips below the clamp plane)
+        # is outside the physical model, never a reading (Status.OUTSIDE_MODEL)
+        outside = conv & ~np.asarray(res.inside_model, bool) & (f >= 0)
+        status = np.where(outside, int(Status.OUTSIDE_MODEL), status)
+        conv = conv & ~outside
         return SimResult(
             force_n=np.where(conv, np.maximum(f, 0.0), np.nan),
             status=status.astype(np.int8),
