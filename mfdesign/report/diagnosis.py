@@ -11,6 +11,9 @@ folder can be moved) and:
 * ``parity.png``: observed vs predicted force; ``trial_order.png``: mean residual per trial;
 * ``breakdown.png``: RMS residual by height, pressure, ring count, phase, trial order;
 * ``screen.png``: explained fraction per candidate effect;
+* ``joint_<round>_<k>.png``: where the data cannot tell two explanations apart, their
+  joint posterior (Laplace approximation of the union's refit: 1 and 2 sigma ellipses of
+  the first parameter of each);
 * ``shapes.png`` (optional, the real simulator only): the simulated membrane at the worst points.
 """
 
@@ -234,6 +237,32 @@ def shapes_plot(res: Residuals, path: Path, params=None, n: int = 3) -> list[dic
     return out
 
 
+def joint_plot(verdict: dict, alt: dict, path: Path) -> None:
+    """The joint posterior of the claimed set and an indistinguishable one (module doc)."""
+    joint = alt["joint"]
+    names = list(joint["theta"])
+    first = lambda eff: next(n for n in names if n.split(".")[0] == eff)  # noqa: E731
+    a = first(next(e for e in verdict["effects"] if e not in alt["effects"]))
+    b = first(next(e for e in alt["effects"] if e not in verdict["effects"]))
+    i, j = names.index(a), names.index(b)
+    sa, sb = joint["stderr"][a], joint["stderr"][b]
+    rho = joint["correlation"][i][j] if joint["correlation"] else 0.0
+    cov = np.array([[sa * sa, rho * sa * sb], [rho * sa * sb, sb * sb]])
+    w, v = np.linalg.eigh(cov)
+    t = np.linspace(0, 2 * math.pi, 200)
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(4.6, 4.0))
+    for k, ls in ((1, "-"), (2, "--")):
+        e = v @ (k * np.sqrt(np.clip(w, 0, None))[:, None] * np.stack([np.cos(t), np.sin(t)]))
+        ax.plot(joint["theta"][a] + e[0], joint["theta"][b] + e[1], ls, c="tab:blue", label=f"{k} sigma")
+    ax.plot([joint["theta"][a]], [joint["theta"][b]], "o", c="tab:blue")
+    ax.set_xlabel(a)
+    ax.set_ylabel(b)
+    ax.set_title(f"joint posterior (Laplace), correlation {rho:+.2f}", fontsize=9)
+    ax.legend(fontsize=8)
+    _save(fig, path)
+
+
 def write_report(diag, out_dir, shapes: bool = False, params=None) -> dict[str, Path]:
     """Write JSON, PNGs and ``report.html`` into ``out_dir``; returns the paths."""
     out = Path(out_dir)
@@ -252,6 +281,10 @@ def write_report(diag, out_dir, shapes: bool = False, params=None) -> dict[str, 
     for i, step in enumerate(diag.steps):
         screen_plot(step, out / f"screen_{i + 1}.png")
         paths[f"screen_{i + 1}"] = out / f"screen_{i + 1}.png"
+        for k, alt in enumerate(step["verdict"].get("alternatives", [])):
+            if alt.get("joint"):
+                joint_plot(step["verdict"], alt, out / f"joint_{i + 1}_{k + 1}.png")
+                paths[f"joint_{i + 1}_{k + 1}"] = out / f"joint_{i + 1}_{k + 1}.png"
     if shapes:
         data["worst_point_shapes"] = shapes_plot(diag.before, out / "shapes.png", params)
         paths["shapes"] = out / "shapes.png"

@@ -171,3 +171,48 @@ def test_breakdown_bars_have_readable_ticks_and_newtons(small_residuals, monkeyp
         assert ax.get_ylabel() == "RMS residual [N]"
         assert all(t.get_fontsize() >= 8 for t in ax.get_xticklabels())
     plt.close(fig)
+
+
+def test_indistinguishable_sets_are_named_with_the_trial_that_separates_them_and_their_joint_posterior(tmp_path):
+    from mfdesign.report.diagnosis import joint_plot
+
+    data = copy.deepcopy(DATA)
+    alt = {
+        "effects": ["pressure_sensor"],
+        "theta": {"pressure_sensor.offset_pa": -50.0, "pressure_sensor.gain": 0.94},
+        "separated_by": {
+            "words": "a force trial of [2.0, 25.4, nan, nan, nan, nan] at h = 70 mm up to 10.0 kPa separates"
+        },
+        "joint": {
+            "effects": ["thickness_deviation", "pressure_sensor"],
+            "theta": {
+                "thickness_deviation.relative": -0.1,
+                "pressure_sensor.offset_pa": -10.0,
+                "pressure_sensor.gain": 0.99,
+            },
+            "stderr": {
+                "thickness_deviation.relative": 0.02,
+                "pressure_sensor.offset_pa": 20.0,
+                "pressure_sensor.gain": 0.01,
+            },
+            "correlation": [[1.0, -0.9, 0.5], [-0.9, 1.0, -0.3], [0.5, -0.3, 1.0]],
+            "method": "Laplace approximation",
+        },
+    }
+    v = {
+        "effects": ["thickness_deviation"],
+        "theta": {"thickness_deviation.relative": -0.12},
+        "words": "w",
+        "alternatives": [alt],
+    }
+    data["search"][0]["verdict"] = v
+    data["search"][0]["pair_screen"] = [
+        {"effect": "a+b", "explained_fraction": 0.97, "theta": {"a.x": 1.0, "b.y": 2.0}, "delta_bic": -5000.0}
+    ]
+    joint_plot(v, alt, tmp_path / "joint_1_1.png")
+    assert (tmp_path / "joint_1_1.png").stat().st_size > 1000
+    page = _page(tmp_path, data, names=("maps_before", "joint_1_1")).read_text()
+    assert "Indistinguishable on these data: thickness_deviation and pressure_sensor" in page
+    assert "at h = 70 mm up to 10.0 kPa separates" in page
+    assert "Laplace approximation" in page and 'src="joint_1_1.png"' in page
+    assert "<h3>Pairs fitted jointly (first order)</h3>" in page and "<td>a+b</td>" in page
