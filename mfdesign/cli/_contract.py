@@ -99,6 +99,7 @@ OPTION_MAX: dict[str, float] = {
     "max_rows": 2_000_000,  # rows a calibration keeps [3,000]; mfdesign.data.plausible.MAX_ROWS
     "folds": 1000,  # [7]
     "check_top": 100,  # [3]
+    "check_pairs": 1000,  # [3]
     "max_steps": 100,  # [2]
     "q": 256,  # batch of proposals [2]
     "membranes": 256,  # [2]

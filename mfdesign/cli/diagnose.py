@@ -139,6 +139,9 @@ def register(app: typer.Typer) -> None:
         ),
         search: bool = typer.Option(True, help="Search for the missing effect."),
         check_top: int = typer.Option(3, min=1, help="Candidates given the full check."),
+        check_pairs: int = typer.Option(
+            3, min=0, help="Pairs of the joint screen given the full check as well (0: single effects only)."
+        ),
         max_steps: int = typer.Option(2, min=1, help="Rounds of forward selection."),
         folds: int = typer.Option(
             3,
@@ -222,6 +225,7 @@ def register(app: typer.Typer) -> None:
             candidates=_items(candidates) or _items(cfg.get("candidates", [])) or None,
             search=search,
             check_top=check_top,
+            check_pairs=check_pairs,
             max_steps=max_steps,
             n_folds=folds,
             progress=True,
@@ -243,6 +247,10 @@ def register(app: typer.Typer) -> None:
             typer.echo(
                 f"round {i + 1}: screen " + ", ".join(f"{r.effect} {r.explained_fraction:.2f}" for r in s["screen"][:5])
             )
+            if s.get("pair_screen"):
+                typer.echo(
+                    "  pairs: " + ", ".join(f"{r.effect} {r.explained_fraction:.2f}" for r in s["pair_screen"][:3])
+                )
             typer.echo(f"  {s['verdict']['words']}")
         for name, why in diag.not_screened.items():
             typer.echo(f"not screened: {name} ({why})")
