@@ -9,16 +9,17 @@
 * ``steps``: forward selection (Efroymson 1960), at most ``max_steps`` rounds of: screen
   every candidate on the current residuals (:func:`~mfdesign.diagnose.screen.screen`) and
   every pair of candidates jointly (:func:`~mfdesign.diagnose.screen.screen_pairs`), full
-  check of the ``check_top`` best single effects and the ``check_pairs`` best pairs
-  (:func:`~mfdesign.diagnose.check.full_check`), verdict
+  check of the ``check_top`` best single effects and, where none of them reaches the
+  noise floor, of the ``check_pairs`` best pairs (:func:`~mfdesign.diagnose.check.full_check`), verdict
   (:func:`~mfdesign.diagnose.check.verdict`: a pair is claimed only where it beats the best
   single effect by the claim's margins); claimed effects join the model and the next
   round asks what is still missing. It stops at the first round that claims nothing.
 
-The rule, stated once: refit the top ``check_top`` singles and ``check_pairs`` pairs of the
-linear screens (never only the first: two effects acting together can each screen as
-something else); claim the smallest set that clears the margins; name every set the data
-cannot tell from it.
+The rule, stated once: refit the top ``check_top`` singles of the linear screen, and where
+none explains the residual down to the noise floor also the top ``check_pairs`` pairs of
+the joint screen (never only the first candidate: two effects acting together can each
+screen as something else); claim the smallest set that clears the margins; name every set
+the data cannot tell from it.
 """
 
 from __future__ import annotations
@@ -133,6 +134,24 @@ def unmodelled(names: Sequence[str], sim: ForwardModel) -> dict[str, str]:
                 f"the {type(sim.force_model).__name__} force model holds {', '.join(moved)} fixed (use --physics exact)"
             )
     return out
+
+
+def _refit(picks, *, sim, meas, res, names, theta0, base_pred, n_folds, progress):
+    """The full check of the screened sets ``picks`` added to the current model ``names``;
+    each set starts from its own screen estimate (a pair from the joint one)."""
+    if not picks:
+        return []
+    return full_check(
+        sim,
+        meas,
+        res,
+        [[*names, *r.effects] for r in picks],
+        theta0=theta0,
+        starts=[r.theta for r in picks],
+        base_pred=base_pred,  # the model under diagnosis (``offset`` carries a non-simulator one)
+        n_folds=n_folds,
+        progress=progress,
+    )
 
 
 def _degeneracies(sim, meas, res, v: dict, checks, theta0, base_pred, n_folds: int) -> None:
@@ -263,25 +282,22 @@ def diagnose(
         if verdict(cur_res, [])["status"] == "at_noise_floor":  # nothing to explain: no full check
             out.steps.append({"base_effects": names, "screen": ranked, "checks": [], "verdict": verdict(cur_res, [])})
             break
-        pairs = screen_pairs(cur_res, meas, sim, cands, cur_effects, cur_theta) if check_pairs > 0 else []
-        picks = ranked[:check_top] + pairs[:check_pairs]
-        sets = [[*names, *r.effects] for r in picks]
-        # base for the check: the current model (``offset`` carries a non-simulator base model);
-        # each set starts from its own screen estimate (a pair from the joint one)
-        checks = full_check(
-            sim,
-            meas,
-            cur_res,
-            sets,
-            theta0=cur_theta,
-            starts=[r.theta for r in picks],
-            base_pred=None if offset is None else e0 + offset,
-            n_folds=n_folds,
-            progress=progress,
-        )
+        base_pred = None if offset is None else e0 + offset
+
+        kw = dict(sim=sim, meas=meas, res=cur_res, names=names, theta0=cur_theta, base_pred=base_pred, n_folds=n_folds)
+        checks = _refit(ranked[:check_top], progress=progress, **kw)
+        pairs: list = []
+        # Pairs only where no single effect reaches the floor: a pair must beat the best
+        # single by the claim's margins, which a single at the floor leaves no room for
+        # (and the refits of pairs cost as much again).
+        if check_pairs > 0 and verdict(cur_res, checks)["status"] != "explained":
+            pairs = screen_pairs(cur_res, meas, sim, cands, cur_effects, cur_theta)
+            checks = sorted(
+                checks + _refit(pairs[:check_pairs], progress=progress, **kw), key=lambda c: c.heldout_rmse_n
+            )
         v = verdict(cur_res, checks)
         if v.get("alternatives"):
-            _degeneracies(sim, meas, cur_res, v, checks, cur_theta, None if offset is None else e0 + offset, n_folds)
+            _degeneracies(sim, meas, cur_res, v, checks, cur_theta, base_pred, n_folds)
         out.steps.append(
             {"base_effects": names, "screen": ranked, "pair_screen": pairs, "checks": checks, "verdict": v}
         )
