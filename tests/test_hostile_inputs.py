@@ -414,6 +414,18 @@ def test_class9_config_effects_module_is_documented_as_code():
     assert r.exit_code == 0 and "runs the Python files it names" in " ".join(r.output.replace("│", " ").split())
 
 
+def test_class6_cache_dir_that_is_a_file_and_huge_weights(tmp_path, monkeypatch, small_csv):
+    (tmp_path / "cache").write_text("x")
+    monkeypatch.setenv("MFDESIGN_CACHE_DIR", str(tmp_path / "cache"))
+    _one_line_exit2(_cli("simulate", "--out", tmp_path / "s"), "cannot be used: File exists")
+    monkeypatch.delenv("MFDESIGN_CACHE_DIR")
+    df = _spoil(_bundled_rows("force", 50), "weight", lambda c: c * 0 + 1e308)
+    df.to_csv(tmp_path / "w.csv", index=False)
+    _one_line_exit2(
+        _cli("import", tmp_path / "w.csv", "--out", tmp_path / "w.parquet"), "column 'weight' reaches 1e+308"
+    )
+
+
 # -- fuzz over the classes (slow) ---------------------------------------------------------
 _FUZZ_CHILD = """
 import pickle, sys, time

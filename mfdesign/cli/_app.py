@@ -75,7 +75,17 @@ def enable_compilation_cache() -> Path:
     """
     os.environ.setdefault("EQX_ON_ERROR", "nan")
     cache = Path(os.environ.get("MFDESIGN_CACHE_DIR", Path.home() / ".cache" / "mfdesign" / "jax"))
-    cache.mkdir(parents=True, exist_ok=True)
+    try:  # a file or a read-only folder there is the user's setting, not a bug (exit 2)
+        cache.mkdir(parents=True, exist_ok=True)
+        if not os.access(cache, os.W_OK | os.X_OK):
+            raise PermissionError(13, "not writable")
+    except OSError as err:
+        from mfdesign.errors import InputError
+
+        raise InputError(
+            f"cache folder {cache} (MFDESIGN_CACHE_DIR or the default) cannot be used: {err.strerror or err}; "
+            "allowed: a folder you can write (set MFDESIGN_CACHE_DIR to one)"
+        ) from None
     settings = {
         "jax_compilation_cache_dir": str(cache),
         "jax_persistent_cache_min_compile_time_secs": 1.0,

@@ -22,6 +22,7 @@ from mfdesign.errors import InputError
 __all__ = ["MAX_ROWS", "check_columns", "check_rows"]
 
 MAX_ROWS = 2_000_000
+MAX_WEIGHT = 1e9  # weights are relative (the real files: each membrane's sum to 1000)
 
 
 def check_rows(n: int, where: str) -> None:
@@ -49,7 +50,7 @@ def check_columns(df: pd.DataFrame, where: str) -> None:
         if column in df.columns and pd.api.types.is_bool_dtype(df[column].dtype):
             _refuse(where, column, "holds True/False values", "numbers in the column's unit (docs/data.md)")
     num = {}
-    for column in ("time_s", "height_mm", "pressure_pa", "force_n"):
+    for column in ("time_s", "height_mm", "pressure_pa", "force_n", "weight"):
         if column in df.columns:
             num[column] = pd.to_numeric(df[column], errors="coerce").to_numpy(dtype=np.float64, na_value=np.nan)
     if "height_mm" in num:
@@ -78,6 +79,15 @@ def check_columns(df: pd.DataFrame, where: str) -> None:
                 "time_s",
                 f"reaches {t.max():.4g} s: that looks like a clock time stamp",
                 "seconds since the trial's start (subtract the first time stamp; NaN if unknown)",
+            )
+    if "weight" in num:
+        w = num["weight"][np.isfinite(num["weight"])]
+        if len(w) and w.max() > MAX_WEIGHT:
+            _refuse(
+                where,
+                "weight",
+                f"reaches {w.max():.4g}",
+                f"relative weights up to {MAX_WEIGHT:g} (sums of 1e308 overflow: 'math domain error')",
             )
     if "pressure_pa" in num and "force_n" in num:
         bad = (num["pressure_pa"] < -1e3) & (num["force_n"] > 1.0)
