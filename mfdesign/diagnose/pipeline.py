@@ -151,10 +151,11 @@ def _refit(picks, *, sim, meas, res, names, theta0, base_pred, n_folds, progress
         base_pred=base_pred,  # the model under diagnosis (``offset`` carries a non-simulator one)
         n_folds=n_folds,
         progress=progress,
+        base_effects=names,
     )
 
 
-def _degeneracies(sim, meas, res, v: dict, checks, theta0, base_pred, n_folds: int) -> None:
+def _degeneracies(sim, meas, res, v: dict, checks, names, theta0, base_pred, n_folds: int) -> None:
     """For each set the data cannot tell from the claimed one (``v["alternatives"]``): the
     force trial that would separate them (:func:`~mfdesign.diagnose.separate.separating_trial`)
     and their joint posterior (the union refitted jointly; Laplace approximation: the
@@ -297,7 +298,7 @@ def diagnose(
             )
         v = verdict(cur_res, checks)
         if v.get("alternatives"):
-            _degeneracies(sim, meas, cur_res, v, checks, cur_theta, base_pred, n_folds)
+            _degeneracies(sim, meas, cur_res, v, checks, names, cur_theta, base_pred, n_folds)
         out.steps.append(
             {"base_effects": names, "screen": ranked, "pair_screen": pairs, "checks": checks, "verdict": v}
         )

@@ -198,11 +198,14 @@ def full_check(
     max_rows: int = MAX_ROWS,
     progress: bool = False,
     starts: Sequence[Mapping[str, float] | None] | None = None,
+    base_effects: Sequence[str] | None = None,
 ):
     """Refit each candidate set (module doc); ``res``: residuals of the current model (the
     sets' common prefix of effects at ``theta0``); ``base_pred``: prediction of the model
     under diagnosis without any effect (default: the plain back end); ``starts``: per set,
-    a start that overrides ``theta0`` (a pair's joint screen estimate). Sorted by held-out RMSE."""
+    a start that overrides ``theta0`` (a pair's joint screen estimate); ``base_effects``: the
+    effects of the model the sets are compared with (default: the sets' common prefix).
+    Sorted by held-out RMSE."""
     sets = [list(s) for s in candidates]
     if not sets:
         return []
@@ -219,7 +222,7 @@ def full_check(
         0.0 if base_pred is None else np.asarray(base_pred, float)[all_rows] - sim.expected_force(meas, rows=all_rows)
     )
     sigma = res.noise_floor_n if res.noise_floor_n > 0 else float(np.std(r0))
-    prefix = _prefix(sets)
+    prefix = list(base_effects) if base_effects is not None else _prefix(sets)
     order = effect_order(prefix)
     t0, lay = _layout(order, sets, theta0, starts)
     folds = _folds(keys, n_folds, seed)
