@@ -100,22 +100,60 @@ def _plt():
     return plt
 
 
+def _peak_rss_mb() -> float | None:
+    """This process's peak resident set so far [MB] (``ru_maxrss``: kB on Linux, bytes on
+    macOS); None where ``resource`` is missing (Windows)."""
+    try:
+        import resource
+        import sys
+    except ImportError:
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (1024.0 * 1024.0 if sys.platform == "darwin" else 1024.0), 1)
+
+
+def _rss_mb() -> float | None:
+    """This process's resident set now [MB] (psutil where it is installed: not one of
+    mfdesign's dependencies; None without it)."""
+    try:
+        import psutil
+    except ImportError:
+        return None
+    return round(psutil.Process().memory_info().rss / 2**20, 1)
+
+
 class _Log:
-    """Stage timer and progress lines (stderr-free: the CLI's tqdm bars sit between them)."""
+    """Stage timer and progress lines (stderr-free: the CLI's tqdm bars sit between them).
+
+    ``times``: wall seconds per stage (``summary.json`` ``timings_s``); ``resources``: per
+    stage also the CPU seconds of this process (every thread: the plane solves and XLA run
+    on threads, not child processes), the peak RSS so far and the RSS at the stage's end
+    [MB] (``summary.json`` ``stage_resources``; issue 40: a stage that raises the peak is
+    the one holding memory). The peak is the process's high-water mark, never reset: a
+    reset (``/proc/self/clear_refs``) would also hide the true peak from ``time -v``."""
 
     def __init__(self, echo):
         self.echo, self.t0, self.times = echo, time.perf_counter(), {}
+        self.cpu0 = time.process_time()
+        self.resources: dict[str, dict] = {}
 
     def stage(self, name: str):
         log = self
 
         class _Stage:
             def __enter__(self):
-                self.t = time.perf_counter()
+                self.t, self.cpu = time.perf_counter(), time.process_time()
                 log.echo(f"[{time.perf_counter() - log.t0:6.1f} s] {name} ...")
 
             def __exit__(self, *exc):
-                log.times[name] = round(time.perf_counter() - self.t, 2)
+                wall = round(time.perf_counter() - self.t, 2)
+                log.times[name] = wall
+                log.resources[name] = {
+                    "wall_s": wall,
+                    "cpu_s": round(time.process_time() - self.cpu, 2),
+                    "peak_rss_mb": _peak_rss_mb(),
+                    "rss_end_mb": _rss_mb(),
+                }
                 return False
 
         return _Stage()
@@ -892,7 +930,10 @@ def run_demo(
         report=str(paths["html"]),
         json=str(paths["json"]),
         timings_s=log.times,
+        stage_resources=log.resources,
         total_s=round(time.perf_counter() - log.t0, 1),
+        total_cpu_s=round(time.process_time() - log.cpu0, 1),
+        peak_rss_mb=_peak_rss_mb(),
     )
     outputs.write_text(out / "summary.json", json.dumps(summary, indent=1, default=str))
     echo(f"report: {paths['html']} ({summary['total_s']} s)")
