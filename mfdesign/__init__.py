@@ -11,7 +11,9 @@ Physics runs in float64 (JAX's 64-bit mode is on once a JAX-using module is impo
 * effects: :class:`Effect` (and :mod:`mfdesign.physics.effects` for the library);
 * the loop, one call a step (``notebooks/tutorial.ipynb``): :func:`load`, :func:`compare`,
   :func:`diagnose`, :func:`fit_multi_fidelity` (calibrate + discrepancy),
-  :func:`calibrate` (the posterior alone), :func:`propose`, :func:`optimize`.
+  :func:`calibrate` (the posterior alone), :func:`propose`, :func:`optimize`;
+* a lab's loop over many rounds, in one folder: :class:`Campaign` (``create``, ``open``,
+  ``diagnose``, ``fit``, ``ask``, ``tell``, ``status``; ``docs/campaign.md``).
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ _WHERE = {
     "propose": "mfdesign.acquire",
     "optimize": "mfdesign.optimize",
     "enable_x64": "mfdesign._x64",
+    "Campaign": "mfdesign.campaign",
 }
 __all__ = [*_WHERE, "load", "compare"]
 

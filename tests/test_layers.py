@@ -22,6 +22,7 @@ LAYERS = (
     ("mfdesign.models",),
     ("mfdesign.calibration", "mfdesign.diagnose"),
     ("mfdesign.acquire", "mfdesign.optimize", "mfdesign.sim_runs"),
+    ("mfdesign.campaign",),  # a lab's loop: every step above, kept in one folder
     ("mfdesign.report", "mfdesign.cli"),
     ("mfdesign",),  # the package's own names: a facade over everything
 )

@@ -148,6 +148,67 @@ class MFFit:
     noise_n: float
     mf: object
     design_keys: tuple[str, ...]
+    # the seed that thinned the posterior into ``mf``: a reloaded fit must thin alike, or
+    # its predictions differ from the fit's whenever the posterior holds over 128 draws
+    seed: int = 0
+
+    def save(self, folder, *, physics: str, material: str = "free", table=None) -> dict:
+        """Write the fit into ``folder``: ``posterior.json`` + ``posterior.npz``, the
+        discrepancy ``delta/`` and ``mf.json`` (what :meth:`load` needs to rebuild the
+        model: effects, physics, likelihood, material, latents, the thinning seed), each
+        file atomically (:mod:`mfdesign.outputs`).
+
+        **Arguments:**
+
+        - `folder`: the folder (created).
+        - `physics`: the force model's name where the model met the data (`"exact"`,
+          `"emulator"`, `"standin"`); a reloaded fit runs on the search physics
+          (`"emulator"` for `"exact"`: the exact model holds planes of the calibrated
+          membranes only).
+        - `material`: the name of the rubber priors used (:func:`material_priors`).
+        - `table`: the calibrated measurements; given, ``mf.json`` records the training
+          RMSE [N] and 90 % coverage on them.
+
+        **Returns:**
+
+        The dict written as ``mf.json``.
+        """
+        from pathlib import Path
+
+        from mfdesign import outputs
+
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        self.posterior.save(folder / "posterior")  # type: ignore[attr-defined]
+        self.delta.save(folder / "delta")  # type: ignore[attr-defined]
+        meta = {
+            "noise_n": self.noise_n,
+            "effects": list(self.model.effects),  # type: ignore[attr-defined]
+            "physics": physics,
+            "search_physics": "emulator" if physics == "exact" else physics,
+            "likelihood": self.model.likelihood,  # type: ignore[attr-defined]
+            # the model's layout and priors, for load_multi_fidelity to rebuild it
+            "material": material,
+            "membrane_latents": bool(self.model.membrane_latents),  # type: ignore[attr-defined]
+            "thin_seed": int(self.seed),
+            # how far the discrepancy reaches beyond its membranes (leave-one-membrane-out)
+            "discrepancy_gate": {
+                "length": self.delta.length if np.isfinite(self.delta.length) else None,  # type: ignore[attr-defined]
+                "sigma_n": self.delta.sigma_n,  # type: ignore[attr-defined]
+            },
+        }
+        if table is not None:
+            from mfdesign.models.predictive import coverage
+
+            cov = coverage(self.mf, table.subset(list(self.design_keys)), level=0.9, key=self.seed)  # type: ignore[arg-type]
+            meta.update(train_rmse_n=cov["rmse_n"], train_coverage90=cov["coverage"])
+        outputs.write_json(folder / "mf.json", meta)
+        return meta
+
+    @classmethod
+    def load(cls, folder) -> "MFFit":
+        """The fit :meth:`save` wrote (:func:`load_multi_fidelity`)."""
+        return load_multi_fidelity(folder)
 
 
 def fit_multi_fidelity(
@@ -262,7 +323,7 @@ def fit_multi_fidelity(
         raise ValueError("no calibrated row has a finite residual: the force model has no value at the posterior")
     noise = float(np.sqrt(np.average((resid[ok] - d_mean[ok]) ** 2, weights=w[ok])))
     mf = MultiFidelity.from_posterior(model, post, delta, noise_n=noise, seed=seed)
-    return MFFit(model, post, delta, noise, mf, tuple(data.design_keys))
+    return MFFit(model, post, delta, noise, mf, tuple(data.design_keys), seed)
 
 
 def for_search(fit: MFFit, physics: str = "emulator"):
@@ -276,7 +337,7 @@ def for_search(fit: MFFit, physics: str = "emulator"):
     from mfdesign.models.predictive import MultiFidelity
 
     model = eqx.tree_at(lambda m: m.force_model, fit.model, force_model_for(physics))
-    return MultiFidelity.from_posterior(model, fit.posterior, fit.delta, noise_n=fit.noise_n)
+    return MultiFidelity.from_posterior(model, fit.posterior, fit.delta, noise_n=fit.noise_n, seed=fit.seed)
 
 
 def load_multi_fidelity(folder) -> MFFit:
@@ -303,6 +364,7 @@ def load_multi_fidelity(folder) -> MFFit:
         # Searches over new designs run on the emulator: the exact model holds planes of
         # the calibrated membranes only (its error is stated in the commands that search).
         simulator = str(meta.get("search_physics", meta.get("simulator")))
+        seed = int(meta.get("thin_seed", 0))  # absent: a fit saved before the seed was kept
     except (ValueError, KeyError, TypeError) as err:
         raise InputError(f"{folder / 'mf.json'} is not a valid fit summary ({err!r}); rerun mfdesign fit-mf") from None
     if not (np.isfinite(noise) and noise > 0):
@@ -331,8 +393,8 @@ def load_multi_fidelity(folder) -> MFFit:
         delta = Discrepancy.load(folder / "delta")
     except FileNotFoundError as err:
         raise InputError(f"{folder}: {err}") from None
-    mf = MultiFidelity.from_posterior(model, post, delta, noise_n=noise)
-    return MFFit(model, post, delta, noise, mf, tuple(post.design_keys))
+    mf = MultiFidelity.from_posterior(model, post, delta, noise_n=noise, seed=seed)
+    return MFFit(model, post, delta, noise, mf, tuple(post.design_keys), seed)
 
 
 def calibrated_sim_params(fit: MFFit) -> tuple:

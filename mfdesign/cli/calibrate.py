@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import inspect
 import json
-import math
 from pathlib import Path
 from typing import Annotated, List, Optional
 
@@ -59,7 +58,6 @@ def _run(
     material: str = "free",
     latents: bool = True,
 ) -> None:
-    from mfdesign import outputs
     from mfdesign.cli._app import fail
 
     if likelihood not in ("gaussian", "student_t"):
@@ -176,40 +174,13 @@ def _run(
         "corner": str(out / "corner.png"),
     }
     if multi_fidelity:
-        from mfdesign.models.predictive import coverage
-
-        fit.delta.save(out / "delta")
-        cov = coverage(fit.mf, table.subset(list(fit.design_keys)), level=0.9, key=seed)
-        outputs.write_text(
-            out / "mf.json",
-            json.dumps(
-                {
-                    "noise_n": fit.noise_n,
-                    "effects": list(effects),
-                    "physics": physics,
-                    "search_physics": "emulator" if physics == "exact" else physics,
-                    "likelihood": likelihood,
-                    # the model's layout and priors, for load_multi_fidelity to rebuild it
-                    "material": material,
-                    "membrane_latents": latents,
-                    "train_rmse_n": cov["rmse_n"],
-                    "train_coverage90": cov["coverage"],
-                    # how far the discrepancy reaches beyond its membranes (leave-one-membrane-out)
-                    "discrepancy_gate": {"length": _finite_or_none(fit.delta.length), "sigma_n": fit.delta.sigma_n},
-                },
-                indent=2,
-            ),
-        )
+        meta = fit.save(out, physics=physics, material=material, table=table)  # posterior again: the same bytes
         typer.echo(
-            f"multi-fidelity: residual noise {fit.noise_n:.3f} N; training RMSE {cov['rmse_n']:.3f} N, "
-            f"90 % coverage {cov['coverage']:.2f}; {fit.delta.describe()}"
+            f"multi-fidelity: residual noise {fit.noise_n:.3f} N; training RMSE {meta['train_rmse_n']:.3f} N, "
+            f"90 % coverage {meta['train_coverage90']:.2f}; {fit.delta.describe()}"
         )
         written.update(delta=str(out / "delta"), mf=str(out / "mf.json"))
     typer.echo(json.dumps(written))
-
-
-def _finite_or_none(x: float):
-    return x if math.isfinite(x) else None
 
 
 # Options both commands take, declared once (typer reads them as parameter defaults).

@@ -8,7 +8,9 @@ with a message fit for the terminal.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, List
+import shlex
+import sys
+from typing import TYPE_CHECKING, List, Optional
 
 import typer
 
@@ -161,7 +163,7 @@ def register(app: typer.Typer) -> None:
             ...,
             help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).",
         ),
-        out: Path = typer.Option(..., help="Folder for the fitted model."),
+        out: Optional[Path] = typer.Option(None, help="Folder for the fitted model (not with a campaign folder)."),
         members: int = typer.Option(32, min=1, help="Ensemble members."),
         steps: int = typer.Option(10_000, "--train-steps", min=1, help="Training steps (Adam) of every member."),
         batch: int = typer.Option(100, min=1, help="Minibatch size."),
@@ -170,7 +172,18 @@ def register(app: typer.Typer) -> None:
         seed: int = typer.Option(0, help="Random seed."),
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
-        """Fit the paper's RPN ensemble to measurements and save it."""
+        """Fit the paper's RPN ensemble to measurements and save it; or, DATA a campaign's folder, its next round."""
+        from mfdesign.campaign import Campaign
+
+        if len(data) == 1 and Campaign.holds_campaign(data[0]):  # the campaign's settings rule its fit
+            if out is not None:
+                fail(f"{data[0]} is a campaign: its rounds go into it; allowed: no --out")
+            typer.echo(
+                Campaign.open(data[0]).fit(progress=True, call=shlex.join(["mfdesign", *sys.argv[1:]])).summary()
+            )
+            return
+        if out is None:
+            fail("--out is needed (the folder for the fitted model) unless DATA is one campaign folder")
         try:
             spec = make_spec("ensemble", members, steps, batch, degree, monotone)
             fit(data, out, spec, seed, allow_outside_design_space)

@@ -1,0 +1,59 @@
+"""``mfdesign ask``, ``tell`` and ``status``: a campaign's loop from the command line.
+
+Each command parses its options, calls one method of :class:`mfdesign.campaign.Campaign`
+and prints its summary; ``mfdesign fit D`` (in :mod:`.data`) refits a campaign. The
+campaign folder ``D`` is made by :meth:`~mfdesign.campaign.Campaign.create` (docs/campaign.md).
+"""
+
+from __future__ import annotations
+
+import shlex
+import sys
+from pathlib import Path
+from typing import List
+
+import typer
+
+FOLDER = typer.Argument(..., help="The campaign's folder (holds campaign.json).")
+
+
+def _call() -> str:
+    """The command line, for the campaign's provenance."""
+    return shlex.join(["mfdesign", *sys.argv[1:]])
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def ask(
+        folder: Path = FOLDER,
+        q: int = typer.Option(2, help="Membranes to fabricate this round (rig runs)."),
+        sim_runs: int = typer.Option(0, "--sim-runs", help="Simulator planes the tool makes now (they join the data)."),
+    ) -> None:
+        """Ask a campaign which membranes to build next (the latest round's model; pending ones count as measured)."""
+        from mfdesign.campaign import Campaign
+
+        entries = Campaign.open(folder).ask(q=q, sim_runs=sim_runs, progress=True, call=_call())
+        for e in entries:
+            typer.echo(f"{e.id}  {e.fidelity}  {e.design}  {e.status}: {e.reason} {e.note}".rstrip())
+
+    @app.command()
+    def tell(
+        folder: Path = FOLDER,
+        proposal_id: str = typer.Argument(..., help="The proposal's id, as ask printed it (p1, p2, ...)."),
+        data: List[Path] = typer.Argument(..., help="Its measurements: rig job folder(s), Parquet or CSV file(s)."),
+        any_design: bool = typer.Option(
+            False, "--any-design", help="Take data that hold no membrane of the proposal's design key."
+        ),
+    ) -> None:
+        """Tell a campaign the measurements of a proposal: they join its data for the next fit."""
+        from mfdesign.campaign import Campaign
+
+        entry = Campaign.open(folder).tell(proposal_id, data, check_design=not any_design, call=_call())
+        typer.echo(f"{entry.id}: {entry.design} {entry.status} (source {entry.source}); next: mfdesign fit {folder}")
+
+    @app.command()
+    def status(folder: Path = FOLDER) -> None:
+        """A campaign's rounds (training and held-out error), sources and proposals."""
+        from mfdesign.campaign import Campaign
+
+        typer.echo(Campaign.open(folder).status().summary())
