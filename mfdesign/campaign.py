@@ -139,7 +139,8 @@ class Settings:
         if unknown:
             raise InputError(f"{where}: unknown setting(s) {unknown}; allowed: {sorted(known)}")
         try:
-            return cls(**{k: tuple(v) if k == "effects" else v for k, v in raw.items()})
+            values: dict[str, Any] = {k: tuple(v) if k == "effects" else v for k, v in raw.items()}
+            return cls(**values)
         except TypeError as err:
             raise InputError(f"{where}: {err}") from None
 
