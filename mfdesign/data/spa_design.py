@@ -26,6 +26,7 @@ import pickle
 import pickletools
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -463,7 +464,7 @@ def _rows_of(key, value, where: str) -> int:
         ) from None
 
 
-def checked_entries(data: dict, where: str) -> list[tuple[Membrane, object]]:
+def checked_entries(data: dict, where: str) -> list[tuple[Membrane, Any]]:
     """The entries of an SPA_Design data dictionary as (design, value), refused in one line
     when two keys spell one design or the entries expand to too many rows.
 
