@@ -169,15 +169,52 @@ EDGE_STEP = 2  # lattice nodes added past a MAP that sits on the lattice's edge
 EDGE_MARGIN = 0.25
 
 
-def _laplace_sd(result: MapResult) -> np.ndarray | None:
-    """Posterior sd in ``u`` from the Hessian at the MAP (``None`` where it is not positive
-    definite: no Laplace approximation there)."""
-    h = np.asarray(result.hessian)
-    try:
-        d = np.diag(np.linalg.inv(0.5 * (h + h.T)))
-    except np.linalg.LinAlgError:
-        return None
-    return np.sqrt(d) if np.all(np.isfinite(d)) and np.all(d > 0) else None
+# Eigenvalues of the Hessian below this share of the largest are flat: the data (and priors)
+# leave that direction undetermined at the MAP.
+FLAT_EIG = 1e-10
+# A parameter with more than this squared weight on a flat direction has no Laplace width.
+FLAT_WEIGHT = 1e-6
+
+
+def _lattice_steps(model: HierarchicalModel, data: CalibrationData, res: MapResult) -> np.ndarray:
+    """Half-widths [dim] in ``u`` of the box the lattice must hold around the MAP, one per
+    parameter: ``LATTICE_SD`` marginal sd (capped at 0.5 a parameter) from the Hessian's
+    positive-definite part, where the Hessian determines that parameter. A parameter that
+    loads on a flat or concave direction (the hierarchy's funnel, a prior-free effect) has
+    no width the data give; it gets the u step that moves the lattice axis it moves fastest
+    by ``EDGE_STEP`` nodes, and 0 where it moves no axis (noise, the thickness spread): its
+    own axes grow, not every axis (issue 40). With a positive-definite Hessian this is
+    exactly ``LATTICE_SD * min(sd, 0.5)``, the Laplace box."""
+    from mfdesign.physics import planes as pl
+
+    h = np.asarray(res.hessian, float)
+    h = 0.5 * (h + h.T)
+    u = np.asarray(res.u, float)
+    if not np.all(np.isfinite(h)):
+        lam, vec = np.zeros(len(u)), np.eye(len(u))
+    else:
+        lam, vec = np.linalg.eigh(h)
+    good = lam > FLAT_EIG * max(float(np.max(np.abs(lam))), 1e-300)
+    var = (vec[:, good] ** 2) @ (1.0 / lam[good]) if good.any() else np.zeros(len(u))
+    flat = (vec[:, ~good] ** 2).sum(axis=1) > FLAT_WEIGHT
+    steps = LATTICE_SD * np.minimum(np.sqrt(var), 0.5)
+    if flat.any():
+        # d(coordinate)/du per parameter and axis, by central differences of 1e-4 in u
+        eps = 1e-4
+        pts = np.vstack([u + eps * np.eye(len(u)), u - eps * np.eye(len(u))])
+        prm = _params_at(model, data, pts)
+        base = getattr(model.force_model, "base", None)
+        ringed = bool(np.any(np.asarray(getattr(model.force_model, "ringed", True))))
+        axes = [a for a in pl.AXES.values() if base is not None and (ringed or not a.ringed_only)]
+        for i in np.flatnonzero(flat):
+            nodes_per_u = 0.0
+            for axis in axes:
+                c = np.asarray(axis.coord(prm, base), float)  # [2 dim, rows]
+                d = np.nanmax(np.abs(c[i] - c[len(u) + i])) / (2 * eps) if np.isfinite(c[i]).any() else 0.0
+                nodes_per_u = max(nodes_per_u, float(d) / axis.step if np.isfinite(d) else 0.0)
+            edge = min(EDGE_STEP / nodes_per_u, LATTICE_SD * 0.5) if nodes_per_u > 1e-9 else 0.0
+            steps[i] = max(steps[i], edge)  # never narrower than what the curvature that exists says
+    return steps
 
 
 def _params_at(model: HierarchicalModel, data: CalibrationData, u: np.ndarray):
@@ -202,9 +239,11 @@ def fit_force_model(
     the MAP sits within ``EDGE_MARGIN`` nodes of an edge, the lattice grows ``EDGE_STEP`` nodes past it
     and the MAP is searched again from there; once it is inside, the lattice grows to
     the MAP +- ``LATTICE_SD`` Laplace sd (a Hessian taken at an edge would measure the
-    lattice, not the data). At most ``LATTICE_ROUNDS`` rounds; models valid everywhere
-    return at once. Returns the model for sampling (strict: NaN outside the lattice) and
-    the MAP."""
+    lattice, not the data), per parameter: a parameter the Hessian leaves undetermined
+    grows only the axes it moves, ``EDGE_STEP`` nodes (:func:`_lattice_steps`). An axis
+    grows only where the MAP or the posterior's box reaches past it, never as a default.
+    At most ``LATTICE_ROUNDS`` rounds; models valid everywhere return at once. Returns the
+    model for sampling (strict: NaN outside the lattice) and the MAP."""
     enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.models.force import ForceModel
 
@@ -213,14 +252,15 @@ def fit_force_model(
         return model, res
     for _ in range(LATTICE_ROUNDS):
         at_map = _params_at(model, data, np.asarray(res.u)[None])
-        sd = _laplace_sd(res)
         if not fm.covers(at_map, margin=EDGE_MARGIN):  # past the edge it sits on, only
             grown = fm.covering(at_map, progress=progress, margin=EDGE_STEP, edge=EDGE_MARGIN)
-        elif sd is None:  # no curvature to size the lattice by: a few nodes around the MAP only
-            grown = fm.covering(at_map, progress=progress, margin=EDGE_STEP)
         else:
+            # The box the posterior needs, per parameter (``_lattice_steps``): its Laplace
+            # width where the Hessian gives one; where it does not, only the axes that
+            # parameter moves grow (once ``EDGE_STEP`` nodes on both sides of every axis:
+            # a default, not what the data asked for).
             u = np.asarray(res.u)
-            steps = np.diag(LATTICE_SD * np.minimum(sd, 0.5))
+            steps = np.diag(_lattice_steps(model, data, res))
             grown = fm.covering(_params_at(model, data, np.vstack([u, u + steps, u - steps])), progress=progress)
         if grown is fm:
             break
