@@ -426,6 +426,39 @@ def test_class6_cache_dir_that_is_a_file_and_huge_weights(tmp_path, monkeypatch,
     )
 
 
+# -- class 3: forces the physical model cannot give --------------------------------------
+def test_class3_a_force_above_p_pi_r2_is_never_ok():
+    from mfdesign.physics.solve import PointSolution, _classify
+    from mfdesign.physics.status import VALID, Status, force_bound_n
+
+    p = np.array([7500.0, 7500.0, 10_000.0])
+    bound = force_bound_n(p, 70.0)  # 115.5, 115.5, 153.9 N
+    f = np.array([100.0, 122.0, 208.0])  # the issue's 122 N at 7.5 kPa and 208 N at 10 kPa
+    n = len(p)
+    yes, no = np.ones(n, bool), np.zeros(n, bool)
+    sol = PointSolution(yes, no, f, no, np.zeros(n), np.zeros(n), yes, np.zeros((n, 2)))
+    res = _classify(np.zeros(n), p, sol)
+    assert list(res.status) == [Status.OK, Status.OUTSIDE_MODEL, Status.OUTSIDE_MODEL]
+    assert np.isnan(res.force_n[1:]).all() and Status.OUTSIDE_MODEL not in VALID and not res.ok[1:].any()
+    assert "p pi R^2" in Status.OUTSIDE_MODEL.reason and bound[0] < 122.0
+    signed = _classify(np.zeros(n), p, sol, signed=True)  # planes keep the number, the status says so
+    assert list(signed.status) == list(res.status) and np.allclose(signed.force_n, f)
+
+
+@pytest.mark.slow
+def test_class3_simulate_marks_every_point_above_the_bound(tmp_path):
+    import pandas as pd
+
+    from mfdesign.physics.status import force_bound_n
+
+    r = _cli("simulate", "--n-heights", "3", "--n-pressures", "5", "--out", tmp_path / "s")
+    assert r.exit_code == 0, r.output
+    t = pd.read_parquet(tmp_path / "s" / "plane.parquet")
+    ok = t["status_name"] == "OK"
+    assert (t.loc[ok, "force_n"] <= force_bound_n(t.loc[ok, "pressure_pa"], 70.0)).all()
+    assert (t["status_name"] == "OUTSIDE_MODEL").sum() >= 4  # 7.5 and 10 kPa at every height
+
+
 # -- fuzz over the classes (slow) ---------------------------------------------------------
 _FUZZ_CHILD = """
 import pickle, sys, time
