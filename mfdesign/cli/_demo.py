@@ -132,8 +132,9 @@ class _Log:
     the one holding memory). The peak is the process's high-water mark, never reset: a
     reset (``/proc/self/clear_refs``) would also hide the true peak from ``time -v``."""
 
-    def __init__(self, echo):
-        self.echo, self.t0, self.times = echo, time.perf_counter(), {}
+    def __init__(self, echo) -> None:
+        self.echo, self.t0 = echo, time.perf_counter()
+        self.times: dict[str, float] = {}
         self.cpu0 = time.process_time()
         self.resources: dict[str, dict] = {}
 
