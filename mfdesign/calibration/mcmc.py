@@ -54,10 +54,8 @@ __all__ = [
     "find_map",
 ]
 
-MIN_TAU_RATIO = 50.0
-# Independence proposals fitted to the posterior are accepted most of the time (that is
-# their point); a random-walk-like chain below 0.2 or a frozen one at 1 is what this flags.
-ACCEPTANCE_RANGE = (0.2, 0.9)
+# the convergence rule's numbers live beside its sentence (posterior.convergence_rule)
+from mfdesign.calibration.posterior import ACCEPTANCE_RANGE, MIN_TAU_RATIO  # noqa: E402
 
 
 class ConvergenceWarning(UserWarning):
@@ -616,7 +614,10 @@ def calibrate(
     report = convergence_report(sampler, model.names, warn=warn, discard=adapt)
     tau_max = report["tau_max"] if np.isfinite(report["tau_max"]) else 1.0
     burn = adapt + int(min(max(2 * tau_max, 1), (sampler.iteration - adapt) // 2))
-    thin = max(1, int(min(report["tau"].values()) / 2)) if report["tau"] else 1
+    # a chain too short for an autocorrelation estimate has NaN taus: no thinning then
+    # (int(NaN) raised "cannot convert float NaN to integer" on --mcmc-steps 1)
+    taus = [t for t in report["tau"].values() if np.isfinite(t)] if report["tau"] else []
+    thin = max(1, int(min(taus) / 2)) if taus else 1
     report.update(burn=burn, thin=thin, map_converged=bool(res.converged), resumed_from=done)
     u_s = sampler.get_chain(discard=burn, thin=thin, flat=True)
     lp_s = sampler.get_log_prob(discard=burn, thin=thin, flat=True)

@@ -34,6 +34,12 @@ __all__ = [
 NETCDF_NAME = "posterior.nc"
 
 
+MIN_TAU_RATIO = 50.0
+# Independence proposals fitted to the posterior are accepted most of the time (that is
+# their point); a random-walk-like chain below 0.2 or a frozen one at 1 is what this flags.
+ACCEPTANCE_RANGE = (0.2, 0.9)
+
+
 def convergence_rule() -> str:
     """The one convergence rule, in words: every report (``posterior.json`` ``convergence.rule``,
     the demo's page, docs/calibration.md) states this sentence and no other threshold.
@@ -42,8 +48,6 @@ def convergence_rule() -> str:
     independent chains (each move uses the others), so R-hat across walkers checks mixing
     but does not prove convergence; emcee's integrated autocorrelation time is the criterion
     of its authors (Foreman-Mackey et al. 2013, and emcee's "autocorrelation analysis" guide)."""
-    from mfdesign.calibration.mcmc import ACCEPTANCE_RANGE, MIN_TAU_RATIO
-
     lo, hi = ACCEPTANCE_RANGE
     return (
         f"A chain has converged when, after its adaptation steps, it is at least {MIN_TAU_RATIO:g} times its "

@@ -16,6 +16,7 @@ from pathlib import Path
 import typer
 
 from mfdesign.cli._contract import ContractGroup
+from mfdesign.cli._runlog import VERBOSITY_KEY, _EchoHandler
 
 # Said at the foot of every command's --help (:func:`plain_help`): the design key and the
 # units are what a new user needs first, whichever command they opened.
@@ -122,13 +123,6 @@ def _print_version(value: bool) -> None:
         raise typer.Exit()
 
 
-class _EchoHandler(logging.Handler):
-    """Log records as lines on stderr, resolved at each call (a test runner swaps stderr)."""
-
-    def emit(self, record: logging.LogRecord) -> None:
-        typer.echo(self.format(record), err=True)
-
-
 def show_lattice_growth() -> None:
     """The exact force model's one line per lattice growth ("exact planes: lattice grows to
     ...", :mod:`mfdesign.models.exact`) on stderr: a calibration can solve planes for an
@@ -139,10 +133,6 @@ def show_lattice_growth() -> None:
         handler.setFormatter(logging.Formatter("%(asctime)s %(message)s", datefmt="%H:%M:%S"))
         log.addHandler(handler)
         log.setLevel(logging.INFO)
-
-
-# Where the group callback leaves --verbose / --quiet for the command's run log.
-VERBOSITY_KEY = "mfdesign.verbosity"
 
 
 @app.callback()

@@ -159,8 +159,7 @@ def _run_log(ctx, out: Path, is_file: bool):
     callback left in ``ctx.meta``."""
     import sys
 
-    from mfdesign.cli._app import VERBOSITY_KEY
-    from mfdesign.cli._runlog import log_path, run_log
+    from mfdesign.cli._runlog import VERBOSITY_KEY, log_path, run_log
 
     # the command line as typed when run as `mfdesign ...` / `python -m mfdesign.cli ...`;
     # under a test runner sys.argv is the runner's, and the settings line says it all

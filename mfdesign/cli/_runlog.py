@@ -26,6 +26,20 @@ import time
 from pathlib import Path
 from typing import Any, Iterator
 
+
+# Where the group callback leaves --verbose / --quiet for the command's run log.
+VERBOSITY_KEY = "mfdesign.verbosity"
+
+
+class _EchoHandler(logging.Handler):
+    """Log records as lines on stderr, resolved at each call (a test runner swaps stderr)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        import typer
+
+        typer.echo(self.format(record), err=True)
+
+
 __all__ = ["LOG_NAME", "console", "log_path", "run_log"]
 
 LOG_NAME = "run.log"
@@ -100,8 +114,6 @@ def console(verbose: bool, quiet: bool) -> None:
     """The console's share of the package's log records (module doc): an stderr handler on
     ``mfdesign`` at DEBUG (``--verbose``), WARNING (``--quiet``) or, by default, none beyond
     the ones the commands install (:func:`mfdesign.cli._app.show_lattice_growth`)."""
-    from mfdesign.cli._app import _EchoHandler
-
     log = logging.getLogger("mfdesign")
     for h in [h for h in log.handlers if getattr(h, "_mfdesign_console", False)]:
         log.removeHandler(h)
