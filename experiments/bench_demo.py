@@ -278,6 +278,8 @@ def main() -> None:
     if args.nice:
         cmd = ["nice", "-n", str(args.nice)] + cmd
 
+    # the commit the demo runs: taken before it starts (the tree may move on meanwhile)
+    commit, dirty = _git("rev-parse", "HEAD"), bool(_git("status", "--porcelain", "--untracked-files=no"))
     load_before = load()
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
@@ -311,8 +313,8 @@ def main() -> None:
         rss_source=source,
         returncode=proc.returncode,
         time_v=tv or None,
-        commit=_git("rev-parse", "HEAD"),
-        dirty=bool(_git("status", "--porcelain", "--untracked-files=no")),
+        commit=commit,
+        dirty=dirty,
         when=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         command=command(__file__, args),
         demo_command=" ".join(demo[2:]),
