@@ -184,19 +184,20 @@ def test_cli_bad_input_fails_with_one_line(tmp_path):
     runner = CliRunner()
     bad = tmp_path / "t.csv"
     bad.write_text("force,pressure\n1,2\n")
+    out = tmp_path / "out"  # not the model folder: an output that is an input is refused first
     cases = [
-        (["optimize", "--model", str(tmp_path), "--out", str(tmp_path)], "exactly one of"),
+        (["optimize", "--model", str(tmp_path), "--out", str(out)], "exactly one of"),
         (
-            ["optimize", "--model", str(tmp_path), "--out", str(tmp_path), "--target-set", "C"],
+            ["optimize", "--model", str(tmp_path), "--out", str(out), "--target-set", "C"],
             "--target-set must be one of",
         ),
         (
-            ["optimize", "--model", str(tmp_path), "--out", str(tmp_path), "--target-set", "A", "--rings", "3"],
+            ["optimize", "--model", str(tmp_path), "--out", str(out), "--target-set", "A", "--rings", "3"],
             "--rings",
         ),
-        (["optimize", "--model", str(tmp_path), "--out", str(tmp_path), "--targets", str(bad)], "need columns force_n"),
+        (["optimize", "--model", str(tmp_path), "--out", str(out), "--targets", str(bad)], "need columns force_n"),
         (
-            ["optimize", "--model", str(tmp_path / "none"), "--out", str(tmp_path), "--target-set", "A"],
+            ["optimize", "--model", str(tmp_path / "none"), "--out", str(out), "--target-set", "A"],
             "does not exist",
         ),
     ]
