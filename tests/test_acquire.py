@@ -227,10 +227,10 @@ def test_cli_bad_input_fails_with_one_line(tmp_path):
     cases = [
         (["--model", str(tmp_path / "nope")], "is not a folder"),
         (["--model", str(tmp_path)], "holds no ensemble.json"),
-        (["--model", str(tmp_path / "m"), "--q", "0"], "--q must be an integer >= 1"),
+        (["--model", str(tmp_path / "m"), "--q", "0"], "--q 0: allowed: 1 to 256"),
         (["--model", str(tmp_path / "m"), "--fidelity", "lab"], "--fidelity must be rig or sim"),
         (["--model", str(tmp_path / "m"), "--rings", "3"], "--rings must be 0, 1 or 2"),
-        (["--model", str(tmp_path / "m"), "--cost-sim", "-1", "--fidelity", "sim"], "--cost-sim must be a positive"),
+        (["--model", str(tmp_path / "m"), "--cost-sim", "-1", "--fidelity", "sim"], "--cost-sim -1.0: allowed: 0.0 to"),
         (["--model", str(tmp_path / "m"), "--fidelity", "sim"], "offers fidelities ['rig'], not 'sim'"),
     ]
     for args, msg in cases:
@@ -420,7 +420,7 @@ def test_cli_budget_and_bounds_errors_are_one_line(tmp_path):
     cases = [
         ([*m, "--membranes", "1", "--q", "2"], "not both"),
         ([*m, "--membranes", "0"], "the budget holds no run"),
-        ([*m, "--membranes", "-1"], "--membranes must be an integer >= 0"),
+        ([*m, "--membranes", "-1"], "--membranes -1: allowed: 0 to 256"),
         ([*m, "--sim-runs", "1"], "offers fidelities ['rig'], not --sim-runs"),
         ([*m, "--pending", "[2.0, 80.0, nan, nan, nan, nan]"], "--pending"),
         ([*m, "--thickness-mm", "3", "1"], "--thickness-mm takes LO HI with LO <= HI"),
