@@ -18,13 +18,14 @@
 The rule, stated once: refit the top ``check_top`` singles of the linear screen, and where
 none explains the residual down to the noise floor also the top ``check_pairs`` pairs of
 the joint screen (never only the first candidate: two effects acting together can each
-screen as something else); claim the smallest set that clears the margins; name every set
-the data cannot tell from it.
+screen as something else); claim the smallest set that clears the margins (a claimed pair is checked against each of its
+members refitted alone); name every set the data cannot tell from it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -297,6 +298,20 @@ def diagnose(
                 checks + _refit(pairs[:check_pairs], progress=progress, **kw), key=lambda c: c.heldout_rmse_n
             )
         v = verdict(cur_res, checks)
+        # Backward step (stepwise selection): a claimed pair must beat each of its own
+        # members alone, not only the singles the screen ranked. A member the linear screen
+        # ranked low (a 5x ring, far from the neutral point it is linearised at) is
+        # otherwise only ever refitted beside a partner it does not need.
+        added = [e for e in v.get("effects", []) if e not in names]
+        have = {tuple(c.effects) for c in checks}
+        alone = [
+            SimpleNamespace(effects=(e,), theta={k: x for k, x in v["theta"].items() if k.split(".")[0] == e})
+            for e in added
+            if len(added) == 2 and (*names, e) not in have
+        ]
+        if alone:
+            checks = sorted(checks + _refit(alone, progress=progress, **kw), key=lambda c: c.heldout_rmse_n)
+            v = verdict(cur_res, checks)
         if v.get("alternatives"):
             _degeneracies(sim, meas, cur_res, v, checks, names, cur_theta, base_pred, n_folds)
         out.steps.append(
