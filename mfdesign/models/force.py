@@ -64,6 +64,12 @@ class ForceModel(eqx.Module):
         stand-in) return themselves, the exact model grows its lattice of simulator planes."""
         return self
 
+    def reaching(self, p_reduced_pa: float, progress: bool = False) -> "ForceModel":
+        """A model that answers up to reduced pressure ``p_reduced_pa`` [Pa] (``p / s``; a
+        thinner or softer membrane reads a plane above the data's pressures); models valid
+        everywhere return themselves, the exact model's planes grow to it."""
+        return self
+
     def strict(self, strict: bool = True) -> "ForceModel":
         """The model for a sampler (``True``: NaN where it cannot vouch for a number) or for an
         optimiser (``False``: no NaN, values held at the edge of its validity)."""
