@@ -264,13 +264,7 @@ class GrowingLattice:
         whether it grew."""
         grown = self.model.covering(params, progress=self.progress)
         if p_max_pa is not None:
-            mu, tf = np.asarray(params.mu_pa, float), np.asarray(params.thickness_factor, float)
-            nd = max(mu.ndim, tf.ndim)  # fields per draw [B] and per draw and row [B, N] align on the left
-            mu, tf = (a.reshape(a.shape + (1,) * (nd - a.ndim)) for a in (mu, tf))
-            s = (mu / float(grown.base.mu_pa) * tf).ravel()
-            s = s[np.isfinite(s) & (s > 0)]
-            if s.size:
-                grown = grown.reaching(float(p_max_pa) / float(np.min(s)), progress=self.progress)
+            grown = grown.reaching(params, p_max_pa, progress=self.progress)
         changed = grown is not self.model
         self.model = grown
         return changed

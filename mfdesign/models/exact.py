@@ -285,13 +285,22 @@ class ExactForceModel(ForceModel):
             self.design_keys, self.base, t_nodes, a_nodes, self.grid, self.outside, self.cache, progress, self.grow
         )
 
-    def reaching(self, p_reduced_pa: float, progress: bool = False) -> "ExactForceModel":
-        """The model with its planes reaching reduced pressure ``p_reduced_pa`` [Pa] (``p /
-        s``; returns ``self`` when they already do). A thinner or softer membrane (``s < 1``)
-        needs planes above the data's pressures; where a fit goes there, the planes grow
-        rather than the candidate being dropped as NaN. Every plane is solved again on the
-        taller grid (a plane is one continuation path from 0 Pa; cached ones are reused), so
-        the top is raised with a quarter to spare: one growth, not one per fit."""
+    def reaching(self, params: SimParams, p_max_pa: float, progress: bool = False) -> "ExactForceModel":
+        """The model with its planes reaching the highest reduced pressure ``p_max_pa / s``
+        [Pa] that ``params`` need (``s = (mu / mu0) tf``; returns ``self`` when they already
+        do). A thinner or softer membrane (``s < 1``) needs planes above the data's
+        pressures; where a fit goes there, the planes grow rather than the candidate being
+        dropped as NaN. Every plane is solved again on the taller grid (a plane is one
+        continuation path from 0 Pa; cached ones are reused), so the top is raised with a
+        quarter to spare: one growth, not one per fit."""
+        mu, tf = np.asarray(params.mu_pa, float), np.asarray(params.thickness_factor, float)
+        nd = max(mu.ndim, tf.ndim)  # fields per draw [B] and per draw and row [B, N] align on the left
+        mu, tf = (a.reshape(a.shape + (1,) * (nd - a.ndim)) for a in (mu, tf))
+        s = (mu / float(self.base.mu_pa) * tf).ravel()
+        s = s[np.isfinite(s) & (s > 0)]
+        if not s.size:
+            return self
+        p_reduced_pa = float(p_max_pa) / float(np.min(s))
         if p_reduced_pa <= self.grid.p_top_pa + _TOL:
             return self
         grid = pl.PlaneGrid.covering(self.grid.h_top_mm, 1.25 * p_reduced_pa, p_margin=1.0)

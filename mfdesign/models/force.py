@@ -64,10 +64,12 @@ class ForceModel(eqx.Module):
         stand-in) return themselves, the exact model grows its lattice of simulator planes."""
         return self
 
-    def reaching(self, p_reduced_pa: float, progress: bool = False) -> "ForceModel":
-        """A model that answers up to reduced pressure ``p_reduced_pa`` [Pa] (``p / s``; a
-        thinner or softer membrane reads a plane above the data's pressures); models valid
-        everywhere return themselves, the exact model's planes grow to it."""
+    def reaching(self, params: "SimParams", p_max_pa: float, progress: bool = False) -> "ForceModel":
+        """A model that answers for gauge pressures up to ``p_max_pa`` [Pa] under every
+        simulator constant of ``params`` (fields of any shape). A thinner or softer membrane
+        reads its force at the reduced pressure ``p / s`` (``s = (mu / mu0) tf`` < 1), above
+        the data's pressures: models valid everywhere return themselves, the exact model's
+        planes grow to it."""
         return self
 
     def strict(self, strict: bool = True) -> "ForceModel":
