@@ -225,6 +225,13 @@ def register(app: typer.Typer) -> None:
             "--format",
             help="auto (from the name and content) | parquet | csv | mass-lift | characterisation | sim-planes | rig-job.",
         ),
+        columns: Optional[str] = typer.Option(
+            None,
+            "--columns",
+            help="Column map for a CSV / Parquet table of your own layout: TARGET=SOURCE[:UNIT],... e.g. "
+            "'design_key=design,pressure_pa=pressure_kpa:kPa'. Units: mm cm m in | Pa kPa mbar bar psi | "
+            "N mN g kg lbf | s ms min. Missing optional columns take defaults (docs/data.md).",
+        ),
     ) -> None:
         """Convert measurements into one Measurements Parquet file (schema: docs/data.md).
 
@@ -233,7 +240,7 @@ def register(app: typer.Typer) -> None:
         """
         from mfdesign.data.sources import load_sources
 
-        table = load_sources(sources, fmt)
+        table = load_sources(sources, fmt, columns)
         table.to_parquet(out)
         df = table.df
         trials = df.groupby(["design_key", "trial"]).first()["experiment"].value_counts().to_dict()

@@ -69,7 +69,7 @@ def check_columns(df: pd.DataFrame, where: str) -> None:
                 where,
                 "pressure_pa",
                 f"never exceeds {np.abs(p).max():g} in magnitude: that looks like kPa",
-                "pascals (multiply kPa by 1000)",
+                "pascals (multiply kPa by 1000, or map the column with unit kPa: --columns pressure_pa=COLUMN:kPa)",
             )
     if "time_s" in num:
         t = num["time_s"][np.isfinite(num["time_s"])]
@@ -89,6 +89,8 @@ def check_columns(df: pd.DataFrame, where: str) -> None:
                 f"reaches {w.max():.4g}",
                 f"relative weights up to {MAX_WEIGHT:g} (sums of 1e308 overflow: 'math domain error')",
             )
+    if "pressure_pa" in num and "force_n" in num and "experiment" in df.columns:
+        _check_force_unit(df, num, where)
     if "pressure_pa" in num and "force_n" in num:
         bad = (num["pressure_pa"] < -1e3) & (num["force_n"] > 1.0)
         if bad.any():
@@ -101,6 +103,30 @@ def check_columns(df: pd.DataFrame, where: str) -> None:
             )
     if {"experiment", "design_key", "trial"} <= set(df.columns) and "force_n" in num:
         _check_trials(df, num, where)
+
+
+OUTER_AREA_M2 = 3.141592653589793 * 0.070**2  # the membranes' outer radius is 70 mm
+
+
+def _check_force_unit(df: pd.DataFrame, num: dict[str, np.ndarray], where: str) -> None:
+    """A held plate cannot be pushed by more than the pressure on the whole membrane,
+    ``p pi R^2`` (R = 70 mm). Forces that mostly exceed it many times over were logged in
+    grams (or mN), not newtons. Lift trials are left out: before lift-off their force (the
+    mass) is above what the pressure can give."""
+    force = (df["experiment"].astype(str) == "force").to_numpy()
+    p, f = num["pressure_pa"][force], num["force_n"][force]
+    ok = np.isfinite(p) & np.isfinite(f) & (p > 1e3)
+    if ok.sum() < 10:
+        return
+    ratio = f[ok] / (p[ok] * OUTER_AREA_M2)
+    if np.median(ratio) > 3.0:
+        _refuse(
+            where,
+            "force_n",
+            f"is a median {np.median(ratio):.3g} times the pressure on the whole membrane (p pi R^2): "
+            "that is not newtons (grams? millinewtons?)",
+            "newtons (multiply grams by 0.00981, or map the column with unit g: --columns force_n=COLUMN:g)",
+        )
 
 
 def _check_trials(df: pd.DataFrame, num: dict[str, np.ndarray], where: str) -> None:

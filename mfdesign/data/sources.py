@@ -38,6 +38,7 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
+from mfdesign.data.columns import ColumnMap, apply_column_map
 from mfdesign.data.measurements import COLUMNS, MeasurementError, Measurements
 from mfdesign.data.plausible import MAX_ROWS, check_columns, check_rows
 from mfdesign.data.shipped import BUNDLED_NAME, bundled_path
@@ -139,13 +140,9 @@ def detect_format(path: str | os.PathLike) -> str:
     raise InputError(f"data {p}: unknown format (suffix {suffix or 'none'!r}, first bytes {head[:4]!r}); {_ALLOWED}")
 
 
-def _checked_frame(df: pd.DataFrame, where: str) -> Measurements:
-    missing = [c for c in COLUMNS if c not in df.columns]
-    if missing:
-        raise InputError(
-            f"{where}: missing column(s) {missing}; allowed: a table with the Measurements columns "
-            f"{list(COLUMNS)} (docs/data.md)"
-        )
+def _checked_frame(df: pd.DataFrame, where: str, columns: ColumnMap = ColumnMap()) -> Measurements:
+    # mapped, converted to mm / Pa / N / s and the optional columns filled (mfdesign.data.columns)
+    df = apply_column_map(df, columns, where)
     check_columns(df, where)  # on the raw table: units, booleans, lifts (mfdesign.data.plausible)
     try:
         return Measurements(df[list(COLUMNS)])
@@ -153,24 +150,29 @@ def _checked_frame(df: pd.DataFrame, where: str) -> Measurements:
         raise MeasurementError(f"{where}: {err}") from None
 
 
-def read_csv(path: str | os.PathLike) -> Measurements:
-    """A CSV with the Measurements columns (any order, extra columns ignored; docs/data.md)."""
+def read_csv(path: str | os.PathLike, columns: ColumnMap | str | None = None) -> Measurements:
+    """A CSV with the Measurements columns (any order, extra columns ignored; docs/data.md),
+    or any columns with a column map ``columns`` (``"design_key=design,pressure_pa=pressure_kpa:kPa"``,
+    :class:`~mfdesign.data.columns.ColumnMap`); optional columns take documented defaults."""
     p = Path(path)
+    cmap = columns if isinstance(columns, ColumnMap) else ColumnMap.parse(columns)
+    text = {"design_key", "experiment", "phase", "source"}
+    dtype = {s: str for t, s, _ in cmap.entries if t in text} | {
+        c: str for c in text if c not in {t for t, _, _ in cmap.entries}
+    }
     try:
         # one row past the bound is enough to refuse: a 10-million-row file is not read whole
-        df = pd.read_csv(
-            p, dtype={"design_key": str, "experiment": str, "phase": str, "source": str}, nrows=MAX_ROWS + 1
-        )
+        df = pd.read_csv(p, dtype=dtype, nrows=MAX_ROWS + 1)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, ValueError) as err:
         raise InputError(f"{p}: not a readable CSV ({type(err).__name__}: {str(err)[:160]})") from None
     if len(df) > MAX_ROWS:
         raise InputError(
             f"{p}: more than {MAX_ROWS:,} rows; allowed: at most {MAX_ROWS:,} rows per source (split the file)"
         )
-    return _checked_frame(df, str(p))
+    return _checked_frame(df, str(p), cmap)
 
 
-def _read_parquet(path: Path) -> Measurements:
+def _read_parquet(path: Path, columns: ColumnMap = ColumnMap()) -> Measurements:
     from mfdesign.data.store import FORMAT_KEY, read_parquet
 
     import pyarrow as pa
@@ -181,9 +183,9 @@ def _read_parquet(path: Path) -> Measurements:
         check_rows(pq.read_metadata(path).num_rows, str(path))  # from the footer, before reading
     except (pa.ArrowInvalid, OSError) as err:
         raise MeasurementError(f"{path} is not a readable Parquet file: {err}") from None
-    if FORMAT_KEY in meta:
+    if FORMAT_KEY in meta and not columns:
         return read_parquet(path)
-    return _checked_frame(pq.read_table(path).to_pandas(), str(path))  # a plain table with the columns
+    return _checked_frame(pq.read_table(path).to_pandas(), str(path), columns)  # a plain table with the columns
 
 
 def read_characterisation(source, where: str | None = None) -> Measurements:
@@ -253,10 +255,14 @@ def _read_rig_job(path: Path) -> Measurements:
     return _read_parquet(path / "measurements.parquet")
 
 
-def read_source(source: str | os.PathLike, fmt: str = "auto") -> Measurements:
-    """One source (module doc) as Measurements; ``fmt``: ``auto`` or one of :data:`FORMATS`."""
+def read_source(source: str | os.PathLike, fmt: str = "auto", columns: ColumnMap | str | None = None) -> Measurements:
+    """One source (module doc) as Measurements; ``fmt``: ``auto`` or one of :data:`FORMATS`;
+    ``columns``: a column map for a CSV or a plain Parquet table (:mod:`mfdesign.data.columns`)."""
     if fmt not in ("auto",) + FORMATS:
         raise InputError(f"--format {fmt!r} is not known; allowed: auto, {', '.join(FORMATS)}")
+    cmap = columns if isinstance(columns, ColumnMap) else ColumnMap.parse(columns)
+    if cmap and str(source) == MASS_LIFT_NAME:
+        raise InputError(f"a column map (--columns) reads a CSV or Parquet table, not {source}; allowed: no map")
     if str(source) == MASS_LIFT_NAME and fmt in ("auto", "mass-lift"):
         from mfdesign.data.spa_design import load_mass_lift
 
@@ -267,13 +273,17 @@ def read_source(source: str | os.PathLike, fmt: str = "auto") -> Measurements:
     p = Path(source)
     if fmt != "auto" and not p.exists():
         raise InputError(f"data {p} does not exist; {_ALLOWED}")
-    m = _read_kind(p, kind)
+    if cmap and kind not in ("csv", "parquet"):
+        raise InputError(
+            f"{p}: a column map (--columns) reads a CSV or Parquet table, not {kind} data; allowed: no map"
+        )
+    m = _read_kind(p, kind, cmap)
     if kind != "csv":  # a CSV was checked on its raw table (_checked_frame)
         check_columns(m.df, str(p))
     return m
 
 
-def _read_kind(p: Path, kind: str) -> Measurements:
+def _read_kind(p: Path, kind: str, cmap: ColumnMap = ColumnMap()) -> Measurements:
     """One source of a known format (module doc)."""
     if kind == "rig-job":
         if not _is_rig_job(p):
@@ -282,9 +292,9 @@ def _read_kind(p: Path, kind: str) -> Measurements:
     if p.is_dir():
         raise InputError(f"data {p} is a folder; --format {kind} reads a file")
     if kind == "parquet":
-        return _read_parquet(p)
+        return _read_parquet(p, cmap)
     if kind == "csv":
-        return read_csv(p)
+        return read_csv(p, cmap)
     if kind in ("mass-lift", "characterisation"):
         from mfdesign.data.spa_design import load_mass_lift, restricted_load
 
@@ -321,9 +331,12 @@ def _pickle_kind_or_mixed(obj, where: str) -> str | None:
         raise
 
 
-def load_sources(sources: str | os.PathLike | Sequence[str | os.PathLike], fmt: str = "auto") -> Measurements:
+def load_sources(
+    sources: str | os.PathLike | Sequence[str | os.PathLike], fmt: str = "auto", columns: ColumnMap | str | None = None
+) -> Measurements:
     """Several sources (module doc) as one Measurements; trial ids renumbered per membrane
-    when there is more than one source."""
+    when there is more than one source; ``columns``: one column map for every CSV / Parquet
+    table among them (:mod:`mfdesign.data.columns`)."""
     if isinstance(sources, (str, os.PathLike)):
         items: list = [sources]
     elif isinstance(sources, (list, tuple)):
@@ -335,7 +348,7 @@ def load_sources(sources: str | os.PathLike | Sequence[str | os.PathLike], fmt: 
         raise InputError(f"data {bad[0]!r} is a {type(bad[0]).__name__}, not a name or a path; {_ALLOWED}")
     if not items:
         raise InputError(f"no data given; {_ALLOWED}")
-    parts = [read_source(s, fmt) for s in items]
+    parts = [read_source(s, fmt, columns) for s in items]
     if len(parts) == 1:
         return parts[0]
     return Measurements.concat(parts, renumber_trials=True)

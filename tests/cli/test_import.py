@@ -84,9 +84,15 @@ def test_csv_round_trip_and_missing_columns(tmp_path):
     r = runner.invoke(app, ["import", str(csv), "--out", str(out)])
     assert r.exit_code == 0, r.output
     pd.testing.assert_frame_equal(read_parquet(out).df, m.df)
-    m.df.drop(columns=["weight", "source"]).to_csv(tmp_path / "bad.csv", index=False)
+    # optional columns take their documented defaults (mfdesign.data.columns); required ones are refused
+    m.df.drop(columns=["weight", "source"]).to_csv(tmp_path / "opt.csv", index=False)
+    r = runner.invoke(app, ["import", str(tmp_path / "opt.csv"), "--out", str(tmp_path / "o.parquet")])
+    assert r.exit_code == 0, r.output
+    filled = read_parquet(tmp_path / "o.parquet").df
+    assert (filled["weight"] == 1.0).all() and (filled["source"] == "file").all()
+    m.df.drop(columns=["force_n"]).to_csv(tmp_path / "bad.csv", index=False)
     r = runner.invoke(app, ["import", str(tmp_path / "bad.csv"), "--out", str(tmp_path / "x.parquet")])
-    assert r.exit_code == 2 and "missing column(s) ['weight', 'source']" in r.output
+    assert r.exit_code == 2 and "missing column(s) ['force_n']" in r.output
     assert len(r.output.strip().splitlines()) == 1
 
 
