@@ -25,9 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from mfdesign import outputs  # atomic writes: a reader never sees a torn file
-from mfdesign.data.shipped import bundled_card_path, bundled_path
+from mfdesign.data.shipped import bundled_card_path, bundled_path, card_truths
 from mfdesign.design import Membrane
-from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
 __all__ = ["DemoSettings", "run_demo", "demo_report", "BUNDLED", "card_truths"]
 
@@ -281,12 +280,6 @@ def _proposal_figure(meas, proposal, path: Path) -> None:
     fig.tight_layout()
     outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
-
-
-def card_truths(card: dict) -> dict[str, float]:
-    """The parameters the bundled data were made with: the authors' rubber constants and the
-    card's hidden effect."""
-    return {"mu_pa": ECOFLEX_MU_PA, "jm": ECOFLEX_JM, **card["hidden_effect"]["theta"]}
 
 
 def _truth_check(post, card: dict) -> dict:

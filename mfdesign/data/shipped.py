@@ -12,7 +12,7 @@ from __future__ import annotations
 from importlib.resources import files
 from pathlib import Path
 
-__all__ = ["BUNDLED_NAME", "bundled_card_path", "bundled_path", "emulator_dir", "shipped_path"]
+__all__ = ["BUNDLED_NAME", "bundled_card_path", "card_truths", "bundled_path", "emulator_dir", "shipped_path"]
 
 BUNDLED_NAME = "bundled"  # the DATA keyword for the bundled dataset (mfdesign.data.sources)
 
@@ -32,3 +32,15 @@ def bundled_card_path() -> Path:
 
 def emulator_dir() -> Path:
     return shipped_path("emulator")
+
+
+def card_truths(card: dict) -> dict[str, float]:
+    """The parameters the bundled data were made with: the authors' rubber constants
+    (``mu_pa`` in Pa, ``jm`` dimensionless) and the card's hidden effect (its ``theta``).
+
+    Arguments:
+        card: the bundled dataset's card (``bundled_card.json``, read as a dict).
+    """
+    from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
+
+    return {"mu_pa": ECOFLEX_MU_PA, "jm": ECOFLEX_JM, **card["hidden_effect"]["theta"]}
