@@ -966,7 +966,7 @@ def main() -> None:
 
     import jax
 
-    from mfdesign.cli._app import enable_compilation_cache
+    from mfdesign._cache import enable_compilation_cache
     from mfdesign.physics.effects import EFFECTS
     from mfdesign.models.ensemble import EnsembleConfig
 

@@ -29,7 +29,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from mfdesign.cli._app import enable_compilation_cache  # noqa: E402
+from mfdesign._cache import enable_compilation_cache  # noqa: E402
 from mfdesign.data.spa_design import load_sim_planes  # noqa: E402
 from mfdesign.physics.params import SimParams  # noqa: E402
 from mfdesign.physics.solve import force_at  # noqa: E402

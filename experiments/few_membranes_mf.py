@@ -36,7 +36,7 @@ def main() -> None:
 
     from active_learning import Lab, initial_designs  # experiments/ is on the path of a script run from it
     from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named
-    from mfdesign.cli._app import enable_compilation_cache
+    from mfdesign._cache import enable_compilation_cache
     from mfdesign.data.measurements import Measurements
     from mfdesign.models.ensemble import EnsembleConfig
     from mfdesign.models.backends import force_model_for

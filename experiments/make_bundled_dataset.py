@@ -122,7 +122,7 @@ def build(
 def main(argv=None) -> None:
     ap = parser(__doc__, out=ROOT / "mfdesign" / "data" / "files", plane_cache=True)
     args = ap.parse_args(argv)
-    from mfdesign.cli._app import enable_compilation_cache
+    from mfdesign._cache import enable_compilation_cache
 
     enable_compilation_cache()
     res = build(args.out, cache_dir=args.cache_dir)

@@ -66,7 +66,7 @@ def get_model(path: Path | None, members: int, steps: int):
     ``mfdesign optimize --model`` reads), or the cached ensemble, fitted here the first time.
     The simulator check runs at the constants the model stands for: a fit-mf model's
     calibrated ones, else the authors'."""
-    from mfdesign.cli.optimize import load_fit, load_model, simulator_constants
+    from mfdesign.workflows.models import load_fit, load_model, simulator_constants
     from mfdesign.models.ensemble import EnsembleConfig
 
     path = Path(path) if path else PAPER_DESIGN_MODEL

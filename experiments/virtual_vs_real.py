@@ -50,7 +50,7 @@ def main(argv=None) -> dict:
     ap = parser(__doc__, seed=True, plane_cache=True)
     args = ap.parse_args(argv)
 
-    from mfdesign.cli._app import enable_compilation_cache
+    from mfdesign._cache import enable_compilation_cache
 
     enable_compilation_cache()
     import matplotlib

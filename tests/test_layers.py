@@ -1,5 +1,5 @@
 """Imports flow one way: design -> physics / data -> models -> calibration / diagnose ->
-acquisition / design optimisation -> report / cli.
+acquisition / design optimisation -> report -> workflows -> cli.
 
 Every ``import`` of the package is read from the source (module level and inside
 functions alike: a lazy import is still a dependency), and each must point to the same
@@ -16,14 +16,16 @@ PKG = Path(__file__).resolve().parents[1] / "mfdesign"
 
 # Upstream first. A module takes the layer of its longest matching prefix.
 LAYERS = (
-    ("mfdesign._x64", "mfdesign.units", "mfdesign.errors", "mfdesign.outputs"),
+    ("mfdesign._x64", "mfdesign._cache", "mfdesign.units", "mfdesign.errors", "mfdesign.outputs"),
     ("mfdesign.design", "mfdesign.materials"),
     ("mfdesign.physics", "mfdesign.data", "mfdesign.rig"),  # physics, data and the rig's I/O
     ("mfdesign.models",),
     ("mfdesign.calibration", "mfdesign.diagnose"),
     ("mfdesign.acquire", "mfdesign.optimize", "mfdesign.sim_runs"),
     ("mfdesign.campaign",),  # a lab's loop: every step above, kept in one folder
-    ("mfdesign.report", "mfdesign.cli"),
+    ("mfdesign.report",),
+    ("mfdesign.workflows",),  # each command's workflow (load, fit, write, summarise): the CLI's library
+    ("mfdesign.cli",),  # a shell: parses options, calls one workflow, prints its summary
     ("mfdesign",),  # the package's own names: a facade over everything
 )
 

@@ -209,7 +209,7 @@ def test_cli_bad_input_fails_with_one_line(tmp_path):
 
 
 def test_cli_reads_targets_files(tmp_path):
-    from mfdesign.cli.optimize import read_targets
+    from mfdesign.workflows.optimize import read_targets
 
     (tmp_path / "h.json").write_text(json.dumps({"targets": [{"force_n": 14.7, "pressure_pa": 6895}]}))
     assert isinstance(read_targets(tmp_path / "h.json"), HeightTargets)
@@ -309,7 +309,7 @@ def test_near_ties_are_reported_as_alternatives():
 
 
 def test_cli_checks_by_default_only_when_the_simulator_serves_the_model(tmp_path):
-    from mfdesign.cli.optimize import simulator_for_check
+    from mfdesign.workflows.models import simulator_for_check
 
     assert simulator_for_check(tmp_path) == (True, "")
     (tmp_path / "mf.json").write_text(json.dumps({"physics": "standin", "search_physics": "standin"}))

@@ -9,12 +9,11 @@ error prints one line naming a log file with the traceback and exits with status
 from __future__ import annotations
 
 import logging
-import os
-import sys
-from pathlib import Path
+from typing import NoReturn
 
 import typer
 
+from mfdesign._cache import enable_compilation_cache
 from mfdesign.cli._contract import ContractGroup
 from mfdesign.cli._runlog import VERBOSITY_KEY, _EchoHandler
 
@@ -53,53 +52,6 @@ def plain_help(typer_app: typer.Typer) -> None:
             plain_help(group.typer_instance)
 
 
-def enable_compilation_cache() -> Path:
-    """JAX's persistent compilation cache, so a second CLI call does not recompile.
-
-    Folder: ``$MFDESIGN_CACHE_DIR`` (default ``~/.cache/mfdesign/jax``). Programs that
-    compile in under 1 s are not stored (recompiling them is as fast as reading them).
-
-    Set through JAX's environment variables (``JAX_COMPILATION_CACHE_DIR``,
-    ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS``, ``JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES``;
-    jax reads them when it is first imported) rather than ``jax.config``: the group callback
-    calls this before click parses a sub-command's ``--help``, and importing jax there made
-    every ``mfdesign CMD --help`` take over 1 s. A caller that already imported jax (a
-    script, a test) gets the same settings through ``jax.config``.
-
-    Why ``EQX_ON_ERROR=nan`` (unless already set): equinox's runtime checks inside the
-    solvers (``eqx.error_if``, used by optimistix / diffrax / lineax even with
-    ``throw=False``) are host callbacks by default, and XLA never stores an executable that
-    holds a host callback: the cache stayed empty after any number of ``simulate`` runs.
-    With ``nan`` such a check turns its outputs into NaN, which the physics already reports
-    as a failed point (every solve here runs with ``throw=False``). It must be set before
-    equinox is imported, i.e. here, before any command body runs.
-    """
-    os.environ.setdefault("EQX_ON_ERROR", "nan")
-    cache = Path(os.environ.get("MFDESIGN_CACHE_DIR", Path.home() / ".cache" / "mfdesign" / "jax"))
-    try:  # a file or a read-only folder there is the user's setting, not a bug (exit 2)
-        cache.mkdir(parents=True, exist_ok=True)
-        if not os.access(cache, os.W_OK | os.X_OK):
-            raise PermissionError(13, "not writable")
-    except OSError as err:
-        from mfdesign.errors import InputError
-
-        raise InputError(
-            f"cache folder {cache} (MFDESIGN_CACHE_DIR or the default) cannot be used: {err.strerror or err}; "
-            "allowed: a folder you can write (set MFDESIGN_CACHE_DIR to one)"
-        ) from None
-    settings = {
-        "jax_compilation_cache_dir": str(cache),
-        "jax_persistent_cache_min_compile_time_secs": 1.0,
-        "jax_persistent_cache_min_entry_size_bytes": 0,
-    }
-    os.environ.update({name.upper(): str(value) for name, value in settings.items()})
-    if "jax" in sys.modules:  # already imported: it read its environment then, tell it now
-        jax = sys.modules["jax"]
-        for name, value in settings.items():
-            jax.config.update(name, value)
-    return cache
-
-
 # Declared once; the data commands and simulate take it.
 ALLOW_OUTSIDE = typer.Option(
     False,
@@ -109,10 +61,20 @@ ALLOW_OUTSIDE = typer.Option(
 )
 
 
-def fail(message: str) -> None:
+def fail(message: str) -> NoReturn:
     """Print one line to stderr and exit with status 2."""
     typer.echo(f"error: {message}", err=True)
     raise typer.Exit(code=2)
+
+
+def show(result) -> None:
+    """Print a workflow's result (:mod:`mfdesign.workflows`): its ``summary()`` on stdout,
+    then each of its ``warnings`` (if it has any) on stderr."""
+    text = result.summary()
+    if text:
+        typer.echo(text)
+    for line in getattr(result, "warnings", ()):
+        typer.echo(line, err=True)
 
 
 def _print_version(value: bool) -> None:

@@ -246,7 +246,7 @@ def _make_sim_runs(proposal, predictor, fit, out: Path) -> list[dict]:
     ``out/propose/sim_runs/runK``); per run what it taught (:mod:`mfdesign.sim_runs`)."""
     from mfdesign import sim_runs
     from mfdesign.calibration.workflow import calibrated_sim_params
-    from mfdesign.cli._plane import write_plane
+    from mfdesign.workflows.plane import write_plane
 
     params, constants = calibrated_sim_params(fit)
     made = []

@@ -1,4 +1,5 @@
-"""``mfdesign calibrate`` and ``mfdesign fit-mf``: Bayesian calibration and the multi-fidelity fit.
+"""``mfdesign calibrate`` and ``mfdesign fit-mf``: Bayesian calibration and the multi-fidelity
+fit; the workflow is :func:`mfdesign.workflows.calibrate.calibrate`.
 
 ``DATA`` is a Measurements Parquet file or ``mass-lift`` (the authors' real data). Both
 commands print the posterior summary table (median, 5 / 95 %, MAP, with units) and write
@@ -13,174 +14,15 @@ coverage).
 from __future__ import annotations
 
 import inspect
-import json
 from pathlib import Path
 from typing import Annotated, List, Optional
 
 import typer
 
-from mfdesign.cli._app import ALLOW_OUTSIDE
+from mfdesign.cli._app import ALLOW_OUTSIDE, show
 from mfdesign.cli._contract import effect_name, item_parser
-
-
-def _check_chain(chain: Path) -> None:
-    """A chain.h5 to resume must be a readable HDF5 file (a truncated or foreign one would
-    fail deep inside emcee, after the data were loaded and the model built)."""
-    import h5py
-
-    from mfdesign.errors import InputError
-
-    try:
-        with h5py.File(chain, "r") as f:
-            f.visit(lambda name: None)
-    except Exception as err:  # noqa: BLE001 -- h5py raises OSError, KeyError, RuntimeError on junk
-        raise InputError(
-            f"{chain} is not a readable chain ({type(err).__name__}: {str(err)[:120]}); allowed: a "
-            "chain.h5 written by mfdesign calibrate / fit-mf, or --no-resume to start a new one"
-        ) from None
-
-
-def _run(
-    data: Path,
-    effects: list[str],
-    out: Path,
-    steps: int,
-    walkers: int,
-    max_rows: int,
-    physics: str,
-    likelihood: str,
-    seed: int,
-    resume: bool,
-    allow_outside_design_space: bool = False,
-    multi_fidelity: bool = False,
-    members: int = 0,
-    delta_steps: int = 0,
-    material: str = "free",
-    latents: bool = True,
-) -> None:
-    from mfdesign.cli._app import fail
-
-    if likelihood not in ("gaussian", "student_t"):
-        fail(f"--likelihood must be 'gaussian' or 'student_t', got {likelihood!r}")
-    if walkers and walkers < 2:
-        fail(f"--walkers must be >= 2 (0 = automatic), got {walkers}")
-    from mfdesign.calibration.workflow import MATERIALS, material_priors
-
-    if material not in MATERIALS:
-        fail(f"--material must be one of {', '.join(MATERIALS)}, got {material!r}")
-    priors = material_priors(material)
-    import warnings
-
-    from mfdesign.calibration.plots import corner_plot
-    from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named, model_for
-    from mfdesign.calibration.mcmc import ConvergenceWarning, calibrate
-    from mfdesign.data.measurements import MeasurementError
-    from mfdesign.cli.data import load_data
-    from mfdesign.models.hierarchical import CalibrationData
-    from mfdesign.physics.effects import EFFECTS
-
-    unknown = [e for e in effects if e not in EFFECTS]
-    if unknown:
-        fail(f"unknown effect(s) {unknown}; registered: {sorted(EFFECTS)}")
-    try:
-        table = load_data(data, "fit-mf" if multi_fidelity else "calibrate", allow_outside_design_space)
-        force_model = force_model_named(physics, table, progress=True)
-    except (ValueError, MeasurementError, FileNotFoundError) as err:
-        fail(str(err))
-    out.mkdir(parents=True, exist_ok=True)
-    chain = out / "chain.h5"
-    if not resume and chain.exists():
-        chain.unlink()
-    if chain.exists():
-        _check_chain(chain)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", ConvergenceWarning)
-        try:
-            if multi_fidelity:
-                from mfdesign.models.ensemble import EnsembleConfig
-
-                cfg = EnsembleConfig(n_members=members, steps=delta_steps, monotone=False)
-                fit = fit_multi_fidelity(
-                    table,
-                    force_model,
-                    effects,
-                    n_steps=steps,
-                    n_walkers=walkers or None,
-                    max_rows=max_rows,
-                    chain_path=chain,
-                    ensemble_config=cfg,
-                    seed=seed,
-                    likelihood=likelihood,
-                    membrane_latents=latents,
-                    **priors,
-                )
-                post = fit.posterior
-            else:
-                cdata = CalibrationData.from_measurements(table, max_rows=max_rows, seed=seed)
-                model = model_for(
-                    force_model, cdata.design_keys, effects, likelihood=likelihood, membrane_latents=latents, **priors
-                )
-                post = calibrate(
-                    cdata,
-                    model,
-                    n_steps=steps,
-                    n_walkers=walkers or None,
-                    chain_path=chain,
-                    seed=seed,
-                    stop_when_converged=True,
-                )
-        except ValueError as err:
-            fail(str(err))
-    from mfdesign.calibration.posterior import save_inference_data  # ArviZ: az.from_netcdf(OUT/posterior.nc)
-
-    # Written first: the R-hat and ESS printed below and saved in posterior.json are those
-    # ArviZ computes on this file's draws (every walker's kept draws, one per tau).
-    save_inference_data(
-        post,
-        out / "posterior.nc",
-        fit.model if multi_fidelity else model,
-        table,
-        seed=seed,
-        max_rows=max_rows,
-    )
-    typer.echo(post.format_table())
-    c = post.convergence
-    typer.echo(
-        f"chain {c['n_steps']} steps x {c['n_walkers']} walkers (resumed from {c['resumed_from']}); "
-        f"tau_max {c['tau_max']:.1f} -> {c['steps_over_tau']:.1f} tau; acceptance {c['acceptance']:.2f}; "
-        # ArviZ's R-hat and ESS over the walkers (per parameter: posterior.json "convergence")
-        f"R-hat max {c.get('rhat_max', float('nan')):.3f}, ESS bulk min {c.get('ess_bulk_min', float('nan')):.0f}, "
-        f"tail min {c.get('ess_tail_min', float('nan')):.0f} (ArviZ); "
-        f"BIC {post.bic:.1f}; Laplace log evidence {post.log_evidence_laplace:.1f}"
-    )
-    for w in caught:
-        typer.echo(f"warning: {w.message}", err=True)
-    post.save(out / "posterior")  # after posterior.nc: its R-hat and ESS are those of the file
-    keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
-    names = [post.names[i] for i in keep]
-    truths = _bundled_truths(data)  # the bundled data's card knows what made them: red lines
-    corner_plot(
-        post.samples[:, keep],
-        names,
-        out / "corner.png",
-        units=[post.units[i] for i in keep],
-        truths=[truths.get(n) for n in names] if truths else None,
-        title=f"{data}: effects {effects or 'none'}" + (" (red: the values the data were made with)" if truths else ""),
-    )
-    written = {
-        "chain": str(chain),
-        "posterior": str(out / "posterior.json"),
-        "inference_data": str(out / "posterior.nc"),
-        "corner": str(out / "corner.png"),
-    }
-    if multi_fidelity:
-        meta = fit.save(out, physics=physics, material=material, table=table)  # posterior again: the same bytes
-        typer.echo(
-            f"multi-fidelity: residual noise {fit.noise_n:.3f} N; training RMSE {meta['train_rmse_n']:.3f} N, "
-            f"90 % coverage {meta['train_coverage90']:.2f}; {fit.delta.describe()}"
-        )
-        written.update(delta=str(out / "delta"), mf=str(out / "mf.json"))
-    typer.echo(json.dumps(written))
+from mfdesign.workflows.calibrate import bundled_truths as _bundled_truths  # noqa: F401 -- old name, still read
+from mfdesign.workflows.calibrate import calibrate  # light: its heavy imports are inside its functions
 
 
 # Options both commands take, declared once (typer reads them as parameter defaults).
@@ -188,23 +30,6 @@ DATA = typer.Argument(
     ...,
     help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).",
 )
-
-
-def _bundled_truths(data) -> dict[str, float]:
-    """The parameters the bundled dataset was made with (its card), when DATA is exactly that
-    dataset (the ``bundled`` keyword or its file); else empty."""
-    import json
-
-    from mfdesign.cli._demo import card_truths
-    from mfdesign.data.shipped import BUNDLED_NAME, bundled_card_path, bundled_path
-
-    paths = list(data or [])
-    if len(paths) != 1 or not bundled_card_path().is_file():
-        return {}
-    only = Path(paths[0])
-    if str(only) != BUNDLED_NAME and not (only.is_file() and only.resolve() == bundled_path().resolve()):
-        return {}
-    return card_truths(json.loads(bundled_card_path().read_text()))
 
 
 EFFECTS = typer.Option(
@@ -247,7 +72,7 @@ def _mcmc_steps(default: int):
 
 
 # The discrepancy ensemble's options: fit-mf's only (Annotated, so that their defaults are
-# plain values: calibrate's command never receives them and _run ignores them there).
+# plain values: calibrate's command never receives them and the workflow ignores them there).
 ENSEMBLE_OPTIONS = ("members", "delta_steps")
 
 
@@ -283,33 +108,38 @@ def _register(
         material: str = MATERIAL,
         latents: bool = LATENTS,
     ) -> None:
-        _run(
-            data,
-            list(effects or []),
-            out,
-            steps,
-            walkers,
-            max_rows,
-            physics=physics,
-            likelihood=likelihood,
-            seed=seed,
-            resume=resume,
-            allow_outside_design_space=allow_outside_design_space,
-            multi_fidelity=multi_fidelity,
-            members=members,
-            delta_steps=delta_steps,
-            material=material,
-            latents=latents,
+        show(
+            calibrate(
+                data,
+                list(effects or []),
+                out,
+                steps,
+                walkers,
+                max_rows,
+                physics=physics,
+                likelihood=likelihood,
+                seed=seed,
+                resume=resume,
+                allow_outside_design_space=allow_outside_design_space,
+                multi_fidelity=multi_fidelity,
+                members=members,
+                delta_steps=delta_steps,
+                material=material,
+                latents=latents,
+            )
         )
 
     command.__doc__ = doc
-    if not multi_fidelity:
-        # typer reads a command's options from its signature: calibrate's has no ensemble options.
-        sig = inspect.signature(command)
-        command.__signature__ = sig.replace(  # type: ignore[attr-defined]
-            parameters=[p for n, p in sig.parameters.items() if n not in ENSEMBLE_OPTIONS]
-        )
+    if not multi_fidelity:  # calibrate's command has no ensemble options
+        _drop_options(command, ENSEMBLE_OPTIONS)
     app.command(name)(command)
+
+
+def _drop_options(command, names) -> None:
+    """Remove ``names`` from the options of ``command`` (typer reads a command's options
+    from its signature)."""
+    sig = inspect.signature(command)
+    command.__signature__ = sig.replace(parameters=[p for n, p in sig.parameters.items() if n not in names])
 
 
 def register(app: typer.Typer) -> None:

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import typer
 
-from mfdesign.cli._app import ALLOW_OUTSIDE, fail
+from mfdesign.cli._app import ALLOW_OUTSIDE, show
 
 
 def register(app: typer.Typer) -> None:
@@ -29,36 +28,18 @@ def register(app: typer.Typer) -> None:
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
     ) -> None:
         """Simulate one membrane on a height x pressure grid: Parquet plane + PNG + JSON."""
-        from mfdesign.design import DesignError, Membrane, check_design_space
-        from mfdesign.physics.params import SimParams
-        from mfdesign.cli._plane import simulate_plane, write_plane
+        from mfdesign.workflows.plane import simulate as run
 
-        defaults = SimParams()
-        mu_pa = defaults.mu_pa if mu_pa is None else mu_pa
-        jm = defaults.jm if jm is None else jm
-        try:
-            membrane = Membrane.from_key(design)
-            widened = check_design_space(membrane, allow_outside_design_space)
-        except DesignError as err:
-            fail(f"bad design {design!r}: {err}")
-        for name, value, lo in (
-            ("h-max-mm", h_max_mm, 0.0),
-            ("p-max-pa", p_max_pa, 0.0),
-            ("mu-pa", mu_pa, 0.0),
-            ("jm", jm, 0.0),
-        ):
-            if not (value > lo and value < float("inf")):
-                fail(f"--{name} must be a positive finite number, got {value}")
-        params = SimParams(mu_pa=mu_pa, jm=jm)
-        table = simulate_plane(membrane, h_max_mm, p_max_pa, n_heights, n_pressures, params, progress=True)
-        note = (
-            {"design_space": "widened (--allow-outside-design-space): outside the product's membranes"}
-            if widened
-            else {}
-        )
-        paths = write_plane(table, membrane, out, extra=note)
-        if widened:
-            typer.echo(
-                f"warning: {membrane.key()} is outside the product's design space (widened on request)", err=True
+        show(
+            run(
+                design,
+                out,
+                h_max_mm,
+                p_max_pa,
+                n_heights,
+                n_pressures,
+                mu_pa=mu_pa,
+                jm=jm,
+                allow_outside_design_space=allow_outside_design_space,
             )
-        typer.echo(json.dumps({k: str(v) for k, v in paths.items()}))
+        )

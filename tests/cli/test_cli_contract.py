@@ -25,7 +25,7 @@ def _lines(r):
 
 
 def test_a_bug_prints_one_line_with_a_log_in_the_out_folder(tmp_path, monkeypatch):
-    import mfdesign.cli.data as commands
+    import mfdesign.workflows.data as commands
 
     def broken(*a, **k):
         raise ZeroDivisionError("deliberate")

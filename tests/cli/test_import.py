@@ -15,7 +15,7 @@ from mfdesign.data.measurements import COLUMNS, Measurements
 from mfdesign.data.sources import detect_format, load_sources, read_characterisation
 from mfdesign.data.spa_design import MASS_LIFT_FILE, load_mass_lift, shared_data_dir
 from mfdesign.data.store import read_parquet
-from mfdesign.cli.data import load_data
+from mfdesign.workflows.data import load_data
 
 runner = CliRunner()
 RINGLESS = "[2.0, 25.4, nan, nan, nan, nan]"

@@ -13,8 +13,8 @@ from typer.testing import CliRunner
 from mfdesign.acquire import Grid
 from mfdesign.calibration.workflow import load_multi_fidelity
 from mfdesign.cli import app
-from mfdesign.cli.optimize import load_model
-from mfdesign.cli.propose import load_predictor
+from mfdesign.workflows.models import load_model
+from mfdesign.workflows.models import load_predictor
 from mfdesign.data.store import read_parquet, write_parquet
 from mfdesign.cli._demo import BUNDLED
 
@@ -101,7 +101,7 @@ def test_optimize_checks_a_fit_with_its_calibrated_constants(folder, tmp_path, m
     import json
 
     from mfdesign.calibration.workflow import calibrated_sim_params
-    from mfdesign.cli.optimize import simulator_constants
+    from mfdesign.workflows.models import simulator_constants
     from tiny_models import tiny_ensemble
 
     fit = load_multi_fidelity(folder)
