@@ -404,7 +404,7 @@ class Campaign:
         if not isinstance(settings, Settings):
             raise InputError(f"settings: a {type(settings).__name__}; allowed: mfdesign.campaign.Settings")
         table, origin = _measurements(data, "Campaign.create")
-        with OutputLock(folder, option="campaign"):
+        with OutputLock(folder, option="campaign", reentrant=True):
             source = cls(folder)._store(table, origin, after_round=-1, proposal=None, index=0)
             created = provenance(call or f"Campaign.create({str(folder)!r})", {"seed": settings.seed})
             state = _State(settings, settings.effects, (source,), (), created)
@@ -455,7 +455,7 @@ class Campaign:
     def _lock(self):
         from mfdesign.outputs import OutputLock
 
-        return OutputLock(self.folder, option="campaign")
+        return OutputLock(self.folder, option="campaign", reentrant=True)
 
     def _store(self, table, origin, after_round: int, proposal: str | None, index: int) -> Source:
         """Write ``table`` as the source ``sNNN`` (its Parquet bytes hashed)."""
@@ -560,7 +560,7 @@ class Campaign:
         (data it never saw): that RMSE [N] and 90 % coverage are the round's held-out
         error. The round is written into a temporary folder and renamed into place at the
         end (module doc). Returns the :class:`Round` (its fit on the search physics)."""
-        from mfdesign.calibration.workflow import fit_multi_fidelity, for_search, force_model_named, material_priors
+        from mfdesign.calibration.workflow import fit_multi_fidelity, force_model_named, material_priors
         from mfdesign.models.ensemble import EnsembleConfig
 
         s = self.settings
@@ -589,35 +589,66 @@ class Campaign:
                 membrane_latents=s.membrane_latents,
                 **material_priors(s.material),
             )
-            tmp = rounds / f".{_ROUND_PREFIX}{number:03d}.{os.getpid()}.tmp"
-            tmp.mkdir()
-            meta = self._write_model(fit, table, tmp / "model", seed, s)
-            searched = fit
-            if s.search_physics != s.physics:  # what a reload gives: the same posterior on the search physics
-                mf = for_search(fit, s.search_physics)
-                searched = dataclasses.replace(fit, model=mf.model, mf=mf)
-            if (self.folder / "diagnosis.json").is_file():
-                shutil.copy2(self.folder / "diagnosis.json", tmp / "diagnosis.json")
-            record = {
-                "round": number,
-                "data": {
-                    "sources": {src.id: src.sha256 for src in state.sources},
-                    "membranes": len(table.design_keys),
-                    "rows": len(table),
-                },
-                "effects": list(state.effects),
-                "fit": {k: meta[k] for k in ("noise_n", "train_rmse_n", "train_coverage90")},
-                "heldout": heldout,
-                "settings": s.to_json(),
-                "provenance": provenance(
-                    call or "Campaign.fit()", {"seed": seed}, {src.id: src.sha256 for src in state.sources}
-                ),
-            }
-            from mfdesign import outputs
+            return self._commit_round(state, fit, table, number, seed, heldout, call or "Campaign.fit()")
 
-            outputs.write_json(tmp / "round.json", record, default=float)
-            final = rounds / f"{_ROUND_PREFIX}{number:03d}"
-            os.rename(tmp, final)  # the round exists from here on, whole
+    def adopt(self, fit, diagnosis=None, *, call: str = "") -> Round:
+        """Record a fit made elsewhere (the demo's, on the campaign's data, effects and
+        settings) as the campaign's next round, as :meth:`fit` would have written it; with
+        ``diagnosis`` (a :class:`~mfdesign.diagnose.pipeline.Diagnosis`) its record too.
+        So ``mfdesign demo --out D`` leaves a campaign that ``ask`` / ``tell`` / ``fit``
+        continue without refitting."""
+        from mfdesign import outputs
+
+        s = self.settings
+        with self._lock():
+            state = self._read()
+            number = len(_round_folders(self.folder))
+            (self.folder / "rounds").mkdir(exist_ok=True)
+            if diagnosis is not None:
+                record = {
+                    "for_round": number,
+                    "effects_before": [],
+                    "effects_after": list(state.effects),
+                    "diagnosis": diagnosis.to_json(),
+                    "provenance": provenance(
+                        call or "Campaign.adopt()", {"seed": s.seed}, {src.id: src.sha256 for src in state.sources}
+                    ),
+                }
+                outputs.write_json(self.folder / "diagnosis.json", record, default=float)
+            return self._commit_round(
+                state, fit, self.data(), number, s.seed + number, None, call or "Campaign.adopt()"
+            )
+
+    def _commit_round(self, state: _State, fit, table, number: int, seed: int, heldout, call: str) -> Round:
+        """Write round ``number`` of ``fit`` into a temporary folder, rename it into place."""
+        from mfdesign import outputs
+
+        s = state.settings
+        rounds = self.folder / "rounds"
+        tmp = rounds / f".{_ROUND_PREFIX}{number:03d}.{os.getpid()}.tmp"
+        tmp.mkdir()
+        meta = self._write_model(fit, table, tmp / "model", seed, s)
+        searched = fit
+        if s.search_physics != s.physics:  # what a reload gives: the same posterior on the search physics
+            from mfdesign.calibration.workflow import for_search
+
+            mf = for_search(fit, s.search_physics)
+            searched = dataclasses.replace(fit, model=mf.model, mf=mf)
+        if (self.folder / "diagnosis.json").is_file():
+            shutil.copy2(self.folder / "diagnosis.json", tmp / "diagnosis.json")
+        sources = {src.id: src.sha256 for src in state.sources}
+        record = {
+            "round": number,
+            "data": {"sources": sources, "membranes": len(table.design_keys), "rows": len(table)},
+            "effects": list(state.effects),
+            "fit": {k: meta[k] for k in ("noise_n", "train_rmse_n", "train_coverage90")},
+            "heldout": heldout,
+            "settings": s.to_json(),
+            "provenance": provenance(call, {"seed": seed}, sources),
+        }
+        outputs.write_json(tmp / "round.json", record, default=float)
+        final = rounds / f"{_ROUND_PREFIX}{number:03d}"
+        os.rename(tmp, final)  # the round exists from here on, whole
         return Round(number, final, searched, record)
 
     @staticmethod

@@ -246,6 +246,9 @@ def _stale(owner: tuple[str, str]) -> bool:
     return False
 
 
+_HELD: set[Path] = set()  # lock files this process holds (OutputLock.reentrant)
+
+
 class OutputLock:
     """Exclusive, non-blocking lock on an output folder, or on one file through
     :func:`file_lock` (see the module doc)."""
@@ -256,8 +259,10 @@ class OutputLock:
         option: str = "--out",
         lock_name: str = LOCK_NAME,
         shown: str | os.PathLike | None = None,
+        reentrant: bool = False,
     ):
         self.out, self.option, self.lock_name = Path(out), option, lock_name
+        self.reentrant = reentrant  # True: a lock this process holds already is taken as held
         self.shown = Path(shown) if shown is not None else self.out
         self._path: Path | None = None
 
@@ -269,6 +274,11 @@ class OutputLock:
                 fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
             except FileExistsError:
                 holder = _read_owner(path)
+                if self.reentrant and path.resolve() in _HELD and holder == (str(os.getpid()), socket.gethostname()):
+                    # held by this process already (the CLI locks a demo's --out, and the
+                    # campaign the demo leaves there locks it again): nested, not a second
+                    # run; the outer holder releases it
+                    return self
                 if holder is not None and not _stale(holder):
                     raise InputError(
                         f"{self.option} {self.shown} is in use by another mfdesign run (pid {holder[0]}); "
@@ -286,11 +296,13 @@ class OutputLock:
             with os.fdopen(fd, "w") as fh:
                 fh.write(owner)
             self._path = path
+            _HELD.add(path.resolve())
             return self
         raise InputError(f"{self.option} {self.shown}: could not take the lock {self.lock_name}; try again")
 
     def release(self) -> None:
         if self._path is not None:
+            _HELD.discard(self._path.resolve())
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self._path)  # the folder keeps no lock file once the run ends
             self._path = None

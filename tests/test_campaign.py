@@ -206,3 +206,39 @@ def test_ask_tell_fit_makes_a_second_round_with_its_heldout_error(fitted, tmp_pa
     held = status.rounds[1]["heldout"]
     assert held["model_round"] == 0 and rig[0].design in held["membranes"] and np.isfinite(held["rmse_n"])
     assert {p.id: p.status for p in status.proposals}[again[0].id] == "pending"
+
+
+def test_a_fit_made_elsewhere_is_adopted_as_the_next_round_and_continues(fitted, tmp_path):
+    """The demo's way in (``mfdesign demo --out D`` leaves a campaign): a fit made outside
+    the campaign becomes its round 0, reloadable bit for bit, and ``ask`` continues it."""
+    folder = tmp_path / "adopted"
+    campaign = Campaign.create(folder, data=rig_data(), settings=Settings.quick("standin", seed=3))
+    made_elsewhere = Campaign.open(fitted[0]).model(0)  # an MFFit, as the demo holds one
+    r0 = campaign.adopt(made_elsewhere)
+    assert r0.number == 0 and campaign.rounds() == [0]
+    np.testing.assert_array_equal(
+        np.asarray(campaign.model(0).mf.predict(DESIGN, H_MM, P_PA)),
+        np.asarray(made_elsewhere.mf.predict(DESIGN, H_MM, P_PA)),
+    )
+    record = json.loads((folder / "rounds" / "round-000" / "round.json").read_text())
+    assert record["provenance"]["call"] == "Campaign.adopt()" and record["heldout"] is None
+    entries = campaign.ask(q=1)
+    assert len(entries) == 1 and entries[0].status == "pending"
+
+
+def test_the_demo_replaces_only_its_own_untouched_campaign(fitted, tmp_path):
+    """A re-run of the demo into its folder replaces the demo's campaign; a campaign a lab
+    has continued (more rounds, sources or proposals) is refused in one line."""
+    import shutil
+
+    from mfdesign.cli._demo import check_campaign_folder
+
+    fresh = tmp_path / "fresh"
+    Campaign.create(fresh, data=rig_data(), settings=Settings.quick("standin"))
+    check_campaign_folder(fresh)  # the demo's own, untouched: no error
+    check_campaign_folder(tmp_path / "nothing")  # no campaign: no error
+    continued = tmp_path / "continued"
+    shutil.copytree(fitted[0], continued)
+    Campaign.open(continued).ask(q=1)
+    with pytest.raises(InputError, match=r"holds a campaign continued after the demo .*allowed: a new --out folder"):
+        check_campaign_folder(continued)

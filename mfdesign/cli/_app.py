@@ -110,11 +110,12 @@ def _main(
 ) -> None:
     """Every command with --out writes run.log beside its outputs: version, command line,
     settings, log records, exit status (mfdesign.cli._runlog)."""
-    from mfdesign.cli._runlog import console
+    from mfdesign.cli._runlog import console, plain_warnings
 
     if verbose and quiet:
         fail("--verbose and --quiet exclude each other; give one")
     enable_compilation_cache()
     show_lattice_growth()
     console(verbose, quiet)
+    plain_warnings()
     ctx.meta[VERBOSITY_KEY] = "verbose" if verbose else "quiet" if quiet else "normal"

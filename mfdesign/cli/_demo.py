@@ -695,70 +695,52 @@ def _optimum_table(opt: dict) -> list[dict] | None:
     ]
 
 
-def run_demo(
-    out: str | Path,
-    settings: DemoSettings = DemoSettings(),
-    data_path: str | Path = BUNDLED,
-    echo=print,
-    progress: bool = True,
-) -> dict:
-    """Run the whole loop (module doc) into ``out``; returns the summary written to
-    ``out/summary.json`` (paths of the report, timings, headline numbers)."""
-    import dataclasses
+@dataclass(frozen=True)
+class _Run:
+    """What every stage of one demo run reads: its folder, sizes, data and force model."""
 
-    from mfdesign.acquire import Grid, propose
-    from mfdesign.calibration.plots import corner_plot, pit, pit_coverage, predictive_check_plot
-    from mfdesign.calibration.posterior import convergence_rows, load_inference_data, save_inference_data
-    from mfdesign.calibration.workflow import fit_multi_fidelity, for_search, force_model_named
-    from mfdesign.data.store import read_parquet
-    from mfdesign.diagnose.emulated import forward_model
-    from mfdesign.diagnose.pipeline import diagnose
-    from mfdesign.report.diagnosis import write_report
-    from mfdesign.models.ensemble import EnsembleConfig
-    from mfdesign.optimize import TARGET_SETS, optimize, plot as plot_optimum
+    out: Path
+    s: DemoSettings
+    meas: object  # Measurements
+    force_model: object  # ForceModel
+    progress: bool
+    truths: dict
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    s = settings
-    log = _Log(echo)
-    summary: dict = {"settings": dataclasses.asdict(s), "data": str(data_path)}
-    card = json.loads(CARD.read_text()) if Path(data_path) == BUNDLED and CARD.exists() else None
+    def fit(self, effects, tag: str, max_rows: int):
+        """Calibrate (emcee) and fit the discrepancy with ``effects``; chain in ``out/tag``."""
+        from mfdesign.calibration.workflow import fit_multi_fidelity
+        from mfdesign.models.ensemble import EnsembleConfig
 
-    with log.stage("load data and force model"):
-        meas = read_parquet(data_path)
-        force_model = force_model_named(s.force_model, meas, progress=progress)
-    summary["rows"], summary["membranes"] = len(meas), len(meas.design_keys)
-    ens_cfg = EnsembleConfig(
-        n_members=s.delta_members, steps=s.delta_steps, monotone=False, chunk=min(1000, s.delta_steps)
-    )
-
-    def fit(effects, tag, max_rows):
+        s = self.s
+        cfg = EnsembleConfig(
+            n_members=s.delta_members, steps=s.delta_steps, monotone=False, chunk=min(1000, s.delta_steps)
+        )
         return fit_multi_fidelity(
-            meas,
-            force_model,
+            self.meas,
+            self.force_model,
             effects,
             n_steps=s.mcmc_steps,
             n_walkers=s.walkers,
             max_rows=max_rows,
-            chain_path=out / tag / "chain.h5",
-            ensemble_config=ens_cfg,
+            chain_path=self.out / tag / "chain.h5",
+            ensemble_config=cfg,
             seed=s.seed,
-            progress=progress,
+            progress=self.progress,
         )
 
-    truths = card_truths(card) if card is not None else {}
+    def write_posterior(self, fit, tag: str, max_rows: int) -> list[dict]:
+        """``out/tag``: posterior.nc (``az.from_netcdf``: every walker's kept draws one
+        autocorrelation time apart, and the pointwise groups on the rows the chain saw),
+        then posterior.json + .npz (``Posterior.load``), written second so that its R-hat
+        and ESS are those ArviZ computes on posterior.nc; the corner plot. Returns the
+        summary rows (with the per-membrane thickness rows: spurious latents show there)."""
+        from mfdesign.calibration.plots import corner_plot
+        from mfdesign.calibration.posterior import save_inference_data
 
-    def write_posterior(fit_, tag, max_rows):
-        d = out / tag
+        d = self.out / tag
         d.mkdir(parents=True, exist_ok=True)
-        post = fit_.posterior
-        table = post.summary()
-        # posterior.nc (``az.from_netcdf``: the constrained parameters, chain x draw, every
-        # walker's kept draws one autocorrelation time apart, and as ``mfdesign calibrate``
-        # writes it the pointwise groups on the rows the chain saw: log-likelihood, posterior
-        # predictive, observed data), then posterior.json + .npz (``Posterior.load``): written
-        # second, so that its R-hat and ESS are those ArviZ computes on posterior.nc.
-        save_inference_data(post, d / "posterior.nc", fit_.model, meas, seed=s.seed, max_rows=max_rows)
+        post = fit.posterior
+        save_inference_data(post, d / "posterior.nc", fit.model, self.meas, seed=self.s.seed, max_rows=max_rows)
         post.save(d / "posterior")
         keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
         names = [post.names[i] for i in keep]
@@ -767,95 +749,257 @@ def run_demo(
             names,
             d / "corner.png",
             units=[post.units[i] for i in keep],
-            truths=[truths.get(n) for n in names] if truths else None,
-            title="red lines: the values the data were made with" if truths else None,
+            truths=[self.truths.get(n) for n in names] if self.truths else None,
+            title="red lines: the values the data were made with" if self.truths else None,
         )
-        rows = table  # with the per-membrane thickness rows: spurious latents show there
-        return [
-            {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
-            for r in rows[["parameter", "unit", "median", "q05", "q95"]].to_dict("records")
-        ]
+        rows = post.summary()[["parameter", "unit", "median", "q05", "q95"]].to_dict("records")
+        return [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()} for r in rows]
 
-    # 2. calibrate + multi-fidelity fit of the plain model
-    with log.stage("calibrate mu, J_m (emcee) and fit the discrepancy: plain model"):
-        fit0 = fit((), "plain", min(s.plain_max_rows, s.max_rows))
-        post0 = write_posterior(fit0, "plain", min(s.plain_max_rows, s.max_rows))
 
-    # 3. diagnose the plain simulator (the authors' constants), as docs/diagnose.md does.
-    # Not the calibrated model at its posterior median: its per-membrane thickness latents
-    # soak up part of a measurement effect, and without them (diagnosis has none) the
-    # leftover looks like a thickness deviation (seen on the bundled data).
-    with log.stage("diagnose: where the model fails, which effect is missing"):
-        sim = forward_model("standin" if s.force_model == "standin" else s.force_model, meas, progress=progress)
-        diag = diagnose(
-            meas,
-            sim=sim,
-            model_name=f"plain simulator ({s.force_model} physics, authors' constants)",
-            check_top=s.check_top,
-            progress=progress,
-        )
-        write_report(diag, out / "diagnose")
-    found = list(diag.found)
+CONVERGENCE_KEYS = (
+    "converged",
+    "steps_over_tau",
+    "tau_max",
+    "acceptance",
+    "problems",
+    "rhat_max",
+    "ess_bulk_min",
+    "ess_tail_min",
+    "draws_in_file",
+    "rule",
+)
+
+
+def _convergence(fits: dict) -> dict:
+    """The chains' own checks (emcee's tau, ArviZ's R-hat / ESS: posterior.json
+    "convergence"), with one row per parameter for the report's convergence table."""
+    from mfdesign.calibration.posterior import convergence_rows
+
+    return {
+        tag: {k: f.posterior.convergence.get(k) for k in CONVERGENCE_KEYS}
+        | {"parameters": convergence_rows(f.posterior.convergence)}
+        for tag, f in fits.items()
+    }
+
+
+def _diagnose_stage(run: _Run):
+    """Diagnose the plain simulator (the authors' constants), as docs/diagnose.md does.
+
+    Not the calibrated model at its posterior median: its per-membrane thickness latents
+    soak up part of a measurement effect, and without them (diagnosis has none) the
+    leftover looks like a thickness deviation (seen on the bundled data)."""
+    from mfdesign.diagnose.emulated import forward_model
+    from mfdesign.diagnose.pipeline import diagnose
+    from mfdesign.report.diagnosis import write_report
+
+    s = run.s
+    sim = forward_model("standin" if s.force_model == "standin" else s.force_model, run.meas, progress=run.progress)
+    diag = diagnose(
+        run.meas,
+        sim=sim,
+        model_name=f"plain simulator ({s.force_model} physics, authors' constants)",
+        check_top=s.check_top,
+        progress=run.progress,
+    )
+    write_report(diag, run.out / "diagnose")
     floor = diag.before.noise_floor_n
-    summary["diagnosis"] = {
-        "found": found,
+    summary = {
+        "found": list(diag.found),
         "rmse_before_n": diag.before.rmse_n,
         "rmse_after_n": None if diag.after is None else diag.after.rmse_n,
         "noise_floor_n": floor,
         "after_over_floor": (None if diag.after is None or not floor > 0 else diag.after.rmse_n / floor),
         "physics": s.force_model,
     }
+    return diag, summary
 
-    # 4. add the effect(s) and refit
+
+DEMO_GRID_MM_PA = ((0.0, 20.0, 40.0, 60.0), (2000.0, 4000.0, 6000.0, 8000.0))  # heights [mm], pressures [Pa]
+
+
+def _propose_stage(run: _Run, predictor):
+    """The next two membranes to build and one simulator run (``out/propose``)."""
+    from mfdesign.acquire import Grid, propose
+
+    s = run.s
+    proposal = propose(
+        predictor,
+        budget={"rig": 2, "sim": 1},
+        n_restarts=s.propose_restarts,
+        n_steps=s.propose_steps,
+        grid=Grid(h_mm=DEMO_GRID_MM_PA[0], p_pa=DEMO_GRID_MM_PA[1]),
+        key=s.seed,
+        progress=run.progress,
+    )
+    (run.out / "propose").mkdir(exist_ok=True)
+    outputs.write_text(run.out / "propose" / "proposal.json", json.dumps(proposal.to_json(), indent=1, default=str))
+    _proposal_figure(run.meas, proposal, run.out / "propose" / "proposals.png")
+    return proposal
+
+
+def _optimise_stage(run: _Run, predictor, fit) -> dict:
+    """Optimise a membrane for lift task A. The search runs on the emulator (1-3 N off the
+    simulator at lift points), so its winner is re-computed by the simulator at the
+    calibrated constants before the report shows it (seconds): the headline gives the
+    simulator's heights and the emulator's error there, not the emulator's word alone. A
+    stand-in fit stands for no physics: checking it would compare unrelated models."""
+    from mfdesign.optimize import TARGET_SETS, optimize, plot as plot_optimum
+
+    s = run.s
+    check = s.force_model != "standin"
+    sim_params, sim_constants = None, None
+    if check:
+        from mfdesign.calibration.workflow import calibrated_sim_params
+
+        sim_params, sim_constants = calibrated_sim_params(fit)
+    result = optimize(
+        predictor,
+        TARGET_SETS["A"],
+        n_starts=s.optimise_starts,
+        n_refine=s.optimise_refine,
+        steps=s.optimise_steps,
+        seed=s.seed,
+        progress=run.progress,
+        batch_size=50,
+        check=check,
+        sim_params=sim_params,
+        sim_constants=sim_constants,
+    )
+    (run.out / "optimize").mkdir(exist_ok=True)
+    plot_optimum(result, run.out / "optimize" / "optimum.png", title="lift task A")
+    outputs.write_text(run.out / "optimize" / "optimum.json", json.dumps(result.to_json(), indent=1, default=str))
+    return _optimum_json(result, "A", None if check else "stand-in physics: no simulator behind it")
+
+
+def _report_stage(run: _Run, summary: dict, fits: dict, diag, card: dict | None):
+    """The page, rendered from the stages' JSON (summary, diagnose/diagnosis.json) and the
+    pictures on disk, so that every number on the page is one a sub-report holds."""
+    from mfdesign.calibration.plots import pit, pit_coverage, predictive_check_plot
+    from mfdesign.calibration.posterior import load_inference_data
+
+    fig_dir = run.out / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    _plane_figure(
+        run.meas,
+        {"plain": fits["plain"].mf.thinned(16), "with effects": fits["with_effects"].mf.thinned(16)},
+        fig_dir / "planes.png",
+    )
+    pits = {
+        name: pit(load_inference_data(run.out / tag))
+        for name, tag in (("plain", "plain"), ("with effects", "with_effects"))
+        if (run.out / tag / "posterior.nc").is_file()
+    }
+    predictive_check_plot(pits, fig_dir / "predictive_check.png")
+    summary["diagnosis"]["verdict"] = _verdict(diag)
+    summary["banners"] = _banners(diag, summary["convergence"], summary["optimum"], summary["simulator_runs"])
+    summary["coverage_90"] = {name: pit_coverage(u)[0.9] for name, u in pits.items()}
+    if card is not None:
+        summary["hidden_effect"] = card["hidden_effect"]["name"]
+    return demo_report(run.out, summary)
+
+
+def check_campaign_folder(out: str | Path) -> None:
+    """Refuse to run the demo into a campaign a lab has continued (rounds after the demo's,
+    sources or proposals told): the demo would replace it. The demo's own, untouched, is
+    replaced by a new run."""
+    from mfdesign.campaign import Campaign
+    from mfdesign.errors import InputError
+
+    if not Campaign.holds_campaign(out):
+        return
+    c = Campaign.open(out)
+    st = c.status()
+    if len(c.rounds()) > 1 or len(st.sources) > 1 or st.proposals:
+        raise InputError(
+            f"--out {out} holds a campaign continued after the demo ({len(c.rounds())} round(s), "
+            f"{len(st.proposals)} proposal(s)); allowed: a new --out folder (the demo would replace it)"
+        )
+
+
+def _leave_campaign(run: _Run, found: list[str], fit, diag):
+    """Make ``out`` a campaign whose round 0 is the demo's corrected fit, so that
+    ``mfdesign ask / tell / fit / status OUT`` continue it (docs/campaign.md)."""
+    import shlex
+    import shutil
+    import sys
+
+    from mfdesign.campaign import CAMPAIGN_FILE, Campaign, Settings
+
+    s = run.s
+    for old in (run.out / CAMPAIGN_FILE, run.out / "sources", run.out / "rounds", run.out / "asks"):
+        if old.is_dir():  # the demo's own campaign of an earlier run (check_campaign_folder)
+            shutil.rmtree(old)
+        elif old.exists():
+            old.unlink()
+    settings = Settings(
+        physics=s.force_model,
+        effects=tuple(found),
+        mcmc_steps=s.mcmc_steps,
+        walkers=s.walkers,
+        max_rows=s.max_rows,
+        members=s.delta_members,
+        delta_steps=s.delta_steps,
+        check_top=s.check_top,
+        seed=s.seed,
+    )
+    call = shlex.join(["mfdesign", *sys.argv[1:]]) if sys.argv and "mfdesign" in sys.argv[0] else "run_demo()"
+    campaign = Campaign.create(run.out, data=run.meas, settings=settings, call=call)
+    campaign.adopt(fit, diag, call=call)
+    return campaign
+
+
+def run_demo(
+    out: str | Path,
+    settings: DemoSettings = DemoSettings(),
+    data_path: str | Path = BUNDLED,
+    echo=print,
+    progress: bool = True,
+) -> dict:
+    """Run the whole loop (module doc) into ``out``; returns the summary written to
+    ``out/summary.json`` (paths of the report, timings, headline numbers). ``out`` is left
+    a campaign (round 0: the corrected fit) that ``mfdesign ask / tell / fit`` continue."""
+    import dataclasses
+
+    from mfdesign.calibration.workflow import for_search, force_model_named
+    from mfdesign.data.store import read_parquet
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    check_campaign_folder(out)
+    s, log = settings, _Log(echo)
+    summary: dict = {"settings": dataclasses.asdict(s), "data": str(data_path)}
+    card = json.loads(CARD.read_text()) if Path(data_path) == BUNDLED and CARD.exists() else None
+    with log.stage("load data and force model"):
+        meas = read_parquet(data_path)
+        run = _Run(
+            out,
+            s,
+            meas,
+            force_model_named(s.force_model, meas, progress=progress),
+            progress,
+            card_truths(card) if card else {},
+        )
+    summary["rows"], summary["membranes"] = len(meas), len(meas.design_keys)
+    plain_rows = min(s.plain_max_rows, s.max_rows)
+    with log.stage("calibrate mu, J_m (emcee) and fit the discrepancy: plain model"):
+        fits = {"plain": run.fit((), "plain", plain_rows)}
+        summary["posterior_plain"] = run.write_posterior(fits["plain"], "plain", plain_rows)
+    with log.stage("diagnose: where the model fails, which effect is missing"):
+        diag, summary["diagnosis"] = _diagnose_stage(run)
+    found = list(diag.found)
+    fits["with_effects"], summary["posterior_with_effects"] = fits["plain"], summary["posterior_plain"]
     if found:
         with log.stage(f"add {', '.join(found)}: recalibrate and refit"):
-            fit1 = fit(found, "with_effects", s.max_rows)
-            post1 = write_posterior(fit1, "with_effects", s.max_rows)
-    else:
-        fit1, post1 = fit0, post0
-
-    # The chains' own checks (emcee's tau, ArviZ's R-hat / ESS: posterior.json "convergence"),
-    # with one row per parameter for the report's convergence table.
-    summary["convergence"] = {
-        tag: {
-            k: f.posterior.convergence.get(k)
-            for k in (
-                "converged",
-                "steps_over_tau",
-                "tau_max",
-                "acceptance",
-                "problems",
-                "rhat_max",
-                "ess_bulk_min",
-                "ess_tail_min",
-                "draws_in_file",
-                "rule",
-            )
-        }
-        | {"parameters": convergence_rows(f.posterior.convergence)}
-        for tag, f in (("plain", fit0), ("with_effects", fit1))
-    }
+            fits["with_effects"] = run.fit(found, "with_effects", s.max_rows)
+            summary["posterior_with_effects"] = run.write_posterior(fits["with_effects"], "with_effects", s.max_rows)
+    fit1 = fits["with_effects"]
+    summary["convergence"] = _convergence(fits)
     summary["discrepancy_gate"] = fit1.delta.describe()
     if card is not None:
         summary["truth_check"] = _truth_check(fit1.posterior, card)
-    search_mf = for_search(fit1, s.search_model) if s.force_model == "exact" else fit1.mf
-
-    # 5. propose the next membranes
-    DEMO_GRID = Grid(h_mm=(0.0, 20.0, 40.0, 60.0), p_pa=(2000.0, 4000.0, 6000.0, 8000.0))
+    predictor = (for_search(fit1, s.search_model) if s.force_model == "exact" else fit1.mf).predictor(s.design_draws)
     with log.stage("propose 2 membranes to build and 1 simulator run"):
-        predictor = search_mf.predictor(s.design_draws)
-        proposal = propose(
-            predictor,
-            budget={"rig": 2, "sim": 1},
-            n_restarts=s.propose_restarts,
-            n_steps=s.propose_steps,
-            grid=DEMO_GRID,
-            key=s.seed,
-            progress=progress,
-        )
-        (out / "propose").mkdir(exist_ok=True)
-        outputs.write_text(out / "propose" / "proposal.json", json.dumps(proposal.to_json(), indent=1, default=str))
-        _proposal_figure(meas, proposal, out / "propose" / "proposals.png")
+        proposal = _propose_stage(run, predictor)
     # membranes a person builds, ranked, each with why; simulator runs are the tool's own work
     summary["proposals"] = [_run_json(r) for r in proposal.fabricate]
     summary["simulator_runs"] = [_run_json(r) for r in proposal.simulate]
@@ -863,61 +1007,12 @@ def run_demo(
         with log.stage(f"make the {len(proposal.simulate)} simulator run(s) the proposal chose"):
             for entry, made in zip(summary["simulator_runs"], _make_sim_runs(proposal, predictor, fit1, out)):
                 entry.update(made)
-
-    # 6. optimise a membrane for a lift task. The search runs on the emulator (1-3 N off the
-    # simulator at lift points), so its winner is re-computed by the simulator at the
-    # calibrated constants before the report shows it (seconds): the headline gives the
-    # simulator's heights and the emulator's error there, not the emulator's word alone.
-    # A stand-in fit stands for no physics: checking it would compare unrelated models.
-    check = s.force_model != "standin"
     with log.stage("optimise a membrane for lift task A (height maximisation), check it with the simulator"):
-        if check:
-            from mfdesign.calibration.workflow import calibrated_sim_params
-
-            sim_params, sim_constants = calibrated_sim_params(fit1)
-        else:
-            sim_params, sim_constants = None, None
-        result = optimize(
-            predictor,
-            TARGET_SETS["A"],
-            n_starts=s.optimise_starts,
-            n_refine=s.optimise_refine,
-            steps=s.optimise_steps,
-            seed=s.seed,
-            progress=progress,
-            batch_size=50,
-            check=check,
-            sim_params=sim_params,
-            sim_constants=sim_constants,
-        )
-        (out / "optimize").mkdir(exist_ok=True)
-        plot_optimum(result, out / "optimize" / "optimum.png", title="lift task A")
-        outputs.write_text(out / "optimize" / "optimum.json", json.dumps(result.to_json(), indent=1, default=str))
-    summary["optimum"] = _optimum_json(result, "A", None if check else "stand-in physics: no simulator behind it")
-
-    # 7. report: rendered from the stages' JSON (summary, diagnose/diagnosis.json) and the
-    # pictures on disk, so that every number on the page is one a sub-report holds.
+        summary["optimum"] = _optimise_stage(run, predictor, fit1)
+    with log.stage("leave a campaign: round 0 is the corrected fit"):
+        summary["campaign"] = {"folder": str(out), "round": _leave_campaign(run, found, fit1, diag).rounds()[-1]}
     with log.stage("report"):
-        fig_dir = out / "figures"
-        fig_dir.mkdir(exist_ok=True)
-        _plane_figure(
-            meas,
-            {"plain": fit0.mf.thinned(16), "with effects": fit1.mf.thinned(16)},
-            fig_dir / "planes.png",
-        )
-        pits = {
-            name: pit(load_inference_data(out / tag))
-            for name, tag in (("plain", "plain"), ("with effects", "with_effects"))
-            if (out / tag / "posterior.nc").is_file()
-        }
-        predictive_check_plot(pits, fig_dir / "predictive_check.png")
-        summary["diagnosis"]["verdict"] = _verdict(diag)
-        summary["banners"] = _banners(diag, summary["convergence"], summary["optimum"], summary["simulator_runs"])
-        summary["coverage_90"] = {name: pit_coverage(u)[0.9] for name, u in pits.items()}
-        summary["posterior_plain"], summary["posterior_with_effects"] = post0, post1
-        if card is not None:
-            summary["hidden_effect"] = card["hidden_effect"]["name"]
-        rep = demo_report(out, summary)
+        rep = _report_stage(run, summary, fits, diag, card)
         rep.meta = {"timings_s": log.times}
         paths = rep.write(out)
     summary.update(
@@ -931,4 +1026,5 @@ def run_demo(
     )
     outputs.write_text(out / "summary.json", json.dumps(summary, indent=1, default=str))
     echo(f"report: {paths['html']} ({summary['total_s']} s)")
+    echo(f"campaign: continue it with  mfdesign ask {out} --q 2   (then tell, fit, status; docs/campaign.md)")
     return summary

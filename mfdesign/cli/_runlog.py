@@ -131,3 +131,16 @@ def console(verbose: bool, quiet: bool) -> None:
         handler._mfdesign_console = True  # type: ignore[attr-defined]
         log.addHandler(handler)
         log.setLevel(logging.DEBUG)
+
+
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:
+    """A Python warning as the user reads it: one line, its words, no source line (the
+    default format repeats the code that warned, e.g. ``report = convergence_report(...)``)."""
+    return f"warning: {message}\n"
+
+
+def plain_warnings() -> None:
+    """Python warnings (emcee's chain too short, ArviZ's) as one line each on the console."""
+    import warnings
+
+    warnings.formatwarning = _one_line_warning  # type: ignore[assignment]
