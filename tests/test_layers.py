@@ -114,3 +114,18 @@ def test_the_check_sees_a_violation(tmp_path):
     p.write_text(src)
     got = _imports("mfdesign.physics.x", p, {"mfdesign.cli": Path(), "mfdesign.physics.x": p})
     assert got == {"mfdesign.cli"} and _layer("mfdesign.cli") > _layer("mfdesign.physics.x")
+
+
+def test_no_command_module_imports_another():
+    """The CLI is a shell over :mod:`mfdesign.workflows`: a command module imports only the
+    shell's private helpers (``mfdesign.cli._app``, ``_contract``, ...), never another
+    command's module; what two commands share lives in the library."""
+    graph = _graph()
+    bad = [
+        f"{a} imports {b}"
+        for a, targets in graph.items()
+        if a.startswith("mfdesign.cli.")
+        for b in targets
+        if b.startswith("mfdesign.cli.") and not b.rpartition(".")[2].startswith("_") and b != a
+    ]
+    assert not bad, "command modules importing each other:\n" + "\n".join(sorted(bad))

@@ -1,6 +1,11 @@
 """The ``mfdesign`` command line (typer): one module per command, a thin shell over the
 library. Units: mm, Pa, N.
 
+A command parses its options, calls ONE library function (mostly of
+:mod:`mfdesign.workflows`) and prints that function's ``summary()``; command modules share
+only the private helpers here (``_app``, ``_contract``, ``_runlog``, ``_space``), never
+each other.
+
 Every command module defines ``register(app)`` and imports its heavy dependencies (JAX,
 emcee, ...) inside the command bodies, so that ``mfdesign --help`` stays fast. The
 contract (:mod:`._contract`): bad input prints one line and exits with status 2; anything
