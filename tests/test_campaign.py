@@ -231,7 +231,7 @@ def test_the_demo_replaces_only_its_own_untouched_campaign(fitted, tmp_path):
     has continued (more rounds, sources or proposals) is refused in one line."""
     import shutil
 
-    from mfdesign.cli._demo import check_campaign_folder
+    from mfdesign.workflows.demo import check_campaign_folder
 
     fresh = tmp_path / "fresh"
     Campaign.create(fresh, data=rig_data(), settings=Settings.quick("standin"))

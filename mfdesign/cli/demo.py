@@ -1,4 +1,4 @@
-"""``mfdesign demo``: the main job on the embedded default (the pipeline: :mod:`._demo`)."""
+"""``mfdesign demo``: the main job on the embedded default (the pipeline: :mod:`mfdesign.workflows.demo`)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def register(app: typer.Typer) -> None:
         """
         import dataclasses
 
-        from mfdesign.cli._demo import DemoSettings, run_demo
+        from mfdesign.workflows.demo import DemoSettings, run_demo
 
         if physics not in ("exact", "emulator", "standin"):
             fail(f"--physics must be one of ['exact', 'emulator', 'standin'], got {physics!r}")

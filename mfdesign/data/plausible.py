@@ -89,8 +89,6 @@ def check_columns(df: pd.DataFrame, where: str) -> None:
                 f"reaches {w.max():.4g}",
                 f"relative weights up to {MAX_WEIGHT:g} (sums of 1e308 overflow: 'math domain error')",
             )
-    if "pressure_pa" in num and "force_n" in num and "experiment" in df.columns:
-        _check_force_unit(df, num, where)
     if "pressure_pa" in num and "force_n" in num:
         bad = (num["pressure_pa"] < -1e3) & (num["force_n"] > 1.0)
         if bad.any():
@@ -103,6 +101,8 @@ def check_columns(df: pd.DataFrame, where: str) -> None:
             )
     if {"experiment", "design_key", "trial"} <= set(df.columns) and "force_n" in num:
         _check_trials(df, num, where)
+    if "pressure_pa" in num and "force_n" in num and "experiment" in df.columns:
+        _check_force_unit(df, num, where)  # after the trials: a stuck constant is the more specific word
 
 
 OUTER_AREA_M2 = 3.141592653589793 * 0.070**2  # the membranes' outer radius is 70 mm

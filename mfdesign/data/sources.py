@@ -1,7 +1,7 @@
 """Every way measurements come in, read into one :class:`Measurements` table.
 
 One function, :func:`load_sources`, is what every command's ``DATA`` argument goes
-through (via :func:`mfdesign.cli.data.load_data`) and what ``mfdesign import``
+through (via :func:`mfdesign.workflows.data.load_data`) and what ``mfdesign import``
 converts. A source is:
 
 * ``mass-lift``: the authors' real mass-lift file from the shared data folder;

@@ -16,7 +16,8 @@ what is allowed (the CLI turns it into exit status 2). Modules here never import
 * :mod:`.calibrate`: ``calibrate`` and ``fit-mf``;
 * :mod:`.diagnose`: ``diagnose``;
 * :mod:`.optimize`: ``optimize``;
-* :mod:`.propose`: ``propose`` (and the simulator runs it makes).
+* :mod:`.propose`: ``propose`` (and the simulator runs it makes);
+* :mod:`.demo`: ``demo``, the README's main job (it leaves a campaign, :mod:`mfdesign.campaign`).
 
 Modules are imported on use (``from mfdesign.workflows import optimize``): each holds heavy
 dependencies only inside its functions, or at its top when nothing imports it for ``--help``.

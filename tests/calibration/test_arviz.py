@@ -154,7 +154,7 @@ def test_pair_plot_with_truths(fitted, tmp_path):
 def test_calibrate_command_writes_posterior_nc(tmp_path):
     from mfdesign.cli import app
     from mfdesign.data.store import read_parquet, write_parquet
-    from mfdesign.cli._demo import BUNDLED
+    from mfdesign.workflows.demo import BUNDLED
 
     meas = read_parquet(BUNDLED)
     data = tmp_path / "two.parquet"

@@ -26,7 +26,7 @@ def assert_page_shows_the_numbers(lines: list[str], out: Path) -> None:
     medians and 90 % intervals, convergence (tau, R-hat, ESS), RMSE before / after and the
     noise floor, the verdict, the effects found and each round's screen, truths, proposals."""
     from mfdesign.calibration.posterior import convergence_rows
-    from mfdesign.cli._demo import _display_rows, _optimum_headline, _short, _truth_table
+    from mfdesign.workflows.demo import _display_rows, _optimum_headline, _short, _truth_table
     from mfdesign.report.render import cell
 
     summary = json.loads((out / "summary.json").read_text())
@@ -102,7 +102,7 @@ def assert_page_shows_the_numbers(lines: list[str], out: Path) -> None:
 
 @pytest.mark.slow
 def test_quick_demo_writes_a_report_chromium_can_show(tmp_path):
-    from mfdesign.cli._demo import DemoSettings, run_demo
+    from mfdesign.workflows.demo import DemoSettings, run_demo
 
     summary = run_demo(tmp_path, DemoSettings.quick(), echo=lambda *_: None, progress=False)
     report = json.loads((tmp_path / "report.json").read_text())
@@ -171,7 +171,7 @@ def test_the_report_shows_the_sub_reports_numbers(tmp_path):
     """The demo's page rendered from a stored quick demo's JSON (summary.json, posterior.json,
     diagnosis.json: tests/cli/demo_report/), read back from headless Chromium: every
     headline number is the one those files hold."""
-    from mfdesign.cli._demo import demo_report
+    from mfdesign.workflows.demo import demo_report
 
     shutil.copytree(FIXTURE, tmp_path, dirs_exist_ok=True)
     _stand_in_pictures(tmp_path)
@@ -200,7 +200,7 @@ def test_one_verdict_from_every_round_and_banners_that_say_what_is_wrong():
     """A first round that found an effect and a last one that found nothing more give one
     sentence (the summary and the diagnosis section print it), and the banners flag the
     model above 1.2x the noise floor and a chain that has not converged."""
-    from mfdesign.cli._demo import _banners, _verdict
+    from mfdesign.workflows.demo import _banners, _verdict
 
     partial = _diag(17.4, 11.56, 0.23, ["thickness_deviation"], "unexplained")
     words = _verdict(partial)
@@ -218,7 +218,7 @@ def test_one_verdict_from_every_round_and_banners_that_say_what_is_wrong():
 
 
 def test_truth_table_puts_each_truth_beside_the_posterior():
-    from mfdesign.cli._demo import _truth_table
+    from mfdesign.workflows.demo import _truth_table
 
     check = {
         "mu_pa": {"truth": 31700.0, "q05": 31597.0, "q95": 31818.0, "inside": True},
@@ -240,7 +240,7 @@ def test_truth_table_puts_each_truth_beside_the_posterior():
 
 
 def test_posterior_tables_show_pascals_as_kilopascals():
-    from mfdesign.cli._demo import _display_rows
+    from mfdesign.workflows.demo import _display_rows
 
     rows = [{"parameter": "mu_pa", "unit": "Pa", "median": 33640.0, "q05": 33100.0, "q95": 34210.5}]
     assert _display_rows(rows) == [{"parameter": "mu_pa", "unit": "kPa", "median": 33.64, "q05": 33.1, "q95": 34.21}]
@@ -284,7 +284,7 @@ def _optimum(**kw):
 
 
 def test_the_headline_gives_the_simulators_heights_and_the_emulators_error():
-    from mfdesign.cli._demo import _optimum_headline, _optimum_table
+    from mfdesign.workflows.demo import _optimum_headline, _optimum_table
 
     words = _optimum_headline(_optimum())
     assert words.startswith("Optimised for lift task A: [1.50, 26.50, nan, nan, nan, nan]")
@@ -307,7 +307,7 @@ def test_banners_state_the_limits_of_the_optimum_and_of_the_spread():
     """What the headline must not hide: an optimum at the grid's top and above the rig's
     travel, a near-tie, a simulator run far off the predicted spread, an unchecked optimum,
     and a simulator that puts the optimum elsewhere; none of them for a clean one."""
-    from mfdesign.cli._demo import _banners
+    from mfdesign.workflows.demo import _banners
 
     good = _diag(1.53, 0.32, 0.283, ["pressure_sensor"], "explained")
     conv = {"with_effects": {"converged": True}}
@@ -341,7 +341,7 @@ def test_the_page_puts_every_banner_above_the_first_number(tmp_path):
     the red box above the summary, and the headline says the optimum was not checked."""
     from markupsafe import escape  # Jinja's own escaping, as the page was written
 
-    from mfdesign.cli._demo import _optimum_headline, demo_report
+    from mfdesign.workflows.demo import _optimum_headline, demo_report
 
     shutil.copytree(FIXTURE, tmp_path, dirs_exist_ok=True)
     _stand_in_pictures(tmp_path)
@@ -366,7 +366,7 @@ def test_planes_figure_shows_every_measured_membrane_with_a_height_key(tmp_path,
     the colours of the plate heights."""
     from types import SimpleNamespace
 
-    from mfdesign.cli import _demo
+    from mfdesign.workflows import demo as _demo
     from mfdesign.data.store import read_parquet
 
     meas = read_parquet(_demo.BUNDLED)

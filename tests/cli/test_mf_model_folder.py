@@ -16,7 +16,7 @@ from mfdesign.cli import app
 from mfdesign.workflows.models import load_model
 from mfdesign.workflows.models import load_predictor
 from mfdesign.data.store import read_parquet, write_parquet
-from mfdesign.cli._demo import BUNDLED
+from mfdesign.workflows.demo import BUNDLED
 
 runner = CliRunner()
 

@@ -11,7 +11,7 @@ from mfdesign.calibration.mcmc import build_model
 from mfdesign.calibration.posterior import Posterior
 from mfdesign.models.standin import standin_force
 from mfdesign.data.store import read_parquet
-from mfdesign.cli._demo import BUNDLED
+from mfdesign.workflows.demo import BUNDLED
 from mfdesign.models.hierarchical import CalibrationData
 from mfdesign.models.predictive import MultiFidelity, coverage
 

@@ -139,7 +139,7 @@ def _figure_of(draw, monkeypatch, *args):
 def small_residuals():
     import numpy as np
 
-    from mfdesign.cli._demo import BUNDLED
+    from mfdesign.workflows.demo import BUNDLED
     from mfdesign.data.store import read_parquet
     from mfdesign.diagnose.residuals import compute_residuals
 

@@ -21,12 +21,17 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mfdesign import outputs  # atomic writes: a reader never sees a torn file
 from mfdesign.data.shipped import bundled_card_path, bundled_path, card_truths
 from mfdesign.design import Membrane
+
+if TYPE_CHECKING:
+    from mfdesign.data.measurements import Measurements
+    from mfdesign.models.force import ForceModel
 
 __all__ = ["DemoSettings", "run_demo", "demo_report", "BUNDLED", "card_truths"]
 
@@ -701,8 +706,8 @@ class _Run:
 
     out: Path
     s: DemoSettings
-    meas: object  # Measurements
-    force_model: object  # ForceModel
+    meas: "Measurements"
+    force_model: "ForceModel"
     progress: bool
     truths: dict
 
