@@ -21,7 +21,7 @@ LAYERS = (
     ("mfdesign.physics", "mfdesign.data", "mfdesign.rig"),  # physics, data and the rig's I/O
     ("mfdesign.models",),
     ("mfdesign.calibration", "mfdesign.diagnose"),
-    ("mfdesign.acquire", "mfdesign.optimize", "mfdesign.sim_runs"),
+    ("mfdesign.acquire", "mfdesign.discriminate", "mfdesign.optimize", "mfdesign.sim_runs"),
     ("mfdesign.campaign",),  # a lab's loop: every step above, kept in one folder
     ("mfdesign.report",),
     ("mfdesign.workflows",),  # each command's workflow (load, fit, write, summarise): the CLI's library
