@@ -1,0 +1,171 @@
+"""Continue the demo's campaign for more rounds on the virtual rig (issue 41, item 3).
+
+``mfdesign demo --out D`` leaves a campaign in ``D`` (round 0: the corrected fit). Each
+further round here is what a lab does:
+
+1. ``ask``: the campaign proposes ``--q`` membranes to build;
+2. "build" them: the virtual rig measures each (the bundled dataset's own truth: the
+   simulator, or the stand-in for a stand-in campaign, with the hidden effect of the
+   dataset's card and its noise), written as a Parquet file;
+3. ``tell``: the measurements join the campaign;
+4. ``fit``: the next round (its ``round.json`` records the previous round's error on the
+   membranes told since: the campaign's own held-out error).
+
+Beside that, every round's model predicts a fixed test set: membranes measured on the
+same virtual rig that no round ever sees (``--test``). Its RMSE [N] and 90 % coverage are
+the held-out error this experiment follows from round to round.
+
+    python experiments/campaign_rounds.py --campaign out/demo --rounds 2 --q 2
+
+Writes ``experiments/out/campaign_rounds.json`` (one row per round, the commands' times,
+the machine) and ``.png`` (test RMSE and coverage against the round).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+OUT = HERE / "out"
+# Two membranes no round sees: a thin ringless one and a one-ring one, inside the design
+# space and away from the bundled six.
+TEST_DESIGNS = ("[1.75, 32.0, nan, nan, nan, nan]", "[2.5, 27.0, 40.0, 5.5, nan, nan]")
+
+
+def _rig(card: dict, truth: str, sample_hz: float, seed: int):
+    from mfdesign.physics.params import SimParams
+    from mfdesign.rig.virtual import Protocol, VirtualRig
+
+    hidden = card["hidden_effect"]
+    protocol = Protocol(sample_hz=sample_hz, trials_per_height=1)
+    if truth == "standin":
+        from mfdesign.models.standin import standin_plane
+
+        return VirtualRig(
+            effects=[hidden["name"]], theta=hidden["theta"], seed=seed, protocol=protocol, simulator=standin_plane
+        )
+    return VirtualRig(
+        effects=[hidden["name"]], theta=hidden["theta"], seed=seed, protocol=protocol, base_params=SimParams()
+    )
+
+
+def _test_error(campaign, number: int, test) -> dict:
+    from mfdesign.models.predictive import coverage
+
+    fit = campaign.model(number)
+    cov = coverage(fit.mf, test, level=0.9, key=fit.seed)
+    return {"test_rmse_n": cov["rmse_n"], "test_coverage90": cov["coverage"]}
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--campaign", required=True, help="a folder `mfdesign demo --out` left (it is modified)")
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--q", type=int, default=2, help="membranes built per round")
+    ap.add_argument("--sample-hz", type=float, default=2.0, help="the virtual rig's sampling rate [Hz]")
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--out", default=str(OUT / "campaign_rounds.json"))
+    ap.add_argument("--no-figure", action="store_true")
+    args = ap.parse_args(argv)
+
+    import numpy as np
+
+    from mfdesign._cache import enable_compilation_cache
+    from mfdesign.campaign import Campaign, provenance
+    from mfdesign.data.shipped import bundled_card_path
+    from mfdesign.data.store import write_parquet
+    from mfdesign.design import Membrane
+
+    enable_compilation_cache()
+    folder = Path(args.campaign)
+    campaign = Campaign.open(folder)
+    card = json.loads(bundled_card_path().read_text())
+    truth = "standin" if campaign.settings.physics == "standin" else "simulator"
+    rig = _rig(card, truth, args.sample_hz, args.seed)
+    built = folder / "built"
+    built.mkdir(exist_ok=True)
+    t0 = time.perf_counter()
+    test = rig.run([Membrane.from_key(k) for k in TEST_DESIGNS], lift=False, progress=False)
+    rows = [{"round": campaign.rounds()[-1], **_test_error(campaign, campaign.rounds()[-1], test), "built": []}]
+    times = {"test_set_s": round(time.perf_counter() - t0, 1)}
+    print(f"round {rows[0]['round']}: test RMSE {rows[0]['test_rmse_n']:.3f} N, cov90 {rows[0]['test_coverage90']:.2f}")
+    for r in range(args.rounds):
+        t = time.perf_counter()
+        asked = [e for e in campaign.ask(q=args.q, progress=True) if e.fidelity == "rig"]
+        t_ask = time.perf_counter() - t
+        for e in asked:
+            table = rig.run([Membrane.from_key(e.design)], lift=False, progress=False)
+            path = built / f"{e.id}.parquet"
+            write_parquet(table, path)
+            campaign.tell(e.id, str(path))
+        t_build = time.perf_counter() - t - t_ask
+        done = campaign.fit(progress=True)
+        t_fit = time.perf_counter() - t - t_ask - t_build
+        rows.append(
+            {
+                "round": done.number,
+                **_test_error(campaign, done.number, test),
+                "built": [e.design for e in asked],
+                "heldout_told": done.record["heldout"],
+                "train_rmse_n": done.record["fit"]["train_rmse_n"],
+                "membranes": done.record["data"]["membranes"],
+                "seconds": {"ask": round(t_ask, 1), "build": round(t_build, 1), "fit": round(t_fit, 1)},
+            }
+        )
+        last = rows[-1]
+        print(
+            f"round {last['round']}: {last['membranes']} membranes; test RMSE {last['test_rmse_n']:.3f} N, "
+            f"cov90 {last['test_coverage90']:.2f}; ask {t_ask:.0f} s, build {t_build:.0f} s, fit {t_fit:.0f} s"
+        )
+    rmse = [r["test_rmse_n"] for r in rows]
+    result = {
+        "campaign": str(folder),
+        "physics": campaign.settings.physics,
+        "truth": f"virtual rig on the {truth} with {card['hidden_effect']['name']} {card['hidden_effect']['theta']}",
+        "test_designs": list(TEST_DESIGNS),
+        "q": args.q,
+        "sample_hz": args.sample_hz,
+        "rounds": rows,
+        "test_rmse_falls_every_round": bool(np.all(np.diff(rmse) < 0)),
+        "times_s": times | {"total": round(time.perf_counter() - t0, 1)},
+        "load_avg": os.getloadavg(),
+        "provenance": provenance(" ".join(["python", *sys.argv])),
+        "status": campaign.status().summary(),
+    }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1, default=float))
+    if not args.no_figure:
+        _figure(rows, out.with_suffix(".png"), result["truth"])
+    print(campaign.status().summary())
+    return result
+
+
+def _figure(rows: list[dict], path: Path, truth: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [r["round"] for r in rows]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(8, 3.2))
+    a.plot(x, [r["test_rmse_n"] for r in rows], "o-")
+    a.set(xlabel="round", ylabel="test RMSE [N]", title="membranes no round saw")
+    b.plot(x, [r["test_coverage90"] for r in rows], "o-")
+    b.axhline(0.9, color="0.6", ls="--", lw=0.8)
+    b.set(xlabel="round", ylabel="90 % interval coverage [-]", ylim=(0, 1.02), title="coverage")
+    for ax in (a, b):
+        ax.set_xticks(x)
+    fig.suptitle(truth, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
