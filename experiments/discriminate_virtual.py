@@ -69,7 +69,7 @@ NEW = (
     "[2.0, 35.0, nan, nan, nan, nan]",
 )
 HYPOTHESES = ("fabric_inset", "load_cell_gain")
-FIT = dict(n_steps=300, max_rows=400)
+FIT = dict(n_steps=200, max_rows=400)
 TARGET = 0.95
 
 
@@ -240,6 +240,13 @@ def main(argv=None):
                 f"  [{case['wall_s']:.0f} s]",
                 flush=True,
             )
+            write_summary(cases, args, t0, final=False)  # partial results after every case
+    write_summary(cases, args, t0)
+
+
+def write_summary(cases, args, t0, final=True):
+    from mfdesign import outputs
+
     n = len(cases)
     top_ok = sum(c["p_truth_after_top"] > TARGET for c in cases)
     r1 = sum(c["random"][0]["p_truth"] > TARGET for c in cases)
@@ -253,6 +260,7 @@ def main(argv=None):
         "fit": FIT | {"discrepancy": "2 members x 20 steps"},
         "n_cases": n,
         "seeds_per_truth": args.seeds,
+        "complete": len(cases) == 2 * args.seeds,
         "target": TARGET,
         "passive_p_truth_median": float(np.median([c["p_truth_passive"] for c in cases])),
         "top_success": top_ok / n,
@@ -268,7 +276,9 @@ def main(argv=None):
     }
     outputs.write_json(OUT / "discriminate_virtual.json", summary)
     plot(cases, OUT / "discriminate_virtual.png")
-    print(json.dumps({k: v for k, v in summary.items() if k != "cases"}, indent=1))
+    if final:
+        print(json.dumps({k: v for k, v in summary.items() if k != "cases"}, indent=1))
+
 
 
 if __name__ == "__main__":

@@ -19,9 +19,11 @@ predictives). Each predictive is the Gaussian mixture of its ``S`` posterior dra
     p_k(y) = (1 / S) sum_s N(y; f_k,s, diag sigma_k^2)
 
 over the experiment's rows jointly (a draw moves every row at once). The expectation is
-a Monte-Carlo average over the draws of the true hypothesis plus noise; the draw that
-generated ``y`` is left out of its own mixture (else the estimate is biased towards
-certainty). The score of an experiment is ``sum_i pi_i min_{j != i} E_i[ln BF_ij]``: the
+a Monte-Carlo average over the draws of the true hypothesis plus noise. The hypotheses'
+draws share their random numbers (thinning order, new membranes' thickness, discrepancy
+members: common random numbers), and the draw index that generated ``y`` is left out of
+every mixture (else the estimate is biased towards certainty); equal predictives then
+score exactly 0. The score of an experiment is ``sum_i pi_i min_{j != i} E_i[ln BF_ij]``: the
 expected log Bayes factor of the true hypothesis against its closest rival, averaged over
 which one is true (weights ``pi``: the hypotheses' current probabilities, default equal).
 Also reported: the expected posterior probability of the true hypothesis after the
@@ -337,10 +339,11 @@ def _criterion(obs, sig, mask, eps, prior):
     y = obs + sig[:, None, :] * eps[None]  # [K(i), S(m), R]
     z = (y[:, :, None, None, :] - obs[None, None, :, :, :]) / sig[None, None, :, None, :]
     ll = -0.5 * jnp.sum(mask * (z**2 + jnp.log(2 * jnp.pi * sig[None, None, :, None, :] ** 2)), -1)  # [K, S, K, S]
-    self_draw = (jnp.eye(k, dtype=bool)[:, None, :, None]) & (jnp.eye(s, dtype=bool)[None, :, None, :])
-    ll = jnp.where(self_draw, -jnp.inf, ll)
-    n_comp = s - jnp.eye(k)[:, None, :]  # S - 1 components in the true hypothesis's own mixture
-    log_p = jax.scipy.special.logsumexp(ll, axis=-1) - jnp.log(n_comp)  # [K(i), S(m), K(j)]
+    # draw m of every hypothesis is left out of its mixture when y came from draw m: the
+    # draws share their random numbers across hypotheses (common random numbers), so
+    # equal predictives score exactly 0
+    ll = jnp.where(jnp.eye(s, dtype=bool)[None, :, None, :], -jnp.inf, ll)
+    log_p = jax.scipy.special.logsumexp(ll, axis=-1) - jnp.log(s - 1)  # [K(i), S(m), K(j)]
     own = jnp.take_along_axis(log_p, jnp.arange(k)[:, None, None], axis=2)  # [K, S, 1]
     pair = jnp.mean(own - log_p, axis=1)  # [K(i), K(j)]
     post = jax.nn.log_softmax(log_p + jnp.log(prior)[None, None, :], axis=-1)
@@ -505,7 +508,7 @@ def rank_experiments(
         if thin.theta.shape[0] < n_draws:
             raise InputError(f"hypothesis {names[j]!r} holds {thin.theta.shape[0]} posterior draws, fewer than n_draws={n_draws}")
         sigma_f = float(thin.noise_n)
-        k_j = jax.random.fold_in(key, j)
+        k_j = key  # common random numbers across hypotheses (see _criterion)
         if force_i:
             D, H, P = force_rows()
             f = np.asarray(_draws(thin, D, H, P, True, k_j))

@@ -12,13 +12,13 @@ contract (:mod:`._contract`): bad input prints one line and exits with status 2;
 else names a log file with the traceback and exits with status 1.
 """
 
-from mfdesign.cli import _contract, calibrate, campaign, data, demo, diagnose, optimize, propose, rig, simulate
+from mfdesign.cli import _contract, calibrate, campaign, data, demo, diagnose, discriminate, optimize, propose, rig, simulate
 from mfdesign.cli._app import app, plain_help
 
 __all__ = ["app"]
 
 # Registration order is the order of ``mfdesign --help``.
-for _module in (simulate, demo, campaign, data, rig, calibrate, diagnose, propose, optimize):
+for _module in (simulate, demo, campaign, data, rig, calibrate, diagnose, discriminate, propose, optimize):
     _module.register(app)
 _contract.apply(app)  # every command: --out checked and locked before computing
 plain_help(app)  # every command, sub-apps too: brackets shown as written, the design key and units

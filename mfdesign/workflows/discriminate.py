@@ -1,0 +1,208 @@
+"""``mfdesign discriminate``: which experiment tells the standing hypotheses apart
+(:func:`discriminate`; the criterion is :mod:`mfdesign.discriminate`).
+
+Fits each hypothesis (an effect set, ``"fabric_inset+ring_stiffening"``, ``"none"``) to
+``DATA`` with small settings (:func:`mfdesign.calibration.workflow.fit_multi_fidelity`),
+weighs them by their BIC, ranks the candidate experiments (force sweeps at fixed plate
+heights, mass lifts with a given mass, on the measured membranes and on ``new_designs``)
+by Box & Hill's (1967) expected log Bayes factor, and writes ``OUT/discriminate.json``
+(every candidate ranked, each hypothesis's predictions with 90 % intervals, the off-rig
+measurements that would decide) and ``OUT/discriminate.png`` (the top experiment's
+predictions per hypothesis). Units: mm, Pa, N.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+from mfdesign.errors import InputError
+
+__all__ = ["DiscriminateResult", "discriminate", "plot_top"]
+
+PHYSICS = ("emulator", "exact", "standin")
+
+
+@dataclass(frozen=True)
+class DiscriminateResult:
+    """What :func:`discriminate` found and wrote: ``ranking``
+    (:class:`mfdesign.discriminate.Ranking`), per hypothesis its ``bic`` and posterior
+    probability ``probability`` on the data, the ``outside`` measurements per pair, the
+    files, and the number of ranked lines the summary prints (``top``)."""
+
+    ranking: Any
+    bic: dict
+    probability: dict
+    outside: list
+    json_path: Path
+    png_path: Path
+    top: int = 5
+    wall_s: float = 0.0
+    warnings: tuple[str, ...] = field(default=())
+
+    def summary(self) -> str:
+        r = self.ranking
+        lines = ["hypotheses (BIC on the data -> probability):"]
+        lines += [f"  {h}: BIC {self.bic[h]:.1f} -> P {self.probability[h]:.3f}" for h in r.hypotheses]
+        lines.append(f"experiments ranked by expected log Bayes factor (Box & Hill 1967), {len(r.experiments)} candidates:")
+        lines += ["  " + s for s in r.lines(self.top)]
+        lines.append("measurements off the rig that would decide:")
+        for o in self.outside:
+            for name, text in o["measurements"].items():
+                lines.append(f"  {' vs '.join(o['pair'])} ({name}): {text}")
+        lines.append(f"wrote {self.json_path} and {self.png_path} ({self.wall_s:.0f} s)")
+        return "\n".join(lines)
+
+
+def plot_top(ranking: Any, i: int, path: Path) -> Path:
+    """PNG: candidate ``i``'s predicted observable per hypothesis (mean and the central
+    interval) against pressure [Pa], one panel per plate height (force sweep) or one panel
+    of the plate height [mm] (mass lift)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from mfdesign import outputs
+
+    e, preds = ranking.experiments[i], ranking.predictions[i]
+    rows = preds["rows"]
+    heights = list(e.heights_mm) if e.kind == "force" else [None]
+    fig, axes = plt.subplots(1, len(heights), figsize=(4.2 * len(heights) + 0.8, 3.8), squeeze=False)
+    for ax, h in zip(axes[0], heights):
+        idx = [j for j, r in enumerate(rows) if r.get("height_mm") == h]
+        p = np.array([rows[j]["pressure_pa"] for j in idx])
+        for name, pr in preds["by_hypothesis"].items():
+            m, lo, hi = (np.asarray(pr[k])[idx] for k in ("mean", "lo", "hi"))
+            (line,) = ax.plot(p, m, marker="o", ms=3, label=name)
+            ax.fill_between(p, lo, hi, color=line.get_color(), alpha=0.2)
+        ax.set_xlabel("pressure [Pa]")
+        ax.set_ylabel("force [N]" if e.kind == "force" else "plate height [mm]")
+        ax.set_title(f"h = {h:g} mm" if h is not None else f"lift, load {e.load_n:.1f} N", fontsize=9)
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(
+        f"top experiment: {e.label()}\nE[ln BF] {ranking.score[i]:.2f}; bands: {ranking.level:.0%} intervals",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    outputs.savefig(fig, path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def discriminate(
+    data: Any,
+    hypotheses: Sequence[str],
+    out: Path,
+    *,
+    physics: str = "emulator",
+    new_designs: Sequence[str] = (),
+    heights_mm: Sequence[float] = (0.0, 20.0, 40.0),
+    masses_kg: Sequence[float] = (1.5, 2.5, 4.0),
+    cost_membrane: float = 3.0,
+    mcmc_steps: int = 300,
+    max_rows: int = 400,
+    members: int = 2,
+    delta_steps: int = 200,
+    n_draws: int = 32,
+    n_pressures: int = 10,
+    top: int = 5,
+    seed: int = 0,
+    progress: bool = False,
+) -> DiscriminateResult:
+    """Fit each hypothesis to ``data`` and rank the experiments that would tell them apart.
+
+    **Arguments:**
+
+    - `data`: a Measurements table, or ``DATA`` sources
+      (:func:`mfdesign.workflows.data.load_data`).
+    - `hypotheses`: at least two effect sets, ``"a+b"`` or ``"none"``, optionally
+      ``":coupons"`` (the rubber's priors) after one
+      (:class:`mfdesign.discriminate.Hypothesis`).
+    - `out`: the output folder (``discriminate.json``, ``discriminate.png``).
+    - `physics`: ``emulator`` | ``exact`` | ``standin`` (the fits' force model; ranking new
+      membranes under ``exact`` uses the emulator, which holds every design).
+    - `new_designs`: design keys ``"[t, c, r1, w1, r2, w2]"`` mm of membranes that could be
+      made (cost ``cost_membrane`` trials more).
+    - `heights_mm`: plate heights [mm]: a force sweep at each alone and at all of them.
+    - `masses_kg`: lift masses [kg] (load ``m g`` N), one trial each.
+    - `mcmc_steps`, `max_rows`, `members`, `delta_steps`: the fits' settings (small).
+    - `n_draws`, `n_pressures`: the criterion's posterior draws and pressures per trial.
+    - `top`: ranked experiments the summary prints.
+    - `seed`: the fits' and the criterion's seed (same seed, same ranking).
+
+    **Returns:**
+
+    A :class:`DiscriminateResult`. Bad hypotheses, designs or settings raise
+    :class:`~mfdesign.errors.InputError` in one line.
+    """
+    from mfdesign import outputs
+    from mfdesign.discriminate import (
+        candidate_experiments,
+        hypothesis_probabilities,
+        outside_rig,
+        parse_hypotheses,
+        rank_experiments,
+    )
+
+    t0 = time.time()
+    if physics not in PHYSICS:
+        raise InputError(f"physics {physics!r}; allowed {', '.join(PHYSICS)}")
+    for name, v in (("mcmc_steps", mcmc_steps), ("max_rows", max_rows), ("members", members), ("top", top)):
+        if int(v) < 1:
+            raise InputError(f"{name} must be >= 1, got {v}")
+    if not heights_mm or min(heights_mm) < 0:
+        raise InputError(f"heights_mm: plate heights >= 0 mm, got {list(heights_mm)}")
+    if any(m <= 0 for m in masses_kg):
+        raise InputError(f"masses_kg must be positive, got {list(masses_kg)}")
+    hyps = parse_hypotheses(hypotheses)
+    if not hasattr(data, "df"):
+        from mfdesign.workflows.data import load_data
+
+        data = load_data(data, "fit-mf")
+    from mfdesign.calibration.workflow import fit_multi_fidelity, for_search, force_model_named, material_priors
+    from mfdesign.models.ensemble import EnsembleConfig
+
+    force_model = force_model_named(physics, data, progress=progress)
+    fits, bic = {}, {}
+    for h in hyps:
+        fit = fit_multi_fidelity(
+            data,
+            force_model,
+            h.effects,
+            n_steps=int(mcmc_steps),
+            max_rows=int(max_rows),
+            ensemble_config=EnsembleConfig(n_members=int(members), steps=int(delta_steps), monotone=False),
+            seed=seed,
+            progress=progress,
+            **material_priors(h.material),
+        )
+        fits[h.name] = for_search(fit, "emulator") if physics == "exact" else fit.mf
+        bic[h.name] = float(fit.posterior.bic)
+    prob = dict(zip(bic, hypothesis_probabilities(list(bic.values())).tolist()))
+    existing = list(dict.fromkeys(data.df["design_key"]))
+    heights = tuple(float(h) for h in heights_mm)
+    sets = [(h,) for h in heights] + ([heights] if len(heights) > 1 else [])
+    cands = candidate_experiments(existing, new_designs, height_sets_mm=sets, masses_kg=masses_kg, cost_membrane=cost_membrane)
+    ranking = rank_experiments(fits, cands, n_draws=n_draws, n_pressures=n_pressures, seed=seed)
+    outside = outside_rig(hyps)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    png = plot_top(ranking, ranking.top(1)[0], out / "discriminate.png")
+    doc = {
+        "method": ranking.method,
+        "criterion": "expected log Bayes factor of the true hypothesis against its closest rival, averaged over which is true (equal weights)",
+        "physics": physics,
+        "hypotheses": [{"name": h.name, "effects": list(h.effects), "material": h.material, "bic": bic[h.name], "probability": prob[h.name]} for h in hyps],
+        "settings": dict(mcmc_steps=mcmc_steps, max_rows=max_rows, members=members, delta_steps=delta_steps, n_draws=n_draws, n_pressures=n_pressures, seed=seed),
+        "ranked": [ranking.entry(i) | {"rank": k + 1} for k, i in enumerate(ranking.order)],
+        "outside_rig": outside,
+    }
+    path = outputs.write_json(out / "discriminate.json", doc)
+    warn = ()
+    if physics == "exact":
+        warn = ("warning: the candidates were scored on the emulator (about 1 N RMS off the simulator); check the top experiment's predictions with the simulator",)
+    return DiscriminateResult(ranking, bic, prob, outside, Path(path), png, int(top), time.time() - t0, warn)
