@@ -48,6 +48,7 @@ __all__ = [
     "ConvergenceWarning",
     "LogPosterior",
     "MapResult",
+    "OutsideModelWarning",
     "build_model",
     "calibrate",
     "convergence_report",
@@ -60,6 +61,10 @@ from mfdesign.calibration.posterior import ACCEPTANCE_RANGE, MIN_TAU_RATIO  # no
 
 class ConvergenceWarning(UserWarning):
     """The chain is too short for its autocorrelation time, or the acceptance is off."""
+
+
+class OutsideModelWarning(UserWarning):
+    """Rows outside the physical model (force above p pi R^2) were left out of the likelihood."""
 
 
 def build_model(force_model, data: CalibrationData, effects: Sequence[str] = (), **kwargs) -> HierarchicalModel:
@@ -638,8 +643,22 @@ def calibrate(
             warnings.warn(edge, ConvergenceWarning, stacklevel=2)
 
     x_map = np.asarray(res.x)
-    ll_map = float(model.log_lik(res.x, data))
-    n_rows = float(np.sum(np.asarray(data.weight)))
+    # Rows outside the physical model at the MAP (a force above p pi R^2: the membrane
+    # below the clamp plane) are not data of this fit: counted, said, and left out of the
+    # MAP's log-likelihood and the rows BIC counts.
+    w = np.asarray(data.weight, float)
+    outside = np.asarray(model.outside_rows(res.x, data), bool)
+    ll_map = float(np.sum(np.where(outside, 0.0, w * np.asarray(model.pointwise_log_lik(res.x, data)))))
+    n_rows = float(np.sum(w[~outside]))
+    report["outside_model_rows"] = int(outside.sum())
+    if outside.any() and warn:
+        warnings.warn(
+            f"{int(outside.sum())} of {outside.size} rows are outside the physical model at the MAP (the force "
+            "model's force there is above p pi R^2: the membrane would leave the clamp below the clamp plane); "
+            "they are left out of the likelihood",
+            OutsideModelWarning,
+            stacklevel=2,
+        )
     sign, logdet = np.linalg.slogdet(np.asarray(res.hessian))
     laplace = float(res.log_post) + 0.5 * dim * math.log(2 * math.pi) - 0.5 * logdet if sign > 0 else float("nan")
     bic = dim * math.log(n_rows) - 2.0 * ll_map

@@ -167,6 +167,9 @@ class ClippedForceModel(ForceModel):
         h = jnp.clip(h_mm, 0.0, self.h_max_mm)
         return self.force_model(design, h, jnp.clip(p_pa, 0.0, self.p_max_pa), params)
 
+    def marking(self, mark: bool = True) -> "ClippedForceModel":
+        return ClippedForceModel(self.force_model.marking(mark), self.h_max_mm, self.p_max_pa)
+
 
 @eqx.filter_jit
 def _forward(force_model: ClippedForceModel, order: tuple, names: tuple, base: SimParams, t0, P, x, design, rows):
@@ -311,8 +314,10 @@ class ForwardModel(eqx.Module):
     # -- data -----------------------------------------------------------------------------------
     @property
     def clipped(self) -> ClippedForceModel:
-        """The current force model with its inputs clipped to its range (what every row is asked)."""
-        return ClippedForceModel(self.force_model, self.h_max_mm, self.p_max_pa)
+        """The current force model with its inputs clipped to its range (what every row is
+        asked); rows outside the physical model read ``+inf`` (``ForceModel.marking``: a fit
+        treats them as undefined rows, :meth:`expected_force` as NaN, :meth:`outside_model` counts them)."""
+        return ClippedForceModel(self.force_model, self.h_max_mm, self.p_max_pa).marking(True)
 
     def table(self, meas: Measurements, rows: np.ndarray | None = None) -> tuple[jax.Array, fx.Rows]:
         """``(design [N, 6] mm, Rows)`` of ``meas`` (or of its rows ``rows``)."""
@@ -346,7 +351,24 @@ class ForwardModel(eqx.Module):
         rows: np.ndarray | None = None,
     ) -> np.ndarray:
         """Expected observed force [N] per row of ``meas`` (or of its rows ``rows``) with
-        ``effects`` at ``theta`` (``{"effect.param": value}``; parameters not given neutral)."""
+        ``effects`` at ``theta`` (``{"effect.param": value}``; parameters not given neutral);
+        NaN where the model has no number (rows outside the physical model among them)."""
+        f = self._marked_force(meas, effects, theta, rows)
+        return np.where(np.isposinf(f), np.nan, f)
+
+    def outside_model(
+        self,
+        meas: Measurements,
+        effects: Sequence[str | fx.Effect] = (),
+        theta: Mapping[str, Any] | None = None,
+        rows: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Rows [N] bool of ``meas`` (or of its rows ``rows``) outside the physical model with
+        ``effects`` at ``theta``: the force model's force there is above ``p pi R^2``
+        (``Status.OUTSIDE_MODEL``); :meth:`expected_force` has NaN there."""
+        return np.isposinf(self._marked_force(meas, effects, theta, rows))
+
+    def _marked_force(self, meas, effects, theta, rows) -> np.ndarray:
         order = effect_order(effects)
         fx.split_theta([fx.effect(e) for e in effects], theta)  # a name outside ``effects`` is an error
         t = theta_vector(order, theta)

@@ -249,7 +249,8 @@ def diagnose(
     e0 = sim.expected_force(meas)
     base_pred = e0 if model is None else np.asarray(model(meas), float)
     offset = None if model is None else base_pred - e0
-    before = compute_residuals(meas, base_pred)
+    # rows outside the physical model (force above p pi R^2) are dropped and counted
+    before = compute_residuals(meas, base_pred, outside=sim.outside_model(meas))
     found = find_stalls(meas)
     out = Diagnosis(before=before, model=model_name, stalls=found if len(found) else None)
     cur_res, cur_effects, cur_theta = before, [], {}
@@ -261,7 +262,11 @@ def diagnose(
             pred = sim.expected_force(meas, effects, th) + (0.0 if offset is None else offset)
         else:
             th, pred = calibrate_effects(sim, meas, before, effects, given, offset)
-        cur_res, cur_effects, cur_theta = compute_residuals(meas, pred), effects, th
+        cur_res, cur_effects, cur_theta = (
+            compute_residuals(meas, pred, sim.outside_model(meas, effects, th)),
+            effects,
+            th,
+        )
         out = replace(out, after=cur_res, effects=[e.name for e in effects], theta=th)
     if not search:
         return out
@@ -323,7 +328,7 @@ def diagnose(
         cur_effects = [fx.effect(n) for n in best.effects]
         cur_theta = dict(best.theta)
         pred = sim.expected_force(meas, cur_effects, cur_theta) + (0.0 if offset is None else offset)
-        cur_res = compute_residuals(meas, pred)
+        cur_res = compute_residuals(meas, pred, sim.outside_model(meas, cur_effects, cur_theta))
         if not effects:  # no user effects: "after" is the model with what the search found
             out = replace(out, after=cur_res, effects=[e.name for e in cur_effects], theta=cur_theta)
         if v["status"] == "explained":

@@ -102,8 +102,15 @@ def _design_attrs(keys: np.ndarray) -> dict[str, np.ndarray]:
     }
 
 
-def compute_residuals(meas: Measurements, predicted: np.ndarray | Callable[[Measurements], np.ndarray]) -> Residuals:
-    """Residuals of ``predicted`` (an array per row, or ``predict(meas) -> force [N]``)."""
+def compute_residuals(
+    meas: Measurements,
+    predicted: np.ndarray | Callable[[Measurements], np.ndarray],
+    outside: np.ndarray | None = None,
+) -> Residuals:
+    """Residuals of ``predicted`` (an array per row, or ``predict(meas) -> force [N]``).
+    ``outside``: rows [N] bool outside the physical model (``ForwardModel.outside_model``:
+    a force above ``p pi R^2``); they are dropped and counted (``dropped["outside_physical_model"]``),
+    whatever number ``predicted`` holds there."""
     if not isinstance(meas, Measurements):
         raise TypeError(f"compute_residuals needs a Measurements table, got {type(meas).__name__}")
     pred = np.asarray(predicted(meas) if callable(predicted) else predicted, float).ravel()
@@ -111,7 +118,10 @@ def compute_residuals(meas: Measurements, predicted: np.ndarray | Callable[[Meas
         raise ValueError(f"the model returned {pred.shape[0]} predictions for {len(meas)} rows; one per row is needed")
     df = meas._df
     use = usable_rows(meas)
-    finite = np.isfinite(pred)
+    out = np.zeros(len(meas), bool) if outside is None else np.asarray(outside, bool).ravel()
+    if out.shape != (len(meas),):
+        raise ValueError(f"outside has {out.shape[0]} rows for {len(meas)}; one per row is needed")
+    finite = np.isfinite(pred) & ~out
     keep = use & finite
     attrs = _design_attrs(df["design_key"].to_numpy(object))
     frame = pd.DataFrame(
@@ -132,7 +142,12 @@ def compute_residuals(meas: Measurements, predicted: np.ndarray | Callable[[Meas
     frame["residual_n"] = frame["observed_n"] - frame["predicted_n"]
     frame["row"] = np.arange(len(df))
     frame = frame.loc[keep].reset_index(drop=True)
-    dropped = {"lift_plate_resting_or_at_top": int((~use).sum()), "model_has_no_value": int((use & ~finite).sum())}
+    dropped = {
+        "lift_plate_resting_or_at_top": int((~use).sum()),
+        "model_has_no_value": int((use & ~finite & ~out).sum()),
+    }
+    if outside is not None:
+        dropped["outside_physical_model"] = int((use & out).sum())
     return Residuals(frame=frame, noise_floor_n=noise_floor(frame), dropped=dropped)
 
 

@@ -18,7 +18,13 @@ effects' coordinates). Two kinds of lattice axes:
   approximates, and ``experiments/bench_exact.py`` measures it).
 
 Where an interpolation stencil meets an unconverged node the axis falls back to linear
-interpolation between its two nearest nodes, and to NaN where those are missing too;
+interpolation between its two nearest nodes, and to NaN where those are missing too.
+A plane node whose force is above ``P pi R^2`` (the simulator's ``Status.OUTSIDE_MODEL``:
+the membrane leaves the clamp below the clamp plane; in reduced units the bound is the
+same, ``s G <= p pi R^2`` iff ``G <= P pi R^2``) is kept in the signed plane (its
+interpolation needs a smooth surface), but a row whose stencil holds such a node with a
+nonzero weight is outside the physical model: NaN when strict (:meth:`ExactForceModel.outside_model`
+says which rows; the likelihood and diagnosis' residuals leave them out and count them).
 queries outside the lattice, above the grid's top, for a design the model was not built
 for, or with a simulator constant the model does not vary are NaN (``outside="nan"``) or
 held at the lattice edge (``outside="clamp"``, for optimisers that must not see NaN:
@@ -96,6 +102,34 @@ def _contract(v, t, axis: int):
     return jnp.where(jnp.all(fin, -1), cubic, jnp.where(fin[..., 1] & fin[..., 2], linear, jnp.nan))
 
 
+def _touch(v, t, axis: int):
+    """Whether a node of the 4-node stencil of boolean ``v`` along ``axis`` that carries a
+    nonzero cubic weight at fraction ``t`` is set (the mask counterpart of :func:`_contract`)."""
+    v = jnp.moveaxis(v, axis, -1)
+    w = _keys_weights(jnp.asarray(t))
+    return jnp.any(v & (w != 0), axis=-1)
+
+
+def _outside_nodes(planes: np.ndarray, grid: pl.PlaneGrid, radii_mm: np.ndarray) -> np.ndarray:
+    """Nodes of signed planes ``[M, ..., n_h, n_p]`` above the force bound ``P pi R^2`` of
+    their membrane (``radii_mm`` [M], the clamp radius), as the simulator marks
+    ``Status.OUTSIDE_MODEL``. The column P = 0 is extrapolated (never solved): never outside."""
+    from mfdesign.physics.solve import FORCE_BOUND_RTOL
+    from mfdesign.physics.status import force_bound_n
+
+    r = np.asarray(radii_mm, float).reshape((-1,) + (1,) * (planes.ndim - 1))
+    bound = force_bound_n(grid.p, 1.0) * r**2
+    out = np.asarray(planes, float) > bound * (1 + FORCE_BOUND_RTOL)
+    out[..., 0] = False
+    return out
+
+
+def _pad_edge(a: np.ndarray, axes: Sequence[int]) -> np.ndarray:
+    """A ghost node at both ends of each of ``axes``, a copy of the edge node (the mask of
+    :func:`_pad_ghosts`' extrapolated ghosts: the stencil holds the node next to it too)."""
+    return np.pad(a, [(1, 1) if i in set(axes) else (0, 0) for i in range(a.ndim)], mode="edge")
+
+
 def _position(c, lo_node: float, step: float, n: int, clamp: bool):
     """Cell index ``i`` (stencil start in the ghost-padded axis), fraction ``t`` and
     validity of coordinate ``c`` on nodes ``lo_node + k step``, k = 0 .. n - 1."""
@@ -139,6 +173,13 @@ class ExactForceModel(ForceModel):
     outside: str = eqx.field(static=True, default="nan")
     cache: object = eqx.field(static=True, default=None)
     grow: str = eqx.field(static=True, default="tensor")  # where :meth:`covering` puts a new axis
+    # Nodes outside the physical model (``_outside_nodes``), ghost-padded like ``tensor`` /
+    # ``additive``; None / () where no node of the lattice is outside (nothing to check).
+    tensor_out: object = None
+    additive_out: tuple = ()
+    # rows outside the physical model read +inf (whatever ``outside`` says): the likelihood's
+    # and diagnosis' marker, carried through the measurement effects (:meth:`marking`)
+    mark_outside: bool = eqx.field(static=True, default=False)
     name = "exact"
 
     # -- interface ------------------------------------------------------------------------------
@@ -200,7 +241,44 @@ class ExactForceModel(ForceModel):
         # Beyond the grid's top there is no plane: NaN whatever ``outside`` says.
         ok = ok & (P <= self.grid.p_top_pa + _TOL) & (h <= self.grid.h_top_mm + _TOL)
         f = s * jnp.maximum(g_rows + row_parts, 0.0)
-        return jnp.where(ok, f, jnp.nan)
+        f = jnp.where(ok, f, jnp.nan)
+        if self.tensor_out is None and not self.additive_out:
+            return f
+        out = ok & self._outside_rows(c_t, coords, m, h, P)
+        if self.mark_outside:
+            return jnp.where(out, jnp.inf, f)
+        return jnp.where(out, jnp.nan, f) if self.outside == "nan" else f
+
+    def _outside_rows(self, c_t, coords, m, h, P):
+        """Rows whose interpolation stencil holds a node outside the physical model (module doc)."""
+        n = h.shape[0]
+        grid_out = jnp.zeros(self.tensor.shape[:1] + self.tensor.shape[-2:], bool)
+        row_out = jnp.zeros(n, bool)
+        if self.tensor_out is not None:
+            if all(jnp.ndim(c) == 0 for c in c_t):
+                grid_out = grid_out | self._contract_planes(self.tensor_out, self.tensor_axes, c_t, _touch)[0]
+            else:
+                row_out = row_out | self._rows_lattice(self.tensor_out, self.tensor_axes, c_t, m, h, P, _touch)
+        for a, arr in zip(self.additive_axes, self.additive_out):
+            c = coords((a,))[0]
+            for cc in (c, jnp.zeros_like(c)):
+                if jnp.ndim(cc) == 0:
+                    grid_out = grid_out | self._contract_planes(arr, (a,), [cc], _touch)[0]
+                else:
+                    row_out = row_out | self._rows_lattice(arr, (a,), [cc], m, h, P, _touch)
+        return row_out | self._rows_plane(grid_out, m, h, P, _touch)
+
+    def outside_model(self, design, h_mm, p_pa, params: SimParams = SimParams()):
+        """Rows [N] bool outside the physical model (a plane node their interpolation uses
+        has a force above ``p pi R^2``: ``Status.OUTSIDE_MODEL``); False where the model has
+        no number for another reason (off the lattice, an unsolved node)."""
+        return jnp.isposinf(self.marking(True)(design, h_mm, p_pa, params))
+
+    def marking(self, mark: bool = True) -> "ExactForceModel":
+        """The model whose rows outside the physical model read ``+inf`` (``mark``; the
+        likelihood's and diagnosis' marker, which the measurement effects carry through)
+        instead of NaN (strict) or the plane's number (clamp)."""
+        return self if self.mark_outside == mark else dataclasses.replace(self, mark_outside=mark)
 
     def support(self) -> dict[str, tuple[float, float]]:
         """Hard ranges of the constants the planes can reach (for priors): J_m [1] from the
@@ -346,8 +424,9 @@ class ExactForceModel(ForceModel):
             ok = ok & (v | (~ringed if a.axis.ringed_only else False))
         return ok
 
-    def _contract_planes(self, arr, axes, cs):
-        """Contract the lattice axes (1 .. D) of ``arr`` at scalar coordinates: [M, nh+2, np+2]."""
+    def _contract_planes(self, arr, axes, cs, contract=_contract):
+        """Contract the lattice axes (1 .. D) of ``arr`` at scalar coordinates: [M, nh+2, np+2]
+        (``contract``: :func:`_contract`, or :func:`_touch` for a node mask)."""
         pos = [_position(c, a.lo, a.axis.step, a.n, self.outside == "clamp") for a, c in zip(axes, cs)]
         valid = jnp.asarray(True)
         for _, _, v in pos:
@@ -361,21 +440,21 @@ class ExactForceModel(ForceModel):
         start = (zero, *(i for i, _, _ in pos), zero, zero)
         block = jax.lax.dynamic_slice(arr, start, (arr.shape[0], *(4,) * D, *arr.shape[-2:]))
         for k in reversed(range(D)):
-            block = _contract(block, pos[k][1], axis=1 + k)
+            block = contract(block, pos[k][1], axis=1 + k)
         return block, valid
 
-    def _rows_plane(self, g, m, h, P):
+    def _rows_plane(self, g, m, h, P, contract=_contract):
         """2-D cubic convolution of planes ``g`` [M, nh+2, np+2] at each row's (h, P)."""
         ih, th, _ = _position(jnp.maximum(h, 0.0), 0.0, pl.H_STEP_MM, g.shape[1] - 2, True)
         ip, tp, _ = _position(P, 0.0, pl.P_STEP_PA, g.shape[2] - 2, True)
 
         def one(mm, i, j, a, b):
             block = jax.lax.dynamic_slice(g, (mm, i, j), (1, 4, 4))[0]
-            return _contract(_contract(block, b, axis=1), a, axis=0)
+            return contract(contract(block, b, axis=1), a, axis=0)
 
         return jax.vmap(one)(m, ih, ip, th, tp)
 
-    def _rows_lattice(self, arr, axes, cs, m, h, P):
+    def _rows_lattice(self, arr, axes, cs, m, h, P, contract=_contract):
         """Per-row interpolation over lattice axes and (h, P) (coordinates [N])."""
         n = h.shape[0]
         pos = [_position(c * jnp.ones(n), a.lo, a.axis.step, a.n, True) for a, c in zip(axes, cs)]
@@ -385,9 +464,9 @@ class ExactForceModel(ForceModel):
 
         def one(mm, ii, tt, i, j, a, b):
             block = jax.lax.dynamic_slice(arr, (mm, *ii, i, j), (1,) + (4,) * (D + 2))[0]
-            block = _contract(_contract(block, b, axis=D + 1), a, axis=D)
+            block = contract(contract(block, b, axis=D + 1), a, axis=D)
             for k in reversed(range(D)):
-                block = _contract(block, tt[k], axis=k)
+                block = contract(block, tt[k], axis=k)
             return block
 
         ii = [p_[0] for p_ in pos]
@@ -453,6 +532,20 @@ def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progres
     lat = len(t_nodes)
     tensor = _pad_ghosts(stacked[0], range(1, lat + 3))
     additive = [jnp.asarray(_pad_ghosts(arr, range(1, 4))) for arr in stacked[1:]]
+    # nodes outside the physical model: kept only where the lattice has one (else no check)
+    radii = np.array([d.outer_radius_mm for d in designs], float)
+    outs = [_outside_nodes(arr, grid, radii) for arr in stacked]
+    if any(o.any() for o in outs):
+        log.info(
+            "exact planes: %d of %d plane nodes are outside the physical model (force above p pi R^2); "
+            "rows that interpolate them have no value",
+            sum(int(o.sum()) for o in outs),
+            sum(o.size for o in outs),
+        )
+        t_out = jnp.asarray(_pad_edge(outs[0], range(1, lat + 3)))
+        a_out = tuple(jnp.asarray(_pad_edge(o, range(1, 4))) for o in outs[1:])
+    else:
+        t_out, a_out = None, ()
     return ExactForceModel(
         designs=jnp.asarray(np.stack([d.to_array() for d in designs])),
         ringed=jnp.asarray([d.n_rings > 0 for d in designs]),
@@ -466,6 +559,8 @@ def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progres
         outside=outside,
         cache=cache,
         grow=grow,
+        tensor_out=t_out,
+        additive_out=a_out,
     )
 
 

@@ -72,6 +72,19 @@ class ForceModel(eqx.Module):
         planes grow to it."""
         return self
 
+    def outside_model(self, design, h_mm, p_pa, params: SimParams = SimParams()):
+        """Rows [N] bool outside the physical model (force above ``p pi R^2``, the membrane
+        below the clamp plane: ``Status.OUTSIDE_MODEL``); a model that cannot tell: none."""
+        import jax.numpy as jnp
+
+        return jnp.zeros(jnp.shape(h_mm), bool)
+
+    def marking(self, mark: bool = True) -> "ForceModel":
+        """The model whose rows outside the physical model read ``+inf`` (``mark``), the
+        marker the likelihood and diagnosis' residuals drop such rows by (the measurement
+        effects carry it through); a model that cannot tell returns itself."""
+        return self
+
     def strict(self, strict: bool = True) -> "ForceModel":
         """The model for a sampler (``True``: NaN where it cannot vouch for a number) or for an
         optimiser (``False``: no NaN, values held at the edge of its validity)."""

@@ -309,31 +309,54 @@ class HierarchicalModel(eqx.Module):
             params = dataclasses.replace(params, thickness_factor=params.thickness_factor * (1.0 + thickness_rel))
         return params
 
-    def expected_force(self, x, data: CalibrationData, thickness_rel=None) -> jax.Array:
-        """Expected recorded force [N] of every row at physical ``x`` (fidelity "sim" + effects)."""
+    def expected_force(self, x, data: CalibrationData, thickness_rel=None, marked: bool = False) -> jax.Array:
+        """Expected recorded force [N] of every row at physical ``x`` (fidelity "sim" + effects).
+        ``marked``: rows outside the physical model read ``+inf`` (``ForceModel.marking``),
+        else NaN (or, for a model held at its lattice's edge, the plane's number)."""
         v = self.unpack(x)
         theta_fx = {k: v[k] for k in fx.neutral_theta(self.effects)}
         params = self.sim_params(x, data, thickness_rel)
-        force_fn = lambda h, p: self.force_model(data.design, h, p, params)  # noqa: E731
+        fm = self.force_model
+        if marked and hasattr(fm, "marking"):
+            fm = fm.marking(True)
+        force_fn = lambda h, p: fm(data.design, h, p, params)  # noqa: E731
         return fx.apply_expected_force(self.effects, theta_fx, force_fn, data.rows)
 
+    def outside_rows(self, x, data: CalibrationData) -> jax.Array:
+        """Rows [N] bool that are outside the physical model at physical ``x`` (the force
+        model's ``outside_model``: a force above ``p pi R^2``); the likelihood leaves them out."""
+        return jnp.isposinf(self.expected_force(x, data, marked=True))
+
     def pointwise_log_lik(self, x, data: CalibrationData) -> jax.Array:
-        """log p(F_i | x) [N] (unweighted)."""
+        """log p(F_i | x) [N] (unweighted).
+
+        A row outside the physical model at ``x`` (the force model says so: a force above
+        ``p pi R^2``, ``Status.OUTSIDE_MODEL``) is left out: its measurement does not enter.
+        It counts as a row at the noise level (the expected log density of a row the model
+        fits, ``E[log p(eps)]``), not as 0: the rows the noise scale's ``-log sigma`` term
+        sees then do not change with ``x``, and a parameter that puts a well-fitted row
+        outside gains nothing. Any other NaN (off the lattice, an unsolved node) is "very
+        unlikely" (-1e10), the support's edge."""
         sigma = self.unpack(x)["noise_n"]
-        f = self.expected_force(x, data)
+        f = self.expected_force(x, data, marked=True)
+        outside = jnp.isposinf(f)
         # Double where: a NaN force (outside the force model's support) must not reach the
         # arithmetic, or its NaN partials times the zero cotangent poison every gradient.
         good = jnp.isfinite(f)
         r = jnp.where(good, data.force_n - f, 0.0) / sigma
         if self.likelihood == "gaussian":
             ll = -0.5 * r**2 - jnp.log(sigma) - 0.5 * math.log(2 * math.pi)
+            typical = -0.5 - jnp.log(sigma) - 0.5 * math.log(2 * math.pi)
         else:
+            from scipy.special import digamma
+
             nu = self.nu
             c = math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2) - 0.5 * math.log(nu * math.pi)
             ll = c - jnp.log(sigma) - 0.5 * (nu + 1) * jnp.log1p(r**2 / nu)
-        return jnp.where(
-            good & jnp.isfinite(ll), ll, -1e10
-        )  # a NaN force (outside the model's support) is "very unlikely"
+            # E[log(1 + T^2 / nu)] = psi((nu + 1) / 2) - psi(nu / 2) for T ~ t_nu
+            typical = c - jnp.log(sigma) - 0.5 * (nu + 1) * float(digamma((nu + 1) / 2) - digamma(nu / 2))
+        # a NaN force (outside the model's support) is "very unlikely"
+        return jnp.where(good & jnp.isfinite(ll), ll, jnp.where(outside, typical, -1e10))
 
     def log_lik(self, x, data: CalibrationData) -> jax.Array:
         return jnp.sum(data.weight * self.pointwise_log_lik(x, data))
