@@ -25,6 +25,11 @@ firmware without the feature (heartbeats ignored, never answered). The watchdog 
 wall clock, not rig time, because it watches the host, whose clock is the wall clock at any
 ``time_scale`` (as the host's ``telemetry_timeout_s`` does): at ``time_scale`` s the pump
 runs ``s * watchdog_s`` rig seconds before it trips.
+
+The control loop never waits on the physics: :meth:`RigEmulator.start` asks the plant once
+before the port opens (a plant that compiles does it then), and a starved loop slows its
+clock rather than leaping, so a loaded machine stretches the rig's time, never stalls it
+(``tests/rig/test_rig_under_load.py`` runs the rig's scenarios beside a CPU hog).
 """
 
 from __future__ import annotations
@@ -242,7 +247,14 @@ class RigEmulator:
 
     # -- lifetime --------------------------------------------------------------------------
     def start(self) -> str:
-        """Open the pty and serve from a daemon thread; returns the device path."""
+        """Open the pty and serve from a daemon thread; returns the device path.
+
+        The plant is asked once before the port opens: a plant whose first answer is slow
+        (a simulator compiling) costs that time here, never in the control loop, where it
+        would stall the pump, the telemetry and the watchdog while a host is connected."""
+        h0 = self.heights()[0]
+        self.plant.force_n(h0, 0.0)
+        self.plant.touches_rig(h0, 0.0)
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no echo, no line editing, before any client opens it
         os.set_blocking(self._master, False)
