@@ -153,18 +153,21 @@ def one_case(truth: str, seed: int) -> dict:
     after = run_experiment(top, truth, value, seed, table)
     p_top = probs(fit_all(after, seed))
     ti = HYPOTHESES.index(truth)
-    # random baseline: candidates in a random order until the summed cost reaches 1x, 2x the top's
-    order = np.random.default_rng(10_000 + seed).permutation(len(cands))
-    random_runs, data, spent, k = [], table, 0.0, 0
+    # random baseline: random candidates, each taken if it fits the budget left, until none
+    # fits a budget of 1x, then 2x the top experiment's cost (the 2x run continues the 1x one)
+    rng_r = np.random.default_rng(10_000 + seed)
+    random_runs, data, spent, used = [], table, 0.0, set()
     for mult in (1.0, 2.0):
         chosen = []
-        while spent < mult * top.cost and k < len(order):
-            e = cands[order[k]]
-            data = run_experiment(e, truth, value, seed + 17 * k, data)
+        for j in rng_r.permutation(len(cands)):
+            e = cands[j]
+            if j in used or spent + e.cost > mult * top.cost + 1e-9:
+                continue
+            data = run_experiment(e, truth, value, seed + 17 * len(used), data)
             spent += e.cost
+            used.add(j)
             chosen.append(e.label())
-            k += 1
-        p = probs(fit_all(data, seed))
+        p = probs(fit_all(data, seed)) if chosen or not random_runs else np.asarray(random_runs[-1]["p"])
         random_runs.append({"cost_multiple": mult, "cost": spent, "added": chosen, "p": p.tolist(), "p_truth": float(p[ti])})
     return {
         "truth": truth,

@@ -416,6 +416,7 @@ def rank_experiments(
     height_sd_mm: float = 0.5,
     lift_grid_mm: tuple[float, float, float] = (0.0, 75.0, 2.5),
     batch_size: int = 16,
+    min_lift_height_mm: float = 2.0,
 ) -> Ranking:
     """Rank ``experiments`` by Box & Hill's expected log Bayes factor (module doc).
 
@@ -434,6 +435,9 @@ def rank_experiments(
     - `height_sd_mm`: the height sensor's noise [mm] (lift rows).
     - `lift_grid_mm`: (start, stop, step) of the height grid [mm] a lift height is found on.
     - `batch_size`: candidates per vmapped batch (bounds memory).
+    - `min_lift_height_mm`: a lift row counts only where every hypothesis's every draw has
+      the plate floating at least this far above its support and below the rig's top (as
+      the calibration keeps lift rows, :func:`mfdesign.calibration.workflow.lifted_rows`).
 
     **Returns:**
 
@@ -525,6 +529,12 @@ def rank_experiments(
             )
             obs[lift_i, j, :, :n_pressures] = np.asarray(h)
             sig[lift_i, j, :n_pressures] = np.asarray(sd)
+    # a lift row counts only where every draw of every hypothesis has the plate floating:
+    # the likelihood drops resting and pinned rows (a resting row records the weight, not
+    # the membrane's force), so a difference there is nothing the calibration would see
+    for i in lift_i:
+        floating = np.all((obs[i, :, :, :n_pressures] >= min_lift_height_mm) & (obs[i, :, :, :n_pressures] <= h_grid[-1] - min_lift_height_mm), axis=(0, 1))
+        mask[i, :n_pressures] = floating.astype(float)
     bad = [exps[i].label() for i in range(len(exps)) if not np.all(np.isfinite(obs[i][..., mask[i] > 0]))]
     if bad:
         raise InputError(f"the models have no finite prediction for {len(bad)} candidate(s), e.g. {bad[0]}")
@@ -543,7 +553,7 @@ def rank_experiments(
     a = (1 - level) / 2
     preds = []
     for i, e in enumerate(exps):
-        m = mask[i] > 0
+        m = np.arange(r_obs) < len(rows_of[i])  # every row of the trial (counted or not)
         by = {}
         for j, nm in enumerate(names):
             y = obs[i, j][:, m][None] + sig[i, j][m] * rng.standard_normal((8, n_draws, int(m.sum())))
@@ -551,7 +561,13 @@ def rank_experiments(
             lo, hi = np.quantile(y, [a, 1 - a], axis=0)
             by[nm] = {"mean": obs[i, j][:, m].mean(0).round(3).tolist(), "lo": lo.round(3).tolist(), "hi": hi.round(3).tolist()}
         preds.append(
-            {"observable": "force_n" if e.kind == "force" else "height_mm", "level": level, "rows": rows_of[i], "by_hypothesis": by}
+            {
+                "observable": "force_n" if e.kind == "force" else "height_mm",
+                "level": level,
+                "rows": rows_of[i],
+                "counted": (mask[i][m] > 0).tolist(),  # lift rows: only where every draw floats
+                "by_hypothesis": by,
+            }
         )
     return Ranking(names, exps, score, pair, exp_p, order, tuple(preds), pi, level)
 
