@@ -70,6 +70,7 @@ import numpy as np
 import optax
 
 from mfdesign._x64 import enable_x64
+from mfdesign.errors import InputError
 from mfdesign.design import DesignError, DesignSpace, Membrane  # noqa: F401
 from mfdesign.models.predictor import (  # noqa: F401  (re-exported: acquisition's inputs)
     AbstractPredictor,
@@ -392,14 +393,92 @@ class Proposal:
         outputs.write_json(Path(path), self.to_json(made))
 
 
+# The most a call may ask (the CLI's bounds, mfdesign.cli._contract.OPTION_MAX): beyond
+# them the arrays of restarts x batch do not fit a machine.
+MAX_Q = 256
+MAX_RESTARTS = 1_000_000
+MAX_REFINE = 100_000
+MAX_STEPS = 1_000_000
+
+
+def _count(name: str, v, low: int, high: int) -> int:
+    if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or not low <= v <= high:
+        raise InputError(f"{name} must be an integer from {low} to {high:,}, got {v!r}")
+    return int(v)
+
+
+def _checked_arguments(
+    predictor, q, fidelities, costs, n_restarts, n_rings, grid, key, space, n_steps, n_refine, budget, pending
+):
+    """:func:`propose`'s arguments checked (``InputError``, one line, for each bad one):
+    ``(fidelities, sizes, costs, n_rings, pending, key)``."""
+    if not isinstance(predictor, AbstractPredictor):
+        raise InputError(
+            f"predictor: a {type(predictor).__name__}; allowed: an AbstractPredictor (EnsemblePredictor(ensemble), "
+            "SplitPredictor, FunctionPredictor, or MFFit.load(folder).predictor())"
+        )
+    if isinstance(fidelities, str) or not isinstance(fidelities, Sequence):
+        raise InputError(f"fidelities: {fidelities!r}; allowed: a sequence of names from {list(predictor.fidelities)}")
+    if budget is None:
+        if not isinstance(q, (int, np.integer)) or isinstance(q, bool) or q < 1:
+            raise InputError(f"q (batch size) must be an integer >= 1, got {q!r}")
+        _count("q (batch size)", q, 1, MAX_Q)
+        fidelities = tuple(dict.fromkeys(fidelities))
+        sizes = {f: int(q) for f in fidelities}
+    else:
+        if q is not None:
+            raise InputError("give q (a free mix of fidelities) or budget (runs per fidelity), not both")
+        if not isinstance(budget, Mapping):
+            raise InputError(f"budget: {budget!r}; allowed: a mapping of fidelity to runs, e.g. {{'rig': 2}}")
+        budget = dict(budget)
+        for f, k in budget.items():
+            if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 0:
+                raise InputError(f"budget[{f!r}] (runs at fidelity {f!r}) must be an integer >= 0, got {k!r}")
+        sizes = {f: int(k) for f, k in budget.items() if k > 0}
+        if not sizes:
+            raise InputError(f"the budget holds no run: {budget}")
+        _count("the budget's runs", sum(sizes.values()), 1, MAX_Q)
+        fidelities = tuple(sizes)
+    _count("n_restarts", n_restarts, 1, MAX_RESTARTS)
+    _count("n_refine", n_refine, 1, MAX_REFINE)
+    _count("n_steps", n_steps, 0, MAX_STEPS)
+    if not fidelities:
+        raise InputError(f"give at least one fidelity; allowed: {list(predictor.fidelities)}")
+    for f in fidelities:
+        if f not in predictor.fidelities:
+            raise InputError(f"fidelity {f!r} not offered by this model; allowed: {list(predictor.fidelities)}")
+    try:
+        costs = _check_costs(fidelities, costs)
+        n_rings = tuple(dict.fromkeys(n_rings))
+    except (ValueError, TypeError) as err:
+        raise InputError(str(err) if isinstance(err, InputError) else f"costs or n_rings: {err}") from None
+    if not n_rings or any(n not in (0, 1, 2) for n in n_rings):
+        raise InputError(f"n_rings must be a non-empty subset of (0, 1, 2), got {n_rings!r}")
+    if not isinstance(grid, Grid):
+        raise InputError(f"grid: a {type(grid).__name__}; allowed: mfdesign.acquire.Grid")
+    if not isinstance(space, DesignSpace):
+        raise InputError(f"space: a {type(space).__name__}; allowed: mfdesign.design.DesignSpace")
+    try:
+        pending = tuple(d if isinstance(d, Membrane) else Membrane.from_array(d) for d in pending)
+    except InputError:
+        raise
+    except (ValueError, TypeError) as err:
+        raise InputError(f"pending: {err}; allowed: Membranes or arrays [t, c, r1, w1, r2, w2] mm") from None
+    if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+        key = jax.random.PRNGKey(int(key))
+    elif not (isinstance(key, jax.Array) and jnp.shape(key) in ((2,), ())):
+        raise InputError(f"key: {key!r}; allowed: an int seed or a jax.random key")
+    return fidelities, sizes, costs, n_rings, pending, key
+
+
 def _check_costs(fidelities, costs):
     costs = dict(DEFAULT_COSTS if costs is None else costs)
     for f in fidelities:
         c = costs.get(f)
         if c is None:
-            raise ValueError(f"no cost given for fidelity {f!r}; give costs={{{f!r}: positive number}}")
+            raise InputError(f"no cost given for fidelity {f!r}; give costs={{{f!r}: positive number}}")
         if not (isinstance(c, (int, float)) and math.isfinite(c) and c > 0):
-            raise ValueError(f"cost of fidelity {f!r} must be a positive finite number, got {c!r}")
+            raise InputError(f"cost of fidelity {f!r} must be a positive finite number, got {c!r}")
     return costs
 
 
@@ -597,46 +676,16 @@ def propose(
     **Returns:**
 
     A :class:`Proposal`: the designs (mm), their fidelities, utilities and costs, and the
-    runs ranked with a reason each. Raises `ValueError` on bad arguments.
+    runs ranked with a reason each. Raises `InputError` (a `ValueError`) on bad arguments.
     """
     enable_x64()  # float64 physics: mfdesign._x64
     t0 = time.perf_counter()
-    if budget is None:
-        if not isinstance(q, (int, np.integer)) or isinstance(q, bool) or q < 1:
-            raise ValueError(f"q (batch size) must be an integer >= 1, got {q!r}")
-        fidelities = tuple(dict.fromkeys(fidelities))
-        sizes = {f: int(q) for f in fidelities}
-    else:
-        if q is not None:
-            raise ValueError("give q (a free mix of fidelities) or budget (runs per fidelity), not both")
-        budget = dict(budget)
-        for f, k in budget.items():
-            if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 0:
-                raise ValueError(f"budget[{f!r}] (runs at fidelity {f!r}) must be an integer >= 0, got {k!r}")
-        sizes = {f: int(k) for f, k in budget.items() if k > 0}
-        if not sizes:
-            raise ValueError(f"the budget holds no run: {budget}")
-        fidelities = tuple(sizes)
-        q = sum(sizes.values())
-    if not isinstance(n_restarts, (int, np.integer)) or n_restarts < 1:
-        raise ValueError(f"n_restarts must be an integer >= 1, got {n_restarts!r}")
-    if not isinstance(n_refine, (int, np.integer)) or isinstance(n_refine, bool) or n_refine < 1:
-        raise ValueError(f"n_refine must be an integer >= 1, got {n_refine!r}")
-    if not isinstance(n_steps, (int, np.integer)) or n_steps < 0:
-        raise ValueError(f"n_steps must be an integer >= 0, got {n_steps!r}")
-    if not fidelities:
-        raise ValueError(f"give at least one fidelity; allowed: {list(predictor.fidelities)}")
-    for f in fidelities:
-        if f not in predictor.fidelities:
-            raise ValueError(f"fidelity {f!r} not offered by this model; allowed: {list(predictor.fidelities)}")
-    costs = _check_costs(fidelities, costs)
-    n_rings = tuple(dict.fromkeys(n_rings))
-    if not n_rings or any(n not in (0, 1, 2) for n in n_rings):
-        raise ValueError(f"n_rings must be a non-empty subset of (0, 1, 2), got {n_rings!r}")
-    pending = tuple(d if isinstance(d, Membrane) else Membrane.from_array(d) for d in pending)
+    fidelities, sizes, costs, n_rings, pending, key = _checked_arguments(
+        predictor, q, fidelities, costs, n_restarts, n_rings, grid, key, space, n_steps, n_refine, budget, pending
+    )
+    q = sum(sizes.values()) if budget is not None else q
     base = pending_deviation(predictor, pending, grid)  # [M], or [1] zeros when none
     blocked = [(d.n_rings, space.encode(d)) for d in pending]
-    key = jax.random.PRNGKey(key) if isinstance(key, (int, np.integer)) else key
 
     from tqdm.auto import tqdm
 

@@ -414,6 +414,8 @@ class Campaign:
     @classmethod
     def open(cls, folder: str | os.PathLike) -> "Campaign":
         """The campaign in ``folder``; ``InputError`` when there is none or it is unreadable."""
+        if not isinstance(folder, (str, os.PathLike)):
+            raise InputError(f"campaign folder: a {type(folder).__name__}; allowed: a path (str or os.PathLike)")
         campaign = cls(folder)
         campaign._read()
         return campaign
@@ -444,7 +446,7 @@ class Campaign:
             return _State(settings, tuple(raw["effects"]), sources, proposals, dict(raw.get("created", {})))
         except InputError:
             raise
-        except (ValueError, KeyError, TypeError, AttributeError) as err:
+        except (ValueError, KeyError, TypeError, AttributeError, OSError) as err:
             raise InputError(f"{path} is not a readable campaign file ({type(err).__name__}: {err})") from None
 
     def _write(self, state: _State) -> None:

@@ -623,3 +623,100 @@ def small_csv_path(tmp_path, df):
     if not path.exists():
         df.to_csv(path, index=False)
     return path
+
+
+# -- class 4/6/7, second pass: diagnose --model and the Python API --------------------------
+@pytest.fixture
+def small_parquet(tmp_path):
+    from mfdesign.data.sources import read_source
+
+    path = tmp_path / "m.parquet"
+    read_source("bundled").df.head(200).to_parquet(path)
+    return path
+
+
+@pytest.mark.parametrize("how, words", [("zeros", "predicts NaN or infinite forces"), ("beta", "predicts forces from")])
+def test_class4_diagnose_refuses_a_model_predicting_nonsense(tmp_path, small_parquet, how, words):
+    """Before: exit 0 and a report of n = 0 rows, RMSE NaN (zeros) or of absurd forces (beta)."""
+    model = _spoilt_model(tmp_path / "model", how)
+    r = _cli("diagnose", small_parquet, "--model", model, "--no-search", "--out", tmp_path / "d")
+    _one_line_exit2(r, f"model {model} {words}")
+    assert not (tmp_path / "d" / "diagnosis.json").exists()
+
+
+def test_class7_diagnose_api_bad_input_is_input_error(small_parquet):
+    """Before: AttributeError, KeyError, TypeError, numpy's UFuncTypeError or a broadcast
+    ValueError from deep inside, or a silent run (theta naming no parameter, theta NaN)."""
+    import mfdesign
+    from mfdesign.diagnose.emulated import forward_model
+
+    meas = mfdesign.load(small_parquet)
+    sim = forward_model("standin", meas)
+    D = mfdesign.diagnose
+    for kw, words in [
+        (dict(meas="bundled"), "allowed: a Measurements table"),
+        (dict(meas=meas.df), "allowed: a Measurements table"),
+        (dict(sim="exact"), "allowed: None or a ForwardModel"),
+        (dict(effects=["nope"]), "no effect named 'nope'"),
+        (dict(effects="pressure_sensor"), "allowed: a list of effect names"),
+        (dict(effects=["pressure_sensor"], theta={"x.y": 1.0}), "no parameter 'x.y'"),
+        (dict(effects=["pressure_sensor"], theta={"pressure_sensor.offset_pa": float("nan")}), "a finite number"),
+        (dict(effects=["pressure_sensor"], theta={"pressure_sensor.offset_pa": "a"}), "a finite number"),
+        (dict(theta=[1, 2]), "theta: a list"),
+        (dict(model=123), "model: a int"),
+        (dict(model=lambda m: np.zeros(3)), "returned 3 forces for 200 rows"),
+        (dict(model=lambda m: np.full(len(m), np.nan)), "no finite force"),
+        (dict(candidates=["nope"]), "no effect named 'nope'"),
+        (dict(n_folds=0), "n_folds must be an integer from 2"),
+        (dict(max_steps="a"), "max_steps must be an integer"),
+    ]:
+        args = {"meas": meas, "sim": sim, "search": False, **kw}
+        with pytest.raises(InputError, match=__import__("re").escape(words)):
+            D(args.pop("meas"), **args)
+
+
+def test_class7_campaign_open_bad_input_is_input_error(tmp_path):
+    import mfdesign
+
+    for bad in (None, 123, 1.5):  # before: TypeError from pathlib
+        with pytest.raises(InputError, match="allowed: a path"):
+            mfdesign.Campaign.open(bad)
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "campaign.json").write_bytes(b"\xff\xfe\x00")
+    with pytest.raises(InputError, match="not a readable campaign file"):
+        mfdesign.Campaign.open(tmp_path / "c")
+
+
+def test_class7_propose_api_bad_input_is_input_error():
+    """Before: AttributeError (no predictor), ValueError, a JAX out-of-memory error (q = 1e9),
+    TypeError from JAX's PRNG (key "a") or from Membrane (pending [123])."""
+    import sys
+    from pathlib import Path
+
+    import mfdesign
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from tiny_models import tiny_ensemble
+
+    from mfdesign.models.predictor import EnsemblePredictor
+
+    pred = EnsemblePredictor(tiny_ensemble())
+    for args, kw, words in [
+        ((None,), dict(q=1), "predictor: a NoneType"),
+        (("model",), dict(q=1), "predictor: a str"),
+        ((tiny_ensemble(),), dict(q=1), "predictor: a Ensemble"),
+        ((pred,), dict(q=0), "q (batch size) must be an integer >= 1"),
+        ((pred,), dict(q=10**9), "q (batch size) must be an integer from 1 to 256"),
+        ((pred,), dict(budget="rig"), "budget: 'rig'"),
+        ((pred,), dict(q=1, fidelities="rig"), "fidelities: 'rig'"),
+        ((pred,), dict(q=1, fidelities=("sim",)), "fidelity 'sim' not offered"),
+        ((pred,), dict(q=1, costs={"rig": -1}), "must be a positive finite number"),
+        ((pred,), dict(q=1, n_restarts=0), "n_restarts must be an integer from 1"),
+        ((pred,), dict(q=1, n_rings=(5,)), "n_rings must be a non-empty subset"),
+        ((pred,), dict(q=1, key="a"), "key: 'a'"),
+        ((pred,), dict(q=1, pending=[123]), "pending:"),
+        ((pred,), dict(q=1, grid="x"), "grid: a str"),
+        ((pred,), dict(q=1, space="x"), "space: a str"),
+    ]:
+        with pytest.raises(InputError, match=__import__("re").escape(words)):
+            mfdesign.propose(*args, n_restarts=kw.pop("n_restarts", 2), **kw)

@@ -35,6 +35,7 @@ from mfdesign._x64 import enable_x64
 from mfdesign.data.lifts import STALL_PA
 from mfdesign.data.lifts import stalls as find_stalls
 from mfdesign.data.measurements import Measurements
+from mfdesign.errors import InputError
 from mfdesign.diagnose.check import calibrate_effects, full_check, verdict
 from mfdesign.diagnose.residuals import (
     Residuals,
@@ -191,6 +192,68 @@ def _degeneracies(sim, meas, res, v: dict, checks, names, theta0, base_pred, n_f
     v["words"] += "; " + "; ".join(words)
 
 
+def _count_arg(name: str, v, low: int, high: int) -> None:
+    if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or not low <= v <= high:
+        raise InputError(f"{name} must be an integer from {low} to {high}, got {v!r}")
+
+
+def _check_arguments(meas, sim, model, effects, theta, candidates, check_top, check_pairs, max_steps, n_folds):
+    """:func:`diagnose`'s arguments, each bad one an ``InputError`` in one line (issue 44, class 6)."""
+    from mfdesign.diagnose.emulated import ForwardModel
+
+    if not isinstance(meas, Measurements):
+        raise InputError(
+            f"meas: a {type(meas).__name__}; allowed: a Measurements table (mfdesign.load(path or 'bundled'))"
+        )
+    if len(meas) == 0:
+        raise InputError("meas holds no rows; allowed: a table with measurements")
+    if sim is not None and not isinstance(sim, ForwardModel):
+        raise InputError(
+            f"sim: a {type(sim).__name__}; allowed: None or a ForwardModel "
+            "(mfdesign.diagnose.emulated.forward_model('exact' | 'emulator' | 'standin', meas))"
+        )
+    if model is not None and not callable(model):
+        raise InputError(f"model: a {type(model).__name__}; allowed: None or predict(meas) -> force [N] per row")
+    for what, names in (("effects", effects), ("candidates", candidates)):
+        if names is None and what == "candidates":
+            continue
+        if isinstance(names, str) or not isinstance(names, Sequence):
+            raise InputError(f"{what}: {names!r}; allowed: a list of effect names from {sorted(fx.EFFECTS)}")
+        for e in names:
+            if not isinstance(e, fx.Effect) and e not in fx.EFFECTS:
+                raise InputError(f"{what}: no effect named {e!r}; allowed: {sorted(fx.EFFECTS)}")
+    if theta is not None:
+        if not isinstance(theta, Mapping):
+            raise InputError(f"theta: a {type(theta).__name__}; allowed: {{'effect.parameter': number}}")
+        known = {fx.effect(n).qualified(p.name) for n in fx.EFFECTS for p in fx.effect(n).parameters}
+        for k, v in theta.items():
+            if k not in known:
+                raise InputError(
+                    f"theta: no parameter {k!r}; allowed: 'effect.parameter' names, e.g. {sorted(known)[:3]}"
+                )
+            if not isinstance(v, (int, float, np.integer, np.floating)) or isinstance(v, bool) or not np.isfinite(v):
+                raise InputError(f"theta[{k!r}] = {v!r}; allowed: a finite number")
+    _count_arg("check_top", check_top, 0, 1000)
+    _count_arg("check_pairs", check_pairs, 0, 1000)
+    _count_arg("max_steps", max_steps, 0, 100)
+    _count_arg("n_folds", n_folds, 2, 1000)
+
+
+def _model_forces(model, meas: Measurements) -> np.ndarray:
+    """``model(meas)`` as one finite-or-NaN force per row; a wrong answer is an ``InputError``."""
+    try:
+        f = np.asarray(model(meas), float).ravel()
+    except (TypeError, ValueError) as err:
+        raise InputError(
+            f"model(meas) did not return forces ({type(err).__name__}: {err}); allowed: [N] per row"
+        ) from None
+    if f.shape != (len(meas),):
+        raise InputError(f"model(meas) returned {f.size} forces for {len(meas)} rows; allowed: one per row")
+    if not np.isfinite(f).any():
+        raise InputError("model(meas) predicts no finite force on any row; allowed: a model with a value on the data")
+    return f
+
+
 def diagnose(
     meas: Measurements,
     sim: ForwardModel | None = None,
@@ -241,13 +304,14 @@ def diagnose(
     :func:`~mfdesign.report.diagnosis.write_report` for HTML.
     """
     enable_x64()  # float64 physics: mfdesign._x64
+    _check_arguments(meas, sim, model, effects, theta, candidates, check_top, check_pairs, max_steps, n_folds)
     if sim is None:
         from mfdesign.diagnose.emulated import forward_model
 
         sim = forward_model("emulator", meas, progress=progress)
     effects = [fx.effect(e) for e in effects]
     e0 = sim.expected_force(meas)
-    base_pred = e0 if model is None else np.asarray(model(meas), float)
+    base_pred = e0 if model is None else _model_forces(model, meas)
     offset = None if model is None else base_pred - e0
     # rows outside the physical model (force above p pi R^2) are dropped and counted
     before = compute_residuals(meas, base_pred, outside=sim.outside_model(meas))

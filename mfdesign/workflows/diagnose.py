@@ -216,10 +216,15 @@ def _ensemble_model(model_dir: Path | None) -> tuple[Callable | None, str]:
 
     from mfdesign.models.ensemble import Ensemble
 
+    from mfdesign.models.predictor import EnsemblePredictor
+    from mfdesign.models.sanity import check_predictor
+
     try:
         ens = Ensemble.load(model_dir)
     except (FileNotFoundError, ValueError) as err:
         raise InputError(f"--model {model_dir}: {err}") from None
+    # a folder that loads can still predict NaN or absurd forces (issue 44, class 4)
+    check_predictor(EnsemblePredictor(ens), str(model_dir))
 
     def predict(m: Any) -> Any:
         a = m.arrays()
