@@ -136,6 +136,10 @@ def test_cli_ranks_and_bad_hypothesis_exits_2(tmp_path):
         app, ["discriminate", str(data), "--hypotheses", "fabric_inset", "bogus", "--physics", "standin", "--out", str(tmp_path / "x")]
     )
     assert r.exit_code == 2 and "unknown effect 'bogus'" in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    r = runner.invoke(
+        app, ["discriminate", str(data), "--hypotheses", "fabric_inset", "none", "--physics", "emulator", "--out", str(tmp_path / "e")]
+    )  # the emulator holds the fabric inset at 0: refused before any fit, not a NaN fit
+    assert r.exit_code == 2 and "fabric_inset_mm" in r.output and len(r.output.strip().splitlines()) == 1, r.output
     out = tmp_path / "o"
     args = ["discriminate", str(data), "--hypotheses", "fabric_inset", "none", "--physics", "standin", "--out", str(out)]
     r = runner.invoke(app, args + ["--mcmc-steps", "40", "--max-rows", "60", "--new-design", NEW, "--top", "2"])

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
+
 from mfdesign.errors import InputError
 
 __all__ = ["DiscriminateResult", "discriminate", "plot_top"]
@@ -91,6 +93,29 @@ def plot_top(ranking: Any, i: int, path: Path) -> Path:
     outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+def _check_support(hyps, force_model, physics: str) -> None:
+    """A hypothesis whose effect moves a simulator constant the force model holds fixed
+    (the emulator was not trained on a fabric inset) fails here in one line, not as a NaN
+    fit."""
+    import dataclasses
+
+    from mfdesign.physics import effects as fx
+    from mfdesign.physics.params import SimParams
+
+    support = force_model.support() if hasattr(force_model, "support") else {}
+    base = SimParams()
+    for h in hyps:
+        for name in h.effects:
+            moved = fx.apply_sim_params([name], fx.typical_theta([name]), base)
+            for f in dataclasses.fields(SimParams):
+                lo, hi = support.get(f.name, (-np.inf, np.inf))
+                if getattr(moved, f.name) != getattr(base, f.name) and lo == hi:
+                    raise InputError(
+                        f"hypothesis {h.name!r}: effect {name!r} moves {f.name}, which the {physics} physics holds "
+                        f"at {lo:g}; allowed: --physics exact or standin for it"
+                    )
 
 
 def discriminate(
@@ -167,6 +192,7 @@ def discriminate(
     from mfdesign.models.ensemble import EnsembleConfig
 
     force_model = force_model_named(physics, data, progress=progress)
+    _check_support(hyps, force_model, physics)
     fits, bic = {}, {}
     for h in hyps:
         fit = fit_multi_fidelity(
