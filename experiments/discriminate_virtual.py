@@ -85,7 +85,12 @@ def make_rig(truth: str, value: float, seed: int, heights=(0.0, 20.0, 40.0), p_m
         theta={param: value},
         seed=seed,
         protocol=Protocol(
-            sample_hz=1.0, trials_per_height=1, heights_mm=tuple(heights), lift_masses_kg=tuple(masses), lift_trials=1, **extra
+            sample_hz=1.0,
+            trials_per_height=1,
+            heights_mm=tuple(heights),
+            lift_masses_kg=tuple(masses),
+            lift_trials=1,
+            **extra,
         ),
         simulator=standin_plane,
         base_params=SimParams(mu_pa=34e3, jm=45.0),
@@ -168,7 +173,9 @@ def one_case(truth: str, seed: int) -> dict:
             used.add(j)
             chosen.append(e.label())
         p = probs(fit_all(data, seed)) if chosen or not random_runs else np.asarray(random_runs[-1]["p"])
-        random_runs.append({"cost_multiple": mult, "cost": spent, "added": chosen, "p": p.tolist(), "p_truth": float(p[ti])})
+        random_runs.append(
+            {"cost_multiple": mult, "cost": spent, "added": chosen, "p": p.tolist(), "p_truth": float(p[ti])}
+        )
     return {
         "truth": truth,
         "value": value,
@@ -281,7 +288,6 @@ def write_summary(cases, args, t0, final=True):
     plot(cases, OUT / "discriminate_virtual.png")
     if final:
         print(json.dumps({k: v for k, v in summary.items() if k != "cases"}, indent=1))
-
 
 
 if __name__ == "__main__":

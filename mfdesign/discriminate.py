@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -122,7 +122,7 @@ def parse_hypotheses(texts: Sequence[str]) -> list[Hypothesis]:
     hyps = [Hypothesis.parse(t) for t in texts]
     if len(hyps) < 2:
         raise InputError(f"need at least two hypotheses to tell apart, got {len(hyps)}")
-    seen = {}
+    seen: dict = {}
     for h in hyps:
         k = (frozenset(h.effects), h.material)
         if k in seen:
@@ -247,11 +247,18 @@ def candidate_experiments(
             p_force = ringed_p_max_pa if m.n_rings else ringless_p_max_pa
             for hs in height_sets_mm:
                 hs = tuple(float(h) for h in hs)
-                out.append(Experiment(design, "force", p_force, hs, new_membrane=new, cost=extra + cost_trial * len(hs)))
+                out.append(
+                    Experiment(design, "force", p_force, hs, new_membrane=new, cost=extra + cost_trial * len(hs))
+                )
             for kg in masses_kg:
                 out.append(
                     Experiment(
-                        design, "lift", lift_p_max_pa, load_n=float(kg) * G_N_PER_KG, new_membrane=new, cost=extra + cost_trial
+                        design,
+                        "lift",
+                        lift_p_max_pa,
+                        load_n=float(kg) * G_N_PER_KG,
+                        new_membrane=new,
+                        cost=extra + cost_trial,
                     )
                 )
     if not out:
@@ -324,7 +331,9 @@ def _summary_points(preds: dict, p: dict, n: int = 3) -> list[str]:
     for j in idx:
         r = rows[j]
         where = f"h {r['height_mm']:g} mm, " if r.get("height_mm") is not None else ""
-        out.append(f"{where}p {r['pressure_pa']:.0f} Pa: {p['mean'][j]:.1f} [{p['lo'][j]:.1f}, {p['hi'][j]:.1f}] {unit}")
+        out.append(
+            f"{where}p {r['pressure_pa']:.0f} Pa: {p['mean'][j]:.1f} [{p['lo'][j]:.1f}, {p['hi'][j]:.1f}] {unit}"
+        )
     return out
 
 
@@ -459,7 +468,7 @@ def rank_experiments(
         raise InputError(f"level must be in (0, 1), got {level}")
     if n_draws < 2 or n_pressures < 1:
         raise InputError(f"n_draws must be >= 2 and n_pressures >= 1, got {n_draws}, {n_pressures}")
-    mfs = [getattr(m, "mf", m) for m in predictives.values()]
+    mfs: list[Any] = [getattr(m, "mf", m) for m in predictives.values()]
     k = len(mfs)
     pi = np.full(k, 1.0 / k) if prior is None else np.asarray(prior, float)
     if pi.shape != (k,) or not np.all(pi > 0):
@@ -476,7 +485,9 @@ def rank_experiments(
     # rows: force [Cf, n_h, P] (heights padded by repeating, masked); lift [Cl, G, P]
     def force_rows():
         d = np.array([exps[i].design for i in force_i]).reshape(-1, 6)
-        hs = np.array([list(exps[i].heights_mm) + [exps[i].heights_mm[-1]] * (n_h - len(exps[i].heights_mm)) for i in force_i]).reshape(-1, n_h)
+        hs = np.array(
+            [list(exps[i].heights_mm) + [exps[i].heights_mm[-1]] * (n_h - len(exps[i].heights_mm)) for i in force_i]
+        ).reshape(-1, n_h)
         p = np.array([exps[i].p_max_pa * frac for i in force_i]).reshape(-1, n_pressures)
         H = np.broadcast_to(hs[:, :, None], (len(force_i), n_h, n_pressures))
         P = np.broadcast_to(p[:, None, :], H.shape)
@@ -497,27 +508,27 @@ def rank_experiments(
     sig = np.ones((len(exps), k, r_obs))
     mask = np.zeros((len(exps), r_obs))
     rows_of: list[list[dict]] = [[] for _ in exps]
-    for c, i in enumerate(force_i):
+    for i in force_i:
         e = exps[i]
         n = len(e.heights_mm)
         mask[i, : n * n_pressures] = 1.0
-        rows_of[i] = [
-            {"height_mm": float(h), "pressure_pa": float(e.p_max_pa * f)} for h in e.heights_mm for f in frac
-        ]
+        rows_of[i] = [{"height_mm": float(h), "pressure_pa": float(e.p_max_pa * f)} for h in e.heights_mm for f in frac]
     for i in lift_i:
         mask[i, :n_pressures] = 1.0
         rows_of[i] = [{"height_mm": None, "pressure_pa": float(exps[i].p_max_pa * f)} for f in frac]
     for j, mf in enumerate(mfs):
         thin = mf.thinned(n_draws)
         if thin.theta.shape[0] < n_draws:
-            raise InputError(f"hypothesis {names[j]!r} holds {thin.theta.shape[0]} posterior draws, fewer than n_draws={n_draws}")
+            raise InputError(
+                f"hypothesis {names[j]!r} holds {thin.theta.shape[0]} posterior draws, fewer than n_draws={n_draws}"
+            )
         sigma_f = float(thin.noise_n)
         k_j = key  # common random numbers across hypotheses (see _criterion)
         if force_i:
             D, H, P = force_rows()
-            f = np.asarray(_draws(thin, D, H, P, True, k_j))
-            f = f.reshape(n_draws, len(force_i), n_h * n_pressures)
-            obs[force_i, j, :, : n_h * n_pressures] = np.transpose(f, (1, 0, 2))
+            f_force = np.asarray(_draws(thin, D, H, P, True, k_j))
+            f_force = f_force.reshape(n_draws, len(force_i), n_h * n_pressures)
+            obs[force_i, j, :, : n_h * n_pressures] = np.transpose(f_force, (1, 0, 2))
             sig[force_i, j, :] = sigma_f
         if lift_i:
             D, H, P = lift_rows()
@@ -533,14 +544,20 @@ def rank_experiments(
     # the likelihood drops resting and pinned rows (a resting row records the weight, not
     # the membrane's force), so a difference there is nothing the calibration would see
     for i in lift_i:
-        floating = np.all((obs[i, :, :, :n_pressures] >= min_lift_height_mm) & (obs[i, :, :, :n_pressures] <= h_grid[-1] - min_lift_height_mm), axis=(0, 1))
+        floating = np.all(
+            (obs[i, :, :, :n_pressures] >= min_lift_height_mm)
+            & (obs[i, :, :, :n_pressures] <= h_grid[-1] - min_lift_height_mm),
+            axis=(0, 1),
+        )
         mask[i, :n_pressures] = floating.astype(float)
     bad = [exps[i].label() for i in range(len(exps)) if not np.all(np.isfinite(obs[i][..., mask[i] > 0]))]
     if bad:
         raise InputError(f"the models have no finite prediction for {len(bad)} candidate(s), e.g. {bad[0]}")
 
     eps = np.asarray(jax.random.normal(jax.random.fold_in(key, 10_000), (len(exps), n_draws, r_obs)))
-    crit = jax.jit(lambda xs: jax.lax.map(lambda x: _criterion(*x, jnp.asarray(pi)), xs, batch_size=batch_size))
+    crit = jax.jit(
+        lambda xs: jax.lax.map(lambda x: _criterion(x[0], x[1], x[2], x[3], jnp.asarray(pi)), xs, batch_size=batch_size)
+    )
     pair, p_true = crit((jnp.asarray(obs), jnp.asarray(sig), jnp.asarray(mask), jnp.asarray(eps)))
     pair, p_true = np.asarray(pair), np.asarray(p_true)
     off = np.where(np.eye(k, dtype=bool)[None], np.inf, pair)
@@ -559,7 +576,11 @@ def rank_experiments(
             y = obs[i, j][:, m][None] + sig[i, j][m] * rng.standard_normal((8, n_draws, int(m.sum())))
             y = y.reshape(-1, int(m.sum()))
             lo, hi = np.quantile(y, [a, 1 - a], axis=0)
-            by[nm] = {"mean": obs[i, j][:, m].mean(0).round(3).tolist(), "lo": lo.round(3).tolist(), "hi": hi.round(3).tolist()}
+            by[nm] = {
+                "mean": obs[i, j][:, m].mean(0).round(3).tolist(),
+                "lo": lo.round(3).tolist(),
+                "hi": hi.round(3).tolist(),
+            }
         preds.append(
             {
                 "observable": "force_n" if e.kind == "force" else "height_mm",

@@ -116,7 +116,10 @@ def test_bad_input_fails_in_one_line():
         Experiment(RINGLESS, "lift", 100.0)
     with pytest.raises(InputError, match="design"):
         candidate_experiments(["[2.0, nope]"])
-    assert Hypothesis.parse("none").effects == () and Hypothesis.parse("a:coupons".replace("a", "none")).material == "coupons"
+    assert (
+        Hypothesis.parse("none").effects == ()
+        and Hypothesis.parse("a:coupons".replace("a", "none")).material == "coupons"
+    )
 
 
 def test_probabilities_and_outside_measurements():
@@ -133,15 +136,49 @@ def test_cli_ranks_and_bad_hypothesis_exits_2(tmp_path):
 
     data = write_parquet(rig_data(), tmp_path / "d.parquet")
     r = runner.invoke(
-        app, ["discriminate", str(data), "--hypotheses", "fabric_inset", "bogus", "--physics", "standin", "--out", str(tmp_path / "x")]
+        app,
+        [
+            "discriminate",
+            str(data),
+            "--hypotheses",
+            "fabric_inset",
+            "bogus",
+            "--physics",
+            "standin",
+            "--out",
+            str(tmp_path / "x"),
+        ],
     )
-    assert r.exit_code == 2 and "unknown effect 'bogus'" in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    assert r.exit_code == 2 and "unknown effect 'bogus'" in r.output and len(r.output.strip().splitlines()) == 1, (
+        r.output
+    )
     r = runner.invoke(
-        app, ["discriminate", str(data), "--hypotheses", "fabric_inset", "none", "--physics", "emulator", "--out", str(tmp_path / "e")]
+        app,
+        [
+            "discriminate",
+            str(data),
+            "--hypotheses",
+            "fabric_inset",
+            "none",
+            "--physics",
+            "emulator",
+            "--out",
+            str(tmp_path / "e"),
+        ],
     )  # the emulator holds the fabric inset at 0: refused before any fit, not a NaN fit
     assert r.exit_code == 2 and "fabric_inset_mm" in r.output and len(r.output.strip().splitlines()) == 1, r.output
     out = tmp_path / "o"
-    args = ["discriminate", str(data), "--hypotheses", "fabric_inset", "none", "--physics", "standin", "--out", str(out)]
+    args = [
+        "discriminate",
+        str(data),
+        "--hypotheses",
+        "fabric_inset",
+        "none",
+        "--physics",
+        "standin",
+        "--out",
+        str(out),
+    ]
     r = runner.invoke(app, args + ["--mcmc-steps", "40", "--max-rows", "60", "--new-design", NEW, "--top", "2"])
     assert r.exit_code == 0, r.output
     doc = json.loads((out / "discriminate.json").read_text())

@@ -12,7 +12,19 @@ contract (:mod:`._contract`): bad input prints one line and exits with status 2;
 else names a log file with the traceback and exits with status 1.
 """
 
-from mfdesign.cli import _contract, calibrate, campaign, data, demo, diagnose, discriminate, optimize, propose, rig, simulate
+from mfdesign.cli import (
+    _contract,
+    calibrate,
+    campaign,
+    data,
+    demo,
+    diagnose,
+    discriminate,
+    optimize,
+    propose,
+    rig,
+    simulate,
+)
 from mfdesign.cli._app import app, plain_help
 
 __all__ = ["app"]

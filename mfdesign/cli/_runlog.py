@@ -26,6 +26,8 @@ import time
 from pathlib import Path
 from typing import Any, Iterator
 
+from mfdesign.errors import InputError
+
 
 # Where the group callback leaves --verbose / --quiet for the command's run log.
 VERBOSITY_KEY = "mfdesign.verbosity"
@@ -94,6 +96,9 @@ def run_log(path: Path, command: str, params: dict, verbose: bool = False) -> It
         yield handler
     except typer.Exit as stop:
         status = stop.exit_code
+        raise
+    except InputError:  # bad input found by the library: the CLI turns it into exit 2
+        status = 2
         raise
     except BaseException:
         status = 1

@@ -35,9 +35,13 @@ def register(app: typer.Typer) -> None:
         ),
         out: Path = typer.Option(Path("out/discriminate"), help="Output folder (discriminate.json, discriminate.png)."),
         physics: str = typer.Option("emulator", help="emulator | exact | standin (the fits' force model)."),
-        new_design: List[str] = typer.Option([], "--new-design", help='A membrane that could be made, "[t, c, r1, w1, r2, w2]" mm (repeat).'),
+        new_design: List[str] = typer.Option(
+            [], "--new-design", help='A membrane that could be made, "[t, c, r1, w1, r2, w2]" mm (repeat).'
+        ),
         heights_mm: List[float] = typer.Option(
-            [0.0, 20.0, 40.0], parser=item_parser(float, "a height in mm"), help="Plate heights of force sweeps [mm] (repeat)."
+            [0.0, 20.0, 40.0],
+            parser=item_parser(float, "a height in mm"),
+            help="Plate heights of force sweeps [mm] (repeat).",
         ),
         masses_kg: List[float] = typer.Option(
             [1.5, 2.5, 4.0], parser=item_parser(float, "a mass in kg"), help="Lift masses [kg] (repeat)."

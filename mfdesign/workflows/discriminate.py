@@ -48,7 +48,9 @@ class DiscriminateResult:
         r = self.ranking
         lines = ["hypotheses (BIC on the data -> probability):"]
         lines += [f"  {h}: BIC {self.bic[h]:.1f} -> P {self.probability[h]:.3f}" for h in r.hypotheses]
-        lines.append(f"experiments ranked by expected log Bayes factor (Box & Hill 1967), {len(r.experiments)} candidates:")
+        lines.append(
+            f"experiments ranked by expected log Bayes factor (Box & Hill 1967), {len(r.experiments)} candidates:"
+        )
         lines += ["  " + s for s in r.lines(self.top)]
         lines.append("measurements off the rig that would decide:")
         for o in self.outside:
@@ -207,12 +209,14 @@ def discriminate(
             **material_priors(h.material),
         )
         fits[h.name] = for_search(fit, "emulator") if physics == "exact" else fit.mf
-        bic[h.name] = float(fit.posterior.bic)
+        bic[h.name] = float(fit.posterior.bic)  # type: ignore[attr-defined]
     prob = dict(zip(bic, hypothesis_probabilities(list(bic.values())).tolist()))
     existing = list(dict.fromkeys(data.df["design_key"]))
     heights = tuple(float(h) for h in heights_mm)
     sets = [(h,) for h in heights] + ([heights] if len(heights) > 1 else [])
-    cands = candidate_experiments(existing, new_designs, height_sets_mm=sets, masses_kg=masses_kg, cost_membrane=cost_membrane)
+    cands = candidate_experiments(
+        existing, new_designs, height_sets_mm=sets, masses_kg=masses_kg, cost_membrane=cost_membrane
+    )
     ranking = rank_experiments(fits, cands, n_draws=n_draws, n_pressures=n_pressures, seed=seed)
     outside = outside_rig(hyps)
     out = Path(out)
@@ -222,13 +226,32 @@ def discriminate(
         "method": ranking.method,
         "criterion": "expected log Bayes factor of the true hypothesis against its closest rival, averaged over which is true (equal weights)",
         "physics": physics,
-        "hypotheses": [{"name": h.name, "effects": list(h.effects), "material": h.material, "bic": bic[h.name], "probability": prob[h.name]} for h in hyps],
-        "settings": dict(mcmc_steps=mcmc_steps, max_rows=max_rows, members=members, delta_steps=delta_steps, n_draws=n_draws, n_pressures=n_pressures, seed=seed),
+        "hypotheses": [
+            {
+                "name": h.name,
+                "effects": list(h.effects),
+                "material": h.material,
+                "bic": bic[h.name],
+                "probability": prob[h.name],
+            }
+            for h in hyps
+        ],
+        "settings": dict(
+            mcmc_steps=mcmc_steps,
+            max_rows=max_rows,
+            members=members,
+            delta_steps=delta_steps,
+            n_draws=n_draws,
+            n_pressures=n_pressures,
+            seed=seed,
+        ),
         "ranked": [ranking.entry(i) | {"rank": k + 1} for k, i in enumerate(ranking.order)],
         "outside_rig": outside,
     }
     path = outputs.write_json(out / "discriminate.json", doc)
-    warn = ()
+    warn: tuple[str, ...] = ()
     if physics == "exact":
-        warn = ("warning: the candidates were scored on the emulator (about 1 N RMS off the simulator); check the top experiment's predictions with the simulator",)
+        warn = (
+            "warning: the candidates were scored on the emulator (about 1 N RMS off the simulator); check the top experiment's predictions with the simulator",
+        )
     return DiscriminateResult(ranking, bic, prob, outside, Path(path), png, int(top), time.time() - t0, warn)

@@ -37,6 +37,7 @@ def _axes(fm):
     return [a.name for a in fm.tensor_axes], [a.name for a in fm.additive_axes]
 
 
+@pytest.mark.slow  # minutes of plane solves on 2 cores (the default suite stays near 15 minutes)
 def test_tensor_jm_crosses_the_effect_with_jm_and_adds_the_ring_ratio(table):
     params = SimParams(mu_pa=28.0e3, jm=33.0, fabric_inset_mm=0.4)  # mu moves the ring ratio too
     fm = force_model_named("exact", table, effect_axes="tensor-jm").covering(params).strict(True)

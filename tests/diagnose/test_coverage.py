@@ -40,6 +40,7 @@ def _data(design: str, hidden: dict, protocol: Protocol, simulator=None, seed: i
     return rig.run([Membrane.from_key(design)], lift=False, progress=False)
 
 
+@pytest.mark.slow  # minutes of plane solves on 2 cores (the default suite stays near 15 minutes)
 def test_thinner_membrane_grows_the_planes_top(tmp_path, monkeypatch):
     protocol = Protocol(ringless_limit_pa=2000.0, lift_limit_pa=2000.0, **SMALL)
     meas = _data("[2.0, 25.4, nan, nan, nan, nan]", {"thickness_deviation.relative": -0.12}, protocol)
@@ -57,6 +58,7 @@ def test_thinner_membrane_grows_the_planes_top(tmp_path, monkeypatch):
     assert after <= 1.2, after
 
 
+@pytest.mark.slow  # minutes of plane solves on 2 cores (the default suite stays near 15 minutes)
 def test_narrow_gap_contact_offset_is_refitted_and_found(tmp_path):
     # ring inner edge 33.4 - 5.0 = 28.4 mm, disk 25.4 mm: a 3 mm gap, 0.5 mm at +2.5 mm
     design = "[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]"

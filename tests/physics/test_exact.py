@@ -31,6 +31,7 @@ def _rows(key, n, rng):
     return np.broadcast_to(d.to_array(), (n, 6)), rng.uniform(0.0, H_MAX, n), rng.uniform(300.0, P_MAX, n)
 
 
+@pytest.mark.slow  # minutes of plane solves on 2 cores (the default suite stays near 15 minutes)
 def test_exact_model_matches_direct_simulator_calls_at_random_rows_and_parameters(exact, caplog):
     """The accuracy bound of issue 17: 0.05 N RMS, 0.15 N max, at random rows and at random
     constants (mu, J_m, thickness factor and a mechanical effect) inside the lattice it grew."""
