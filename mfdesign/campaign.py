@@ -504,6 +504,21 @@ class Campaign:
                 raise InputError(f"{path}: source {s.id} is missing or changed since it was told (sha256 differs)")
         return load_sources([str(self.folder / s.file) for s in chosen])
 
+    def model_folder(self, round: int | None = None) -> Path:
+        """The folder of ``round``'s fitted model (default: the latest): what ``--model``
+        reads when it is given the campaign's folder (``mfdesign propose --model D``)."""
+        folders = _round_folders(self.folder)
+        if not folders:
+            raise InputError(
+                f"campaign {self.folder} has no fitted round yet; allowed: fit it first (mfdesign fit {self.folder})"
+            )
+        if round is None:
+            return folders[-1] / "model"
+        path = self.folder / "rounds" / f"{_ROUND_PREFIX}{round:03d}"
+        if path not in folders:
+            raise InputError(f"campaign {self.folder} has no round {round}; complete rounds: {self.rounds()}")
+        return path / "model"
+
     def model(self, round: int | None = None):
         """The fitted model of ``round`` (default: the latest), reloaded from its folder: an
         :class:`~mfdesign.calibration.workflow.MFFit` on the search physics."""

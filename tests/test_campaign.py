@@ -242,3 +242,20 @@ def test_the_demo_replaces_only_its_own_untouched_campaign(fitted, tmp_path):
     Campaign.open(continued).ask(q=1)
     with pytest.raises(InputError, match=r"holds a campaign continued after the demo .*allowed: a new --out folder"):
         check_campaign_folder(continued)
+
+
+def test_every_model_option_takes_a_campaign_folder(fitted, tmp_path):
+    """``--model D`` (propose, optimize, diagnose) reads a campaign's latest round; a
+    campaign with no round yet is refused in one line."""
+    from mfdesign.workflows.models import load_fit, load_predictor, model_folder
+
+    folder, _ = fitted
+    assert model_folder(folder) == folder / "rounds" / "round-000" / "model"
+    a = np.asarray(load_fit(folder).mf.predict(DESIGN, H_MM, P_PA))
+    b = np.asarray(Campaign.open(folder).model().mf.predict(DESIGN, H_MM, P_PA))
+    assert np.array_equal(a, b)
+    assert set(load_predictor(folder).fidelities) == {"rig", "sim"}
+    empty = tmp_path / "empty"
+    Campaign.create(empty, data=rig_data(), settings=Settings.quick("standin"))
+    with pytest.raises(InputError, match="has no fitted round yet; allowed: fit it first"):
+        load_predictor(empty)

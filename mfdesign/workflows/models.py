@@ -24,6 +24,15 @@ __all__ = [
 ]
 
 
+def model_folder(path: Path) -> Path:
+    """``path`` itself, or, for a campaign's folder (``mfdesign demo --out D`` leaves one),
+    its latest round's model folder: every ``--model`` takes a campaign."""
+    from mfdesign.campaign import Campaign
+
+    path = Path(path)
+    return Campaign.open(path).model_folder() if Campaign.holds_campaign(path) else path
+
+
 def load_fit(path: Path) -> Any:
     """The multi-fidelity fit (:class:`~mfdesign.calibration.workflow.MFFit`) of a
     ``mfdesign fit-mf`` folder (``mf.json``), or None for any other folder.
@@ -32,7 +41,7 @@ def load_fit(path: Path) -> Any:
         path: the model folder.
 
     Raises ``InputError`` when the folder holds a broken fit."""
-    path = Path(path)
+    path = model_folder(path)
     if not (path / "mf.json").is_file():
         return None
     from mfdesign.calibration.workflow import load_multi_fidelity
@@ -54,7 +63,7 @@ def load_model(path: Path, fit: Any = None) -> Any:
     from mfdesign.models.predictor import EnsemblePredictor
     from mfdesign.models.sanity import check_predictor
 
-    path = Path(path)
+    path = model_folder(path)
     if not path.is_dir():
         raise InputError(f"model folder {path} does not exist (fit one with `mfdesign fit` or `mfdesign fit-mf`)")
     if (path / "mf.json").is_file():
@@ -85,7 +94,7 @@ def load_predictor(model: Path, fit: Any = None) -> Any:
     from mfdesign.models.predictor import EnsemblePredictor, SplitPredictor
     from mfdesign.models.sanity import check_predictor
 
-    model = Path(model)
+    model = model_folder(model)
     if not model.is_dir():
         raise InputError(f"--model {model} is not a folder (give the output folder of 'mfdesign fit')")
     if (model / "mf.json").is_file():
@@ -112,7 +121,7 @@ def simulator_for_check(model: Path) -> tuple[bool, str]:
         import mfdesign.physics.solve  # noqa: F401
     except ImportError as err:  # a broken install: say so rather than fail after the search
         return False, f"the simulator cannot be imported ({err})"
-    meta_path = Path(model) / "mf.json"
+    meta_path = model_folder(model) / "mf.json"
     if meta_path.is_file():
         try:
             meta = json.loads(meta_path.read_text())
