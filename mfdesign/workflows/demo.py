@@ -650,7 +650,7 @@ def demo_report(out: str | Path, summary: dict):
             if sims
             else []
         ),
-        images=[(out / "propose" / "proposals.png", "proposals in the design space")],
+        images=[(out / "propose" / "proposal.png", "proposals in the design space")],
     )
     opt = summary["optimum"]
     ties, gaps = opt.get("alternatives") or [], opt.get("alternatives_gap_pct") or []
@@ -674,7 +674,7 @@ def demo_report(out: str | Path, summary: dict):
             else []
         ),
         table=_optimum_table(opt),
-        images=[(out / "optimize" / "optimum.png", "predicted lift, simulator check as crosses")],
+        images=[(out / "optimize" / "optimize.png", "predicted lift, simulator check as crosses")],
     )
     return rep
 
@@ -838,7 +838,7 @@ def _propose_stage(run: _Run, predictor):
     )
     (run.out / "propose").mkdir(exist_ok=True)
     outputs.write_text(run.out / "propose" / "proposal.json", json.dumps(proposal.to_json(), indent=1, default=str))
-    _proposal_figure(run.meas, proposal, run.out / "propose" / "proposals.png")
+    _proposal_figure(run.meas, proposal, run.out / "propose" / "proposal.png")
     return proposal
 
 
@@ -871,8 +871,8 @@ def _optimise_stage(run: _Run, predictor, fit) -> dict:
         sim_constants=sim_constants,
     )
     (run.out / "optimize").mkdir(exist_ok=True)
-    plot_optimum(result, run.out / "optimize" / "optimum.png", title="lift task A")
-    outputs.write_text(run.out / "optimize" / "optimum.json", json.dumps(result.to_json(), indent=1, default=str))
+    plot_optimum(result, run.out / "optimize" / "optimize.png", title="lift task A")
+    outputs.write_text(run.out / "optimize" / "optimize.json", json.dumps(result.to_json(), indent=1, default=str))
     return _optimum_json(result, "A", None if check else "stand-in physics: no simulator behind it")
 
 

@@ -119,7 +119,7 @@ def test_quick_demo_writes_a_report_chromium_can_show(tmp_path):
     if not all(c["converged"] for c in summary["convergence"].values()):
         assert any("has not converged" in b for b in report["banners"])
     # The optimum shown is the simulator's check of the emulator's answer, never its word alone.
-    optimum = json.loads((tmp_path / "optimize" / "optimum.json").read_text())
+    optimum = json.loads((tmp_path / "optimize" / "optimize.json").read_text())
     assert optimum["simulator"] is not None and summary["optimum"]["simulator"] is not None
     assert "the simulator (calibrated constants) lifts the loads to" in report["summary"][3]
     assert all(p["fidelity"] == "rig" and p["reason"] for p in summary["proposals"])  # to build, with why
@@ -156,7 +156,7 @@ def _stand_in_pictures(out: Path) -> None:
 
     names = ["figures/planes.png", "figures/predictive_check.png", "plain/corner.png", "with_effects/corner.png"]
     names += [f"diagnose/{k}.png" for k in ("maps_before", "maps_after", "parity", "breakdown", "screen_1", "screen_2")]
-    names += ["propose/proposals.png", "optimize/optimum.png"]
+    names += ["propose/proposal.png", "optimize/optimize.png"]
     for name in names:
         path = out / name
         path.parent.mkdir(parents=True, exist_ok=True)
