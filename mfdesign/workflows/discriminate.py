@@ -106,7 +106,7 @@ def _check_support(hyps, force_model, physics: str) -> None:
     from mfdesign.physics import effects as fx
     from mfdesign.physics.params import SimParams
 
-    support = force_model.support() if hasattr(force_model, "support") else {}
+    support = force_model.support()  # ForceModel declares it (models valid everywhere: {})
     base = SimParams()
     for h in hyps:
         for name in h.effects:
