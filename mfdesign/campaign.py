@@ -31,16 +31,16 @@ Units: heights mm, pressures Pa, forces N.
 from __future__ import annotations
 
 import dataclasses
-import datetime
-import hashlib
 import json
 import os
 import shutil
-import sys
 from pathlib import Path
 from typing import Any, Sequence
 
 from mfdesign.errors import InputError
+from mfdesign.provenance import now as _now
+from mfdesign.provenance import provenance
+from mfdesign.provenance import sha256 as _sha256
 
 __all__ = ["Campaign", "CampaignStatus", "ProposalEntry", "Round", "Settings", "Source", "provenance"]
 
@@ -290,47 +290,6 @@ class CampaignStatus:
 
 
 # ----------------------------------------------------------------------------- provenance
-def provenance(call: str, seeds: dict | None = None, inputs: dict | None = None) -> dict:
-    """What made an output: the mfdesign version, ``call`` (a command line or a Python
-    call), ``seeds``, ``inputs`` (name -> sha256 of its bytes) and the machine (cores,
-    JAX's devices, Python, platform)."""
-    import platform
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        mine = version("mfdesign")
-    except PackageNotFoundError:  # a source tree on the path, not installed
-        mine = "unknown"
-    devices: list[str] = []
-    if "jax" in sys.modules:  # never import JAX for this alone (status must stay fast)
-        devices = [str(d) for d in sys.modules["jax"].devices()]
-    return {
-        "mfdesign_version": mine,
-        "call": call,
-        "seeds": dict(seeds or {}),
-        "inputs_sha256": dict(inputs or {}),
-        "machine": {
-            "cores": os.cpu_count(),
-            "jax_devices": devices,
-            "python": platform.python_version(),
-            "platform": platform.platform(),
-        },
-        "time": _now(),
-    }
-
-
-def _now() -> str:
-    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _measurements(data, what: str):
     """A Measurements table from ``data``: a table, or a source / sources for
     :func:`mfdesign.data.sources.load_sources` (Parquet, CSV, rig job folder, ...)."""

@@ -16,7 +16,14 @@ PKG = Path(__file__).resolve().parents[1] / "mfdesign"
 
 # Upstream first. A module takes the layer of its longest matching prefix.
 LAYERS = (
-    ("mfdesign._x64", "mfdesign._cache", "mfdesign.units", "mfdesign.errors", "mfdesign.outputs"),
+    (
+        "mfdesign._x64",
+        "mfdesign._cache",
+        "mfdesign.units",
+        "mfdesign.errors",
+        "mfdesign.outputs",
+        "mfdesign.provenance",
+    ),
     ("mfdesign.design", "mfdesign.materials"),
     ("mfdesign.physics", "mfdesign.data", "mfdesign.rig"),  # physics, data and the rig's I/O
     ("mfdesign.models",),

@@ -241,7 +241,11 @@ def cv(
         from mfdesign import outputs
 
         Path(out).parent.mkdir(parents=True, exist_ok=True)
-        outputs.write_json(out, {"model": model, **metrics})
+        from mfdesign.provenance import call_line, input_hashes, provenance
+
+        inputs = input_hashes(data if isinstance(data, (list, tuple)) else [data])
+        record = provenance(call_line("mfdesign.workflows.data.cv()"), {"seed": seed}, inputs)
+        outputs.write_json(out, {"model": model, **metrics, "provenance": record})
     return CVResult(metrics, None if out is None else Path(out))
 
 

@@ -1029,6 +1029,9 @@ def run_demo(
         total_cpu_s=round(time.process_time() - log.cpu0, 1),
         peak_rss_mb=_peak_rss_mb(),
     )
+    from mfdesign.provenance import call_line, input_hashes, provenance
+
+    summary["provenance"] = provenance(call_line("run_demo()"), {"seed": s.seed}, input_hashes([data_path]))
     outputs.write_text(out / "summary.json", json.dumps(summary, indent=1, default=str))
     echo(f"report: {paths['html']} ({summary['total_s']} s)")
     echo(f"campaign: continue it with  mfdesign ask {out} --q 2   (then tell, fit, status; docs/campaign.md)")

@@ -248,6 +248,10 @@ def discriminate(
         "ranked": [ranking.entry(i) | {"rank": k + 1} for k, i in enumerate(ranking.order)],
         "outside_rig": outside,
     }
+    from mfdesign.provenance import call_line, input_hashes, provenance
+
+    inputs = input_hashes(data if isinstance(data, (list, tuple)) else [data])
+    doc["provenance"] = provenance(call_line("mfdesign.workflows.discriminate.discriminate()"), {"seed": seed}, inputs)
     path = outputs.write_json(out / "discriminate.json", doc)
     warn: tuple[str, ...] = ()
     if physics == "exact":

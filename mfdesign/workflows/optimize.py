@@ -217,6 +217,10 @@ def optimize(
     )
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    outputs.write_json(out / "optimize.json", result.to_json())
+    from mfdesign.provenance import call_line, input_hashes, provenance
+
+    inputs = input_hashes([model] + ([targets] if targets is not None else []))
+    record = provenance(call_line("mfdesign.workflows.optimize.optimize()"), {"seed": seed}, inputs)
+    outputs.write_json(out / "optimize.json", result.to_json() | {"provenance": record})
     plot(result, out / "optimize.png")
     return OptimizeResult(result, out / "optimize.json", out / "optimize.png", why_not)

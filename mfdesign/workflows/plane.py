@@ -126,6 +126,9 @@ def write_plane(table: pd.DataFrame, design: Membrane, out: Path, extra: dict | 
         "max_force_n": float(np.nanmax(table.force_n)) if np.isfinite(table.force_n).any() else None,
         **(extra or {}),
     }
+    from mfdesign.provenance import call_line, provenance
+
+    summary["provenance"] = provenance(call_line("mfdesign.workflows.plane.write_plane()"))
     outputs.write_json(paths["json"], summary)
     return paths
 

@@ -380,6 +380,9 @@ def propose(
     report = proposal.to_json(made)
     if proposal.simulate:
         report["sim_runs"] = sim_note
-    outputs.write_json(out / "proposal.json", report)
+    from mfdesign.provenance import call_line, input_hashes, provenance
+
+    record = provenance(call_line("mfdesign.workflows.propose.propose()"), {"seed": seed}, input_hashes([model]))
+    outputs.write_json(out / "proposal.json", report | {"provenance": record})
     plot_proposal(proposal, out / "proposal.png", space)
     return ProposeResult(proposal, out / "proposal.json", out / "proposal.png", sim_note["title"], made, lines)

@@ -150,8 +150,13 @@ def test_propose_lists_but_does_not_make_sim_runs_of_a_standin_fit(folder, tmp_p
     args = ["propose", "--model", str(folder), "--sim-runs", "1", "--rings", "0", "--restarts", "4"]
     r = runner.invoke(app, [*args, "--refine", "2", "--opt-steps", "2", "--out", str(out)])
     assert r.exit_code == 0, r.output
-    (entry,) = json.loads((out / "proposal.json").read_text())["simulate"]
+    doc = json.loads((out / "proposal.json").read_text())
+    (entry,) = doc["simulate"]
     assert entry["made"] is False and "standin" in entry["why_not_made"]
+    # provenance (issue 41 item 6): version, call, seed, the model's files hashed, machine
+    prov = doc["provenance"]
+    assert prov["seeds"] == {"seed": 0} and prov["machine"]["cores"] >= 1 and prov["mfdesign_version"]
+    assert any(k.endswith("mf.json") and len(v) == 64 for k, v in prov["inputs_sha256"].items())
     assert "simulator runs (listed, not made: the model was fitted with --physics standin" in r.output
 
 
