@@ -37,6 +37,9 @@ def input_hashes(paths: Iterable[str | os.PathLike]) -> dict[str, str]:
     files' hashes, a name that is no file (``bundled``, ``mass-lift``) is kept as itself."""
     out: dict[str, str] = {}
     for item in paths:
+        if not isinstance(item, (str, os.PathLike)):  # a table handed over in Python: no file to hash
+            out[f"<{type(item).__name__}>"] = "(in memory)"
+            continue
         p = Path(item)
         if p.is_file():
             out[str(p)] = sha256(p)
