@@ -188,13 +188,19 @@ def coverage(mf: MultiFidelity, table, level: float = 0.9, key=0, max_rows: int 
     data = mf.data_for(None, None, None, table=table)
     mean, lo, hi = mf.interval(data, level, key=key)
     f = np.asarray(data.force_n)
-    inside = (f >= lo) & (f <= hi)
+    # rows the model has no number for (outside the physical model, off the planes) are
+    # left out and counted: a NaN mean made the whole RMSE NaN, and a NaN interval counted
+    # the row as outside it
+    ok = np.isfinite(mean) & np.isfinite(lo) & np.isfinite(hi) & np.isfinite(f)
     keys = np.asarray(data.design_keys, dtype=object)[np.asarray(data.rows.membrane)]
+    f, mean, lo, hi, keys = f[ok], mean[ok], lo[ok], hi[ok], keys[ok]
+    inside = (f >= lo) & (f <= hi)
     per = pd.DataFrame({"k": keys, "in": inside, "e2": (f - mean) ** 2}).groupby("k", sort=False).mean()
     return {
         "level": level,
-        "coverage": float(inside.mean()),
-        "rmse_n": float(np.sqrt(np.mean((f - mean) ** 2))),
+        "coverage": float(inside.mean()) if ok.any() else float("nan"),
+        "rmse_n": float(np.sqrt(np.mean((f - mean) ** 2))) if ok.any() else float("nan"),
         "per_membrane": {k: {"coverage": float(r["in"]), "rmse_n": float(np.sqrt(r["e2"]))} for k, r in per.iterrows()},
-        "mean_width_n": float(np.mean(hi - lo)),
+        "mean_width_n": float(np.mean(hi - lo)) if ok.any() else float("nan"),
+        "rows_without_value": int((~ok).sum()),
     }

@@ -87,3 +87,23 @@ def test_members_gives_a_calibrated_membrane_its_own_thickness(setup):
     want = np.asarray(mf.predict(design, h, p))
     np.testing.assert_allclose(got[:, :-1], want[:, :-1], rtol=1e-9)
     assert np.all(np.isfinite(got[:, -1])) and np.all(got.std(0)[-1:] > 0)
+
+
+def test_coverage_leaves_out_rows_without_a_value_and_counts_them(setup, monkeypatch):
+    """A row the model has no number for (outside the physical model: NaN) must not turn the
+    RMSE into NaN nor count as outside the interval (a round's train RMSE read NaN)."""
+    meas, data, model, post = setup
+    mf = MultiFidelity.from_posterior(model, post, delta=None, noise_n=0.5)
+    whole = coverage(mf, meas, 0.9)
+    real = MultiFidelity.interval
+
+    def with_holes(self, data, level=0.9, n_noise=8, key=0):
+        m, lo, hi = real(self, data, level, n_noise, key)
+        m = np.array(m, float)
+        m[::10] = np.nan
+        return m, lo, hi
+
+    monkeypatch.setattr(MultiFidelity, "interval", with_holes)
+    holed = coverage(mf, meas, 0.9)
+    assert np.isfinite(holed["rmse_n"]) and holed["rows_without_value"] > 1000  # every 10th of ~20k rows
+    assert holed["rmse_n"] == pytest.approx(whole["rmse_n"], rel=0.2) and whole["rows_without_value"] == 0
