@@ -924,9 +924,7 @@ def check_campaign_folder(out: str | Path) -> None:
 def _leave_campaign(run: _Run, found: list[str], fit, diag):
     """Make ``out`` a campaign whose round 0 is the demo's corrected fit, so that
     ``mfdesign ask / tell / fit / status OUT`` continue it (docs/campaign.md)."""
-    import shlex
     import shutil
-    import sys
 
     from mfdesign.campaign import CAMPAIGN_FILE, Campaign, Settings
 
@@ -953,7 +951,9 @@ def _leave_campaign(run: _Run, found: list[str], fit, diag):
         opt_steps=s.propose_steps,
         seed=s.seed,
     )
-    call = shlex.join(["mfdesign", *sys.argv[1:]]) if sys.argv and "mfdesign" in sys.argv[0] else "run_demo()"
+    from mfdesign.provenance import call_line
+
+    call = call_line("run_demo()")
     campaign = Campaign.create(run.out, data=run.meas, settings=settings, call=call)
     campaign.adopt(fit, diag, call=call)
     return campaign
