@@ -61,6 +61,19 @@ ALLOW_OUTSIDE = typer.Option(
 )
 
 
+# Declared once; the commands that solve simulator planes take it. The contract hands it to
+# the planes' solver for the whole command (mfdesign.cli._contract.ContractCommand,
+# mfdesign.physics.cluster.use_scheduler); the command bodies pass it nowhere.
+SCHEDULER = typer.Option(
+    None,
+    "--scheduler",
+    metavar="ADDRESS",
+    help="Dask scheduler (e.g. tcp://host:8786) whose workers solve the simulator planes; default "
+    '$MFDESIGN_SCHEDULER, else this machine\'s cores. Needs pip install "mfdesign[dask]" and '
+    "MFDESIGN_CACHE_DIR on a folder every worker sees (docs/physics.md).",
+)
+
+
 def fail(message: str) -> NoReturn:
     """Print one line to stderr and exit with status 2."""
     typer.echo(f"error: {message}", err=True)

@@ -58,7 +58,7 @@ class ContractCommand(TyperCommand):
 
     def invoke(self, ctx):
         from mfdesign._x64 import enable_x64
-        from mfdesign.outputs import OutputLock, file_lock, prepare_out_dir, prepare_out_file, refuse_inputs
+        from mfdesign.physics.cluster import use_scheduler
 
         # The one place the CLI switches JAX to float64: when a command really runs (never
         # for --help), before it creates any array.
@@ -66,6 +66,14 @@ class ContractCommand(TyperCommand):
 
         flags = {p.name: next((o for o in p.opts if o.startswith("--")), None) for p in self.params}
         check_option_ranges(ctx.params, flags)
+        # --scheduler (the commands that solve planes): every plane of the command goes to
+        # that Dask scheduler; a missing Dask is refused here, before any computation
+        with use_scheduler(ctx.params.get("scheduler")):
+            return self._invoke_with_outputs(ctx)
+
+    def _invoke_with_outputs(self, ctx):
+        from mfdesign.outputs import OutputLock, file_lock, prepare_out_dir, prepare_out_file, refuse_inputs
+
         out = ctx.params.get("out")
         if out is None:
             return super().invoke(ctx)

@@ -19,7 +19,7 @@ from typing import Annotated, List, Optional
 
 import typer
 
-from mfdesign.cli._app import ALLOW_OUTSIDE, show
+from mfdesign.cli._app import ALLOW_OUTSIDE, SCHEDULER, show
 from mfdesign.cli._contract import effect_name, item_parser
 from mfdesign.workflows.calibrate import bundled_truths as _bundled_truths  # noqa: F401 -- old name, still read
 from mfdesign.workflows.calibrate import calibrate  # light: its heavy imports are inside its functions
@@ -107,6 +107,7 @@ def _register(
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
         material: str = MATERIAL,
         latents: bool = LATENTS,
+        scheduler: Optional[str] = SCHEDULER,
     ) -> None:
         show(
             calibrate(

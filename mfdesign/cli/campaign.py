@@ -10,9 +10,11 @@ from __future__ import annotations
 import shlex
 import sys
 from pathlib import Path
-from typing import List
+from typing import List, Optional
 
 import typer
+
+from mfdesign.cli._app import SCHEDULER
 
 FOLDER = typer.Argument(..., help="The campaign's folder (holds campaign.json).")
 
@@ -28,6 +30,7 @@ def register(app: typer.Typer) -> None:
         folder: Path = FOLDER,
         q: int = typer.Option(2, help="Membranes to fabricate this round (rig runs)."),
         sim_runs: int = typer.Option(0, "--sim-runs", help="Simulator planes the tool makes now (they join the data)."),
+        scheduler: Optional[str] = SCHEDULER,
     ) -> None:
         """Ask a campaign which membranes to build next (the latest round's model; pending ones count as measured)."""
         from mfdesign.campaign import Campaign

@@ -15,7 +15,7 @@ from typing import List, Optional
 
 import typer
 
-from mfdesign.cli._app import ALLOW_OUTSIDE, fail, show
+from mfdesign.cli._app import ALLOW_OUTSIDE, SCHEDULER, fail, show
 
 DATA = typer.Argument(
     ...,
@@ -33,6 +33,7 @@ def fit_command(
     monotone: bool = typer.Option(True, help="Force non-decreasing in pressure."),
     seed: int = typer.Option(0, help="Random seed."),
     allow_outside_design_space: bool = ALLOW_OUTSIDE,
+    scheduler: Optional[str] = SCHEDULER,
 ) -> None:
     """Fit the paper's RPN ensemble to measurements and save it; or, DATA a campaign's folder, its next round."""
     from mfdesign.campaign import Campaign

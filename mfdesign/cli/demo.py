@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
-from mfdesign.cli._app import fail
+from mfdesign.cli._app import SCHEDULER, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -18,6 +19,7 @@ def register(app: typer.Typer) -> None:
             "exact", help="Where the model meets the data: exact (simulator planes) | emulator | standin (tests)."
         ),
         seed: int = typer.Option(0, help="Random seed."),
+        scheduler: Optional[str] = SCHEDULER,
     ) -> None:
         """The main job on the embedded default (no hardware, no external data).
 

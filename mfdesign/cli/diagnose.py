@@ -24,7 +24,7 @@ from typing import List, Optional
 
 import typer
 
-from mfdesign.cli._app import show
+from mfdesign.cli._app import SCHEDULER, show
 from mfdesign.cli._contract import effect_name, item_parser
 
 # The options, declared once here so that the command reads as what it does.
@@ -91,10 +91,12 @@ def diagnose(
     shapes: bool = typer.Option(True, help="Plot the simulated shape at the worst points (exact physics only)."),
     cache_dir: Optional[Path] = typer.Option(None, help="Plane cache (default ~/.cache/mfdesign/planes)."),
     allow_outside_design_space: bool = ALLOW_OUTSIDE,
+    scheduler: Optional[str] = SCHEDULER,
 ) -> None:
     """Residuals by height, pressure, design, trial and phase; worst regions in words; which
     effect is missing (screen + full check); before/after with --effects. Writes HTML + JSON."""
     options = dict(locals())  # every option, by name: the workflow takes them as they are
+    options.pop("scheduler")  # the contract's (mfdesign.cli._app.SCHEDULER)
     from mfdesign.workflows.diagnose import diagnose as run
 
     show(run(**options))

@@ -19,7 +19,7 @@ from typing import List, Optional
 
 import typer
 
-from mfdesign.cli._app import show
+from mfdesign.cli._app import SCHEDULER, show
 from mfdesign.cli._contract import item_parser
 
 
@@ -51,6 +51,7 @@ def register(app: typer.Typer) -> None:
         max_rows: int = typer.Option(400, help="Rows each fit's likelihood uses."),
         seed: int = typer.Option(0, help="Random seed (same seed, same ranking)."),
         top: int = typer.Option(5, help="Ranked experiments to print."),
+        scheduler: Optional[str] = SCHEDULER,
     ) -> None:
         """Rank the experiments that would tell hypotheses apart (expected log Bayes factor, Box & Hill 1967)."""
         from mfdesign.workflows.discriminate import discriminate as run

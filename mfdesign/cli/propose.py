@@ -16,7 +16,7 @@ from typing import Optional
 
 import typer
 
-from mfdesign.cli._app import ALLOW_OUTSIDE, show
+from mfdesign.cli._app import ALLOW_OUTSIDE, SCHEDULER, show
 from mfdesign.cli._contract import item_parser
 from mfdesign.cli._space import CONTACT_RADIUS, HALF_WIDTH, THICKNESS
 
@@ -65,9 +65,11 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(
             Path("out/propose"), help="Output folder (proposal.json, proposal.png, sim_runs/, sim_runs.parquet)."
         ),
+        scheduler: Optional[str] = SCHEDULER,
     ) -> None:
         """Propose the next membranes to fabricate (and simulator runs to make): max uncertainty reduction per cost."""
         options = dict(locals())  # every option, by name: the workflow takes them as they are
+        options.pop("scheduler")  # the contract's (mfdesign.cli._app.SCHEDULER)
         from mfdesign.workflows.propose import propose as run
 
         show(run(**options))

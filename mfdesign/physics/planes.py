@@ -31,8 +31,10 @@ clipped force has a kink, is a smooth zero crossing.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
+import logging
 import math
 import os
 import threading
@@ -46,6 +48,8 @@ from mfdesign.physics.params import SimParams
 from mfdesign.materials import ECOFLEX_JM
 
 __all__ = ["AXES", "Axis", "H_STEP_MM", "P_STEP_PA", "PlaneGrid", "cache_dir", "lattice_jobs", "solve_planes"]
+
+log = logging.getLogger(__name__)
 
 H_STEP_MM = 2.5
 P_STEP_PA = 250.0
@@ -294,15 +298,41 @@ def _repair(design: Membrane, params: SimParams, grid: PlaneGrid, f: np.ndarray,
         f.ravel()[idx] = np.where(np.asarray(fe.converged, bool), np.asarray(fe.force_n, float), np.nan)
 
 
+def _write_plane(folder: Path, key: str, f: np.ndarray) -> None:
+    """Store a plane in the cache folder atomically: a reader never sees half a plane."""
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = folder / f".{key}.{os.getpid()}.{threading.get_ident()}.npy"
+    np.save(tmp, f, allow_pickle=False)
+    os.replace(tmp, folder / f"{key}.npy")
+
+
+def _finish_plane(grid: PlaneGrid, folder: Path | None, job: tuple[Membrane, SimParams], res) -> np.ndarray:
+    """A solved plane as cached: unconverged nodes repaired (:func:`_repair`), the p = 0
+    column filled, stored in ``folder`` (None: not stored). ``force_planes``' ``then``: it
+    runs in the plane's own worker (a thread here, a task on a Dask cluster), so each plane
+    is stored as soon as it is solved: a run stopped half-way, or a second process solving
+    the same lattice, loses none of them."""
+    f = np.asarray(res.force_n, float)
+    _repair(*job, grid, f, np.asarray(res.status))
+    f = _fill_zero_pressure(np.concatenate([np.full((grid.h.size, 1), np.nan), f], axis=1))
+    if folder is not None:
+        _write_plane(folder, _job_key(job[0], job[1], grid), f)
+    return f
+
+
 def solve_planes(
     jobs: Sequence[tuple[Membrane, SimParams]],
     grid: PlaneGrid,
     cache: Path | None | bool = None,
     progress: bool = False,
+    scheduler=None,
 ) -> list[np.ndarray]:
     """Signed force planes ``[len(grid.h), len(grid.p)]`` [N] of ``(design, params)`` jobs,
     from memory, the disk cache (``cache``: a folder, ``None`` for :func:`cache_dir`, ``False``
-    for none) or the simulator (all missing ones in one :func:`force_planes` call)."""
+    for none) or the simulator (all missing ones in one :func:`force_planes` call, on this
+    machine or on the Dask ``scheduler``: None means the CLI's ``--scheduler``, else
+    ``$MFDESIGN_SCHEDULER``, else this machine; :mod:`mfdesign.physics.cluster`)."""
+    from mfdesign.physics import cluster
     from mfdesign.physics.solve import force_planes
 
     folder = None if cache is False else Path(cache) if cache else cache_dir()
@@ -322,25 +352,38 @@ def solve_planes(
                 pass  # a torn or foreign file: solve again and overwrite it
         todo[k] = job
     if todo:
-
-        def solved(job, res):
-            # each plane is stored as soon as it is solved (in its worker): a run stopped
-            # half-way, or a second process solving the same lattice, loses none of them
-            f = np.asarray(res.force_n, float)
-            _repair(*job, grid, f, np.asarray(res.status))
-            f = _fill_zero_pressure(np.concatenate([np.full((grid.h.size, 1), np.nan), f], axis=1))
-            if folder is not None:
-                k = _job_key(job[0], job[1], grid)
-                folder.mkdir(parents=True, exist_ok=True)
-                tmp = folder / f".{k}.{os.getpid()}.{threading.get_ident()}.npy"
-                np.save(tmp, f, allow_pickle=False)
-                os.replace(tmp, folder / f"{k}.npy")  # atomic: a reader never sees half a plane
-            return f
-
-        results = force_planes(list(todo.values()), grid.h, grid.p[1:], signed=True, progress=progress, then=solved)
+        finish = functools.partial(_finish_plane, grid, folder)
+        where = cluster.scheduler_from(scheduler)
+        results = force_planes(
+            list(todo.values()),
+            grid.h,
+            grid.p[1:],
+            signed=True,
+            progress=progress,
+            then=finish,
+            scheduler=False if where is None else where,
+        )
+        if where is not None and folder is not None:
+            _store_missing(folder, dict(zip(todo, results)))
         for k, f in zip(todo, results):
             _MEMO[k] = _fill_above_no_contact(f)
     return [_MEMO[k] for k in keys]
+
+
+def _store_missing(folder: Path, planes: Mapping[str, np.ndarray]) -> None:
+    """After a cluster solve: store here the planes the workers did not leave in ``folder``
+    (they do not see it: MFDESIGN_CACHE_DIR must be a folder every worker sees)."""
+    missing = [k for k in planes if not (folder / f"{k}.npy").is_file()]
+    for k in missing:
+        _write_plane(folder, k, planes[k])
+    if missing:
+        log.warning(
+            "%d of %d planes solved on the Dask cluster were not in %s: the workers do not see this folder "
+            "(MFDESIGN_CACHE_DIR must be a folder every worker sees); stored from here",
+            len(missing),
+            len(planes),
+            folder,
+        )
 
 
 def node_range(axis: Axis, lo: float, hi: float) -> tuple[int, int]:

@@ -604,9 +604,10 @@ def force_planes(
     signed: bool = False,
     progress: bool = False,
     then: Callable[[tuple[Membrane, SimParams], SimResult], Any] | None = None,
+    scheduler: Any = None,
 ) -> list:
     """:func:`force_plane` of many ``(design, params)`` jobs on one grid, using every local
-    core or device (:func:`n_workers`).
+    core or device (:func:`n_workers`), or the workers of a Dask cluster.
 
     Arguments:
         jobs: the planes to solve, each a membrane and its simulator constants.
@@ -616,17 +617,46 @@ def force_planes(
         progress: a tqdm bar over the jobs.
         then: run on each ``(job, SimResult)`` in the same worker as its plane, its value
             returned in the result's place (post-processing such as re-solving unconverged
-            nodes: its own compilations then overlap with other workers' planes).
+            nodes: its own compilations then overlap with other workers' planes). On a
+            cluster it must pickle (a module-level function or a ``functools.partial`` of one).
+        scheduler: a Dask scheduler's address (or a ``distributed.Client``); None: the
+            CLI's ``--scheduler``, else ``$MFDESIGN_SCHEDULER``, else this machine; False:
+            this machine (:mod:`mfdesign.physics.cluster`).
 
     Returns one :class:`SimResult` (or ``then``'s value) per job, in order. On a single-device CPU the jobs run
     on one thread per core (each plane in one piece); with several devices each plane's
-    heights are sharded across them (``jax.sharding``). A cluster runs the same function
-    over slices of the job list (e.g. one Dask or Ray task per slice); nothing here
-    schedules work across machines.
+    heights are sharded across them (``jax.sharding``). On a cluster each task solves
+    :data:`~mfdesign.physics.cluster.PLANES_PER_TASK` planes on one core of a worker, with
+    the same function as here (``then`` included), and the results come back in order.
     """
     enable_x64()  # float64 physics: mfdesign._x64
     jobs = list(jobs)
-    workers = n_workers()
+    from mfdesign.physics import cluster
+
+    where = cluster.scheduler_from(scheduler)
+    if where is not None and jobs:
+        task = cluster.on_worker(
+            _planes_here, h_grid_mm=h_grid_mm, p_grid_pa=p_grid_pa, signed=signed, then=then, lanes=1
+        )
+        return cluster.map_chunks(
+            where, task, jobs, per_task=cluster.PLANES_PER_TASK, progress=progress, desc="simulator planes"
+        )
+    return _planes_here(jobs, h_grid_mm, p_grid_pa, signed, progress, then)
+
+
+def _planes_here(
+    jobs: list,
+    h_grid_mm: Sequence[float],
+    p_grid_pa: Sequence[float],
+    signed: bool = False,
+    progress: bool = False,
+    then: Callable | None = None,
+    lanes: int | None = None,
+) -> list:
+    """:func:`force_planes` on this machine, ``lanes`` planes at a time (default
+    :func:`n_workers`); a cluster task runs it on its chunk with one lane."""
+    enable_x64()  # float64 physics: mfdesign._x64 (also in a Dask worker)
+    workers = n_workers() if lanes is None else max(1, int(lanes))
     if len(jax.local_devices()) > 1 or workers < 2 or len(jobs) < 2:
         it = jobs
         if progress:
@@ -636,7 +666,7 @@ def force_planes(
         # ``then`` right after each plane: a caller that stores planes loses none on a crash
         out = []
         for job in it:
-            res = force_plane(job[0], h_grid_mm, p_grid_pa, job[1], signed=signed)
+            res = force_plane(job[0], h_grid_mm, p_grid_pa, job[1], signed=signed, parts=lanes)
             out.append(res if then is None else then(job, res))
         return out
     bar = None
