@@ -19,6 +19,7 @@ LAYERS = (
     (
         "mfdesign._x64",
         "mfdesign._cache",
+        "mfdesign._memory",
         "mfdesign.units",
         "mfdesign.errors",
         "mfdesign.outputs",

@@ -283,7 +283,7 @@ def fit_multi_fidelity(
     enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.calibration.mcmc import calibrate
     from mfdesign.models.ensemble import EnsembleConfig
-    from mfdesign.models.hierarchical import CalibrationData, fit_discrepancy
+    from mfdesign.models.hierarchical import DISCREPANCY_ROWS, CalibrationData, fit_discrepancy
     from mfdesign.models.predictive import MultiFidelity
 
     if isinstance(force_model, str):
@@ -311,7 +311,9 @@ def fit_multi_fidelity(
     cfg = ensemble_config or EnsembleConfig(n_members=8, steps=3000, monotone=False)
     x_ref = post.median()
     used = table.subset(list(data.design_keys))
-    full = CalibrationData.from_measurements(used, max_rows=None, design_keys=data.design_keys)
+    # the residual noise on the discrepancy's own rows (evenly along every trial, at most
+    # DISCREPANCY_ROWS: the bundled 150k rows cost seconds and a GB for one number)
+    full = CalibrationData.from_measurements(used, max_rows=DISCREPANCY_ROWS, design_keys=data.design_keys, seed=seed)
     delta = fit_discrepancy(model, x_ref, used, data.design_keys, cfg, key=seed, progress=progress)
     resid = np.asarray(full.force_n - model.expected_force(x_ref, full))
     d_mean = np.asarray(delta.mean(full.design, full.rows.h_mm, full.rows.p_pa))

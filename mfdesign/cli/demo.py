@@ -19,12 +19,15 @@ def register(app: typer.Typer) -> None:
             "exact", help="Where the model meets the data: exact (simulator planes) | emulator | standin (tests)."
         ),
         seed: int = typer.Option(0, help="Random seed."),
+        calibrate_plain: bool = typer.Option(
+            False, help="Also calibrate the plain model (emcee + discrepancy) to show its misfit; slower."
+        ),
         scheduler: Optional[str] = SCHEDULER,
     ) -> None:
         """The main job on the embedded default (no hardware, no external data).
 
-        On the bundled virtual-rig dataset: calibrate mu and J_m (emcee), fit the multi-fidelity
-        model, diagnose it and find the hidden effect, add it and refit, propose the next two
+        On the bundled virtual-rig dataset: diagnose the plain simulator and find the hidden
+        effect, calibrate mu, J_m and the effect (emcee), fit the multi-fidelity model, propose the next two
         membranes with their fidelities, optimise a membrane for a lift task, and write one
         HTML report (OUT/index.html) with JSON beside it.
         """
@@ -39,7 +42,7 @@ def register(app: typer.Typer) -> None:
             if quick
             else DemoSettings(force_model=physics, search_model="standin" if physics == "standin" else "emulator")
         )
-        settings = dataclasses.replace(settings, seed=seed)
+        settings = dataclasses.replace(settings, seed=seed, calibrate_plain=calibrate_plain)
         try:
             run_demo(out, settings, echo=typer.echo)
         except (ValueError, FileNotFoundError) as err:

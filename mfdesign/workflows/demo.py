@@ -2,12 +2,15 @@
 
 1. **data**: the bundled virtual-rig dataset (one hidden effect, see its card;
    :mod:`mfdesign.data.shipped`);
-2. **calibrate** mu and J_m (and every membrane's thickness) with emcee on the simulator's
-   emulator, **fit** the multi-fidelity model (discrepancy ensemble on the residuals);
-3. **diagnose** the plain model: where it fails, which effect is missing;
-4. **add** the effect(s) found, recalibrate and refit: the error falls;
-5. **propose** the next two membranes with their fidelities (rig or simulator);
-6. **optimise** a membrane for a lift task (the paper's height maximisation, target set A);
+2. **diagnose** the plain simulator (the authors' constants): where it fails, which effect
+   is missing, and the error with it added;
+3. **calibrate** mu, J_m, every membrane's thickness and the effect(s) found with emcee on
+   exact physics, **fit** the multi-fidelity model (discrepancy ensemble on the residuals);
+   ``calibrate_plain`` also calibrates the plain model first, to show how it misfits;
+4. **propose** the next two membranes with their fidelities (rig or simulator), and make
+   the simulator runs chosen;
+5. **optimise** a membrane for a lift task (the paper's height maximisation, target set A);
+6. **leave a campaign** in the folder (round 0: the corrected fit);
 7. **report**: one HTML page + JSON with the pictures.
 
 Each stage writes its files as soon as it ends (``OUT/<stage>/``), so a crash loses at most
@@ -26,6 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from mfdesign import outputs  # atomic writes: a reader never sees a torn file
+from mfdesign._memory import release_memory
 from mfdesign.data.shipped import bundled_card_path, bundled_path, card_truths
 from mfdesign.design import Membrane
 
@@ -51,8 +55,12 @@ class DemoSettings:
     mcmc_steps: int = 4000
     walkers: int = 32
     max_rows: int = 1500
-    # The plain model is calibrated to show how it misfits (its mu absorbs what the missing
-    # effect does); fewer rows make that ~3x cheaper, the corrected model gets them all.
+    # The plain model calibrated by emcee too (its mu absorbs what the missing effect does):
+    # off by default. It cost 228 of the cold demo's 715 s (issue 40: its lattice grew to
+    # 36 planes, then a chain and an ensemble), and the diagnosis already shows the plain
+    # simulator's misfit (before / after at the authors' constants); the page then draws the
+    # plain simulator at those constants. ``mfdesign demo --calibrate-plain`` turns it on.
+    calibrate_plain: bool = False
     plain_max_rows: int = 600
     delta_members: int = 8
     delta_steps: int = 2000
@@ -151,6 +159,9 @@ class _Log:
                 log.echo(f"[{time.perf_counter() - log.t0:6.1f} s] {name} ...")
 
             def __exit__(self, *exc):
+                # the stage's compiled programs and freed heap go back (mfdesign._memory:
+                # the demo's peak RSS was the sum of its stages' compilations, issue 40)
+                release_memory()
                 wall = round(time.perf_counter() - self.t, 2)
                 log.times[name] = wall
                 log.resources[name] = {
@@ -522,7 +533,7 @@ def demo_report(out: str | Path, summary: dict):
     diagnosis = json.loads((out / "diagnose" / "diagnosis.json").read_text())
     d = summary["diagnosis"]
     found, verdict = list(d["found"]), d["verdict"]
-    post0, post1 = summary["posterior_plain"], summary["posterior_with_effects"]
+    post0, post1 = summary.get("posterior_plain"), summary["posterior_with_effects"]
     proposals, covered = summary["proposals"], summary["coverage_90"]
     hidden = summary.get("hidden_effect")
 
@@ -541,17 +552,20 @@ def demo_report(out: str | Path, summary: dict):
     rep.add(
         "Data and model",
         [
-            "Measured force against pressure, with the plain and the corrected model's means and the "
-            "corrected model's 90 % posterior-predictive band (its draws plus observation noise)."
+            "Measured force against pressure, with the plain model's"
+            + (" mean" if post0 is not None else " force (the simulator at the authors' constants)")
+            + " and the corrected model's mean and 90 % posterior-predictive band (its draws plus observation "
+            "noise)."
         ],
         images=[(out / "figures" / "planes.png", "data vs model planes")],
     )
-    rep.add(
-        "Calibration (plain model)",
-        ["Posterior of the global parameters (emcee)."],
-        table=_display_rows(post0),
-        images=[(out / "plain" / "corner.png", "posterior, plain model")],
-    )
+    if post0 is not None:  # ``--calibrate-plain``
+        rep.add(
+            "Calibration (plain model)",
+            ["Posterior of the global parameters (emcee)."],
+            table=_display_rows(post0),
+            images=[(out / "plain" / "corner.png", "posterior, plain model")],
+        )
     rep.add(
         "Convergence of the chains: autocorrelation time (emcee), R-hat and ESS (ArviZ)",
         [
@@ -620,7 +634,7 @@ def demo_report(out: str | Path, summary: dict):
         ),
         table=_display_rows(post1),
         images=(figure(diag_dir / "maps_after.png", "residual maps after") if d["rmse_after_n"] is not None else [])
-        + (figure(out / "with_effects" / "corner.png", "posterior with effects") if found else []),
+        + figure(out / "with_effects" / "corner.png", "posterior with effects"),
     )
     if "truth_check" in summary:
         rep.add(
@@ -876,6 +890,18 @@ def _optimise_stage(run: _Run, predictor, fit) -> dict:
     return _optimum_json(result, "A", None if check else "stand-in physics: no simulator behind it")
 
 
+@dataclass(frozen=True)
+class _AtConstants:
+    """The plain simulator at the authors' constants, drawn like a fit (one draw, no noise):
+    what the diagnosis calls "before", when the plain model is not calibrated."""
+
+    force_model: "ForceModel"
+    noise_n: float = 0.0
+
+    def predict(self, design, h_mm, p_pa):
+        return np.asarray(self.force_model(design, h_mm, p_pa))[None]
+
+
 def _report_stage(run: _Run, summary: dict, fits: dict, diag, card: dict | None):
     """The page, rendered from the stages' JSON (summary, diagnose/diagnosis.json) and the
     pictures on disk, so that every number on the page is one a sub-report holds."""
@@ -884,10 +910,9 @@ def _report_stage(run: _Run, summary: dict, fits: dict, diag, card: dict | None)
 
     fig_dir = run.out / "figures"
     fig_dir.mkdir(exist_ok=True)
+    plain = fits["plain"].mf.thinned(16) if "plain" in fits else _AtConstants(run.force_model)
     _plane_figure(
-        run.meas,
-        {"plain": fits["plain"].mf.thinned(16), "with effects": fits["with_effects"].mf.thinned(16)},
-        fig_dir / "planes.png",
+        run.meas, {"plain": plain, "with effects": fits["with_effects"].mf.thinned(16)}, fig_dir / "planes.png"
     )
     pits = {
         name: pit(load_inference_data(run.out / tag))
@@ -991,18 +1016,18 @@ def run_demo(
             card_truths(card) if card else {},
         )
     summary["rows"], summary["membranes"] = len(meas), len(meas.design_keys)
-    plain_rows = min(s.plain_max_rows, s.max_rows)
-    with log.stage("calibrate mu, J_m (emcee) and fit the discrepancy: plain model"):
-        fits = {"plain": run.fit((), "plain", plain_rows)}
-        summary["posterior_plain"] = run.write_posterior(fits["plain"], "plain", plain_rows)
+    fits: dict = {}
+    if s.calibrate_plain:
+        plain_rows = min(s.plain_max_rows, s.max_rows)
+        with log.stage("calibrate mu, J_m (emcee) and fit the discrepancy: plain model"):
+            fits["plain"] = run.fit((), "plain", plain_rows)
+            summary["posterior_plain"] = run.write_posterior(fits["plain"], "plain", plain_rows)
     with log.stage("diagnose: where the model fails, which effect is missing"):
         diag, summary["diagnosis"] = _diagnose_stage(run)
     found = list(diag.found)
-    fits["with_effects"], summary["posterior_with_effects"] = fits["plain"], summary["posterior_plain"]
-    if found:
-        with log.stage(f"add {', '.join(found)}: recalibrate and refit"):
-            fits["with_effects"] = run.fit(found, "with_effects", s.max_rows)
-            summary["posterior_with_effects"] = run.write_posterior(fits["with_effects"], "with_effects", s.max_rows)
+    with log.stage(f"calibrate mu, J_m{''.join(', ' + f for f in found)} (emcee) and fit the discrepancy"):
+        fits["with_effects"] = run.fit(found, "with_effects", s.max_rows)
+        summary["posterior_with_effects"] = run.write_posterior(fits["with_effects"], "with_effects", s.max_rows)
     fit1 = fits["with_effects"]
     summary["convergence"] = _convergence(fits)
     summary["discrepancy_gate"] = fit1.delta.describe()
