@@ -229,6 +229,7 @@ def fit_multi_fidelity(
     jm_prior=None,
     mu_prior=None,
     membrane_latents: bool = True,
+    release_memory: bool = False,
 ) -> MFFit:
     """The multi-fidelity model: calibrate the physics, then fit the sim-to-real discrepancy.
 
@@ -271,6 +272,9 @@ def fit_multi_fidelity(
       (the hierarchy); `False`: none, every membrane at its nominal thickness (what the
       membranes share, e.g. an effect's geometry, is then not traded against each
       membrane's own scale; their differences go to the discrepancy and the noise).
+    - `release_memory`: between the chain and the discrepancy, drop JAX's compiled programs
+      and return the free heap (:func:`mfdesign._memory.release_memory`); for a process
+      that owns JAX (the demo, a CLI command): it clears JAX's caches for everyone.
 
     **Returns:**
 
@@ -308,6 +312,10 @@ def fit_multi_fidelity(
     )
     if post.force_model is not None:  # the exact model's lattice grew to hold the posterior
         model = eqx.tree_at(lambda m: m.force_model, model, post.force_model)
+    if release_memory:  # the chain's programs are done with (the demo's peak sat here, issue 40)
+        from mfdesign._memory import release_memory as release
+
+        release()
     cfg = ensemble_config or EnsembleConfig(n_members=8, steps=3000, monotone=False)
     x_ref = post.median()
     used = table.subset(list(data.design_keys))

@@ -745,6 +745,7 @@ class _Run:
             ensemble_config=cfg,
             seed=s.seed,
             progress=self.progress,
+            release_memory=True,
         )
 
     def write_posterior(self, fit, tag: str, max_rows: int) -> list[dict]:
