@@ -603,7 +603,8 @@ class Campaign:
         rounds = self.folder / "rounds"
         tmp = rounds / f".{_ROUND_PREFIX}{number:03d}.{os.getpid()}.tmp"
         tmp.mkdir()
-        meta = self._write_model(fit, table, tmp / "model", seed, s)
+        sources = {src.id: src.sha256 for src in state.sources}
+        meta = self._write_model(fit, table, tmp / "model", seed, s, call, sources)
         searched = fit
         if s.search_physics != s.physics:  # what a reload gives: the same posterior on the search physics
             from mfdesign.calibration.workflow import for_search
@@ -612,7 +613,6 @@ class Campaign:
             searched = dataclasses.replace(fit, model=mf.model, mf=mf)
         if (self.folder / "diagnosis.json").is_file():
             shutil.copy2(self.folder / "diagnosis.json", tmp / "diagnosis.json")
-        sources = {src.id: src.sha256 for src in state.sources}
         record = {
             "round": number,
             "data": {"sources": sources, "membranes": len(table.design_keys), "rows": len(table)},
@@ -628,14 +628,15 @@ class Campaign:
         return Round(number, final, searched, record)
 
     @staticmethod
-    def _write_model(fit, table, folder: Path, seed: int, s: Settings) -> dict:
+    def _write_model(fit, table, folder: Path, seed: int, s: Settings, call: str, sources: dict) -> dict:
         """The round's model: ``posterior.nc`` (ArviZ) first (its R-hat and ESS go into the
-        posterior's convergence), then :meth:`MFFit.save`."""
+        posterior's convergence), then :meth:`MFFit.save` (its provenance: ``call`` and the
+        sources' hashes, as the round's)."""
         from mfdesign.calibration.posterior import save_inference_data
 
         folder.mkdir(parents=True)
         save_inference_data(fit.posterior, folder / "posterior.nc", fit.model, table, seed=seed, max_rows=s.max_rows)
-        return fit.save(folder, physics=s.physics, material=s.material, table=table)
+        return fit.save(folder, physics=s.physics, material=s.material, table=table, call=call, inputs=sources)
 
     def _heldout(self, state: _State, last: Path) -> dict | None:
         """The last round's model on the sources told after it (membranes it never saw)."""

@@ -53,9 +53,10 @@ def input_hashes(paths: Iterable[str | os.PathLike]) -> dict[str, str]:
 
 def call_line(default: str) -> str:
     """The command line when run as ``mfdesign ...`` / ``python -m mfdesign.cli``, else ``default``
-    (a Python call's description)."""
-    name = Path(sys.argv[0]).name if sys.argv else ""
-    if name in ("mfdesign", "__main__.py"):
+    (a Python call's description; also under ``python -m pytest``, whose ``__main__.py`` is
+    not ours)."""
+    script = Path(sys.argv[0]) if sys.argv and sys.argv[0] else Path()
+    if script.name == "mfdesign" or script.parts[-3:] == ("mfdesign", "cli", "__main__.py"):
         return shlex.join(["mfdesign", *sys.argv[1:]])
     return default
 

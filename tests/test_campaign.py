@@ -112,8 +112,33 @@ def test_status_lists_the_round_and_its_files(fitted):
     assert set(record["data"]["sources"]) == {"s000"}
     for name in ("mf.json", "posterior.json", "posterior.npz", "posterior.nc", "delta/ensemble.json"):
         assert (first.folder / "model" / name).is_file(), name
+    # the model's JSON carry the round's provenance (issue 41): version, call, seed, sources
+    for name in ("mf.json", "posterior.json"):
+        prov = json.loads((first.folder / "model" / name).read_text())["provenance"]
+        assert prov["mfdesign_version"] and prov["call"] == "Campaign.fit()" and prov["seeds"] == {"seed": 3}
+        assert prov["inputs_sha256"] == record["data"]["sources"] and prov["machine"]["cores"] >= 1
     r = runner.invoke(app, ["status", str(folder)])
     assert r.exit_code == 0 and "\n    0          2 " in r.output, r.output
+
+
+def test_a_model_folder_written_before_provenance_still_loads(fitted, tmp_path):
+    """``mf.json`` and ``posterior.json`` without ``"provenance"`` (older folders) reload
+    into the same predictions: readers ignore the record."""
+    import shutil
+
+    from mfdesign.calibration.workflow import MFFit
+
+    _, first = fitted
+    old = tmp_path / "model"
+    shutil.copytree(first.folder / "model", old)
+    for name in ("mf.json", "posterior.json"):
+        js = json.loads((old / name).read_text())
+        del js["provenance"]
+        (old / name).write_text(json.dumps(js))
+    again = MFFit.load(old)
+    np.testing.assert_array_equal(
+        np.asarray(again.mf.predict(DESIGN, H_MM, P_PA)), np.asarray(first.fit.mf.predict(DESIGN, H_MM, P_PA))
+    )
 
 
 def test_tell_with_an_unknown_id_fails_in_one_line(fitted, tmp_path):

@@ -280,16 +280,24 @@ class Posterior:
         )
         return idata
 
-    def save(self, path) -> Path:
-        """``path.json`` (summary, diagnostics) and ``path.npz`` (samples), each written atomically."""
+    def save(self, path, *, call: str = "", seeds: dict | None = None, inputs: dict | None = None) -> Path:
+        """``path.json`` (summary, diagnostics, provenance) and ``path.npz`` (samples), each
+        written atomically.
+
+        The JSON's ``"provenance"`` (:func:`mfdesign.provenance.provenance`): the version,
+        ``call`` (default: the command line when run as ``mfdesign ...``, else
+        ``Posterior.save()``), ``seeds`` (e.g. ``{"seed": 0}``), ``inputs`` (name -> sha256
+        of the input files, as the caller knows them) and the machine. :meth:`load` ignores it."""
         from mfdesign import outputs
+        from mfdesign.provenance import call_line, provenance
 
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         with outputs.atomic_path(path.with_suffix(".npz")) as tmp:
             extra = {} if self.chain is None else {"chain": self.chain, "log_prob_chain": self.log_prob_chain}
             np.savez(tmp, samples=self.samples, log_prob=self.log_prob, x_map=self.x_map, **extra)
-        outputs.write_json(path.with_suffix(".json"), self.to_json(), default=float)
+        record = provenance(call or call_line("Posterior.save()"), seeds, inputs)
+        outputs.write_json(path.with_suffix(".json"), self.to_json() | {"provenance": record}, default=float)
         return path.with_suffix(".json")
 
     @classmethod

@@ -152,11 +152,14 @@ class MFFit:
     # its predictions differ from the fit's whenever the posterior holds over 128 draws
     seed: int = 0
 
-    def save(self, folder, *, physics: str, material: str = "free", table=None) -> dict:
+    def save(
+        self, folder, *, physics: str, material: str = "free", table=None, call: str = "", inputs: dict | None = None
+    ) -> dict:
         """Write the fit into ``folder``: ``posterior.json`` + ``posterior.npz``, the
         discrepancy ``delta/`` and ``mf.json`` (what :meth:`load` needs to rebuild the
-        model: effects, physics, likelihood, material, latents, the thinning seed), each
-        file atomically (:mod:`mfdesign.outputs`).
+        model: effects, physics, likelihood, material, latents, the thinning seed; and its
+        ``"provenance"``, which :meth:`load` ignores), each file atomically
+        (:mod:`mfdesign.outputs`).
 
         **Arguments:**
 
@@ -168,6 +171,11 @@ class MFFit:
         - `material`: the name of the rubber priors used (:func:`material_priors`).
         - `table`: the calibrated measurements; given, ``mf.json`` records the training
           RMSE [N] and 90 % coverage on them.
+        - `call`: the command line or Python call, for the provenance of ``mf.json`` and
+          ``posterior.json`` (default: the command line when run as ``mfdesign ...``, else
+          ``MFFit.save()``); their seed is the fit's.
+        - `inputs`: name -> sha256 of the input files, when the caller knows them
+          (:func:`mfdesign.provenance.input_hashes`).
 
         **Returns:**
 
@@ -176,10 +184,13 @@ class MFFit:
         from pathlib import Path
 
         from mfdesign import outputs
+        from mfdesign.provenance import call_line, provenance
 
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
-        self.posterior.save(folder / "posterior")  # type: ignore[attr-defined]
+        call = call or call_line("MFFit.save()")
+        seeds = {"seed": int(self.seed)}
+        self.posterior.save(folder / "posterior", call=call, seeds=seeds, inputs=inputs)  # type: ignore[attr-defined]
         self.delta.save(folder / "delta")  # type: ignore[attr-defined]
         meta = {
             "noise_n": self.noise_n,
@@ -202,6 +213,7 @@ class MFFit:
 
             cov = coverage(self.mf, table.subset(list(self.design_keys)), level=0.9, key=self.seed)  # type: ignore[arg-type]
             meta.update(train_rmse_n=cov["rmse_n"], train_coverage90=cov["coverage"])
+        meta["provenance"] = provenance(call, seeds, inputs)
         outputs.write_json(folder / "mf.json", meta)
         return meta
 

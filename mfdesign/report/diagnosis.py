@@ -263,8 +263,24 @@ def joint_plot(verdict: dict, alt: dict, path: Path) -> None:
     _save(fig, path)
 
 
-def write_report(diag, out_dir, shapes: bool = False, params=None) -> dict[str, Path]:
-    """Write JSON, PNGs and ``report.html`` into ``out_dir``; returns the paths."""
+def write_report(
+    diag,
+    out_dir,
+    shapes: bool = False,
+    params=None,
+    *,
+    call: str = "",
+    seeds: dict | None = None,
+    inputs: dict | None = None,
+) -> dict[str, Path]:
+    """Write JSON, PNGs and ``report.html`` into ``out_dir``; returns the paths.
+
+    ``diagnosis.json`` carries a ``"provenance"`` (:func:`mfdesign.provenance.provenance`):
+    the version, ``call`` (default: the command line when run as ``mfdesign ...``, else
+    ``mfdesign.report.diagnosis.write_report()``), ``seeds``, ``inputs`` (name -> sha256 of
+    the input files, as the caller knows them) and the machine. Readers of the file ignore it."""
+    from mfdesign.provenance import call_line, provenance
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {}
@@ -288,7 +304,8 @@ def write_report(diag, out_dir, shapes: bool = False, params=None) -> dict[str, 
     if shapes:
         data["worst_point_shapes"] = shapes_plot(diag.before, out / "shapes.png", params)
         paths["shapes"] = out / "shapes.png"
-    outputs.write_text(out / "diagnosis.json", json.dumps(data, indent=1, default=str))
+    record = provenance(call or call_line("mfdesign.report.diagnosis.write_report()"), seeds, inputs)
+    outputs.write_text(out / "diagnosis.json", json.dumps(data | {"provenance": record}, indent=1, default=str))
     paths["json"] = out / "diagnosis.json"
     paths["html"] = write_html(
         out / "report.html",

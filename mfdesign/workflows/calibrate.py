@@ -267,7 +267,12 @@ def calibrate(
     # Written first: the R-hat and ESS printed and saved in posterior.json are those ArviZ
     # computes on this file's draws (every walker's kept draws, one per tau).
     save_inference_data(post, out / "posterior.nc", model, table, seed=seed, max_rows=max_rows)
-    post.save(out / "posterior")  # after posterior.nc: its R-hat and ESS are those of the file
+    from mfdesign.provenance import call_line, input_hashes
+
+    call = call_line("mfdesign.workflows.calibrate.calibrate()")
+    inputs = input_hashes(data if isinstance(data, (list, tuple)) else [data])
+    # after posterior.nc: its R-hat and ESS are those of the file
+    post.save(out / "posterior", call=call, seeds={"seed": seed}, inputs=inputs)
     _corner(post, data, effects, out / "corner.png")
     written = {
         "chain": str(chain),
@@ -277,7 +282,8 @@ def calibrate(
     }
     mf_line = ""
     if fit is not None:
-        meta = fit.save(out, physics=physics, material=material, table=table)  # posterior again: the same bytes
+        # posterior.json again: the same numbers (its provenance's time may be a second later)
+        meta = fit.save(out, physics=physics, material=material, table=table, call=call, inputs=inputs)
         mf_line = (
             f"multi-fidelity: residual noise {fit.noise_n:.3f} N; training RMSE {meta['train_rmse_n']:.3f} N, "
             f"90 % coverage {meta['train_coverage90']:.2f}; {fit.delta.describe()}"

@@ -761,7 +761,9 @@ class _Run:
         d.mkdir(parents=True, exist_ok=True)
         post = fit.posterior
         save_inference_data(post, d / "posterior.nc", fit.model, self.meas, seed=self.s.seed, max_rows=max_rows)
-        post.save(d / "posterior")
+        from mfdesign.provenance import call_line
+
+        post.save(d / "posterior", call=call_line("run_demo()"), seeds={"seed": self.s.seed})
         keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
         names = [post.names[i] for i in keep]
         corner_plot(
@@ -821,7 +823,9 @@ def _diagnose_stage(run: _Run):
         check_top=s.check_top,
         progress=run.progress,
     )
-    write_report(diag, run.out / "diagnose")
+    from mfdesign.provenance import call_line
+
+    write_report(diag, run.out / "diagnose", call=call_line("run_demo()"), seeds={"seed": s.seed})
     floor = diag.before.noise_floor_n
     summary = {
         "found": list(diag.found),

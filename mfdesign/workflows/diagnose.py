@@ -308,5 +308,14 @@ def diagnose(
         n_folds=folds,
         progress=True,
     )
-    paths = write_report(diag, out, shapes=shapes and opts.physics == "exact")
+    from mfdesign.provenance import call_line, input_hashes
+
+    named = [*(data if isinstance(data, (list, tuple)) else [data]), *(p for p in (model, config) if p is not None)]
+    paths = write_report(
+        diag,
+        out,
+        shapes=shapes and opts.physics == "exact",
+        call=call_line("mfdesign.workflows.diagnose.diagnose()"),
+        inputs=input_hashes(named),
+    )
     return DiagnoseResult(diag, paths)

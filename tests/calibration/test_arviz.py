@@ -133,9 +133,17 @@ def test_the_file_keeps_every_kept_draw_and_the_report_its_arviz_numbers(fitted,
 
 def test_npz_roundtrip_keeps_the_chain_and_max_draws_thins(fitted, tmp_path):
     _, data, model, post = fitted
-    post.save(tmp_path / "posterior")
+    post.save(tmp_path / "posterior", seeds={"seed": 0})
     back = Posterior.load(tmp_path / "posterior")
     np.testing.assert_array_equal(back.chain, post.chain)
+    # provenance (issue 41): version, call (a Python call's name under pytest), seed, machine
+    js = json.loads((tmp_path / "posterior.json").read_text())
+    prov = js.pop("provenance")
+    assert prov["mfdesign_version"] and prov["call"] == "Posterior.save()" and prov["seeds"] == {"seed": 0}
+    assert prov["machine"]["cores"] >= 1 and prov["time"]
+    # a posterior.json written before provenance still loads
+    (tmp_path / "posterior.json").write_text(json.dumps(js))
+    np.testing.assert_array_equal(Posterior.load(tmp_path / "posterior").samples, post.samples)
     idata = back.to_inference_data(model, data, max_draws=100)
     n_chain, n_draw = idata.posterior.sizes["chain"], idata.posterior.sizes["draw"]
     assert n_chain == post.chain.shape[1] and n_chain * n_draw <= 100 + n_chain

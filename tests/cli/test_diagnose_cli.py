@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 from mfdesign.cli import app
 from mfdesign.design import Membrane
 from mfdesign.physics import effects as fx
+from mfdesign.provenance import sha256 as _sha256
 from mfdesign.models.standin import standin_plane
 from mfdesign.rig.virtual import Protocol, VirtualRig
 
@@ -73,6 +74,10 @@ def test_effects_give_a_before_after_report(data, tmp_path):
     assert js["effects_added"] == ["load_cell_offset"]
     assert js["theta"]["load_cell_offset.offset_n"] == pytest.approx(0.8, abs=0.05)
     assert js["after"]["summary"]["rmse_n"] < 0.5 * js["before"]["summary"]["rmse_n"]
+    # provenance (issue 41): version, call (the workflow's name under CliRunner), the data's sha256
+    prov = js["provenance"]
+    assert prov["mfdesign_version"] and prov["call"] == "mfdesign.workflows.diagnose.diagnose()"
+    assert prov["inputs_sha256"] == {str(data): _sha256(data)} and prov["machine"]["cores"] >= 1
     html = (out / "report.html").read_text()
     for png in ("maps_before.png", "maps_after.png", "parity.png", "trial_order.png", "breakdown.png"):
         assert (out / png).is_file() and f'src="{png}"' in html
