@@ -915,10 +915,12 @@ def _report_stage(run: _Run, summary: dict, fits: dict, diag, card: dict | None)
 
     fig_dir = run.out / "figures"
     fig_dir.mkdir(exist_ok=True)
-    plain = fits["plain"].mf.thinned(16) if "plain" in fits else _AtConstants(run.force_model)
-    _plane_figure(
-        run.meas, {"plain": plain, "with effects": fits["with_effects"].mf.thinned(16)}, fig_dir / "planes.png"
+    plain = (
+        {"plain": fits["plain"].mf.thinned(16)}
+        if "plain" in fits
+        else {"plain, authors' constants": _AtConstants(run.force_model)}
     )
+    _plane_figure(run.meas, plain | {"with effects": fits["with_effects"].mf.thinned(16)}, fig_dir / "planes.png")
     pits = {
         name: pit(load_inference_data(run.out / tag))
         for name, tag in (("plain", "plain"), ("with effects", "with_effects"))
