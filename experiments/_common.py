@@ -13,6 +13,7 @@ import contextlib
 import json
 import os
 import platform
+import subprocess
 import time
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -106,6 +107,20 @@ def machine() -> dict:
         "devices": [str(d) for d in jax.devices()],
         "load_average": load(),
     }
+
+
+def git_state() -> tuple[str, bool]:
+    """The repository's commit and whether tracked files differ from it ("", False outside
+    a git checkout): what a benchmark line records, taken before a run that takes minutes."""
+
+    def git(*args: str) -> str:
+        root = Path(__file__).resolve().parents[1]
+        try:
+            return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
+        except (OSError, subprocess.CalledProcessError):
+            return ""
+
+    return git("rev-parse", "HEAD"), bool(git("status", "--porcelain", "--untracked-files=no"))
 
 
 class Timing(dict):

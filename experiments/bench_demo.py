@@ -40,7 +40,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import command, load, parser
+from _common import command, git_state, load, parser
 
 JSONL = "bench_demo.jsonl"
 # Issue 40's targets on the 2-core CPU [s]; the warm quick run has none of its own.
@@ -217,14 +217,6 @@ def make_record(
     }
 
 
-def _git(*args: str) -> str:
-    root = Path(__file__).resolve().parents[1]
-    try:
-        return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return ""
-
-
 def _nproc() -> int | None:
     """CPUs this process may run on (``nproc``: the affinity mask, not the box's count)."""
     try:
@@ -279,7 +271,7 @@ def main() -> None:
         cmd = ["nice", "-n", str(args.nice)] + cmd
 
     # the commit the demo runs: taken before it starts (the tree may move on meanwhile)
-    commit, dirty = _git("rev-parse", "HEAD"), bool(_git("status", "--porcelain", "--untracked-files=no"))
+    commit, dirty = git_state()
     load_before = load()
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()

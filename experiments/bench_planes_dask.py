@@ -24,24 +24,15 @@ upper bounds; the load average says how shared it was.
 
 from __future__ import annotations
 
-import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from _common import command, load, machine, parser, timed, write_json  # experiments/ is on a script's path
+from _common import command, git_state, load, machine, parser, timed, write_json  # experiments/ is on a script's path
 
 DESIGNS = ["[2.0, 25.4, nan, nan, nan, nan]", "[2.0, 25.4, 33.4, 5.0, nan, nan]"]
-
-
-def _git(*args: str) -> str:
-    root = Path(__file__).resolve().parents[1]
-    try:
-        return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return ""
 
 
 def _warm(grid, job) -> float:
@@ -106,7 +97,7 @@ def main() -> None:
     from mfdesign.physics import planes as pl
     from mfdesign.physics.params import SimParams
 
-    commit, dirty = _git("rev-parse", "HEAD"), bool(_git("status", "--porcelain", "--untracked-files=no"))
+    commit, dirty = git_state()
     grid = pl.PlaneGrid.covering(args.h_max, args.p_max)
     designs = [Membrane.from_key(k) for k in args.designs]
     jobs, _ = pl.lattice_jobs(designs, SimParams(), {"jm": (1, args.jm_nodes)})
