@@ -418,8 +418,9 @@ def fit_discrepancy(
     # the rows are the calibration's own (floating lift rows: the rule runs once, on whole
     # trials), at most DISCREPANCY_ROWS of them evenly along every trial: the ensemble trains
     # on minibatches, but its leave-one-membrane-out scores predict every row with K x M
-    # members (on the bundled 150,503 rows: 48 members, ~1 GB per hidden layer, most of the
-    # demo's peak memory, issue 40); the 2 Hz ramps carry little new information row to row
+    # members (on the bundled 150,503 rows: 48 members x 32 float32 activations, ~0.9 GB a
+    # hidden layer; with 20,000 rows the fit still adds ~0.7 GB to the demo's RSS, issue 40);
+    # the 2 Hz ramps carry little new information row to row
     data = CalibrationData.from_measurements(
         table, max_rows=DISCREPANCY_ROWS, design_keys=design_keys, seed=key if isinstance(key, int) else 0
     )
