@@ -30,7 +30,7 @@ from mfdesign.diagnose.check import FLOOR_FACTOR
 from mfdesign.diagnose.residuals import Residuals, breakdowns
 from mfdesign.report.render import write_html
 
-__all__ = ["floor_banner", "write_report"]
+__all__ = ["floor_banner", "limit_banners", "write_report"]
 
 
 def _plt():
@@ -62,6 +62,29 @@ def floor_banner(diag) -> str | None:
         f"The model {which} still sits at {res.rmse_n / floor:.1f}x the noise floor "
         f"(RMSE {res.rmse_n:.2f} N vs {floor:.2f} N; more than {FLOOR_FACTOR:g}x): something is still missing."
     )
+
+
+def limit_banners(diag) -> list[str]:
+    """What a reader must know before trusting the verdict, for the top of a page: the
+    model above the noise floor (:func:`floor_banner`), effect sets the data cannot tell
+    apart (the verdict names both; here they are said first), and candidates that could not
+    be evaluated (neither the simulator nor the FE reference has a value at their rows)."""
+    out = [b for b in (floor_banner(diag),) if b]
+    for i, step in enumerate(diag.steps):
+        v = step["verdict"]
+        if v.get("alternatives"):
+            others = "; ".join("+".join(a["effects"]) for a in v["alternatives"])
+            out.append(
+                f"Round {i + 1}: the data cannot tell {'+'.join(v.get('effects') or [])} from {others}: "
+                "both are named, neither is preferred (the diagnosis section gives the trial that would separate them)."
+            )
+        if v.get("not_evaluated"):
+            names = ", ".join("+".join(e) for e in v["not_evaluated"])
+            out.append(
+                f"Round {i + 1}: candidate(s) not evaluated ({names}): neither the simulator nor the FE reference "
+                "has a value at their rows; the verdict cannot rule them out."
+            )
+    return out
 
 
 def residual_maps(res: Residuals, path: Path, title: str, vmax: float | None = None) -> float:
@@ -311,7 +334,7 @@ def write_report(
         out / "report.html",
         "diagnosis.html.j2",
         title="mfdesign diagnosis",
-        banners=[b for b in (floor_banner(diag),) if b],
+        banners=limit_banners(diag),
         data=data,
         images={k: p.name for k, p in paths.items() if p.suffix == ".png"},
     )

@@ -405,7 +405,7 @@ def _banners(diag, convergence: dict, optimum: dict | None = None, sim_runs=()) 
     above the noise floor, an optimum at a grid or rig limit or in a near-tie, a predicted
     spread that the simulator's own runs show to be understated, an optimum the simulator
     puts elsewhere than the emulator."""
-    from mfdesign.report.diagnosis import floor_banner
+    from mfdesign.report.diagnosis import limit_banners
 
     out = []
     for tag, c in convergence.items():
@@ -414,8 +414,7 @@ def _banners(diag, convergence: dict, optimum: dict | None = None, sim_runs=()) 
             out.append(
                 f"The {tag.replace('_', ' ')} model's chain has not converged ({why}): its intervals are not trustworthy."
             )
-    floor = floor_banner(diag)
-    out += [floor] if floor else []
+    out += limit_banners(diag)
     for run in sim_runs:
         rmse, spread = run.get("rmse_n"), run.get("predicted_std_n")
         if rmse is not None and spread and rmse > UNDERSTATED_SPREAD * spread:

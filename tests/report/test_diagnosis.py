@@ -216,3 +216,27 @@ def test_indistinguishable_sets_are_named_with_the_trial_that_separates_them_and
     assert "at h = 70 mm up to 10.0 kPa separates" in page
     assert "Laplace approximation" in page and 'src="joint_1_1.png"' in page
     assert "<h3>Pairs fitted jointly (first order)</h3>" in page and "<td>a+b</td>" in page
+
+
+def test_ties_and_unevaluated_candidates_are_banners_above_the_verdict():
+    """A tie between effect sets and a candidate no solver could evaluate limit what the
+    verdict shows: each is said at the top of the page, not only inside the verdict's words."""
+    from types import SimpleNamespace as NS
+
+    from mfdesign.report.diagnosis import limit_banners
+
+    before = NS(rmse_n=0.5, noise_floor_n=0.2)
+    tie = {"effects": ["ring_stiffening"], "alternatives": [{"effects": ["fabric_inset", "ring_stiffening"]}]}
+    gap = {"effects": [], "not_evaluated": [["contact_offset"]]}
+    diag = NS(before=before, after=NS(rmse_n=0.21), effects=["ring_stiffening"], steps=[{"verdict": tie}])
+    words = limit_banners(diag)
+    assert words == [
+        "Round 1: the data cannot tell ring_stiffening from fabric_inset+ring_stiffening: both are named, neither "
+        "is preferred (the diagnosis section gives the trial that would separate them)."
+    ]
+    diag = NS(before=before, after=None, effects=[], steps=[{"verdict": tie}, {"verdict": gap}])
+    words = limit_banners(diag)
+    assert len(words) == 3 and "still sits at 2.5x the noise floor" in words[0]
+    assert words[2].startswith("Round 2: candidate(s) not evaluated (contact_offset)")
+    clean = NS(before=before, after=NS(rmse_n=0.21), effects=["x"], steps=[{"verdict": {"effects": ["x"]}}])
+    assert limit_banners(clean) == []
