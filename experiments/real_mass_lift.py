@@ -139,7 +139,7 @@ def main():
     )
 
     # the coupons' locking (the paper's uniaxial fit), held: J_m then cannot trade with an
-    # effect's geometry (docs/real_data.md section 6)
+    # effect's geometry (docs/real_data_log.md section 6)
     # and the coupons' modulus too: the lifts then cannot move the material to absorb what
     # the structure misses (section 7: a modulus calibrated on ringed membranes transfers
     # badly to the ringless one)

@@ -1,6 +1,6 @@
 """Three probes of what the calibrated model still misses on the real lifts (exploratory).
 
-Section 8 of ``docs/real_data.md`` showed the headline model cannot fit three membranes
+Section 8 of ``docs/real_data_log.md`` showed the headline model cannot fit three membranes
 even on their own data. Each probe here tests one story for the rest, with the exact
 simulator (``mfdesign.physics.solve``) at the all-seven MAP of ``real_floor.py`` (mu, J_m,
 fabric inset; read from ``experiments/out/real_floor.json``, run that first):

@@ -1,6 +1,6 @@
 """Which rubber do the real lifts ask for? A profile over the constants that shape a plane.
 
-The calibration (``real_mass_lift.py``, docs/real_data.md section 5) answers the real
+The calibration (``real_mass_lift.py``, docs/real_data_log.md section 5) answers the real
 membranes with a rubber that locks at J_m ~18 where the coupons say 39.6. Is that the
 rubber, or a plain Gent law standing in for a rubber whose energy also depends on the
 second invariant (the ``rubber_i2`` effect: a Mooney-Rivlin term that uniaxial coupons

@@ -52,7 +52,7 @@ def material_priors(material: str = "free") -> dict:
     - ``"coupons"``: both held at the coupons' values, mu 31.5 kPa and J_m 39.6 (uniform
       priors +-0.2 kPa and +-0.2: held, with room for the sampler to move): the data then
       calibrate the effects and the membranes' latents only (on the real lifts, without
-      latents: the best trajectories of a new membrane, docs/real_data.md section 7).
+      latents: the best trajectories of a new membrane, docs/real_data_log.md section 7).
     - ``"coupons-jm"``: J_m held, mu calibrated.
     """
     from mfdesign.errors import InputError

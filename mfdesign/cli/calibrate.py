@@ -56,7 +56,7 @@ LATENTS = typer.Option(
     True,
     help="One thickness latent per membrane (the hierarchy); --no-latents: every membrane at its "
     "nominal thickness (an effect shared by the membranes is then not traded against each one's scale: "
-    "what predicted new membranes best on the real lifts, docs/real_data.md section 7).",
+    "what predicted new membranes best on the real lifts, docs/real_data_log.md section 7).",
 )
 RESUME = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists.")
 
