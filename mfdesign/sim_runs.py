@@ -38,7 +38,7 @@ from mfdesign.design import Membrane
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status, is_valid, summarize
 
-__all__ = ["PlaneSpec", "MadeRun", "make", "compare", "as_measurements", "simulate_planes"]
+__all__ = ["PlaneSpec", "GridSpec", "MadeRun", "make", "compare", "as_measurements", "simulate_planes"]
 
 # Statuses where the simulator failed at a point that has a solution; the others that are
 # not usable (EXTENSION_LIMIT, LIMIT_POINT) are the physics saying "no such state".
@@ -73,6 +73,37 @@ class PlaneSpec:
     @property
     def p_pa(self) -> np.ndarray:
         return np.linspace(0.0, self.p_max_pa, self.n_pressures)
+
+
+@dataclasses.dataclass(frozen=True)
+class GridSpec:
+    """A plane on given heights [mm] and pressures [Pa, strictly increasing], e.g. the
+    acquisition's :class:`~mfdesign.models.predictor.Grid` (:meth:`of`): what ``propose``
+    checks a proposed membrane's predicted curve on. Quacks like :class:`PlaneSpec` for
+    :func:`make` and :func:`simulate_planes` (``h_mm``, ``p_pa``, ``n_heights``, ``n_pressures``)."""
+
+    heights_mm: tuple[float, ...]
+    pressures_pa: tuple[float, ...]
+
+    @classmethod
+    def of(cls, grid) -> "GridSpec":
+        return cls(tuple(map(float, grid.h_mm)), tuple(map(float, grid.p_pa)))
+
+    @property
+    def h_mm(self) -> np.ndarray:
+        return np.asarray(self.heights_mm, float)
+
+    @property
+    def p_pa(self) -> np.ndarray:
+        return np.asarray(self.pressures_pa, float)
+
+    @property
+    def n_heights(self) -> int:
+        return len(self.heights_mm)
+
+    @property
+    def n_pressures(self) -> int:
+        return len(self.pressures_pa)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,7 +188,7 @@ class MadeRun:
         }
 
 
-def simulate_planes(designs: Sequence[Membrane], spec: PlaneSpec, params: SimParams) -> list:
+def simulate_planes(designs: Sequence[Membrane], spec: PlaneSpec | GridSpec, params: SimParams) -> list:
     """Force planes of ``designs`` at ``params``: one :func:`~mfdesign.physics.solve.force_planes`
     call (each plane ``vmap``-ed over its heights, planes spread over the cores). Returns
     one ``(force_n [H, P] N, status [H, P], max_locking [H, P])`` per design."""
@@ -167,7 +198,7 @@ def simulate_planes(designs: Sequence[Membrane], spec: PlaneSpec, params: SimPar
     return [(np.asarray(r.force_n, float), np.asarray(r.status), np.asarray(r.max_locking, float)) for r in results]
 
 
-def _table(design: Membrane, spec: PlaneSpec, force, status, locking) -> pd.DataFrame:
+def _table(design: Membrane, spec: PlaneSpec | GridSpec, force, status, locking) -> pd.DataFrame:
     H, P = np.meshgrid(spec.h_mm, spec.p_pa, indexing="ij")
     status = np.asarray(status).ravel()
     return pd.DataFrame(
@@ -220,7 +251,7 @@ def make(
     runs,
     predictor,
     params: SimParams = SimParams(),
-    spec: PlaneSpec = PlaneSpec(),
+    spec: PlaneSpec | GridSpec = PlaneSpec(),
     fidelity: str = "sim",
     simulate: Callable | None = None,
     surrogate: Callable | None = None,

@@ -149,6 +149,13 @@ def test_cli_no_simulate_only_lists_and_bad_plane_is_one_line(tmp_path, monkeypa
     assert entry["made"] is False and entry["why_not_made"] == "--no-simulate"
     assert "simulator runs (listed, not made: --no-simulate):" in r.output
     assert not (out / "sim_runs").exists()
+    # the membrane to fabricate is not checked either, and says why (never a silent null)
+    report = json.loads((out / "proposal.json").read_text())
+    (fab,) = report["fabricate"]
+    assert fab["simulator_check"] == {"checked": False, "why_not_checked": "--no-simulate: the simulator was not run"}
+    assert any("not checked by the simulator: --no-simulate" in b for b in report["banners"])
+    assert "simulator check: none (--no-simulate: the simulator was not run)" in r.output
+    assert f"BANNER: membrane(s) to fabricate {fab['rank']} not checked by the simulator" in r.output
     r = runner.invoke(app, [*args, "--sim-heights", "1", "--out", str(out)])
     text = r.output.strip()
     assert r.exit_code == 2 and "--sim-heights" in text and len(text.splitlines()) == 1, text
@@ -161,3 +168,62 @@ def test_the_real_simulator_makes_a_tiny_plane():
     assert m.error is None and m.points == 6 and sum(m.status.values()) == 6
     assert m.table["force_n"].notna().sum() == m.usable_points
     assert m.usable_points > 0 and np.isfinite(m.rmse_n)
+
+
+def _model_plus(model, offset_n, seen):
+    """A stand-in simulator that returns the split model's own sim-fidelity mean plus
+    ``offset_n`` (so the check's error is exactly ``offset_n``), recording each call."""
+    from mfdesign.workflows.models import load_predictor
+
+    pred = load_predictor(model)
+
+    def simulate(designs, spec, params):
+        seen.append((type(spec).__name__, [d.key() for d in designs], params))
+        H, P = (a.ravel() for a in np.meshgrid(spec.h_mm, spec.p_pa, indexing="ij"))
+        out = []
+        for d in designs:
+            rows = jnp.asarray(np.tile(d.to_array(), (H.size, 1)))
+            f = np.asarray(pred.members("sim", rows, jnp.asarray(H), jnp.asarray(P))).mean(axis=0) + offset_n
+            f = f.reshape(len(spec.h_mm), len(spec.p_pa))
+            out.append((f, np.full(f.shape, int(Status.OK)), np.zeros_like(f)))
+        return out
+
+    return simulate
+
+
+def test_cli_checks_every_membrane_to_fabricate_with_the_simulator(tmp_path, monkeypatch):
+    """Issue 43: each membrane to fabricate is re-computed with the simulator (one batched
+    call over the membranes, on the acquisition grid, at the model's constants) and
+    proposal.json records the simulator's forces, the model's and its error there; an
+    error beyond the predicted spread is a banner on the console and in proposal.json."""
+    from mfdesign.acquire import Grid
+    from mfdesign.cli import app
+
+    model = _split_folder(tmp_path / "split")
+    for offset, understated in ((0.0, False), (500.0, True)):
+        seen = []
+        monkeypatch.setattr(sim_runs, "simulate_planes", _model_plus(model, offset, seen))
+        out = tmp_path / f"o{offset:g}"
+        r = runner.invoke(app, ["propose", "--model", str(model), "--membranes", "2", *ARGS, "--out", str(out)])
+        assert r.exit_code == 0, r.output
+        report = json.loads((out / "proposal.json").read_text())
+        assert [(kind, len(keys)) for kind, keys, _ in seen] == [("GridSpec", 2)]  # one batched call
+        assert seen[0][2].mu_pa == 31.7e3  # a split model: the authors' constants
+        for entry in report["fabricate"]:
+            check = entry["simulator_check"]
+            assert check["checked"] and check["compared_fidelity"] == "sim" and check["state"] == "converged"
+            assert check["constants"]["constants"] == "authors"
+            h, p = Grid().points()
+            assert check["h_mm"] == h.tolist() and check["p_pa"] == p.tolist() and check["points"] == Grid().size
+            sim, model_n = np.array(check["simulator_n"], float), np.array(check["model_n"], float)
+            np.testing.assert_allclose(sim - model_n, offset, atol=1e-6)
+            assert check["rmse_n"] == pytest.approx(offset, abs=1e-6)
+            assert check["max_error_n"] == pytest.approx(offset, abs=1e-6)
+            assert check["predicted_std_n"] > 0 and len(check["prediction_rig_n"]) == Grid().size
+            assert check["understated"] is understated
+        assert report["simulator_check"]["checked"] and report["simulator_check"]["seconds"] >= 0
+        assert r.output.count("simulator check (sim fidelity vs simulator, 64 of 64 points)") == 2
+        banner = [b for b in report["banners"] if "more than its predicted spread" in b]
+        assert bool(banner) is understated
+        assert ("BANNER: the model is off the simulator by more than its predicted spread" in r.output) is understated
+        assert (out / "proposal.png").is_file()
