@@ -5,7 +5,9 @@ A round's budget is ``--membranes Q --sim-runs S`` (or ``--q`` for a free mix of
 ``--fidelity``); ``--pending KEY`` names membranes already being built; the design-space
 options narrow or fix thickness, contact radius and ring half-width. It prints the
 membranes to fabricate, ranked, each with its expected reduction (N), cost and a reason,
-and the simulator runs apart: the tool MAKES them (``--no-simulate`` only lists them) and
+and its simulator check (the model's error against the simulator on the acquisition grid
+beside its predicted spread; a banner where the spread is understated), and the simulator
+runs apart: the tool MAKES them (``--no-simulate`` only lists them, and checks nothing) and
 writes them under ``OUT/sim_runs/`` and ``OUT/sim_runs.parquet``.
 """
 
@@ -58,7 +60,7 @@ def register(app: typer.Typer) -> None:
         simulate: bool = typer.Option(
             True,
             "--simulate/--no-simulate",
-            help="Make the chosen simulator runs and report what they taught (default), or only list them.",
+            help="Run the simulator: make the chosen simulator runs and check each membrane to fabricate (default), or only list them, unchecked.",
         ),
         sim_heights: int = typer.Option(15, help="Heights of a made simulator plane (0-70 mm)."),
         sim_pressures: int = typer.Option(17, help="Pressures of a made simulator plane (0-8 kPa)."),

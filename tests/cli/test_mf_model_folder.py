@@ -143,16 +143,21 @@ def test_optimize_checks_a_fit_with_its_calibrated_constants(folder, tmp_path, m
 
 
 def test_propose_lists_but_does_not_make_sim_runs_of_a_standin_fit(folder, tmp_path):
-    """A stand-in fit has no simulator behind it: its sim runs are listed, with the reason."""
+    """A stand-in fit has no simulator behind it: its sim runs are listed, and its membranes
+    to fabricate left unchecked, each with the reason (issue 43: never a silent null)."""
     import json
 
     out = tmp_path / "p"
-    args = ["propose", "--model", str(folder), "--sim-runs", "1", "--rings", "0", "--restarts", "4"]
-    r = runner.invoke(app, [*args, "--refine", "2", "--opt-steps", "2", "--out", str(out)])
+    args = ["propose", "--model", str(folder), "--membranes", "1", "--sim-runs", "1", "--rings", "0"]
+    r = runner.invoke(app, [*args, "--restarts", "4", "--refine", "2", "--opt-steps", "2", "--out", str(out)])
     assert r.exit_code == 0, r.output
     doc = json.loads((out / "proposal.json").read_text())
     (entry,) = doc["simulate"]
     assert entry["made"] is False and "standin" in entry["why_not_made"]
+    (fab,) = doc["fabricate"]
+    assert fab["simulator_check"]["checked"] is False and "standin" in fab["simulator_check"]["why_not_checked"]
+    assert any("not checked by the simulator: the model was fitted with --physics standin" in b for b in doc["banners"])
+    assert "simulator check: none (the model was fitted with --physics standin" in r.output
     # provenance (issue 41 item 6): version, call, seed, the model's files hashed, machine
     prov = doc["provenance"]
     assert prov["seeds"] == {"seed": 0} and prov["machine"]["cores"] >= 1 and prov["mfdesign_version"]
