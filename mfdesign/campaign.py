@@ -11,6 +11,8 @@ The folder::
 
     campaign.json            settings, effects in force, sources, proposals (one atomic file)
     sources/sNNN.parquet     every measurement source, as told (sha256 in campaign.json)
+    effects/mN_NAME.py       a copy of each user's effects file given to create (sha256 in
+                             campaign.json; every open imports it again)
     diagnosis.json           the latest diagnosis (:meth:`Campaign.diagnose`)
     asks/askNNN.json         each ask's proposal as acquisition returned it
     rounds/round-NNN/        a fitted round: model/ (mf.json, posterior.json/.npz/.nc,
@@ -42,13 +44,25 @@ from mfdesign.provenance import now as _now
 from mfdesign.provenance import provenance
 from mfdesign.provenance import sha256 as _sha256
 
-__all__ = ["Campaign", "CampaignStatus", "ProposalEntry", "Round", "Settings", "Source", "provenance"]
+__all__ = [
+    "Campaign",
+    "CampaignStatus",
+    "EffectsModule",
+    "ProposalEntry",
+    "Round",
+    "Settings",
+    "Source",
+    "provenance",
+]
 
 FORMAT_VERSION = 1
 CAMPAIGN_FILE = "campaign.json"
 STATUSES = ("pending", "measured", "dropped")
 PHYSICS = ("exact", "emulator", "standin")
 _ROUND_PREFIX = "round-"
+# The campaigns' effects files imported in this process: (resolved path, sha256) -> the
+# effects each registered (every _read checks the files; an unchanged one is not run again).
+_IMPORTED: dict[tuple[str, str], tuple[str, ...]] = {}
 
 
 # ----------------------------------------------------------------------------- settings
@@ -60,7 +74,9 @@ class Settings:
     Physics and calibration: ``physics`` where the model meets the data (``"exact"``
     simulator planes, ``"emulator"``, ``"standin"`` for tests; design searches run on the
     emulator when it is ``"exact"``), ``effects`` the user's effects (a diagnosis adds what
-    it finds), ``mcmc_steps`` (most emcee steps; sampling stops once converged),
+    it finds; a user's own effect needs the file that registers it, ``Campaign.create``'s
+    ``effects_module``: the names are checked there and on every open, once that file is
+    imported, not here), ``mcmc_steps`` (most emcee steps; sampling stops once converged),
     ``walkers`` (0: automatic), ``max_rows`` (rows the likelihood uses), ``likelihood``,
     ``material`` (:func:`~mfdesign.calibration.workflow.material_priors`),
     ``membrane_latents``; the discrepancy ensemble: ``members``, ``delta_steps``.
@@ -114,11 +130,13 @@ class Settings:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0 < value < float("inf")):
                 raise InputError(f"settings.{name} = {value!r}; allowed: a positive finite number")
-        from mfdesign.physics.effects import EFFECTS
+        if not all(isinstance(e, str) for e in self.effects):
+            raise InputError(f"settings.effects {list(self.effects)!r}; allowed: effect names (strings)")
 
-        unknown = [e for e in self.effects if e not in EFFECTS]
-        if unknown:
-            raise InputError(f"settings.effects {unknown}: unknown; registered: {sorted(EFFECTS)}")
+    def check_effects(self, where: str = "settings.effects") -> None:
+        """``InputError`` when an effect of the settings is not registered (run once the
+        campaign's effects files are imported: :meth:`Campaign.create`, every open)."""
+        _check_registered(self.effects, where)
 
     @classmethod
     def quick(cls, physics: str = "standin", **changes) -> "Settings":
@@ -173,6 +191,21 @@ class Source:
 
 
 @dataclasses.dataclass(frozen=True)
+class EffectsModule:
+    """A user's effects file the campaign keeps: ``file`` (relative to the folder) is the
+    copy made by :meth:`Campaign.create`, ``sha256`` its bytes, ``origin`` the path given,
+    ``effects`` the names it registered. Every open checks the copy and imports it again."""
+
+    file: str
+    sha256: str
+    origin: str
+    effects: tuple[str, ...]
+
+    def to_json(self) -> dict:
+        return {**dataclasses.asdict(self), "effects": list(self.effects)}
+
+
+@dataclasses.dataclass(frozen=True)
 class ProposalEntry:
     """One asked run: ``design`` (the key, mm) at ``fidelity``, its ``status`` (pending /
     measured / dropped), the ``round`` whose model asked for it, the source that measured
@@ -203,12 +236,14 @@ class _State:
     sources: tuple[Source, ...]
     proposals: tuple[ProposalEntry, ...]
     created: dict
+    effects_modules: tuple[EffectsModule, ...] = ()
 
     def to_json(self) -> dict:
         return {
             "format_version": FORMAT_VERSION,
             "settings": self.settings.to_json(),
             "effects": list(self.effects),
+            "effects_modules": [m.to_json() for m in self.effects_modules],
             "sources": [s.to_json() for s in self.sources],
             "proposals": [p.to_json() for p in self.proposals],
             "created": self.created,
@@ -254,12 +289,14 @@ class CampaignStatus:
     proposals: tuple[ProposalEntry, ...]
     rounds: tuple[dict, ...]
     problems: tuple[str, ...]
+    effects_modules: tuple[EffectsModule, ...] = ()
 
     def to_json(self) -> dict:
         return {
             "folder": str(self.folder),
             "settings": self.settings.to_json(),
             "effects": list(self.effects),
+            "effects_modules": [m.to_json() for m in self.effects_modules],
             "sources": [s.to_json() for s in self.sources],
             "proposals": [p.to_json() for p in self.proposals],
             "rounds": list(self.rounds),
@@ -274,6 +311,8 @@ class CampaignStatus:
             f"physics {self.settings.physics}; effects in force: {list(self.effects) or 'none'}",
             "round  membranes  rows  train RMSE [N]  cov90  held-out RMSE [N]  held-out cov90",
         ]
+        for m in self.effects_modules:
+            lines.insert(1, f"effects module {m.file} (from {m.origin}): {', '.join(m.effects) or 'no effect'}")
         for r in self.rounds:
             held = r.get("heldout") or {}
             lines.append(
@@ -302,6 +341,61 @@ def _measurements(data, what: str):
         raise InputError(f"{what}: no data given; allowed: a Measurements table, a file or a rig job folder")
     items = [data] if isinstance(data, (str, os.PathLike)) else list(data)
     return load_sources(items), tuple(str(i) for i in items)
+
+
+def _check_registered(names: Sequence[str], where: str) -> None:
+    """``InputError`` naming the effects of ``names`` that are not registered."""
+    from mfdesign.physics.effects import EFFECTS
+
+    unknown = [e for e in names if e not in EFFECTS]
+    if unknown:
+        raise InputError(
+            f"{where} {unknown}: unknown; registered: {sorted(EFFECTS)} (a user's own effect: "
+            "Campaign.create(..., effects_module=[FILE.py]) with the file that registers it)"
+        )
+
+
+def _unkept(names: Sequence[str], modules: Sequence[EffectsModule]) -> list[str]:
+    """The effects of ``names`` a reopened campaign could not register again: neither
+    mfdesign's own nor registered by one of the campaign's effects files (registered in
+    Python, in this session only)."""
+    from mfdesign.physics.effects import EFFECTS
+
+    kept = {e for m in modules for e in m.effects}
+    return [n for n in names if n not in kept and EFFECTS[n].__module__.split(".")[0] != "mfdesign"]
+
+
+def _import_effects_modules(folder: Path, modules: Sequence[EffectsModule]) -> None:
+    """Import the campaign's copies of its effects files (an unchanged file already
+    imported in this process is not run again); ``InputError`` for a missing or changed one."""
+    from mfdesign.physics.effects import EFFECTS
+    from mfdesign.user_effects import load_effects_module
+
+    for m in modules:
+        path = folder / m.file
+        if not path.is_file() or _sha256(path) != m.sha256:
+            raise InputError(
+                f"{path}: the campaign's copy of the effects module {m.origin} is missing or changed since "
+                "Campaign.create (sha256 differs); allowed: the file as it was copied"
+            )
+        key = (str(path.resolve()), m.sha256)
+        if key not in _IMPORTED or any(e not in EFFECTS for e in m.effects):
+            _IMPORTED[key] = load_effects_module(path, f"campaign {folder}: effects module")
+        _check_registered(m.effects, f"{path} no longer registers")
+
+
+def _keep_effects_modules(folder: Path, paths: Sequence[Path], registered: Sequence[tuple[str, ...]]):
+    """Copy the effects files into ``folder/effects/`` (so that the campaign does not depend
+    on the user's file staying put); their :class:`EffectsModule` records."""
+    kept = []
+    for i, (path, names) in enumerate(zip(paths, registered)):
+        copy = folder / "effects" / f"m{i}_{path.name}"
+        copy.parent.mkdir(exist_ok=True)
+        shutil.copyfile(path, copy)
+        digest = _sha256(copy)
+        _IMPORTED[(str(copy.resolve()), digest)] = names  # the bytes just imported
+        kept.append(EffectsModule(str(copy.relative_to(folder)), digest, str(path), tuple(names)))
+    return tuple(kept)
 
 
 def _round_folders(folder: Path) -> list[Path]:
@@ -336,7 +430,13 @@ class Campaign:
     # -- making and opening
     @classmethod
     def create(
-        cls, folder: str | os.PathLike, data=None, settings: Settings | None = None, *, call: str = ""
+        cls,
+        folder: str | os.PathLike,
+        data=None,
+        settings: Settings | None = None,
+        *,
+        effects_module: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
+        call: str = "",
     ) -> "Campaign":
         """A new campaign in ``folder`` (created; it may hold other files, not a campaign).
 
@@ -347,12 +447,18 @@ class Campaign:
           table, or what :func:`mfdesign.load` reads (a Parquet or CSV file, a rig job
           folder, ``"bundled"``, or a list of them).
         - `settings`: a :class:`Settings` (default ``Settings()``).
+        - `effects_module`: a user's Python file(s) registering new effects (imported: their
+          code runs), so that ``settings.effects``, :meth:`diagnose`'s search, :meth:`fit`
+          and :meth:`ask` know them; each is copied into ``effects/`` with its sha256, and
+          every :meth:`open` imports the copy again.
         - `call`: the command line or call that made it, for the provenance.
 
         **Returns:**
 
-        The :class:`Campaign`. Raises ``InputError`` when ``folder`` already holds one or
-        the data cannot be read.
+        The :class:`Campaign`. Raises ``InputError`` when ``folder`` already holds one, an
+        effects file cannot be imported, an effect of the settings is unknown (or was
+        registered in Python only: a reopened campaign could not know it), or the data
+        cannot be read.
         """
         from mfdesign.outputs import OutputLock, prepare_out_dir
 
@@ -362,11 +468,30 @@ class Campaign:
         settings = Settings() if settings is None else settings
         if not isinstance(settings, Settings):
             raise InputError(f"settings: a {type(settings).__name__}; allowed: mfdesign.campaign.Settings")
+        from mfdesign.user_effects import load_effects_module
+
+        given = [effects_module] if isinstance(effects_module, (str, os.PathLike)) else effects_module or []
+        if not isinstance(given, (list, tuple)) or not all(isinstance(p, (str, os.PathLike)) for p in given):
+            raise InputError(f"effects_module {effects_module!r}; allowed: a path or a list of paths to .py files")
+        paths = [Path(p) for p in given]
+        registered = [load_effects_module(p, "effects_module") for p in paths]
+        settings.check_effects()
+        loose = _unkept(settings.effects, [EffectsModule("", "", str(p), n) for p, n in zip(paths, registered)])
+        if loose:
+            raise InputError(
+                f"settings.effects {loose} were registered in Python, not by a file the campaign keeps; "
+                "allowed: effects_module=[the .py file that registers them] (a reopened campaign imports it)"
+            )
         table, origin = _measurements(data, "Campaign.create")
         with OutputLock(folder, option="campaign", reentrant=True):
             source = cls(folder)._store(table, origin, after_round=-1, proposal=None, index=0)
-            created = provenance(call or f"Campaign.create({str(folder)!r})", {"seed": settings.seed})
-            state = _State(settings, settings.effects, (source,), (), created)
+            modules = _keep_effects_modules(folder, paths, registered)
+            created = provenance(
+                call or f"Campaign.create({str(folder)!r})",
+                {"seed": settings.seed},
+                {m.file: m.sha256 for m in modules},
+            )
+            state = _State(settings, settings.effects, (source,), (), created, modules)
             cls(folder)._write(state)
         return cls(folder)
 
@@ -396,13 +521,20 @@ class Campaign:
             raw = json.loads(path.read_text())
             if raw.get("format_version") != FORMAT_VERSION:
                 raise ValueError(f"format_version {raw.get('format_version')!r}, this mfdesign reads {FORMAT_VERSION}")
+            modules = tuple(
+                EffectsModule(**{**m, "effects": tuple(m["effects"])}) for m in raw.get("effects_modules", [])
+            )
+            _import_effects_modules(self.folder, modules)  # before the effect names are read
             settings = Settings.from_json(raw["settings"], where=str(path))
+            settings.check_effects(f"{path}: settings.effects")
+            _check_registered(raw["effects"], f"{path}: effects in force")
             sources = tuple(
                 Source(**{**s, "membranes": tuple(s["membranes"]), "origin": tuple(s["origin"])})
                 for s in raw["sources"]
             )
             proposals = tuple(ProposalEntry(**p) for p in raw["proposals"])
-            return _State(settings, tuple(raw["effects"]), sources, proposals, dict(raw.get("created", {})))
+            created = dict(raw.get("created", {}))
+            return _State(settings, tuple(raw["effects"]), sources, proposals, created, modules)
         except InputError:
             raise
         except (ValueError, KeyError, TypeError, AttributeError, OSError) as err:
@@ -496,20 +628,25 @@ class Campaign:
     # -- the loop
     def diagnose(self, *, progress: bool = False, call: str = ""):
         """Diagnose the campaign's data (:func:`mfdesign.diagnose`) on its physics, with the
-        effects in force; what it finds joins them. Writes ``diagnosis.json`` (copied into
-        the next round). Returns the :class:`~mfdesign.diagnose.pipeline.Diagnosis`."""
+        effects in force; what it finds joins them. The search tries every registered effect
+        a reopened campaign can register again (mfdesign's and its effects files'; not one
+        registered in Python only). Writes ``diagnosis.json`` (copied into the next round).
+        Returns the :class:`~mfdesign.diagnose.pipeline.Diagnosis`."""
         from mfdesign import outputs
-        from mfdesign.diagnose.emulated import forward_model
+        from mfdesign.diagnose.emulated import forward_model, likelihood_effects
         from mfdesign.diagnose.pipeline import diagnose
 
         s = self.settings
         with self._lock():
             state = self._read()
             table = self.data()
+            pool = likelihood_effects()
+            loose = set(_unkept(pool, state.effects_modules))
             result = diagnose(
                 table,
                 forward_model(s.physics, table, progress=progress),
                 effects=state.effects,
+                candidates=[c for c in pool if c not in loose] if loose else None,
                 search=s.diagnose_search,
                 check_top=s.check_top,
                 check_pairs=s.check_pairs,
@@ -842,7 +979,14 @@ class Campaign:
                 problems.append(f"source {s.id} ({path}) is missing or changed (sha256 differs)")
         rounds = tuple(json.loads((p / "round.json").read_text()) for p in _round_folders(self.folder))
         return CampaignStatus(
-            self.folder, state.settings, state.effects, state.sources, state.proposals, rounds, tuple(problems)
+            self.folder,
+            state.settings,
+            state.effects,
+            state.sources,
+            state.proposals,
+            rounds,
+            tuple(problems),
+            state.effects_modules,
         )
 
     def report(self) -> Path:

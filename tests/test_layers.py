@@ -26,7 +26,8 @@ LAYERS = (
         "mfdesign.provenance",
     ),
     ("mfdesign.design", "mfdesign.materials"),
-    ("mfdesign.physics", "mfdesign.data", "mfdesign.rig"),  # physics, data and the rig's I/O
+    # physics, data, the rig's I/O, and the loader of a user's effects files (beside the registry)
+    ("mfdesign.physics", "mfdesign.data", "mfdesign.rig", "mfdesign.user_effects"),
     ("mfdesign.models",),
     ("mfdesign.calibration", "mfdesign.diagnose"),
     ("mfdesign.acquire", "mfdesign.discriminate", "mfdesign.optimize", "mfdesign.sim_runs"),

@@ -8,7 +8,8 @@ killed run; unconstrained parameters), ``posterior.json`` + ``posterior.npz``,
 ``posterior.nc`` (ArviZ InferenceData in physical units, chain x draw, with
 log_likelihood / posterior_predictive / observed_data: ``az.from_netcdf``), ``corner.png``; ``fit-mf`` adds the
 discrepancy ensemble (``delta/``) and ``mf.json`` (residual noise, training RMSE and 90 %
-coverage).
+coverage). ``--effects-module FILE.py`` (repeat for several) imports a user's file that
+registers effects (its code runs), so ``--effects`` may name them (docs/effects.md).
 """
 
 from __future__ import annotations
@@ -34,6 +35,12 @@ DATA = typer.Argument(
 
 EFFECTS = typer.Option(
     None, "--effects", parser=item_parser(effect_name, "an effect name"), help="Active effect (repeat for several)."
+)
+EFFECTS_MODULE = typer.Option(
+    None,
+    "--effects-module",
+    help="Python file registering new effects, imported first (its code runs) so that --effects may name "
+    "them (repeat for several; docs/effects.md).",
 )
 PHYSICS = typer.Option(
     "exact",
@@ -95,6 +102,7 @@ def _register(
         data: List[Path] = DATA,
         out: Path = typer.Option(..., help=out_help),
         effects: Optional[List[str]] = EFFECTS,
+        effects_module: Optional[List[Path]] = EFFECTS_MODULE,
         steps: int = _mcmc_steps(steps_default),
         walkers: int = typer.Option(0, min=0, help=walkers_help),
         max_rows: int = typer.Option(rows_default, min=10, help=rows_help),
@@ -111,12 +119,7 @@ def _register(
     ) -> None:
         show(
             calibrate(
-                data,
-                list(effects or []),
-                out,
-                steps,
-                walkers,
-                max_rows,
+                *(data, list(effects or []), out, steps, walkers, max_rows),
                 physics=physics,
                 likelihood=likelihood,
                 seed=seed,
@@ -127,6 +130,7 @@ def _register(
                 delta_steps=delta_steps,
                 material=material,
                 latents=latents,
+                effects_module=effects_module,
             )
         )
 

@@ -8,7 +8,10 @@ command resumes a killed run; unconstrained parameters), ``posterior.json`` +
 draw, with log_likelihood / posterior_predictive / observed_data: ``az.from_netcdf``),
 ``corner.png``; ``fit-mf`` adds the discrepancy ensemble (``delta/``) and ``mf.json``
 (residual noise, training RMSE and 90 % coverage). The summary is the posterior table
-(median, 5 / 95 %, MAP, with units) and the chain's convergence.
+(median, 5 / 95 %, MAP, with units) and the chain's convergence. ``effects_module``
+(``--effects-module FILE.py``, repeatable) imports a user's effects files first
+(:func:`mfdesign.user_effects.load_effects_module`: their code runs), so ``effects`` may
+name what they register.
 """
 
 from __future__ import annotations
@@ -112,7 +115,10 @@ def _check_options(effects: Sequence[str], walkers: int, likelihood: str, materi
     priors = material_priors(material)
     unknown = [e for e in effects if e not in EFFECTS]
     if unknown:
-        raise InputError(f"unknown effect(s) {unknown}; registered: {sorted(EFFECTS)}")
+        raise InputError(
+            f"unknown effect(s) {unknown}; registered: {sorted(EFFECTS)} (a user's own effect: "
+            "--effects-module FILE.py, the file that registers it)"
+        )
     return priors
 
 
@@ -208,6 +214,7 @@ def calibrate(
     delta_steps: int = 0,
     material: str = "free",
     latents: bool = True,
+    effects_module: Sequence[Path] | None = None,
 ) -> CalibrationResult:
     """Calibrate the rubber's ``mu`` [Pa] and ``J_m`` and the effects' parameters with emcee
     (``calibrate``), or fit the multi-fidelity model: calibrated simulator + RPN
@@ -230,6 +237,8 @@ def calibrate(
         delta_steps: discrepancy training steps (fit-mf).
         material: ``free`` | ``coupons`` | ``coupons-jm`` (which rubber constants are held).
         latents: one thickness latent per membrane (False: nominal thicknesses).
+        effects_module: Python files registering new effects, imported before ``effects``
+            are checked (their code runs); their sha256 join the provenance's inputs.
 
     Raises :class:`~mfdesign.errors.InputError` (one line) for bad options, data or chain."""
     import warnings
@@ -237,6 +246,10 @@ def calibrate(
     from mfdesign.calibration.mcmc import ConvergenceWarning
     from mfdesign.calibration.posterior import save_inference_data  # ArviZ: az.from_netcdf(OUT/posterior.nc)
 
+    from mfdesign.user_effects import load_effects_modules
+
+    modules = [Path(m) for m in effects_module or []]
+    load_effects_modules(modules)  # before the names are checked: they may register them
     effects = list(effects)
     priors = _check_options(effects, walkers, likelihood, material)
     table, force_model = _load(data, physics, multi_fidelity, allow_outside_design_space)
@@ -270,7 +283,7 @@ def calibrate(
     from mfdesign.provenance import call_line, input_hashes
 
     call = call_line("mfdesign.workflows.calibrate.calibrate()")
-    inputs = input_hashes(data if isinstance(data, (list, tuple)) else [data])
+    inputs = input_hashes([*(data if isinstance(data, (list, tuple)) else [data]), *modules])
     # after posterior.nc: its R-hat and ESS are those of the file
     post.save(out / "posterior", call=call, seeds={"seed": seed}, inputs=inputs)
     _corner(post, data, effects, out / "corner.png")

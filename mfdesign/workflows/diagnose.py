@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from mfdesign.errors import InputError
+from mfdesign.user_effects import load_effects_module  # the one loader (calibrate and campaigns use it too)
 
 __all__ = ["DiagnoseResult", "PHYSICS", "check_theta", "diagnose", "load_config", "load_effects_module"]
 
@@ -88,26 +89,6 @@ def check_theta(theta: Any, where: str = "--theta") -> dict:
         if not ok:
             raise InputError(f"{where}: {name!r} is {value!r}; allowed: a finite number")
     return theta
-
-
-def load_effects_module(path: Path) -> None:
-    """Import a user's effects file (its ``@register_effect`` classes join the library).
-
-    Arguments:
-        path: a Python file (its code runs)."""
-    import importlib.util
-
-    path = Path(path)
-    if not path.is_file() or path.suffix != ".py":
-        raise InputError(f"--effects-module {path}: not a Python file")
-    spec = importlib.util.spec_from_file_location(f"mfdesign_user_effects_{path.stem}", path)
-    if spec is None or spec.loader is None:
-        raise InputError(f"--effects-module {path}: not a Python file")
-    module = importlib.util.module_from_spec(spec)
-    try:
-        spec.loader.exec_module(module)
-    except Exception as err:  # noqa: BLE001 -- report any failure of the user's file in one line
-        raise InputError(f"--effects-module {path} failed to import: {type(err).__name__}: {err}") from None
 
 
 def _items(values: Any) -> list[str]:
