@@ -258,6 +258,7 @@ def test_cli_writes_json_and_png(tmp_path):
             "4",
             "--opt-steps",
             "2",
+            "--no-simulate",  # the simulator check of the membranes: tests/test_sim_runs.py
             "--out",
             str(tmp_path / "o"),
         ],

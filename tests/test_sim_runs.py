@@ -171,11 +171,13 @@ def test_the_real_simulator_makes_a_tiny_plane():
 
 
 def _model_plus(model, offset_n, seen):
-    """A stand-in simulator that returns the split model's own sim-fidelity mean plus
-    ``offset_n`` (so the check's error is exactly ``offset_n``), recording each call."""
+    """A stand-in simulator that returns the model's own mean (sim fidelity where it has
+    one, else rig) plus ``offset_n`` (so the check's error is exactly ``offset_n``),
+    recording each call."""
     from mfdesign.workflows.models import load_predictor
 
     pred = load_predictor(model)
+    fidelity = "sim" if "sim" in pred.fidelities else "rig"
 
     def simulate(designs, spec, params):
         seen.append((type(spec).__name__, [d.key() for d in designs], params))
@@ -183,7 +185,7 @@ def _model_plus(model, offset_n, seen):
         out = []
         for d in designs:
             rows = jnp.asarray(np.tile(d.to_array(), (H.size, 1)))
-            f = np.asarray(pred.members("sim", rows, jnp.asarray(H), jnp.asarray(P))).mean(axis=0) + offset_n
+            f = np.asarray(pred.members(fidelity, rows, jnp.asarray(H), jnp.asarray(P))).mean(axis=0) + offset_n
             f = f.reshape(len(spec.h_mm), len(spec.p_pa))
             out.append((f, np.full(f.shape, int(Status.OK)), np.zeros_like(f)))
         return out
@@ -227,3 +229,15 @@ def test_cli_checks_every_membrane_to_fabricate_with_the_simulator(tmp_path, mon
         assert bool(banner) is understated
         assert ("BANNER: the model is off the simulator by more than its predicted spread" in r.output) is understated
         assert (out / "proposal.png").is_file()
+    # a rig-only ensemble (`mfdesign fit`): its rig prediction is what the simulator checks
+    rig_only = tmp_path / "rig_only"
+    tiny_ensemble().save(rig_only)
+    seen = []
+    monkeypatch.setattr(sim_runs, "simulate_planes", _model_plus(rig_only, 0.0, seen))
+    r = runner.invoke(app, ["propose", "--model", str(rig_only), "--q", "1", *ARGS, "--out", str(tmp_path / "r")])
+    assert r.exit_code == 0, r.output
+    (entry,) = json.loads((tmp_path / "r" / "proposal.json").read_text())["fabricate"]
+    check = entry["simulator_check"]
+    assert check["checked"] and check["compared_fidelity"] == "rig" and "prediction_rig_n" not in check
+    assert "no separate simulator part" in check["compared"] and check["rmse_n"] == pytest.approx(0.0, abs=1e-6)
+    assert len(seen) == 1 and "simulator check (rig fidelity vs simulator" in r.output
