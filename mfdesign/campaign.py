@@ -350,8 +350,8 @@ def _check_registered(names: Sequence[str], where: str) -> None:
     unknown = [e for e in names if e not in EFFECTS]
     if unknown:
         raise InputError(
-            f"{where} {unknown}: unknown; registered: {sorted(EFFECTS)} (a user's own effect: "
-            "Campaign.create(..., effects_module=[FILE.py]) with the file that registers it)"
+            f"{where} {unknown}: unknown; registered: {sorted(EFFECTS)} (a user's own effect: the file that "
+            "registers it, as Campaign.create's effects_module=[FILE.py] or create's --effects-module FILE.py)"
         )
 
 
@@ -474,13 +474,13 @@ class Campaign:
         if not isinstance(given, (list, tuple)) or not all(isinstance(p, (str, os.PathLike)) for p in given):
             raise InputError(f"effects_module {effects_module!r}; allowed: a path or a list of paths to .py files")
         paths = [Path(p) for p in given]
-        registered = [load_effects_module(p, "effects_module") for p in paths]
+        registered = [load_effects_module(p, "effects module") for p in paths]
         settings.check_effects()
         loose = _unkept(settings.effects, [EffectsModule("", "", str(p), n) for p, n in zip(paths, registered)])
         if loose:
             raise InputError(
                 f"settings.effects {loose} were registered in Python, not by a file the campaign keeps; "
-                "allowed: effects_module=[the .py file that registers them] (a reopened campaign imports it)"
+                "allowed: the .py file that registers them as effects_module=[FILE.py] (a reopened campaign imports it)"
             )
         table, origin = _measurements(data, "Campaign.create")
         with OutputLock(folder, option="campaign", reentrant=True):

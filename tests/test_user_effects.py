@@ -152,10 +152,38 @@ def test_a_campaign_refuses_an_effect_it_could_not_know_again(tmp_path, monkeypa
     assert fx.EFFECTS["only_in_python_test"] is OnlyInPython
     cases = [
         (dict(settings=Settings.quick(effects=("only_in_python_test",))), "registered in Python, not by a file"),
-        (dict(effects_module=[tmp_path / "gone.py"]), "effects_module .*gone.py: not a Python file"),
+        (dict(effects_module=[tmp_path / "gone.py"]), "effects module .*gone.py: not a Python file"),
         (dict(settings=Settings.quick(effects=(NAME,))), r"settings.effects \['lift_height_offset'\]: unknown"),
     ]
     for k, (kwargs, words) in enumerate(cases):
         with pytest.raises(InputError, match=words):
             Campaign.create(tmp_path / f"c{k}", data=table, **kwargs)
         assert not (tmp_path / f"c{k}" / "campaign.json").exists()
+
+
+def test_the_create_command_keeps_the_effects_file(tmp_path, monkeypatch):
+    """``mfdesign create D DATA --effects-module FILE.py``: the same record as Python's
+    ``Campaign.create``; a bad file or an effect no file registers: one line, exit 2."""
+    from test_campaign import rig_data
+
+    from mfdesign.data.store import write_parquet
+
+    forget_the_effect(monkeypatch)
+    data = tmp_path / "m.parquet"
+    write_parquet(rig_data(), data)
+    folder = tmp_path / "c"
+    args = ["create", str(folder), str(data), "--physics", "standin", "--quick", "--seed", "3", "--effects", NAME]
+    r = runner.invoke(app, [*args, "--effects-module", str(EXAMPLE)])
+    assert r.exit_code == 0, r.output
+    assert f"effects module effects/m0_lift_height_offset.py (from {EXAMPLE}): {NAME}" in r.output
+    assert f"next: mfdesign fit {folder}" in r.output
+    forget_the_effect(monkeypatch)
+    opened = Campaign.open(folder)
+    assert opened.settings == Settings.quick("standin", seed=3, effects=(NAME,)) and NAME in fx.EFFECTS
+    for more, words in (
+        (["--effects-module", str(tmp_path / "gone.py")], "gone.py: not a Python file (no such file"),
+        ([], "settings.effects ['lift_height_offset']: unknown"),
+    ):
+        forget_the_effect(monkeypatch)
+        r = runner.invoke(app, ["create", str(tmp_path / "d"), str(data), "--effects", NAME, *more])
+        assert r.exit_code == 2 and words in r.output and len(r.output.strip().splitlines()) == 1, r.output

@@ -1,8 +1,10 @@
-"""``mfdesign ask``, ``tell`` and ``status``: a campaign's loop from the command line.
+"""``mfdesign create``, ``ask``, ``tell`` and ``status``: a campaign's loop from the command line.
 
 Each command parses its options, calls one method of :class:`mfdesign.campaign.Campaign`
 and prints its summary; ``mfdesign fit D`` (in :mod:`.data`) refits a campaign. The
-campaign folder ``D`` is made by :meth:`~mfdesign.campaign.Campaign.create` (docs/campaign.md).
+campaign folder ``D`` is made by ``create`` (:meth:`~mfdesign.campaign.Campaign.create`:
+the first data, the settings, a user's effects files kept in the folder) or by ``mfdesign
+demo`` (docs/campaign.md).
 """
 
 from __future__ import annotations
@@ -15,8 +17,27 @@ from typing import List, Optional
 import typer
 
 from mfdesign.cli._app import SCHEDULER
+from mfdesign.cli._contract import effect_name, item_parser
 
 FOLDER = typer.Argument(..., help="The campaign's folder (holds campaign.json).")
+EFFECTS = typer.Option(
+    None,
+    "--effects",
+    parser=item_parser(effect_name, "an effect name"),
+    help="Effects in force from the first round (repeat for several; a diagnosis adds what it finds).",
+)
+EFFECTS_MODULE = typer.Option(
+    None,
+    "--effects-module",
+    help="Python file registering new effects (repeat for several; its code runs): copied into the campaign "
+    "with its sha256 and imported again whenever the campaign is opened (docs/campaign.md).",
+)
+PHYSICS = typer.Option(
+    "exact",
+    help="exact (simulator planes of the measured membranes, cached; searches on the emulator) | emulator "
+    "(neural emulator, ~1 N error) | standin (no physics; trials).",
+)
+QUICK = typer.Option(False, "--quick", help="Smoke-test sizes for every step (tiny chains, ensembles and searches).")
 
 
 def _call() -> str:
@@ -24,7 +45,29 @@ def _call() -> str:
     return shlex.join(["mfdesign", *sys.argv[1:]])
 
 
+def create(
+    folder: Path = typer.Argument(..., help="The new campaign's folder (created; no campaign in it yet)."),
+    data: List[str] = typer.Argument(
+        ..., help="The first measurements: Parquet/CSV file(s), rig job folder(s), or 'bundled'."
+    ),
+    effects: Optional[List[str]] = EFFECTS,
+    effects_module: Optional[List[Path]] = EFFECTS_MODULE,
+    physics: str = PHYSICS,
+    quick: bool = QUICK,
+    seed: int = typer.Option(0, help="The campaign's seed (every step derives its own from it)."),
+) -> None:
+    """Make a campaign: its first measurements, settings and your effects files (next: fit, ask, tell)."""
+    from mfdesign.campaign import Campaign, Settings
+
+    named = tuple(effects or ())
+    settings = (Settings.quick if quick else Settings)(physics=physics, effects=named, seed=seed)
+    made = Campaign.create(folder, data=data, settings=settings, effects_module=effects_module, call=_call())
+    typer.echo(f"{made.status().summary()}\nnext: mfdesign fit {folder}")
+
+
 def register(app: typer.Typer) -> None:
+    app.command()(create)
+
     @app.command()
     def ask(
         folder: Path = FOLDER,
