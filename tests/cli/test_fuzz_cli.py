@@ -217,8 +217,10 @@ def _copy(src: Path, dst: Path) -> Path:
 
 # -- the cases --------------------------------------------------------------------------
 def _propose_case(label: str, model: Path, out: Path) -> tuple:
-    """A cheap ``propose`` on a (possibly corrupted) model folder: name, args, inputs, env, out."""
-    args = ["propose", "--model", model, "--q", 1, "--restarts", 2, "--refine", 1, "--opt-steps", 0, "--out", out]
+    """A cheap ``propose`` on a (possibly corrupted) model folder: name, args, inputs, env, out
+    (``--no-simulate``: no simulator check of the membrane, as optimize's ``--no-check``)."""
+    args = ["propose", "--model", model, "--q", 1, "--restarts", 2, "--refine", 1, "--opt-steps", 0, "--no-simulate"]
+    args += ["--out", out]
     return (label, args, [model], None, out)
 
 
