@@ -60,9 +60,6 @@ CAMPAIGN_FILE = "campaign.json"
 STATUSES = ("pending", "measured", "dropped")
 PHYSICS = ("exact", "emulator", "standin")
 _ROUND_PREFIX = "round-"
-# The campaigns' effects files imported in this process: (resolved path, sha256) -> the
-# effects each registered (every _read checks the files; an unchanged one is not run again).
-_IMPORTED: dict[tuple[str, str], tuple[str, ...]] = {}
 
 
 # ----------------------------------------------------------------------------- settings
@@ -365,37 +362,9 @@ def _unkept(names: Sequence[str], modules: Sequence[EffectsModule]) -> list[str]
     return [n for n in names if n not in kept and EFFECTS[n].__module__.split(".")[0] != "mfdesign"]
 
 
-def _import_effects_modules(folder: Path, modules: Sequence[EffectsModule]) -> None:
-    """Import the campaign's copies of its effects files (an unchanged file already
-    imported in this process is not run again); ``InputError`` for a missing or changed one."""
-    from mfdesign.physics.effects import EFFECTS
-    from mfdesign.user_effects import load_effects_module
-
-    for m in modules:
-        path = folder / m.file
-        if not path.is_file() or _sha256(path) != m.sha256:
-            raise InputError(
-                f"{path}: the campaign's copy of the effects module {m.origin} is missing or changed since "
-                "Campaign.create (sha256 differs); allowed: the file as it was copied"
-            )
-        key = (str(path.resolve()), m.sha256)
-        if key not in _IMPORTED or any(e not in EFFECTS for e in m.effects):
-            _IMPORTED[key] = load_effects_module(path, f"campaign {folder}: effects module")
-        _check_registered(m.effects, f"{path} no longer registers")
-
-
-def _keep_effects_modules(folder: Path, paths: Sequence[Path], registered: Sequence[tuple[str, ...]]):
-    """Copy the effects files into ``folder/effects/`` (so that the campaign does not depend
-    on the user's file staying put); their :class:`EffectsModule` records."""
-    kept = []
-    for i, (path, names) in enumerate(zip(paths, registered)):
-        copy = folder / "effects" / f"m{i}_{path.name}"
-        copy.parent.mkdir(exist_ok=True)
-        shutil.copyfile(path, copy)
-        digest = _sha256(copy)
-        _IMPORTED[(str(copy.resolve()), digest)] = names  # the bytes just imported
-        kept.append(EffectsModule(str(copy.relative_to(folder)), digest, str(path), tuple(names)))
-    return tuple(kept)
+def _module(record: dict) -> EffectsModule:
+    """An :class:`EffectsModule` from its JSON record."""
+    return EffectsModule(**{**record, "effects": tuple(record["effects"])})
 
 
 def _round_folders(folder: Path) -> list[Path]:
@@ -468,7 +437,7 @@ class Campaign:
         settings = Settings() if settings is None else settings
         if not isinstance(settings, Settings):
             raise InputError(f"settings: a {type(settings).__name__}; allowed: mfdesign.campaign.Settings")
-        from mfdesign.user_effects import load_effects_module
+        from mfdesign.user_effects import keep, load_effects_module
 
         given = [effects_module] if isinstance(effects_module, (str, os.PathLike)) else effects_module or []
         if not isinstance(given, (list, tuple)) or not all(isinstance(p, (str, os.PathLike)) for p in given):
@@ -485,7 +454,7 @@ class Campaign:
         table, origin = _measurements(data, "Campaign.create")
         with OutputLock(folder, option="campaign", reentrant=True):
             source = cls(folder)._store(table, origin, after_round=-1, proposal=None, index=0)
-            modules = _keep_effects_modules(folder, paths, registered)
+            modules = tuple(_module(r) for r in keep(folder, paths, registered))
             created = provenance(
                 call or f"Campaign.create({str(folder)!r})",
                 {"seed": settings.seed},
@@ -511,6 +480,8 @@ class Campaign:
 
     # -- state
     def _read(self) -> _State:
+        from mfdesign.user_effects import import_kept
+
         path = self.folder / CAMPAIGN_FILE
         if not path.is_file():
             raise InputError(
@@ -521,10 +492,9 @@ class Campaign:
             raw = json.loads(path.read_text())
             if raw.get("format_version") != FORMAT_VERSION:
                 raise ValueError(f"format_version {raw.get('format_version')!r}, this mfdesign reads {FORMAT_VERSION}")
-            modules = tuple(
-                EffectsModule(**{**m, "effects": tuple(m["effects"])}) for m in raw.get("effects_modules", [])
-            )
-            _import_effects_modules(self.folder, modules)  # before the effect names are read
+            modules = tuple(_module(m) for m in raw.get("effects_modules", []))
+            # before the effect names are read: the kept copies, checked and imported
+            import_kept(self.folder, [m.to_json() for m in modules], f"campaign {self.folder}")
             settings = Settings.from_json(raw["settings"], where=str(path))
             settings.check_effects(f"{path}: settings.effects")
             _check_registered(raw["effects"], f"{path}: effects in force")

@@ -1,6 +1,7 @@
 """A user's own effect everywhere (issue 41 item 4): ``--effects-module FILE.py`` on
-``calibrate`` and ``fit-mf``, and a campaign that keeps the file (``Campaign.create``'s
-``effects_module``) and imports it again on every open.
+``calibrate`` and ``fit-mf`` (their output folder keeps the file, for every ``--model
+OUT``), and a campaign that keeps the file (``Campaign.create``'s ``effects_module``,
+``mfdesign create``) and imports it again on every open.
 
 The effect is the docs' example (``docs/examples/lift_height_offset.py``). Before each
 test it is taken out of the registry (monkeypatch puts it back), so that it is known only
@@ -18,6 +19,7 @@ import pytest
 from typer.testing import CliRunner
 
 from mfdesign import campaign as campaign_module
+from mfdesign import user_effects
 from mfdesign.campaign import Campaign, Settings
 from mfdesign.cli import app
 from mfdesign.errors import InputError
@@ -32,7 +34,7 @@ runner = CliRunner()
 def forget_the_effect(monkeypatch) -> None:
     """As a new process knows it: not at all (the registry and the campaigns' import cache)."""
     monkeypatch.delitem(fx.EFFECTS, NAME, raising=False)
-    monkeypatch.setattr(campaign_module, "_IMPORTED", {})
+    monkeypatch.setattr(user_effects, "_IMPORTED", {})
 
 
 @pytest.fixture(scope="module")
@@ -66,8 +68,18 @@ def test_calibrate_and_fit_mf_take_a_user_effects_module(two, tmp_path, monkeypa
     assert PARAMETER in post["names"] and post["effects"] == [NAME]
     # the file is an input of the run: its sha256 in the provenance
     assert len(post["provenance"]["inputs_sha256"][str(EXAMPLE)]) == 64
+    kept = json.loads((out / "effects" / "modules.json").read_text())["effects_modules"]
+    assert [m["effects"] for m in kept] == [[NAME]] and (out / kept[0]["file"]).read_bytes() == EXAMPLE.read_bytes()
     if command == "fit-mf":
+        from mfdesign.workflows.models import load_fit
+
         assert json.loads((out / "mf.json").read_text())["effects"] == [NAME]
+        forget_the_effect(monkeypatch)  # a new session: every --model OUT imports the kept copy
+        assert PARAMETER in load_fit(out).posterior.names
+        (out / kept[0]["file"]).write_text(EXAMPLE.read_text() + "# edited\n")
+        forget_the_effect(monkeypatch)
+        with pytest.raises(InputError, match="effects module .* is missing or changed since it was kept"):
+            load_fit(out)
 
 
 @pytest.mark.parametrize("command", ["calibrate", "fit-mf"])
@@ -125,7 +137,7 @@ def test_a_campaign_keeps_the_effects_file_across_create_open_fit_ask(tmp_path, 
     assert f"effects module {record[0]['file']} (from {mine}): {NAME}" in opened.status().summary()
 
     copy.write_text(copy.read_text() + "\n# edited\n")
-    with pytest.raises(InputError, match="effects module .* is missing or changed since Campaign.create"):
+    with pytest.raises(InputError, match="effects module .* is missing or changed since it was kept"):
         Campaign.open(folder)
     r = runner.invoke(app, ["status", str(folder)])
     assert r.exit_code == 2 and "sha256 differs" in r.output and len(r.output.strip().splitlines()) == 1

@@ -9,7 +9,8 @@ killed run; unconstrained parameters), ``posterior.json`` + ``posterior.npz``,
 log_likelihood / posterior_predictive / observed_data: ``az.from_netcdf``), ``corner.png``; ``fit-mf`` adds the
 discrepancy ensemble (``delta/``) and ``mf.json`` (residual noise, training RMSE and 90 %
 coverage). ``--effects-module FILE.py`` (repeat for several) imports a user's file that
-registers effects (its code runs), so ``--effects`` may name them (docs/effects.md).
+registers effects (its code runs), so ``--effects`` may name them; ``OUT/effects/`` keeps a
+copy (sha256 in ``effects/modules.json``) that every ``--model OUT`` imports again.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ EFFECTS_MODULE = typer.Option(
     None,
     "--effects-module",
     help="Python file registering new effects, imported first (its code runs) so that --effects may name "
-    "them (repeat for several; docs/effects.md).",
+    "them; OUT/effects/ keeps a copy, imported again by --model OUT (repeat for several; docs/calibration.md).",
 )
 PHYSICS = typer.Option(
     "exact",

@@ -238,7 +238,8 @@ def calibrate(
         material: ``free`` | ``coupons`` | ``coupons-jm`` (which rubber constants are held).
         latents: one thickness latent per membrane (False: nominal thicknesses).
         effects_module: Python files registering new effects, imported before ``effects``
-            are checked (their code runs); their sha256 join the provenance's inputs.
+            are checked (their code runs); their sha256 join the provenance's inputs, and
+            ``out/effects/`` keeps copies that every ``--model out`` imports again.
 
     Raises :class:`~mfdesign.errors.InputError` (one line) for bad options, data or chain."""
     import warnings
@@ -246,10 +247,10 @@ def calibrate(
     from mfdesign.calibration.mcmc import ConvergenceWarning
     from mfdesign.calibration.posterior import save_inference_data  # ArviZ: az.from_netcdf(OUT/posterior.nc)
 
-    from mfdesign.user_effects import load_effects_modules
+    from mfdesign.user_effects import keep_in_output, load_effects_module
 
     modules = [Path(m) for m in effects_module or []]
-    load_effects_modules(modules)  # before the names are checked: they may register them
+    registered = [load_effects_module(m) for m in modules]  # before the names are checked: they may register them
     effects = list(effects)
     priors = _check_options(effects, walkers, likelihood, material)
     table, force_model = _load(data, physics, multi_fidelity, allow_outside_design_space)
@@ -293,6 +294,10 @@ def calibrate(
         "inference_data": str(out / "posterior.nc"),
         "corner": str(out / "corner.png"),
     }
+    # copies of the effects files, imported again by every --model OUT (propose, optimize, ...)
+    keep_in_output(out, modules, registered)
+    if modules:
+        written["effects_modules"] = str(out / "effects" / "modules.json")
     mf_line = ""
     if fit is not None:
         # posterior.json again: the same numbers (its provenance's time may be a second later)

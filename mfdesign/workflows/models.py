@@ -26,11 +26,18 @@ __all__ = [
 
 def model_folder(path: Path) -> Path:
     """``path`` itself, or, for a campaign's folder (``mfdesign demo --out D`` leaves one),
-    its latest round's model folder: every ``--model`` takes a campaign."""
+    its latest round's model folder: every ``--model`` takes a campaign. The user's effects
+    files the folder keeps are imported first (a campaign's on opening it; a fit-mf
+    folder's ``effects/``: :func:`mfdesign.user_effects.import_folder`), so that its model
+    rebuilds with them."""
     from mfdesign.campaign import Campaign
+    from mfdesign.user_effects import import_folder
 
     path = Path(path)
-    return Campaign.open(path).model_folder() if Campaign.holds_campaign(path) else path
+    if Campaign.holds_campaign(path):
+        return Campaign.open(path).model_folder()
+    import_folder(path)
+    return path
 
 
 def load_fit(path: Path) -> Any:
