@@ -109,12 +109,16 @@ def import_kept(folder: Path, records: Sequence[dict], what: str) -> None:
         records: their records (``file``, ``sha256``, ``origin``, ``effects``).
         what: how the message names the folder (``campaign D``).
 
-    Raises ``InputError`` in one line for a copy that is missing or changed (its sha256
-    differs), or that no longer registers its effects."""
+    Raises ``InputError`` in one line for a copy outside ``folder/effects/``, missing or
+    changed (its sha256 differs), or that no longer registers its effects."""
     from mfdesign.physics.effects import EFFECTS
 
     for r in records:
         path = Path(folder) / r["file"]
+        if path.resolve().parent != (Path(folder) / KEPT).resolve():  # a record never points elsewhere
+            raise InputError(
+                f"{what}: effects module {r['file']!r} is not in its {KEPT}/ folder; allowed: {KEPT}/NAME.py"
+            )
         if not path.is_file() or _sha256(path) != r["sha256"]:
             raise InputError(
                 f"{path}: {what}'s copy of the effects module {r['origin']} is missing or changed since it was "

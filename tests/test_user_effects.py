@@ -141,6 +141,12 @@ def test_a_campaign_keeps_the_effects_file_across_create_open_fit_ask(tmp_path, 
         Campaign.open(folder)
     r = runner.invoke(app, ["status", str(folder)])
     assert r.exit_code == 2 and "sha256 differs" in r.output and len(r.output.strip().splitlines()) == 1
+    # a record never points out of the campaign's effects/ folder (campaign.json edited by hand)
+    raw = json.loads((folder / "campaign.json").read_text())
+    raw["effects_modules"][0]["file"] = "effects/../../elsewhere.py"
+    (folder / "campaign.json").write_text(json.dumps(raw))
+    with pytest.raises(InputError, match="is not in its effects/ folder"):
+        Campaign.open(folder)
 
 
 def test_a_campaign_refuses_an_effect_it_could_not_know_again(tmp_path, monkeypatch):
