@@ -104,8 +104,8 @@ def test_a_bad_effects_module_is_one_line_and_exit_2(two, tmp_path, command, nam
 
 def test_a_campaign_keeps_the_effects_file_across_create_open_fit_ask(tmp_path, monkeypatch):
     """create copies the file (with its sha256); the user's file may go; every open (in a
-    new process: here the registry is emptied) imports the copy, so fit (the CLI's) and
-    ask know the effect; a changed copy is refused in one line."""
+    new process: here the registry is emptied) imports the copy, so fit (the CLI's),
+    diagnose and ask know the effect; a changed copy is refused in one line."""
     from test_campaign import rig_data
 
     forget_the_effect(monkeypatch)
@@ -132,6 +132,8 @@ def test_a_campaign_keeps_the_effects_file_across_create_open_fit_ask(tmp_path, 
     opened = Campaign.open(folder)
     assert opened.settings.effects == opened.effects == (NAME,)
     assert PARAMETER in opened.model().posterior.names  # a round's model reloads with the effect
+    diagnosis = opened.diagnose()  # the effect in force: fitted with the residuals' before / after
+    assert NAME in diagnosis.effects and PARAMETER in diagnosis.theta
     (entry,) = opened.ask(q=1)
     assert entry.status == "pending"
     assert f"effects module {record[0]['file']} (from {mine}): {NAME}" in opened.status().summary()
