@@ -16,8 +16,8 @@ The timed round, cold: a new temporary ``MFDESIGN_CACHE_DIR`` (empty plane and J
 compilation caches), each step a fresh process under ``/usr/bin/time -v`` (wall, CPU,
 peak RSS):
 
-1. ``create``: ``Campaign.create(D, data, Settings(...))`` (the CLI has no create
-   command; ``python -c``);
+1. ``create``: ``Campaign.create(D, data, Settings(...))`` (``python -c``: ``mfdesign
+   create`` takes a few settings only, and the round runs the demo's);
 2. ``diagnose``: ``Campaign.diagnose()`` (``mfdesign fit D`` does not diagnose; what it
    finds joins the effects in force);
 3. ``fit``: ``mfdesign fit D`` (calibration with emcee + the discrepancy ensemble);

@@ -674,12 +674,14 @@ class Campaign:
             )
             return self._commit_round(state, fit, table, number, seed, heldout, call or "Campaign.fit()")
 
-    def adopt(self, fit, diagnosis=None, *, call: str = "") -> Round:
+    def adopt(self, fit, diagnosis=None, *, call: str = "", posterior_nc: Path | None = None) -> Round:
         """Record a fit made elsewhere (the demo's, on the campaign's data, effects and
         settings) as the campaign's next round, as :meth:`fit` would have written it; with
         ``diagnosis`` (a :class:`~mfdesign.diagnose.pipeline.Diagnosis`) its record too.
         So ``mfdesign demo --out D`` leaves a campaign that ``ask`` / ``tell`` / ``fit``
-        continue without refitting."""
+        continue without refitting. ``posterior_nc``: the fit's ``posterior.nc``, already
+        written on the campaign's data with the round's seed and ``max_rows``: copied, not
+        computed again (its pointwise groups cost the demo 6-7 s a write)."""
         from mfdesign import outputs
 
         s = self.settings
@@ -699,10 +701,12 @@ class Campaign:
                 }
                 outputs.write_json(self.folder / "diagnosis.json", record, default=float)
             return self._commit_round(
-                state, fit, self.data(), number, s.seed + number, None, call or "Campaign.adopt()"
+                state, fit, self.data(), number, s.seed + number, None, call or "Campaign.adopt()", posterior_nc
             )
 
-    def _commit_round(self, state: _State, fit, table, number: int, seed: int, heldout, call: str) -> Round:
+    def _commit_round(
+        self, state: _State, fit, table, number: int, seed: int, heldout, call: str, posterior_nc: Path | None = None
+    ) -> Round:
         """Write round ``number`` of ``fit`` into a temporary folder, rename it into place."""
         from mfdesign import outputs
 
@@ -711,7 +715,7 @@ class Campaign:
         tmp = rounds / f".{_ROUND_PREFIX}{number:03d}.{os.getpid()}.tmp"
         tmp.mkdir()
         sources = {src.id: src.sha256 for src in state.sources}
-        meta = self._write_model(fit, table, tmp / "model", seed, s, call, sources)
+        meta = self._write_model(fit, table, tmp / "model", seed, s, call, sources, posterior_nc)
         searched = fit
         if s.search_physics != s.physics:  # what a reload gives: the same posterior on the search physics
             from mfdesign.calibration.workflow import for_search
@@ -735,14 +739,21 @@ class Campaign:
         return Round(number, final, searched, record)
 
     @staticmethod
-    def _write_model(fit, table, folder: Path, seed: int, s: Settings, call: str, sources: dict) -> dict:
+    def _write_model(
+        fit, table, folder: Path, seed: int, s: Settings, call: str, sources: dict, posterior_nc: Path | None = None
+    ) -> dict:
         """The round's model: ``posterior.nc`` (ArviZ) first (its R-hat and ESS go into the
-        posterior's convergence), then :meth:`MFFit.save` (its provenance: ``call`` and the
-        sources' hashes, as the round's)."""
+        posterior's convergence; a copy of ``posterior_nc``, whose writer put them there),
+        then :meth:`MFFit.save` (its provenance: ``call`` and the sources' hashes, as the round's)."""
         from mfdesign.calibration.posterior import save_inference_data
 
         folder.mkdir(parents=True)
-        save_inference_data(fit.posterior, folder / "posterior.nc", fit.model, table, seed=seed, max_rows=s.max_rows)
+        if posterior_nc is not None and Path(posterior_nc).is_file() and "draws_in_file" in fit.posterior.convergence:
+            shutil.copy2(posterior_nc, folder / "posterior.nc")
+        else:
+            save_inference_data(
+                fit.posterior, folder / "posterior.nc", fit.model, table, seed=seed, max_rows=s.max_rows
+            )
         return fit.save(folder, physics=s.physics, material=s.material, table=table, call=call, inputs=sources)
 
     def _heldout(self, state: _State, last: Path) -> dict | None:

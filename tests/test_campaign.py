@@ -239,8 +239,11 @@ def test_a_fit_made_elsewhere_is_adopted_as_the_next_round_and_continues(fitted,
     folder = tmp_path / "adopted"
     campaign = Campaign.create(folder, data=rig_data(), settings=Settings.quick("standin", seed=3))
     made_elsewhere = Campaign.open(fitted[0]).model(0)  # an MFFit, as the demo holds one
-    r0 = campaign.adopt(made_elsewhere)
+    written = fitted[0] / "rounds" / "round-000" / "model" / "posterior.nc"
+    r0 = campaign.adopt(made_elsewhere, posterior_nc=written)
     assert r0.number == 0 and campaign.rounds() == [0]
+    # the posterior.nc the demo already wrote is copied, not computed again
+    assert (r0.folder / "model" / "posterior.nc").read_bytes() == written.read_bytes()
     np.testing.assert_array_equal(
         np.asarray(campaign.model(0).mf.predict(DESIGN, H_MM, P_PA)),
         np.asarray(made_elsewhere.mf.predict(DESIGN, H_MM, P_PA)),

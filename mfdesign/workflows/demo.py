@@ -986,7 +986,8 @@ def _leave_campaign(run: _Run, found: list[str], fit, diag):
 
     call = call_line("run_demo()")
     campaign = Campaign.create(run.out, data=run.meas, settings=settings, call=call)
-    campaign.adopt(fit, diag, call=call)
+    # the fit's posterior.nc, written by write_posterior on the same rows and seed: copied
+    campaign.adopt(fit, diag, call=call, posterior_nc=run.out / "with_effects" / "posterior.nc")
     return campaign
 
 

@@ -190,3 +190,46 @@ def test_a_fit_at_one_edge_grows_that_axis_only(exact, monkeypatch):
     grown.clear()
     exact.covering(at, margin=2)  # without ``edge``: both sides of every axis
     assert grown == {"jm": (-2, 3), "ring": (-2, 3)}, grown
+
+
+def test_lattice_contraction_is_the_axis_by_axis_cubic_and_falls_back_to_multilinear():
+    """The scalar-coordinate contraction (full-axis weights, one product per walker) equals
+    the Keys cubic applied axis by axis wherever the 4 x 4 stencil is complete, falls back
+    to bilinear on the 4 middle nodes near an unsolved node (NaN without them), and marks
+    outside-model rows by the same nonzero-weight rule as the axis-by-axis mask."""
+    import jax
+
+    from mfdesign.models.exact import ExactForceModel, LatticeAxis, _contract, _position, _touch
+
+    rng = np.random.default_rng(0)
+    arr = rng.standard_normal((2, 6, 5, 7, 8))
+    arr[0, 2, 3, 3, 4] = np.nan  # one unsolved node
+    arr = jnp.asarray(arr)
+    axes = (LatticeAxis("jm", -2, 4), LatticeAxis("ring", -1, 3))
+    model = object.__new__(ExactForceModel)
+    object.__setattr__(model, "outside", "nan")
+
+    def axis_by_axis(a, pos, contract):
+        zero = jnp.zeros((), jnp.int32)
+        block = jax.lax.dynamic_slice(a, (zero, pos[0][0], pos[1][0], zero, zero), (a.shape[0], 4, 4, *a.shape[-2:]))
+        return contract(contract(block, pos[1][1], axis=2), pos[0][1], axis=1)
+
+    for _ in range(40):
+        cs = [rng.uniform(a.lo, a.hi) for a in axes]
+        pos = [_position(c, a.lo, a.axis.step, a.n, False) for a, c in zip(axes, cs)]
+        got = np.asarray(model._contract_planes(arr, axes, cs)[0])
+        want = np.asarray(axis_by_axis(arr, pos, _contract))
+        i, j = int(pos[0][0]), int(pos[1][0])
+        complete = np.isfinite(np.asarray(arr)[:, i : i + 4, j : j + 4]).all(axis=(1, 2))
+        np.testing.assert_allclose(got[complete], want[complete], rtol=0, atol=1e-12)
+        near = ~complete
+        if near.any():  # bilinear on the middle 2 x 2 nodes
+            t0, t1 = float(pos[0][1]), float(pos[1][1])
+            mid = np.asarray(arr)[:, i + 1 : i + 3, j + 1 : j + 3]
+            w = np.outer([1 - t0, t0], [1 - t1, t1])
+            bil = np.einsum("ab,mabhp->mhp", w, mid)
+            np.testing.assert_allclose(got[near], bil[near], rtol=0, atol=1e-12)
+        mask = arr > 1.0
+        assert np.array_equal(
+            np.asarray(model._contract_planes(mask, axes, cs, _touch)[0]), np.asarray(axis_by_axis(mask, pos, _touch))
+        )
