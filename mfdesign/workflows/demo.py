@@ -257,21 +257,31 @@ def _run_json(run) -> dict:
     }
 
 
-def _make_sim_runs(proposal, predictor, fit, out: Path) -> list[dict]:
-    """Make the proposal's simulator runs at the fit's calibrated constants (planes in
-    ``out/propose/sim_runs/runK``); per run what it taught (:mod:`mfdesign.sim_runs`)."""
+def _make_sim_runs(proposal, predictor, fit, out: Path) -> tuple[list[dict], list[dict]]:
+    """Make the proposal's simulator runs and check its membranes to fabricate, in one batch
+    at the fit's calibrated constants (one plane program for both; issue 43: a proposal's
+    predicted curve is re-computed by the simulator before it is shown). Planes of the runs
+    in ``out/propose/sim_runs/runK``. Returns per simulator run what it taught, and per
+    membrane to fabricate its ``simulator_check`` (the model's sim fidelity against the
+    simulator on the run's plane: RMS / max error beside the predicted spread)."""
     from mfdesign import sim_runs
     from mfdesign.calibration.workflow import calibrated_sim_params
     from mfdesign.workflows.plane import write_plane
 
     params, constants = calibrated_sim_params(fit)
-    made = []
-    for m in sim_runs.make(proposal.simulate, predictor, params):
+    done = sim_runs.make(list(proposal.simulate) + list(proposal.fabricate), predictor, params)
+    made, checks = [], []
+    for i, m in enumerate(done):
         entry = m.to_json() | {"taught": m.taught(), "constants": constants}
+        if i >= len(proposal.simulate):
+            checked = m.error is None and m.rmse_n is not None
+            understated = checked and bool(m.predicted_std_n) and m.rmse_n > UNDERSTATED_SPREAD * m.predicted_std_n
+            checks.append(entry | {"checked": checked, "compared_fidelity": "sim", "understated": understated})
+            continue
         if m.table is not None:
             write_plane(m.table, m.design, out / "propose" / "sim_runs" / f"run{m.rank}", extra={"run": entry})
         made.append(entry)
-    return made
+    return made, checks
 
 
 def _proposal_figure(meas, proposal, path: Path) -> None:
@@ -399,7 +409,7 @@ def _optimum_headline(opt: dict) -> str:
 UNDERSTATED_SPREAD = 2.0
 
 
-def _banners(diag, convergence: dict, optimum: dict | None = None, sim_runs=()) -> list[str]:
+def _banners(diag, convergence: dict, optimum: dict | None = None, sim_runs=(), proposals=()) -> list[str]:
     """Warnings for the top of the report, what a reader must know before trusting any
     number below: chains that have not converged, a model (after the effects found) far
     above the noise floor, an optimum at a grid or rig limit or in a near-tie, a predicted
@@ -415,11 +425,13 @@ def _banners(diag, convergence: dict, optimum: dict | None = None, sim_runs=()) 
                 f"The {tag.replace('_', ' ')} model's chain has not converged ({why}): its intervals are not trustworthy."
             )
     out += limit_banners(diag)
-    for run in sim_runs:
+    runs = [("the simulator run", r) for r in sim_runs]
+    runs += [("the proposed membrane", p["simulator_check"]) for p in proposals if p.get("simulator_check")]
+    for what, run in runs:
         rmse, spread = run.get("rmse_n"), run.get("predicted_std_n")
         if rmse is not None and spread and rmse > UNDERSTATED_SPREAD * spread:
             out.append(
-                f"The predicted spread is understated: at the simulator run {_short(run['design'])} the model is "
+                f"The predicted spread is understated: at {what} {_short(run['design'])} the model is "
                 f"{rmse:.3g} N RMS off the simulator against a predicted spread of {spread:.3g} N RMS "
                 f"({rmse / spread:.0f}x): its bands are too narrow."
             )
@@ -652,7 +664,16 @@ def demo_report(out: str | Path, summary: dict):
             "Ranked by the expected reduction of the predictive spread over the height-pressure grid, "
             "after the membranes ranked above them; each with why."
         ]
-        + [line for p in proposals for line in (f"{_short(p['design'])}: {p['fidelity']}", _because(p))]
+        + [
+            line
+            for p in proposals
+            for line in (f"{_short(p['design'])}: {p['fidelity']}", _because(p))
+            + (
+                (f"simulator check ({p['simulator_check']['state']}): {p['simulator_check']['taught']}",)
+                if p.get("simulator_check")
+                else ()
+            )
+        ]
         + (
             ["Simulator runs the tool chose and made itself (no one builds these):"]
             + [
@@ -927,7 +948,9 @@ def _report_stage(run: _Run, summary: dict, fits: dict, diag, card: dict | None)
     }
     predictive_check_plot(pits, fig_dir / "predictive_check.png")
     summary["diagnosis"]["verdict"] = _verdict(diag)
-    summary["banners"] = _banners(diag, summary["convergence"], summary["optimum"], summary["simulator_runs"])
+    summary["banners"] = _banners(
+        diag, summary["convergence"], summary["optimum"], summary["simulator_runs"], summary.get("proposals") or []
+    )
     summary["coverage_90"] = {name: pit_coverage(u)[0.9] for name, u in pits.items()}
     if card is not None:
         summary["hidden_effect"] = card["hidden_effect"]["name"]
@@ -1048,8 +1071,11 @@ def run_demo(
     summary["simulator_runs"] = [_run_json(r) for r in proposal.simulate]
     if proposal.simulate and s.force_model != "standin":  # a stand-in's runs would teach nothing real
         with log.stage(f"make the {len(proposal.simulate)} simulator run(s) the proposal chose"):
-            for entry, made in zip(summary["simulator_runs"], _make_sim_runs(proposal, predictor, fit1, out)):
-                entry.update(made)
+            made, checks = _make_sim_runs(proposal, predictor, fit1, out)
+            for entry, m in zip(summary["simulator_runs"], made):
+                entry.update(m)
+            for entry, check in zip(summary["proposals"], checks):
+                entry["simulator_check"] = check
     with log.stage("optimise a membrane for lift task A (height maximisation), check it with the simulator"):
         summary["optimum"] = _optimise_stage(run, predictor, fit1)
     with log.stage("leave a campaign: round 0 is the corrected fit"):

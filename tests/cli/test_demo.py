@@ -336,6 +336,13 @@ def test_banners_state_the_limits_of_the_optimum_and_of_the_spread():
     assert "simulator beyond the grid, 45.0, 40.2 mm against the emulator's 60.0, 50.0, 40.0 mm" in sim
     alone = _banners(good, conv, _optimum(simulator=None, unchecked="stand-in physics"))
     assert alone == ["The optimum for lift task A is the model's answer alone: stand-in physics."]
+    # a membrane to build whose simulator check is far off its predicted spread is said too
+    proposed = {
+        "design": "[2.0, 26.0, nan, nan, nan, nan]",
+        "simulator_check": run | {"design": "[2.0, 26.0, nan, nan, nan, nan]"},
+    }
+    (said,) = _banners(good, conv, _optimum(), [], [proposed, {"design": "[1.0, 30.0, nan, nan, nan, nan]"}])
+    assert said.startswith("The predicted spread is understated: at the proposed membrane") and "15x" in said
 
 
 def test_the_page_puts_every_banner_above_the_first_number(tmp_path):
@@ -387,3 +394,21 @@ def test_planes_figure_shows_every_measured_membrane_with_a_height_key(tmp_path,
     assert all(
         ax.get_xlabel() == "pressure [kPa]" and ax.get_ylabel() == "force [N]" for ax in fig.axes if ax.get_title()
     )
+
+
+def test_the_page_gives_each_proposed_membranes_simulator_check(tmp_path):
+    """Issue 43: a membrane the demo proposes to build is re-computed by the simulator before
+    the page shows it; its section gives that check beside the proposal."""
+    from markupsafe import escape
+
+    from mfdesign.workflows.demo import demo_report
+
+    shutil.copytree(FIXTURE, tmp_path, dirs_exist_ok=True)
+    _stand_in_pictures(tmp_path)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["proposals"], "the stored quick demo proposes membranes"
+    taught = "model (sim fidelity) vs simulator 0.812 N RMS (max 2.1 N) over 255 points; predicted spread 0.5 N RMS"
+    summary["proposals"][0]["simulator_check"] = {"state": "converged", "taught": taught, "checked": True}
+    demo_report(tmp_path, summary).write(tmp_path)
+    page = (tmp_path / "index.html").read_text()
+    assert str(escape(f"simulator check (converged): {taught}")) in page
