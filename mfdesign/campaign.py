@@ -858,29 +858,34 @@ class Campaign:
         return entries
 
     def _make_sim_runs(self, proposal, predictor, fit, simulate, state: _State, entries):
-        """Make the ask's simulator runs; their usable points become one source. Returns the
-        entries that changed (by id) and that source (or None)."""
+        """Make the ask's simulator runs (their usable points become one source) and, in the
+        same batch, re-compute its membranes to build with the simulator before they are
+        shown (issue 43: each entry's note says how far the model is off there, beside its
+        predicted spread; not under stand-in physics, whose planes stand for no simulator).
+        Returns the entries that changed (by id) and that source (or None)."""
         from mfdesign import sim_runs
         from mfdesign.calibration.workflow import calibrated_sim_params
 
-        runs = proposal.simulate
-        if not runs:
-            return {}, None
         s = self.settings
+        runs = list(proposal.simulate)
+        # a stand-in campaign's planes are its own model's: checking against them says nothing
+        checks = list(proposal.fabricate) if simulate is not None or s.physics != "standin" else []
+        if not runs and not checks:
+            return {}, None
         if simulate is None and s.physics == "standin":
             simulate = _standin_planes
         params, _ = calibrated_sim_params(fit)
         spec = sim_runs.PlaneSpec(n_heights=s.sim_heights, n_pressures=s.sim_pressures)
-        done = sim_runs.make(runs, predictor, params, spec, simulate=simulate)
-        by_design = {e.design: e for e in entries if e.fidelity == "sim"}
-        table = sim_runs.as_measurements(done)
-        source = None
+        done = sim_runs.make(runs + checks, predictor, params, spec, simulate=simulate)
+        made, checked = done[: len(runs)], done[len(runs) :]
+        changed, source = {}, None
+        table = sim_runs.as_measurements(made)
         if table is not None:
             n = len(state.sources)
             source = self._store(table, ("simulated by ask",), len(_round_folders(self.folder)) - 1, None, n)
-        changed = {}
-        for m in done:
-            e = by_design[m.design.key()]
+        by_design = {(e.fidelity, e.design): e for e in entries}
+        for m in made:
+            e = by_design["sim", m.design.key()]
             usable = table is not None and m.design.key() in table.design_keys
             changed[e.id] = dataclasses.replace(
                 e,
@@ -888,6 +893,9 @@ class Campaign:
                 source=source.id if usable and source is not None else None,
                 note=f"simulated: {m.state}; {m.taught()}",
             )
+        for m in checked:
+            e = by_design["rig", m.design.key()]
+            changed[e.id] = dataclasses.replace(e, note=f"simulator check ({m.state}): {m.taught()}")
         return changed, source
 
     def tell(self, proposal_id: str, measurements, *, check_design: bool = True, call: str = "") -> ProposalEntry:

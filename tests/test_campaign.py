@@ -287,3 +287,27 @@ def test_every_model_option_takes_a_campaign_folder(fitted, tmp_path):
     Campaign.create(empty, data=rig_data(), settings=Settings.quick("standin"))
     with pytest.raises(InputError, match="has no fitted round yet; allowed: fit it first"):
         load_predictor(empty)
+
+
+def test_ask_checks_its_membranes_to_build_with_the_simulator(fitted, tmp_path):
+    """Issue 43: a membrane the campaign asks for is re-computed by the simulator (in the batch
+    of its simulator runs) before it is shown; its entry's note says how far the model is off
+    there. A stand-in campaign's own planes check nothing: no note then."""
+    import shutil
+
+    from mfdesign.campaign import _standin_planes
+
+    folder = tmp_path / "c"
+    shutil.copytree(fitted[0], folder)
+    calls = []
+
+    def offset_planes(designs, spec, params):  # a "simulator" 50 N above the stand-in
+        calls.append([d.key() for d in designs])
+        return [(f + 50.0, s, lock) for f, s, lock in _standin_planes(designs, spec, params)]
+
+    (plain,) = Campaign.open(folder).ask(q=1)
+    assert plain.note == ""
+    (entry,) = Campaign.open(folder).ask(q=1, simulate=offset_planes)
+    assert len(calls) == 1 and calls[0] == [entry.design]  # one batch
+    assert entry.status == "pending" and entry.note.startswith("simulator check (converged): model (sim fidelity)")
+    assert "well beyond the predicted spread" in entry.note
