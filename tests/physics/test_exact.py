@@ -233,3 +233,42 @@ def test_lattice_contraction_is_the_axis_by_axis_cubic_and_falls_back_to_multili
         assert np.array_equal(
             np.asarray(model._contract_planes(mask, axes, cs, _touch)[0]), np.asarray(axis_by_axis(mask, pos, _touch))
         )
+
+
+def test_each_membrane_reaches_twice_its_own_data_and_grows_alone(tmp_path):
+    """Per-membrane plane tops (issue 40): a membrane whose data stop lower has planes solved
+    only to twice its own top (NaN above: never an extrapolated number), agrees with the
+    planes solved to the common top below it, and ``reaching`` grows that membrane alone
+    when a thinner membrane needs more reduced pressure."""
+    common = build_exact(KEYS, h_max_mm=H_MAX, p_max_pa=P_MAX, cache=tmp_path)
+    low = {KEYS[0]: P_MAX, KEYS[1]: 0.5 * P_MAX}  # the ringed membrane's data stop at 3 kPa
+    own = build_exact(KEYS, h_max_mm=H_MAX, p_max_pa=low, cache=tmp_path)
+    from mfdesign.physics.planes import PlaneGrid
+
+    top = PlaneGrid.covering(H_MAX, 0.5 * P_MAX).p_top_pa  # twice 3 kPa, on the 250 Pa steps
+    assert own.grid == common.grid and own.tops() == (common.grid.p_top_pa, top) and top < common.grid.p_top_pa
+    rng = np.random.default_rng(1)
+    for key, p_hi in ((KEYS[0], 2 * P_MAX), (KEYS[1], top)):
+        d, h, p = _rows(key, 60, rng)
+        p = rng.uniform(0.0, p_hi, 60)
+        a = np.asarray(own(jnp.asarray(d), jnp.asarray(h), jnp.asarray(p), SimParams()))
+        b = np.asarray(common(jnp.asarray(d), jnp.asarray(h), jnp.asarray(p), SimParams()))
+        ok = np.isfinite(b)
+        # the same planes below the top cell; in it the cubic stencil's fourth node is the
+        # extrapolated ghost (within the exact model's 0.01 N of direct simulator calls)
+        inner = ok & (p <= min(p_hi, common.grid.p_top_pa) - 250.0)
+        np.testing.assert_allclose(a[inner], b[inner], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a[ok], b[ok], rtol=0, atol=0.01)
+    d, h, _ = _rows(KEYS[1], 5, rng)
+    above = np.asarray(own(jnp.asarray(d), jnp.asarray(h), jnp.full(5, top + 300.0), SimParams()))
+    assert np.all(np.isnan(above)), "above the ringed membrane's own top: NaN, not a number"
+    thinner = SimParams(thickness_factor=0.8)  # reads its 3 kPa data at 3.75 kPa: inside its top
+    assert own.reaching(thinner, low) is own
+    # rows up to 3 kPa on both, read at s = 0.45: 6.7 kPa, above the ringed membrane's top only
+    thin = SimParams(thickness_factor=0.45)
+    grown = own.reaching(thin, {KEYS[0]: 0.5 * P_MAX, KEYS[1]: 0.5 * P_MAX})
+    assert grown.tops()[0] == own.tops()[0] and grown.tops()[1] >= 1.25 * 0.5 * P_MAX / 0.45
+    p_up = jnp.full(5, top + 300.0)
+    want = np.asarray(common(jnp.asarray(d), jnp.asarray(h), p_up, SimParams()))
+    got = np.asarray(grown(jnp.asarray(d), jnp.asarray(h), p_up, SimParams()))
+    assert np.isfinite(want).any() and np.allclose(got, want, rtol=0, atol=1e-9, equal_nan=True)
