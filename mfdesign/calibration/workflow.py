@@ -110,8 +110,7 @@ def force_model_named(name: str, table=None, progress: bool = False, effect_axes
                     df["height_set_mm"].max(skipna=True) if df["height_set_mm"].notna().any() else 0.0,
                 )
             ),
-            # per membrane: each one's planes reach twice its own data's top (issue 40)
-            p_max_pa={k: float(v) for k, v in df.groupby("design_key")["pressure_pa"].max().items()},
+            p_max_pa=float(df["pressure_pa"].max()),
             progress=progress,
             grow="additive" if effect_axes == "additive" else "tensor",
             tensor=_LATTICE_START[effect_axes].get("tensor"),

@@ -260,7 +260,7 @@ class GrowingLattice:
         self.model = model
         self.progress = progress
 
-    def cover(self, params: SimParams, p_max_pa: float | dict | None = None) -> bool:
+    def cover(self, params: SimParams, p_max_pa: float | None = None) -> bool:
         """Grow the model to hold every constant of ``params`` (fields of any shape) and, for
         gauge pressures up to ``p_max_pa`` [Pa], every reduced pressure ``p / s`` they need
         (``s = (mu / mu0) tf``: a thinner membrane reads planes above the data's pressures);
@@ -520,11 +520,9 @@ class ExactForwardModel(ForwardModel):
     def cover(self, meas: Measurements, order: tuple, thetas: np.ndarray, rows: np.ndarray | None = None) -> bool:
         _, rws = self.table(meas, rows)
         params = _row_params(order, parameter_names(order), self.base_params, rws, thetas)
-        # each membrane's highest gauge pressure: at s it reads the planes at p / s (the
-        # planes start at twice its data's top, room for the pressure chain's gain)
-        df = meas.df if rows is None else meas.df.iloc[np.asarray(rows)]
-        p_max = {k: float(v) for k, v in df.groupby("design_key")["pressure_pa"].max().items()}
-        return self.lattice.cover(params, p_max_pa=p_max or float(np.nanmax(np.asarray(rws.p_pa, float), initial=0.0)))
+        # the rows' highest gauge pressure: at s it reads the planes at p / s (the planes
+        # start at twice the data's top, room for the pressure chain's gain)
+        return self.lattice.cover(params, p_max_pa=float(np.nanmax(np.asarray(rws.p_pa, float), initial=0.0)))
 
 
 def forward_model(physics: str, meas: Measurements, *, cache=None, progress: bool = False) -> ForwardModel:
@@ -559,8 +557,7 @@ def forward_model(physics: str, meas: Measurements, *, cache=None, progress: boo
         "exact",
         tuple(dict.fromkeys(df["design_key"])),
         h_max_mm=float(np.nanmax(query_heights(meas))),
-        # per membrane: each one's planes reach twice its own data's top (issue 40)
-        p_max_pa={k: float(v) for k, v in df.groupby("design_key")["pressure_pa"].max().items()},
+        p_max_pa=float(df["pressure_pa"].max()),
         base=base,
         progress=progress,
         cache=cache,

@@ -14,7 +14,7 @@ def force_model_for(
     design_keys=(),
     *,
     h_max_mm: float = 80.0,
-    p_max_pa: float | dict = 10_000.0,
+    p_max_pa: float = 10_000.0,
     base: SimParams = SimParams(),
     progress: bool = False,
     cache=None,

@@ -216,13 +216,6 @@ class ExactForceModel(ForceModel):
     # rows outside the physical model read +inf (whatever ``outside`` says): the likelihood's
     # and diagnosis' marker, carried through the measurement effects (:meth:`marking`)
     mark_outside: bool = eqx.field(static=True, default=False)
-    # Per membrane, the reduced pressure [Pa] its planes were solved to (<= the grid's top;
-    # NaN above it but for one extrapolated ghost node): a membrane's planes reach P_MARGIN
-    # x ITS data's top, not every membrane's (the bundled membranes' data stop at 7.2-10.2
-    # kPa, the FE sweep's ringed ones at 6.1 kPa: every plane to 2 x the highest of them
-    # solved 30-40 % of those membranes' continuation paths for nothing).
-    # Keyed like ``design_keys``; () means every membrane reaches the grid's top.
-    p_tops: tuple = eqx.field(static=True, default=())
     name = "exact"
 
     # -- interface ------------------------------------------------------------------------------
@@ -282,8 +275,7 @@ class ExactForceModel(ForceModel):
             ok = ok & self._valid_rows((a,), [c * jnp.ones(n)], ringed)
         g_rows = self._rows_plane(grid_part, m, h, P)
         # Beyond the grid's top there is no plane: NaN whatever ``outside`` says.
-        top = jnp.asarray(self.tops())[m] if self.p_tops else self.grid.p_top_pa
-        ok = ok & (P <= top + _TOL) & (h <= self.grid.h_top_mm + _TOL)
+        ok = ok & (P <= self.grid.p_top_pa + _TOL) & (h <= self.grid.h_top_mm + _TOL)
         f = s * jnp.maximum(g_rows + row_parts, 0.0)
         f = jnp.where(ok, f, jnp.nan)
         if self.tensor_out is None and not self.additive_out:
@@ -404,34 +396,17 @@ class ExactForceModel(ForceModel):
             len(self.design_keys),
         )
         return _assemble(
-            self.design_keys,
-            self.base,
-            t_nodes,
-            a_nodes,
-            self.grid,
-            self.outside,
-            self.cache,
-            progress,
-            self.grow,
-            dict(zip(self.design_keys, self.tops())),
+            self.design_keys, self.base, t_nodes, a_nodes, self.grid, self.outside, self.cache, progress, self.grow
         )
 
-    def tops(self) -> tuple[float, ...]:
-        """Per membrane (``design_keys``' order), the reduced pressure [Pa] its planes reach."""
-        return tuple(self.p_tops) if self.p_tops else (self.grid.p_top_pa,) * len(self.design_keys)
-
-    def reaching(
-        self, params: SimParams, p_max_pa: float | Mapping[str, float], progress: bool = False
-    ) -> "ExactForceModel":
-        """The model with its planes reaching the highest reduced pressure ``p_max / s``
+    def reaching(self, params: SimParams, p_max_pa: float, progress: bool = False) -> "ExactForceModel":
+        """The model with its planes reaching the highest reduced pressure ``p_max_pa / s``
         [Pa] that ``params`` need (``s = (mu / mu0) tf``; returns ``self`` when they already
-        do). ``p_max_pa``: the data's highest gauge pressure [Pa], one for all membranes or
-        per design key (a membrane missing from it: the highest of the others). A thinner or
-        softer membrane (``s < 1``) needs planes above the data's pressures; where a fit goes
-        there, the planes of the membranes that need it grow rather than the candidate being
-        dropped as NaN. Their planes are solved again to the new top (a plane is one
-        continuation path from 0 Pa; cached ones are reused), raised with a quarter to
-        spare: one growth, not one per fit."""
+        do). A thinner or softer membrane (``s < 1``) needs planes above the data's
+        pressures; where a fit goes there, the planes grow rather than the candidate being
+        dropped as NaN. Every plane is solved again on the taller grid (a plane is one
+        continuation path from 0 Pa; cached ones are reused), so the top is raised with a
+        quarter to spare: one growth, not one per fit."""
         mu, tf = np.asarray(params.mu_pa, float), np.asarray(params.thickness_factor, float)
         nd = max(mu.ndim, tf.ndim)  # fields per draw [B] and per draw and row [B, N] align on the left
         mu, tf = (a.reshape(a.shape + (1,) * (nd - a.ndim)) for a in (mu, tf))
@@ -439,22 +414,15 @@ class ExactForceModel(ForceModel):
         s = s[np.isfinite(s) & (s > 0)]
         if not s.size:
             return self
-        p_max = _per_key(p_max_pa, self.design_keys)
-        tops = dict(zip(self.design_keys, self.tops()))
-        need = {k: p_max[k] / float(np.min(s)) for k in self.design_keys}
-        short = [k for k in self.design_keys if need[k] > tops[k] + _TOL]
-        if not short:
+        p_reduced_pa = float(p_max_pa) / float(np.min(s))
+        if p_reduced_pa <= self.grid.p_top_pa + _TOL:
             return self
-        for k in short:
-            tops[k] = pl.PlaneGrid.covering(self.grid.h_top_mm, 1.25 * need[k], p_margin=1.0).p_top_pa
-        top = max(max(tops.values()), self.grid.p_top_pa)
-        grid = self.grid if top <= self.grid.p_top_pa + _TOL else pl.PlaneGrid(self.grid.h_top_mm, top)
+        grid = pl.PlaneGrid.covering(self.grid.h_top_mm, 1.25 * p_reduced_pa, p_margin=1.0)
         log.info(
-            "exact planes: reduced pressure up to %.0f Pa is above the planes' top of %d membrane(s); "
-            "they grow to %.0f Pa",
-            max(need[k] for k in short),
-            len(short),
-            max(tops[k] for k in short),
+            "exact planes: reduced pressure %.0f Pa is above the planes' top %.0f Pa; they grow to %.0f Pa",
+            p_reduced_pa,
+            self.grid.p_top_pa,
+            grid.p_top_pa,
         )
         nodes = lambda axes: {a.name: (a.k0, a.k0 + a.n - 1) for a in axes}  # noqa: E731
         return _assemble(
@@ -467,7 +435,6 @@ class ExactForceModel(ForceModel):
             self.cache,
             progress,
             self.grow,
-            tops,
         )
 
     def input_ranges(self) -> dict[str, tuple[float, float]]:
@@ -594,39 +561,7 @@ def _ensure_two(axis: pl.Axis, k0: int, k1: int) -> tuple[int, int]:
     return k0 - 1, k1
 
 
-def _per_key(p_max_pa, design_keys) -> dict[str, float]:
-    """``p_max_pa`` [Pa] per design key: one number for all, or a mapping (a key missing
-    from it gets the highest of the others)."""
-    if isinstance(p_max_pa, Mapping):
-        top = max((float(v) for v in p_max_pa.values()), default=0.0)
-        return {k: float(p_max_pa.get(k, top)) for k in design_keys}
-    return {k: float(p_max_pa) for k in design_keys}
-
-
-def _solve_to_tops(jobs, grid, tops: Mapping[str, float], cache, progress) -> list[np.ndarray]:
-    """Planes of ``(design, params)`` jobs on ``grid``, each solved only up to its membrane's
-    reduced-pressure top (``tops``, by design key; the grid's own where missing): one solve
-    per distinct top, the rest of the pressure axis NaN but for one ghost node linearly
-    extrapolated from the top (the top cell keeps its cubic stencil)."""
-    groups: dict[float, list[int]] = {}
-    for i, (d, _) in enumerate(jobs):
-        groups.setdefault(min(float(tops.get(d.key(), grid.p_top_pa)), grid.p_top_pa), []).append(i)
-    out: list = [None] * len(jobs)
-    n_p = grid.p.size
-    for top, idx in sorted(groups.items()):
-        sub = grid if top >= grid.p_top_pa - _TOL else pl.PlaneGrid(grid.h_top_mm, top)
-        for i, f in zip(idx, pl.solve_planes([jobs[i] for i in idx], sub, cache=cache, progress=progress)):
-            k = f.shape[1]
-            if k < n_p:
-                f = np.concatenate([f, np.full((f.shape[0], n_p - k), np.nan)], axis=1)
-                f[:, k] = 2 * f[:, k - 1] - f[:, k - 2]
-            out[i] = f
-    return out
-
-
-def _assemble(
-    design_keys, base, t_nodes, a_nodes, grid, outside, cache, progress, grow="tensor", tops=None
-) -> ExactForceModel:
+def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progress, grow="tensor") -> ExactForceModel:
     designs = [Membrane.from_key(k) for k in design_keys]
     t_nodes = {k: _ensure_two(pl.AXES[k], *v) for k, v in t_nodes.items()}
     # An additive axis is a difference from its reference node, which it must hold.
@@ -635,9 +570,7 @@ def _assemble(
     parts = [pl.lattice_jobs(designs, base, t_nodes)] + [
         pl.lattice_jobs(designs, base, {name: rng}) for name, rng in a_nodes.items()
     ]
-    tops = {k: min(float(v), grid.p_top_pa) for k, v in (tops or {}).items()}
-    canonical = {Membrane.from_key(k).key(): v for k, v in tops.items()}  # the jobs' designs' own keys
-    planes = _solve_to_tops([j for jobs, _ in parts for j in jobs], grid, canonical, cache, progress)
+    planes = pl.solve_planes([j for jobs, _ in parts for j in jobs], grid, cache=cache, progress=progress)
     stacked, at = [], 0
     for jobs, stack in parts:
         stacked.append(stack(planes[at : at + len(jobs)]))
@@ -648,12 +581,6 @@ def _assemble(
     # nodes outside the physical model: kept only where the lattice has one (else no check)
     radii = np.array([d.outer_radius_mm for d in designs], float)
     outs = [_outside_nodes(arr, grid, radii) for arr in stacked]
-    p_tops = tuple(float(tops.get(k, grid.p_top_pa)) for k in design_keys)
-    for o in outs:  # a membrane's ghost node above its top: its top node's mark (as _pad_edge)
-        for m, top in enumerate(p_tops):
-            k = int(round(top / pl.P_STEP_PA))
-            if k + 1 < o.shape[-1]:
-                o[m, ..., k + 1] = o[m, ..., k]
     if any(o.any() for o in outs):
         log.info(
             "exact planes: %d of %d plane nodes are outside the physical model (force above p pi R^2); "
@@ -680,7 +607,6 @@ def _assemble(
         grow=grow,
         tensor_out=t_out,
         additive_out=a_out,
-        p_tops=p_tops if any(t < grid.p_top_pa - _TOL for t in p_tops) else (),
     )
 
 
@@ -688,7 +614,7 @@ def build_exact(
     design_keys: Sequence[str],
     *,
     h_max_mm: float = 80.0,
-    p_max_pa: float | Mapping[str, float] = 10_000.0,
+    p_max_pa: float = 10_000.0,
     tensor: Mapping[str, tuple[float, float]] | None = None,
     additive: Mapping[str, tuple[float, float]] | None = None,
     base: SimParams = SimParams(),
@@ -703,10 +629,8 @@ def build_exact(
     Arguments:
         design_keys: the measured designs (``"[t, c, r1, w1, r2, w2]"`` keys).
         h_max_mm: the highest plate height [mm] the rows need.
-        p_max_pa: the highest gauge pressure [Pa] the rows need, one for all membranes or
-            per design key (each membrane's planes then reach ``PlaneGrid.P_MARGIN`` x its
-            own in reduced pressure, room for softer or thinner membranes; the grid's top is
-            the highest of them).
+        p_max_pa: the highest gauge pressure [Pa] the rows need (the planes reach 1.35 x it
+            in reduced pressure, room for softer or thinner membranes).
         tensor: lattice axes of the full product (axis name -> coordinate range), e.g.
             ``{"jm": (-0.1, 0.1), "ring": (-0.2, 0.2)}`` for calibration.
         additive: lattice axes that each cross only the reference node (diagnosis' effects).
@@ -730,9 +654,7 @@ def build_exact(
     bad = [k for k in list(tensor or {}) + list(additive or {}) if k not in pl.AXES]
     if bad:
         raise ValueError(f"unknown lattice axes {bad}; known: {list(pl.AXES)}")
-    p_max = _per_key(p_max_pa, design_keys)
-    grid = pl.PlaneGrid.covering(h_max_mm, max(p_max.values(), default=0.0))
-    tops = {k: pl.PlaneGrid.covering(h_max_mm, v).p_top_pa for k, v in p_max.items()}
+    grid = pl.PlaneGrid.covering(h_max_mm, p_max_pa)
     t_nodes = {k: pl.node_range(pl.AXES[k], *v) for k, v in (tensor or {}).items()}
     a_nodes = {k: pl.node_range(pl.AXES[k], *v) for k, v in (additive or {}).items()}
     if grow not in ("tensor", "additive"):
@@ -740,4 +662,4 @@ def build_exact(
     if also is not None:
         ringed = any(Membrane.from_key(k).n_rings > 0 for k in design_keys)
         t_nodes, a_nodes = _widen(t_nodes, a_nodes, _box_of(also, base, ringed), grow)
-    return _assemble(tuple(design_keys), base, t_nodes, a_nodes, grid, outside, cache, progress, grow, tops)
+    return _assemble(tuple(design_keys), base, t_nodes, a_nodes, grid, outside, cache, progress, grow)
