@@ -425,13 +425,15 @@ def _banners(diag, convergence: dict, optimum: dict | None = None, sim_runs=(), 
                 f"The {tag.replace('_', ' ')} model's chain has not converged ({why}): its intervals are not trustworthy."
             )
     out += limit_banners(diag)
-    runs = [("the simulator run", r) for r in sim_runs]
-    runs += [("the proposed membrane", p["simulator_check"]) for p in proposals if p.get("simulator_check")]
-    for what, run in runs:
+    runs = [("the simulator run", r["design"], r) for r in sim_runs]
+    runs += [
+        ("the proposed membrane", p["design"], p["simulator_check"]) for p in proposals if p.get("simulator_check")
+    ]
+    for what, design, run in runs:
         rmse, spread = run.get("rmse_n"), run.get("predicted_std_n")
         if rmse is not None and spread and rmse > UNDERSTATED_SPREAD * spread:
             out.append(
-                f"The predicted spread is understated: at {what} {_short(run['design'])} the model is "
+                f"The predicted spread is understated: at {what} {_short(design)} the model is "
                 f"{rmse:.3g} N RMS off the simulator against a predicted spread of {spread:.3g} N RMS "
                 f"({rmse / spread:.0f}x): its bands are too narrow."
             )
