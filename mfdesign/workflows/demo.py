@@ -274,8 +274,9 @@ def _make_sim_runs(proposal, predictor, fit, out: Path) -> tuple[list[dict], lis
     for i, m in enumerate(done):
         entry = m.to_json() | {"taught": m.taught(), "constants": constants}
         if i >= len(proposal.simulate):
-            checked = m.error is None and m.rmse_n is not None
-            understated = checked and bool(m.predicted_std_n) and m.rmse_n > UNDERSTATED_SPREAD * m.predicted_std_n
+            rmse, spread = m.rmse_n, m.predicted_std_n
+            checked = m.error is None and rmse is not None
+            understated = rmse is not None and bool(spread) and rmse > UNDERSTATED_SPREAD * (spread or 0.0)
             checks.append(entry | {"checked": checked, "compared_fidelity": "sim", "understated": understated})
             continue
         if m.table is not None:
