@@ -252,17 +252,20 @@ def _mean_force(predictor, design, h, p):
     return jax.vmap(lambda hh, pp: _members_at(predictor, design, hh, pp).mean())(h, p)
 
 
-def _invert(force_of, x, level, decreasing: bool):
-    """First crossing of ``force_of(x_k) = level_k`` along the grid ``x`` [G], per target k.
+def _invert(force_of, design, x, level, decreasing: bool):
+    """First crossing of ``force_of(x_k, design) = level_k`` along the grid ``x`` [G], per
+    target k.
 
     Same value as :func:`first_crossing` on the mean force, but the grid pass carries no
-    gradient: the two bracketing points are evaluated again with gradient, which is all the
-    linear interpolation depends on (one backward pass through 2 points per target instead
-    of G). Returns ``(x*, force at the lower bracket)``: the force at ``x[0]`` when the
-    level is already crossed there, at ``x[-1]`` when it is never reached.
+    gradient (the design enters it through ``stop_gradient``, so neither a backward pass
+    nor forward-mode tangents run through it): the two bracketing points are evaluated
+    again with gradient, which is all the linear interpolation depends on (2 points per
+    target instead of G). Returns ``(x*, force at the lower bracket)``: the force at
+    ``x[0]`` when the level is already crossed there, at ``x[-1]`` when it is never reached.
     """
+    fixed = jax.lax.stop_gradient(design)
     fg = jax.lax.stop_gradient(
-        jax.vmap(force_of, out_axes=-1)(jnp.broadcast_to(x[:, None], (x.shape[0],) + level.shape))
+        jax.vmap(lambda xx: force_of(xx, fixed), out_axes=-1)(jnp.broadcast_to(x[:, None], (x.shape[0],) + level.shape))
     )
     sign = -1.0 if decreasing else 1.0
     above = sign * fg >= sign * level[:, None]
@@ -271,12 +274,16 @@ def _invert(force_of, x, level, decreasing: bool):
     g = x.shape[0] - 1
     j = jnp.where(reached, j, g)
     jm = jnp.where(reached, jnp.maximum(j - 1, 0), g)
-    f0, f1 = force_of(x[jm]), force_of(x[j])
+    f0, f1 = force_of(x[jm], design), force_of(x[j], design)
     y0, y1, lv = sign * f0, sign * f1, sign * level
     dy = y1 - y0
     frac = jnp.where(dy != 0, jnp.clip((lv - y0) / jnp.where(dy != 0, dy, 1.0), 0.0, 1.0), 0.0)
     out = jnp.where(reached, jnp.where(j == 0, x[0], x[jm] + frac * (x[j] - x[jm])), x[-1])
     return out, f0
+
+
+# The height loss's grid tops out here [mm]: a lift beyond it scores as this height
+HEIGHT_GRID_TOP_MM = 80.0
 
 
 # --------------------------------------------------------------------------- losses
@@ -328,7 +335,11 @@ class HeightLoss(DesignLoss):
     def of_design(self, design):
         w = self.weights
         h, f0 = _invert(
-            lambda hh: _mean_force(self.predictor, design, hh, self.p_pa), self.h_grid, self.force_n, decreasing=True
+            lambda hh, d: _mean_force(self.predictor, d, hh, self.p_pa),
+            design,
+            self.h_grid,
+            self.force_n,
+            decreasing=True,
         )
         f0 = jnp.where(h <= self.h_grid[0], f0, jnp.inf)  # the deficit counts only where not lifted
         score = smooth_min(h, w.temperature_mm)
@@ -354,7 +365,7 @@ def height_loss(
 ) -> HeightLoss:
     """The height-maximisation loss of ``predictor`` (an :class:`AbstractPredictor`);
     ``h_grid`` default 0-80 mm in 5 mm steps."""
-    h_grid = jnp.linspace(0.0, 80.0, 17) if h_grid is None else jnp.asarray(h_grid, float)
+    h_grid = jnp.linspace(0.0, HEIGHT_GRID_TOP_MM, 17) if h_grid is None else jnp.asarray(h_grid, float)
     return HeightLoss(**_shared_fields(predictor, targets, space, n_rings, weights), h_grid=h_grid)
 
 
@@ -370,7 +381,11 @@ class TrajectoryLoss(DesignLoss):
     def of_design(self, design):
         w = self.weights
         p_hat, f_lo = _invert(
-            lambda pp: _mean_force(self.predictor, design, self.h_mm, pp), self.p_grid, self.force_n, decreasing=False
+            lambda pp, d: _mean_force(self.predictor, d, self.h_mm, pp),
+            design,
+            self.p_grid,
+            self.force_n,
+            decreasing=False,
         )
         f_hi = jnp.where(p_hat >= self.p_grid[-1], f_lo, jnp.inf)  # the deficit counts only where unreached
         e2 = jnp.sum(self.weight * ((p_hat - self.p_pa) / w.pressure_scale_pa) ** 2)
@@ -422,6 +437,15 @@ def _refine(loss, u0, steps: int, lr: float, batch_size: int):
         return jnp.where(better, u, best_u), jnp.where(better, last, best_l)
 
     return jax.lax.map(one, u0, batch_size=batch_size)
+
+
+@eqx.filter_jit
+def _forward_value_and_grad(loss, u):
+    """``(gradient, (loss, aux))`` of ``loss`` at ``u`` in forward mode (``jax.jacfwd``: one
+    tangent per coordinate), for a loss through ODE solves that carry tangents forward
+    only (the simulator's). Not vmapped: under vmap, even of one row, every ``cond`` in the
+    simulator's solvers runs both branches (a step took 26 s against 3 s)."""
+    return jax.jacfwd(lambda v: (lambda out: (out[0], out))(loss(v)), has_aux=True)(u)
 
 
 def sobol_starts(n: int, dim: int, seed: int = 0) -> np.ndarray:
@@ -495,7 +519,10 @@ class Result:
     the winner may not be what it seems, in words (a height at the grid's top or above the
     rig's travel, a pressure at the grid's top or above the rig's limit, a design-space
     bound or minimum gap reached; :func:`limit_flags`); ``alternatives``: other designs
-    (other starts or ring counts) whose loss is within ``tie_tol`` of the winner's.
+    (other starts or ring counts) whose loss is within ``tie_tol`` of the winner's;
+    ``simulator_refined``: where the check disagreed with the model, the few projected-Adam
+    steps taken on the simulator itself from the winner, and that design's own check
+    (:func:`simulator_refine`; None when not run).
     """
 
     problem: str
@@ -509,6 +536,7 @@ class Result:
     settings: dict = dataclasses.field(default_factory=dict)
     limits: list = dataclasses.field(default_factory=list)
     alternatives: list = dataclasses.field(default_factory=list)
+    simulator_refined: dict | None = None
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -543,11 +571,25 @@ def pressure_curves(predictor, design, forces, h_grid, p_grid) -> dict:
     return _member_curves(fn, forces, h_grid, "h_mm", "p", "pa")
 
 
+# The check's height grid reaches past the model's 80 mm: an optimum the model puts at the
+# top of its grid gets a number from the simulator (paper_design's optimum was
+# BEYOND_GRID at 80 mm, so its check said nothing), flagged above the rig's travel.
+CHECK_H_MAX_MM = 120.0
+CHECK_N_HEIGHTS = 25
+
+
 def check_with_simulator(
-    design: Membrane, force_n, p_pa, predicted_h_mm, params=None, h_max_mm: float = 80.0, n_heights: int = 17
+    design: Membrane,
+    force_n,
+    p_pa,
+    predicted_h_mm,
+    params=None,
+    h_max_mm: float = CHECK_H_MAX_MM,
+    n_heights: int = CHECK_N_HEIGHTS,
 ) -> dict:
-    """Simulated lift heights (``mfdesign.physics.solve.height_at``) at the targets vs the
-    model's; ``params``: calibrated :class:`SimParams` or the paper's defaults."""
+    """Simulated lift heights (``mfdesign.physics.solve.height_at``, on ``n_heights``
+    heights 0 .. ``h_max_mm`` mm) at the targets vs the model's; ``params``: calibrated
+    :class:`SimParams` or the paper's defaults."""
     enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.physics.params import SimParams
     from mfdesign.physics.solve import height_at
@@ -569,8 +611,96 @@ def check_with_simulator(
         diff_mm=[None if not np.isfinite(v) else float(v) for v in diff],
         mae_mm=float(np.nanmean(np.abs(diff))) if np.isfinite(diff).any() else None,
         params=_param_dict(params),
+        h_max_mm=float(h_max_mm),
         seconds=time.perf_counter() - t0,
     )
+
+
+def simulator_refine(
+    problem: "HeightTargets | Waypoints",
+    space: DesignSpace,
+    n_rings: int,
+    u,
+    params=None,
+    weights: "Weights | None" = None,
+    steps: int = 6,
+    lr: float = 0.02,
+) -> dict:
+    """A few projected-Adam steps on the simulator itself from the cube point ``u`` (a
+    model's optimum): the same loss as the search, with the model's forces replaced by the
+    simulator's (:class:`~mfdesign.models.predictor.SimulatorPredictor` at ``params``,
+    gradients in forward mode). Used where the simulator's check disagrees with the model:
+    a search on the model finds the model's optimum, and near it the simulator knows
+    better (issue 43). The best visited point is kept (the start included, so the
+    simulator's loss never rises), and checked by :func:`check_with_simulator`.
+
+    Returns a JSON-able dict: the start and end designs, the simulator's loss at both,
+    steps, learning rate, the refined design's check and wall seconds (the first call
+    compiles the simulator's forward-mode search: about a minute on 2 cores)."""
+    from mfdesign.models.predictor import SimulatorPredictor
+
+    weights = PAPER_WEIGHTS if weights is None else weights
+    t0 = time.perf_counter()
+    make = height_loss if isinstance(problem, HeightTargets) else trajectory_loss
+    loss = make(SimulatorPredictor(params), problem, space, n_rings, weights)
+    # A Python loop over the steps (optax's own idiom): one compiled program, the forward
+    # gradient with the loss and its aux; a scan would compile the final loss beside it
+    # (~130 s against ~45 s on 2 cores). The last evaluation scores the last step.
+    opt = optax.adam(lr)
+    u0 = jnp.asarray(u, float)
+    uk, state = u0, opt.init(u0)
+    start, best = None, (np.inf, u0, None)
+    for k in range(int(steps) + 1):
+        g, (val, aux) = _forward_value_and_grad(loss, uk)
+        val = float(val)
+        start = val if start is None else start
+        if val < best[0]:
+            best = (val, uk, aux)
+        if k == int(steps):
+            break
+        upd, state = opt.update(jnp.where(jnp.isfinite(g), g, 0.0), state, uk)
+        uk = optax.projections.projection_box(optax.apply_updates(uk, upd), 0.0, 1.0)
+    l_best, u_best, aux = best
+    if aux is None:  # no finite loss anywhere: report the start
+        u_best, aux = u0, _forward_value_and_grad(loss, u0)[1][1]
+    u_best = np.asarray(u_best)
+    design0 = Membrane.from_array(np.asarray(space.decode_any(u0, n_rings)))
+    design = Membrane.from_array(np.asarray(space.decode_any(jnp.asarray(u_best), n_rings)))
+    if isinstance(problem, HeightTargets):
+        model_h = np.asarray(aux["heights_mm"])
+    else:
+        model_h = np.asarray(problem.h_mm, float)
+    check = check_with_simulator(design, problem.force_n, problem.p_pa, model_h, params)
+    return dict(
+        start_design_key=design0.key(),
+        design_key=design.key(),
+        n_rings=int(n_rings),
+        u=space.cube_of(u_best, n_rings).tolist(),
+        loss_sim_start=start if start is not None and np.isfinite(start) else None,
+        loss_sim=l_best if np.isfinite(l_best) else None,
+        steps=int(steps),
+        lr=float(lr),
+        check=check,
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def _disagrees(check: dict, tol_mm: float, top_mm: float | None = HEIGHT_GRID_TOP_MM) -> bool:
+    """Whether a simulator check contradicts the model as far as the search's loss can
+    tell: a target with no simulated height, or a mean absolute difference above
+    ``tol_mm`` once both heights are capped at ``top_mm`` (the loss's grid top: above it
+    every height scores the same, so a simulator that lifts higher than the model's
+    saturated grid agrees with it; None: no cap, for way-points)."""
+    beyond = [st == "BEYOND_GRID" for st in check.get("status", [""] * len(check["h_sim_mm"]))]
+    top = float(check.get("h_max_mm", np.inf))
+    # past the check's grid: at least its top (above the loss's grid, so capped alike)
+    sim = np.array([top if b else np.nan if v is None else v for v, b in zip(check["h_sim_mm"], beyond)], float)
+    model = np.asarray(check["h_model_mm"], float)
+    if not np.isfinite(sim).all():
+        return True
+    if top_mm is not None:
+        sim, model = np.minimum(sim, top_mm), np.minimum(model, top_mm)
+    return bool(np.mean(np.abs(sim - model)) > tol_mm)
 
 
 def _param_dict(params) -> dict:
@@ -622,7 +752,7 @@ def limit_flags(
     prediction: dict,
     design: Membrane,
     space: DesignSpace,
-    h_grid_top_mm: float = 80.0,
+    h_grid_top_mm: float = HEIGHT_GRID_TOP_MM,
     p_grid_top_pa: float = 2.0 * P_MAX_PA,
 ) -> list[str]:
     """Why an optimum may be an artefact of a limit, one sentence each: a lift height at the
@@ -670,6 +800,27 @@ def limit_flags(
     return out + _bound_flags(design, space)
 
 
+def _check_flags(check: dict | None) -> list[str]:
+    """The simulator check's heights above the rig's travel, one sentence each."""
+    if not check:
+        return []
+    out = []
+    for f, pp, h, st in zip(check["force_n"], check["p_pa"], check["h_sim_mm"], check["status"]):
+        where = (
+            f"to {h:.3g} mm"
+            if h is not None
+            else f"past {check.get('h_max_mm', CHECK_H_MAX_MM):g} mm (the top of its height grid)"
+            if st == "BEYOND_GRID"
+            else None
+        )
+        if where is not None and (h is None or h > RIG_HEIGHT_MAX_MM):
+            out.append(
+                f"the simulator lifts {f:.3g} N at {pp / 1e3:.3g} kPa {where}, above the rig's "
+                f"{RIG_HEIGHT_MAX_MM:g} mm travel (cannot be measured)"
+            )
+    return out
+
+
 # Two designs of one ring count closer than this in every unit-cube coordinate are one
 # membrane (as acquisition's MIN_SEPARATION): an alternative must differ from the winner.
 ALTERNATIVE_SEPARATION = 0.05
@@ -711,6 +862,8 @@ def optimize(
     progress: bool = True,
     tie_tol: float = 0.02,
     n_alternatives: int = 5,
+    sim_refine_steps: int = 6,
+    sim_refine_tol_mm: float = 2.0,
 ) -> Result:
     """Optimise a membrane design for a lift task (the paper's design study).
 
@@ -744,6 +897,11 @@ def optimize(
     - `tie_tol`: relative gap to the best loss within which other designs (other starts,
       other ring counts) are reported as alternatives (default 2 %).
     - `n_alternatives`: at most this many alternatives.
+    - `sim_refine_steps`: with `check`, where the check disagrees with the model (no
+      comparable height, or a mean absolute difference above `sim_refine_tol_mm` [mm]), this
+      many projected-Adam steps on the simulator itself from the winner
+      (:func:`simulator_refine`; 0: never).
+    - `sim_refine_tol_mm`: the disagreement that starts them [mm].
 
     **Returns:**
 
@@ -793,7 +951,7 @@ def optimize(
     pred = {"force_n": F.tolist(), "p_pa": p.tolist()}
     _, aux = make(predictor, problem, space, r, weights)(jnp.asarray(u))
     if height:
-        hg = jnp.linspace(0.0, 80.0, 17)
+        hg = jnp.linspace(0.0, HEIGHT_GRID_TOP_MM, 17)
         hm, _ = lift_heights(predictor, d, jnp.asarray(F), jnp.asarray(p), hg, members=True)
         hm = np.asarray(hm)
         pred.update(
@@ -824,6 +982,16 @@ def optimize(
         sim["constants"] = dict(
             sim_constants or {"constants": "authors" if sim_params is None else "given"}
         )  # the check's heights depend on them by mm: say which
+    refined = None
+    if check and sim_refine_steps > 0 and _disagrees(sim, sim_refine_tol_mm, HEIGHT_GRID_TOP_MM if height else None):
+        refined = simulator_refine(problem, space, r, u, sim_params, weights, steps=sim_refine_steps)
+        refined["check"]["constants"] = sim["constants"]
+        refined["why"] = (
+            f"the simulator's check disagrees with the model (mean |difference| {sim['mae_mm']:.1f} mm > "
+            f"{sim_refine_tol_mm:g} mm)"
+            if sim.get("mae_mm") is not None
+            else "the simulator's check has no height to compare with the model's"
+        )
     settings = dict(
         n_starts=n_starts,
         steps=steps,
@@ -833,8 +1001,10 @@ def optimize(
         weights=dataclasses.asdict(weights),
         rings=list(rings),
         tie_tol=tie_tol,
+        sim_refine_steps=sim_refine_steps,
+        sim_refine_tol_mm=sim_refine_tol_mm,
     )
-    limits = limit_flags(problem, pred, design, space)
+    limits = limit_flags(problem, pred, design, space) + _check_flags(sim)
     return Result(
         "height" if height else "trajectory",
         design.key(),
@@ -847,6 +1017,7 @@ def optimize(
         settings,
         limits,
         alternatives,
+        refined,
     )
 
 
@@ -879,6 +1050,10 @@ def plot(result: Result, path, title: str = "") -> None:
         hs = [np.nan if v is None else v for v in s["h_sim_mm"]]
         which = s.get("constants", {}).get("constants", "authors")
         ax.plot(np.asarray(s["p_pa"]) / 1e3, hs, "kx", ms=9, label=f"simulator check ({which} constants)")
+    if result.simulator_refined:
+        s = result.simulator_refined["check"]
+        hs = [np.nan if v is None else v for v in s["h_sim_mm"]]
+        ax.plot(np.asarray(s["p_pa"]) / 1e3, hs, "k+", ms=11, label="simulator, after its own search near it")
     ax.set_xlabel("pressure [kPa]")
     ax.set_ylabel("lift height [mm]")
     ax.set_title(title or f"{result.problem}: {result.design_key}", fontsize=9)

@@ -25,6 +25,7 @@ __all__ = [
     "EnsemblePredictor",
     "FunctionPredictor",
     "Grid",
+    "SimulatorPredictor",
     "SplitPredictor",
 ]
 
@@ -185,3 +186,36 @@ class FunctionPredictor(AbstractPredictor):
     def members(self, fidelity, design, h_mm, p_pa):
         self.check_fidelity(fidelity)
         return dict(self.functions)[fidelity](design, h_mm, p_pa)
+
+
+class SimulatorPredictor(AbstractPredictor):
+    """The simulator itself at constants ``params``, one member, for both fidelities (the
+    simulator at calibrated constants standing for the rig): for a few search steps on the
+    simulator near a model's optimum (:func:`mfdesign.optimize.simulator_refine`).
+
+    Each point is solved by its own continuation
+    (:func:`~mfdesign.physics.solve.point_force`): seconds per batch, so it is for local
+    refinement, not for a global search. Traceable in the design; differentiate it in
+    forward mode (``jax.jacfwd``: the ODE solves carry tangents forward, not backward)."""
+
+    params: Any  # SimParams with array fields (physics.solve.traced_params)
+    path_steps: int = eqx.field(static=True)
+
+    def __init__(self, params=None):
+        from mfdesign.physics.params import SimParams
+        from mfdesign.physics.solve import PATH_STEPS, STIFF_RING_PATH_REFINE, fine_path, traced_params
+
+        params = SimParams() if params is None else params
+        self.path_steps = PATH_STEPS * (STIFF_RING_PATH_REFINE if fine_path(params) else 1)
+        self.params = traced_params(params)
+
+    @property
+    def fidelities(self):
+        return (RIG, "sim")
+
+    def members(self, fidelity, design, h_mm, p_pa):
+        from mfdesign.physics.solve import point_force
+
+        self.check_fidelity(fidelity)
+        one = lambda d, h, p: point_force(d, h, p, self.params, self.path_steps)  # noqa: E731
+        return jax.vmap(one)(design, h_mm, p_pa)[None]

@@ -23,9 +23,10 @@ import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 
-from mfdesign.design import MAX_RINGS, Membrane
+from mfdesign.design import MAX_RINGS, OUTER_RADIUS_MM, Membrane
 from mfdesign.physics.membrane import Segment, jump_lambda1, rhs
 from mfdesign.physics.params import SimParams
 from mfdesign.units import PA_TO_MPA
@@ -70,6 +71,20 @@ def geometry_of(design: Membrane) -> Geometry:
         ring_edges_mm=jnp.asarray(edges, float),
         ring_used=jnp.arange(MAX_RINGS) < design.n_rings,
     )
+
+
+def geometry_of_array(design, outer_radius_mm: float = OUTER_RADIUS_MM) -> Geometry:
+    """:func:`geometry_of` of a design row ``[t, c, r1, w1, r2, w2]`` mm (NaN pairs: no
+    ring), traceable: a search differentiates the simulator through it (forward mode).
+    The NaN of an absent ring is replaced before any arithmetic, so that no NaN reaches a
+    tangent through the unselected branch of a ``where``."""
+    d = jnp.asarray(design, float)
+    r, w = d[2::2], d[3::2]
+    used = jnp.isfinite(r) & jnp.isfinite(w)
+    r, w = jnp.where(used, r, 0.0), jnp.where(used, w, 0.0)
+    R = jnp.asarray(outer_radius_mm, float)
+    edges = jnp.stack([jnp.where(used, r - w, R), jnp.where(used, r + w, R)], axis=-1).reshape(-1)
+    return Geometry(thickness_mm=d[0], contact_mm=d[1], outer_mm=R, ring_edges_mm=edges, ring_used=used)
 
 
 class Segments(eqx.Module):
@@ -240,13 +255,20 @@ def _shooting_residual_jvp(primals, tangents):
     res, jac = residual_and_jacobian(x, args)
     out = jnp.zeros_like(res) if _is_zero(dx) else jac @ dx
     if not all(_is_zero(t) for t in jax.tree.leaves(dargs, is_leaf=_is_zero)):
-        dargs = jax.tree.map(lambda t, a: jnp.zeros_like(a) if _is_zero(t) else t, dargs, args, is_leaf=_is_zero)
+        dargs = jax.tree.map(lambda t, a: _zero_tangent(a) if _is_zero(t) else t, dargs, args, is_leaf=_is_zero)
         out = out + jax.jvp(lambda a: force_residual(x, a), (args,), (dargs,))[1]
     return res, out
 
 
 def _is_zero(t):
     return isinstance(t, jax.custom_derivatives.SymbolicZero)
+
+
+def _zero_tangent(a):
+    """A zero tangent for ``a``: float0 for a bool or integer leaf (e.g. ``ring_used``)."""
+    if jnp.issubdtype(jnp.result_type(a), jnp.inexact):
+        return jnp.zeros_like(a)
+    return np.zeros(jnp.shape(a), dtype=jax.dtypes.float0)
 
 
 def solve_force(x0, geom: Geometry, params: SimParams, h_mm, p_mpa, active=True):

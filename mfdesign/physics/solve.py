@@ -200,23 +200,72 @@ def _points_kernel(geom, params, h, p_mpa, n_steps: int):
     counts (:class:`~mfdesign.physics.shooting.Geometry` pads the ring slots)."""
 
     def one(hh, pp):
-        path = pp * jnp.arange(1, n_steps + 1) / n_steps
-        low = hh < LOW_HEIGHT_MM
-        h_path = jnp.maximum(hh, LOW_HEIGHT_MM)
-        xs, conv, passed = _path(geom, params, h_path, path)
-        x, p_at = _last_good(xs, conv, path)
-        conv_end = conv[-1]
-        x_low, conv_low = _descend(x, geom, params, h_path, hh, pp, active=conv_end & low)
-        down = low & conv_end & conv_low
-        x = jnp.where(down, x_low, x)
-        h_at = jnp.where(down, hh, h_path)
-        conv_end = jnp.where(low, down, conv_end)
+        x, conv_end, passed, seen, h_at, p_at = _point_state(geom, params, hh, pp, n_steps)
         force, wrinkled, locking, rise, ok_prof = _point_outputs(x, geom, params, h_at, p_at, pp)
         # No converged state on the whole path: nothing is known about locking.
-        locking = jnp.where(jnp.any(conv), locking, jnp.nan)
-        return PointSolution(conv_end, passed[-1], force, wrinkled, locking, rise, ok_prof, x)
+        locking = jnp.where(seen, locking, jnp.nan)
+        return PointSolution(conv_end, passed, force, wrinkled, locking, rise, ok_prof, x)
 
     return jax.vmap(one)(h, p_mpa)
+
+
+# point_force's last solve, from a converged state: Newton (a root finder proper, so its
+# implicit derivative is first order), a few steps at most.
+POLISH_SOLVER = optx.Newton(rtol=1e-8, atol=1e-9)
+POLISH_STEPS = 8
+
+
+def _point_state(geom, params, hh, pp, n_steps: int):
+    """One scattered point (:func:`_points_kernel`): the path ``pp * k / n_steps`` at
+    ``max(hh, LOW_HEIGHT_MM)``, then the plate lowered to ``hh`` when it lies below.
+    Returns ``(x, converged, passed a limit point, any state converged, h_at, p_at)``:
+    the state and the height / pressure it was solved at (the last good one on a failed
+    path)."""
+    path = pp * jnp.arange(1, n_steps + 1) / n_steps
+    low = hh < LOW_HEIGHT_MM
+    h_path = jnp.maximum(hh, LOW_HEIGHT_MM)
+    xs, conv, passed = _path(geom, params, h_path, path)
+    x, p_at = _last_good(xs, conv, path)
+    conv_end = conv[-1]
+    x_low, conv_low = _descend(x, geom, params, h_path, hh, pp, active=conv_end & low)
+    down = low & conv_end & conv_low
+    x = jnp.where(down, x_low, x)
+    h_at = jnp.where(down, hh, h_path)
+    conv_end = jnp.where(low, down, conv_end)
+    return x, conv_end, passed[-1], jnp.any(conv), h_at, p_at
+
+
+def point_force(design, h_mm, p_pa, params: SimParams, path_steps: int = PATH_STEPS):
+    """The simulator's signed plate force [N] at one point, as a pure JAX function of the
+    design row ``[t, c, r1, w1, r2, w2]`` mm, the height [mm] and the pressure [Pa]: the
+    same path as :func:`force_at` (``path_steps`` pressure steps, the plate lowered below
+    ``LOW_HEIGHT_MM``), NaN where it does not converge or passes a pressure limit point.
+
+    For searches that differentiate the simulator itself (forward mode: ``jax.jacfwd``
+    or ``jax.jvp`` in the design; the shooting solves are differentiated implicitly), e.g.
+    :func:`mfdesign.optimize.simulator_refine`. It skips :func:`force_at`'s stress checks
+    (wrinkling, Gent locking): a result it leads to is checked by the simulator proper.
+    ``params`` fields must be arrays (:func:`traced_params`), and the caller picks the path
+    (:func:`fine_path`: ``STIFF_RING_PATH_REFINE`` times the steps for stiff rings)."""
+    geom = sh.geometry_of_array(design)
+    p_mpa = jnp.asarray(p_pa, float) * PA_TO_MPA
+    h_mm = jnp.asarray(h_mm, float)
+    # The path only finds the state: no derivative flows through it. The derivative comes
+    # from one Newton solve at the found state (implicit differentiation of a root find
+    # needs first derivatives of the residual only; the least-squares solve's own adjoint
+    # differentiates the residual twice, which diffrax's step control does not allow).
+    x, conv, passed, _, _, _ = _point_state(*jax.lax.stop_gradient((geom, params, h_mm, p_mpa)), path_steps)
+    sol = optx.root_find(
+        sh.shooting_residual,
+        POLISH_SOLVER,
+        x,
+        (geom, params, h_mm, p_mpa, jnp.asarray(True)),
+        max_steps=POLISH_STEPS,
+        throw=False,
+    )
+    x = sol.value
+    force = sh.disk_force(sh.segments(geom, params), p_mpa, 1.0 + jnp.exp(x[0]), x[1])
+    return jnp.where(conv & ~passed & (sol.result == optx.RESULTS.successful), force, jnp.nan)
 
 
 @eqx.filter_jit
@@ -382,7 +431,7 @@ def _solve_points(
     n = hs.size
     got = _points_kernel(
         sh.geometry_of(design),
-        _traced(params),
+        traced_params(params),
         jnp.asarray(_pad(hs, n)),
         jnp.asarray(_pad(ps_pa, n)) * PA_TO_MPA,
         path_steps * (STIFF_RING_PATH_REFINE if fine_path(params) else 1),  # as force_plane's path
@@ -390,7 +439,7 @@ def _solve_points(
     return jax.tree.map(lambda o: np.asarray(o)[:n], got)
 
 
-def _traced(params: SimParams) -> SimParams:
+def traced_params(params: SimParams) -> SimParams:
     """``params`` with every field a float64 array: under ``eqx.filter_jit`` a Python float is
     static, so each new value of a constant would compile the kernels again (~10 s each)."""
     return jax.tree.map(lambda a: jnp.asarray(a, float), params)
@@ -566,7 +615,7 @@ def force_plane(
         report.append(len(path) - 1)
     hs, _ = _sanitize(h_grid, np.ones_like(h_grid))
     geom = sh.geometry_of(design)
-    params = _traced(params)
+    params = traced_params(params)
     path_mpa, report = jnp.asarray(path) * PA_TO_MPA, jnp.asarray(report)
     low = hs < LOW_HEIGHT_MM
     # Rows below LOW_HEIGHT_MM: inflation at LOW_HEIGHT_MM (an extra anchor row), then the
@@ -729,6 +778,19 @@ def _height_kernel(geom, params, F, p_mpa, a0):
     return jax.vmap(one)(F, p_mpa, a0)
 
 
+def _lift_forces(res: SimResult, p_pa, outer_radius_mm: float) -> np.ndarray:
+    """Forces [N] of ``res`` for a mass lift's crossing: an ``OUTSIDE_MODEL`` node counts
+    as ``p pi R^2`` (:func:`~mfdesign.physics.status.force_bound_n`), not as unknown. There
+    the converged state pushes harder than that bound (a membrane ballooning past the
+    clamp), so the plate is certainly pushed up by any load below the bound. Left NaN,
+    such nodes made a gap below the crossing: a thin, large-disk membrane that lifts its
+    loads past 100 mm at 6.9 kPa was NOT_CONVERGED at every load (issue 43's paper-design
+    optimum)."""
+    f = np.asarray(res.force_n, float)
+    outside = np.asarray(res.status) == Status.OUTSIDE_MODEL
+    return np.where(outside, force_bound_n(p_pa, outer_radius_mm), f)
+
+
 def _first_crossing(F, p, Fh):
     """Where each load ``F[i]`` is first crossed from above along its row ``Fh[i]`` of
     forces on the height grid (NaN = unsolved). Vectorised bookkeeping for :func:`height_at`.
@@ -808,7 +870,7 @@ def height_at(
     hg = np.linspace(0.0, h_max_mm, n_heights)
     Hq = np.broadcast_to(hg[None, :], (F.size, n_heights))
     Pq = np.broadcast_to(p[:, None], (F.size, n_heights))
-    Fh = force_at(design, Hq, Pq, params).force_n
+    Fh = _lift_forces(force_at(design, Hq, Pq, params), Pq, design.outer_radius_mm)
     height, status, lo_idx, for_refine = _first_crossing(F, p, Fh)
     _refine_crossings(design, params, F, p, Fh, hg, lo_idx, for_refine, height, status)
     return height.reshape(shape_), status.reshape(shape_)
@@ -826,7 +888,7 @@ def _refine_crossings(design, params, F, p, Fh, hg, lo_idx, refine, height, stat
     h_guess = hg[j] + w * (hg[j + 1] - hg[j])
     a0 = _a_guess(design, params, h_guess, p[idx])
     geom = sh.geometry_of(design)
-    params = _traced(params)
+    params = traced_params(params)
     m = idx.size
     h_ref, conv = _height_kernel(
         geom,
@@ -866,7 +928,8 @@ def lift_curve(
     if not (np.isfinite(force_n) and force_n >= 0):
         raise ValueError(f"force_n must be a finite load >= 0 N, got {force_n}")
     hg = np.linspace(0.0, h_max_mm, n_heights)
-    Fh = force_plane(design, hg, p, params).force_n.T  # [pressures, heights]
+    P = np.broadcast_to(p[None, :], (hg.size, p.size))
+    Fh = _lift_forces(force_plane(design, hg, p, params), P, design.outer_radius_mm).T  # [pressures, heights]
     F = np.full(p.size, float(force_n))
     height, status, lo_idx, refine = _first_crossing(F, p, Fh)
     _refine_crossings(design, params, F, p, Fh, hg, lo_idx, refine, height, status)
@@ -910,7 +973,7 @@ def _a_kernel(geom, params, h, p_mpa):
 
 def _a_guess(design, params, h, p):
     geom = sh.geometry_of(design)
-    params = _traced(params)
+    params = traced_params(params)
     n = np.size(h)
     h, p = _pad(np.asarray(h, float), n), _pad(np.asarray(p, float), n)
     a = np.asarray(_a_kernel(geom, params, jnp.asarray(h), jnp.asarray(p) * PA_TO_MPA))[:n]
@@ -955,7 +1018,7 @@ def shape(design: Membrane, h_mm, p_pa, params: SimParams = SimParams(), n_per_s
     out = _solve_points(design, *_sanitize(hf, pf), params, PATH_STEPS)
     res = _classify(hf, pf, out)
     geom = sh.geometry_of(design)
-    traced = _traced(params)
+    traced = traced_params(params)
     r, y, w1, w2, _, _ = _profiles(
         jnp.asarray(_pad(out.state, k)),
         geom,

@@ -381,6 +381,17 @@ def _optimum_json(result, task: str, unchecked: str | None) -> dict:
             "mae_mm": sim["mae_mm"],
             "constants": sim.get("constants"),
         }
+    ref = getattr(result, "simulator_refined", None)
+    if ref is not None:
+        out["simulator_refined"] = {
+            "design": ref["design_key"],
+            "why": ref["why"],
+            "steps": ref["steps"],
+            "loss_sim_start": ref["loss_sim_start"],
+            "loss_sim": ref["loss_sim"],
+            "h_sim_mm": ref["check"]["h_sim_mm"],
+            "status": ref["check"]["status"],
+        }
     return out
 
 
@@ -399,10 +410,17 @@ def _optimum_headline(opt: dict) -> str:
     errs = [e for e in sim["model_error_mm"] if e is not None]
     which = (sim.get("constants") or {}).get("constants", "the authors'")
     err = f"{min(errs):+.1f} to {max(errs):+.1f} mm" if errs else "not measurable (no load lifted within the grid)"
-    return (
+    line = (
         head + f"; the simulator ({which} constants) lifts the loads to {_heights(sim['h_sim_mm'])} mm; "
         f"the emulator's error there (emulator minus simulator): {err}."
     )
+    ref = opt.get("simulator_refined")
+    if ref:
+        line += (
+            f" Searched on the simulator near it ({ref['steps']} steps, as {ref['why']}): "
+            f"{_short(ref['design'])} lifts them to {_heights(ref['h_sim_mm'])} mm."
+        )
+    return line
 
 
 # A simulator run whose error is more than this many times the spread the model predicted

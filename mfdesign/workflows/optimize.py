@@ -67,6 +67,10 @@ def read_targets(path: Path) -> Any:
         raise InputError(f"bad targets in {path}: {err}") from None
 
 
+def _g(value) -> str:
+    return "n/a" if value is None else f"{value:.4g}"
+
+
 def check_line(sim: dict) -> str:
     """The simulator check in one line: simulated vs model height [mm] per target, MAE, status.
 
@@ -114,6 +118,13 @@ class OptimizeResult:
         if r.simulator is not None:
             lines.append(check_line(r.simulator))
             lines.append(f"simulator check at {describe_constants(r.simulator['constants'])}")
+        ref = getattr(r, "simulator_refined", None)
+        if ref is not None:
+            lines.append(
+                f"searched on the simulator near the optimum ({ref['steps']} projected-Adam steps; {ref['why']}): "
+                f"{ref['design_key']}, simulator loss {_g(ref['loss_sim_start'])} -> {_g(ref['loss_sim'])}"
+            )
+            lines.append("  " + check_line(ref["check"]))
         else:
             lines.append(f"simulator check: not run ({self.why_not_checked or 'asked with --no-check'})")
         return "\n".join(lines)

@@ -76,7 +76,7 @@ def test_lift_curve_flags_a_jump_over_a_dip(monkeypatch):
     F = p[None, :] / 100.0 * (1.0 - hg[:, None] / 100.0) + 25.0 * np.exp(-(((hg[:, None] - 60.0) / 10.0) ** 2))
 
     def fake_plane(design, h, pp, params):
-        return SimpleNamespace(force_n=F)
+        return SimpleNamespace(force_n=F, status=np.zeros(F.shape, np.int8))
 
     def interpolate_only(design, params, Fq, pq, Fh, hgrid, lo_idx, refine, height, status):
         idx = np.nonzero(refine)[0]
@@ -112,3 +112,45 @@ def test_lift_curve_agrees_with_height_at_on_the_simulator():
     # And the force there is the load.
     f = force_at(d, h[ok], p[ok]).force_n
     np.testing.assert_allclose(f, 25.0, rtol=1e-3)
+
+
+def test_height_at_reads_outside_model_nodes_as_above_the_load(monkeypatch):
+    """A thin membrane with a large disk balloons past the clamp at low plate heights
+    (OUTSIDE_MODEL: F > p pi R^2, force NaN) and lifts its loads past 100 mm: those nodes
+    push harder than any load below p pi R^2, so the crossing above them is found (it was
+    NOT_CONVERGED: a gap below the crossing). A NaN node of any other status still is a gap."""
+    from types import SimpleNamespace
+
+    from mfdesign.design import Membrane
+    from mfdesign.physics import solve
+
+    hg = np.linspace(0.0, 120.0, 25)
+    row = np.where(hg >= 70.0, 100.0 - 0.9 * np.clip(hg - 70.0, 0.0, None) ** 1.2, np.nan)
+    row[0] = 99.0
+
+    def fake_points(status_between):
+        def force_at(design, H, P, params):
+            F = np.broadcast_to(row, H.shape).copy()
+            st = np.where(np.isnan(F), status_between, Status.OK).astype(np.int8)
+            return SimpleNamespace(force_n=F, status=st)
+
+        return force_at
+
+    def interpolate_only(design, params, Fq, pq, Fh, hgrid, lo_idx, refine, height, status):
+        idx = np.nonzero(refine)[0]
+        j = lo_idx[idx]
+        f0, f1 = Fh[idx, j], Fh[idx, j + 1]
+        height[idx] = hgrid[j] + (f0 - Fq[idx]) / (f0 - f1) * (hgrid[1] - hgrid[0])
+
+    monkeypatch.setattr(solve, "_refine_crossings", interpolate_only)
+    design = Membrane.from_key("[1.2, 37.5, nan, nan, nan, nan]")
+    loads = np.array([14.7, 39.2])
+    monkeypatch.setattr(solve, "force_at", fake_points(Status.OUTSIDE_MODEL))
+    h, st = solve.height_at(design, loads, 6895.0, h_max_mm=120.0, n_heights=25)
+    assert list(st) == [Status.OK, Status.OK]
+    want = [np.interp(-f, -row[14:], hg[14:]) for f in loads]  # the row falls from 70 mm on
+    np.testing.assert_allclose(h, want, atol=1e-9)
+    assert h[0] > 100.0
+    monkeypatch.setattr(solve, "force_at", fake_points(Status.NOT_CONVERGED))
+    h, st = solve.height_at(design, loads, 6895.0, h_max_mm=120.0, n_heights=25)
+    assert list(st) == [Status.NOT_CONVERGED, Status.NOT_CONVERGED] and np.isnan(h).all()
