@@ -160,6 +160,7 @@ def optimize(
     half_width_mm: tuple[float, float] | None = None,
     allow_outside_design_space: bool = False,
     tie_tol: float = 0.02,
+    sim_refine_steps: int = 6,
 ) -> OptimizeResult:
     """Optimise a membrane for a lift task with a saved model; write ``optimize.json`` and
     ``optimize.png`` into ``out``.
@@ -181,6 +182,9 @@ def optimize(
             [mm] (:func:`mfdesign.workflows.space.design_space`); None: the product's.
         allow_outside_design_space: allow bounds up to the research range.
         tie_tol: report designs within this fraction of the best loss as alternatives.
+        sim_refine_steps: with the check, where it disagrees with the model, this many
+            gradient steps on the simulator itself from the winner
+            (:func:`mfdesign.optimize.simulator_refine`; 0: never).
 
     Raises :class:`~mfdesign.errors.InputError` (one line) for bad options, targets or
     model folder."""
@@ -198,6 +202,8 @@ def optimize(
         raise InputError(f"--rings must be 0, 1 or 2 (repeat the option for several), got {got}")
     if refine > starts:
         raise InputError(f"--refine ({refine}) cannot exceed --starts ({starts})")
+    if sim_refine_steps < 0:
+        raise InputError(f"--sim-refine-steps must be >= 0, got {sim_refine_steps}")
     if not (tie_tol >= 0 and tie_tol < float("inf")):
         raise InputError(f"--tie-tol must be a finite number >= 0, got {tie_tol}")
     space = design_space(thickness_mm, contact_radius_mm, half_width_mm, allow_outside_design_space)
@@ -225,6 +231,7 @@ def optimize(
         sim_params=sim_params,
         sim_constants=constants,
         tie_tol=tie_tol,
+        sim_refine_steps=sim_refine_steps,
     )
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
