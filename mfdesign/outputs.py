@@ -1,6 +1,6 @@
 """Output files: atomic writes, and one run at a time per output folder.
 
-Why atomic: a reader (a browser on ``report.html``, a script polling ``diagnosis.json``)
+Why atomic: a reader (a browser on ``index.html``, a script polling ``diagnosis.json``)
 or a crash half-way through must never see a torn file. Every writer puts its bytes in a
 temporary file beside the target (same folder, so same file system) and ``os.replace``s
 it into place, which POSIX makes atomic.

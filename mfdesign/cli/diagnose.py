@@ -32,7 +32,7 @@ DATA = typer.Argument(
     ...,
     help="Measurements .parquet/.csv file(s), SPA_Design .pkl, rig job folder(s), or 'mass-lift' (several: concatenated; docs/data.md).",
 )
-OUT = typer.Option(..., help="Folder for report.html, diagnosis.json and the PNGs.")
+OUT = typer.Option(..., help="Folder for index.html, diagnosis.json and the PNGs.")
 MODEL = typer.Option(None, help="Saved ensemble folder (default: the plain simulator).")
 EFFECTS = typer.Option(
     None,

@@ -8,7 +8,7 @@ hand them here:
   ``templates/*.html.j2``, autoescaped) that all extend ``base.html.j2``;
 * :mod:`~mfdesign.report.sections`: :class:`Report`, titled sections of text, a table and
   pictures (``index.html`` + ``report.json``: the demo's report);
-* :mod:`~mfdesign.report.diagnosis`: a diagnosis's pictures, ``report.html`` and
+* :mod:`~mfdesign.report.diagnosis`: a diagnosis's pictures, ``index.html`` and
   ``diagnosis.json`` (:func:`~mfdesign.report.diagnosis.write_report`).
 """
 

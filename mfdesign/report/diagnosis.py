@@ -2,7 +2,7 @@
 
 Diagnosis produces the numbers and the words (``Diagnosis.to_json()``); this module draws
 them and renders the page. ``write_report(diagnosis, out_dir)`` writes ``diagnosis.json``,
-``report.html`` (template ``diagnosis.html.j2``, through
+``index.html`` (template ``diagnosis.html.j2``, through
 :func:`mfdesign.report.render.write_html`; it links the PNGs by relative path, so the
 folder can be moved) and:
 
@@ -296,7 +296,7 @@ def write_report(
     seeds: dict | None = None,
     inputs: dict | None = None,
 ) -> dict[str, Path]:
-    """Write JSON, PNGs and ``report.html`` into ``out_dir``; returns the paths.
+    """Write JSON, PNGs and ``index.html`` into ``out_dir``; returns the paths.
 
     ``diagnosis.json`` carries a ``"provenance"`` (:func:`mfdesign.provenance.provenance`):
     the version, ``call`` (default: the command line when run as ``mfdesign ...``, else
@@ -331,7 +331,7 @@ def write_report(
     outputs.write_text(out / "diagnosis.json", json.dumps(data | {"provenance": record}, indent=1, default=str))
     paths["json"] = out / "diagnosis.json"
     paths["html"] = write_html(
-        out / "report.html",
+        out / "index.html",
         "diagnosis.html.j2",
         title="mfdesign diagnosis",
         banners=limit_banners(diag),

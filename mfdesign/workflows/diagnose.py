@@ -235,7 +235,7 @@ def diagnose(
 ) -> DiagnoseResult:
     """Residuals by height, pressure, design, trial and phase; worst regions in words; which
     effect is missing (screen + full check); before/after with ``effects``. Writes
-    ``report.html``, ``diagnosis.json`` and the PNGs into ``out``.
+    ``index.html``, ``diagnosis.json`` and the PNGs into ``out``.
 
     Arguments:
         data: the Measurements sources (:func:`mfdesign.workflows.data.load_data`).

@@ -78,7 +78,7 @@ def test_effects_give_a_before_after_report(data, tmp_path):
     prov = js["provenance"]
     assert prov["mfdesign_version"] and prov["call"] == "mfdesign.workflows.diagnose.diagnose()"
     assert prov["inputs_sha256"] == {str(data): _sha256(data)} and prov["machine"]["cores"] >= 1
-    html = (out / "report.html").read_text()
+    html = (out / "index.html").read_text()
     for png in ("maps_before.png", "maps_after.png", "parity.png", "trial_order.png", "breakdown.png"):
         assert (out / png).is_file() and f'src="{png}"' in html
     # the virtual rig's plates rise smoothly: no stall is claimed (tests/data/test_lift_stalls.py

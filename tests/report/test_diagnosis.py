@@ -1,5 +1,5 @@
 """A diagnosis's page: every number, word and table of ``Diagnosis.to_json()`` reaches
-``report.html``, escaped, with its pictures (the whole command: tests/cli/test_diagnose_cli.py)."""
+``index.html``, escaped, with its pictures (the whole command: tests/cli/test_diagnose_cli.py)."""
 
 import copy
 
@@ -77,7 +77,7 @@ def _png(path):
 def _page(tmp_path, data, names=("maps_before", "parity", "screen_1", "maps_after")):
     images = {k: _png(tmp_path / f"{k}.png").name for k in names}
     return write_html(
-        tmp_path / "report.html", "diagnosis.html.j2", title="mfdesign diagnosis", data=data, images=images
+        tmp_path / "index.html", "diagnosis.html.j2", title="mfdesign diagnosis", data=data, images=images
     )
 
 
