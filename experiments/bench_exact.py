@@ -40,7 +40,7 @@ def accuracy(n_rows: int, seed: int) -> dict:
 
     from mfdesign.data.store import read_parquet
     from mfdesign.design import Membrane
-    from mfdesign.diagnose.expected import query_heights
+    from mfdesign.diagnosis.expected import query_heights
     from mfdesign.models.exact import build_exact
     from mfdesign.physics.params import SimParams
     from mfdesign.physics.solve import force_at

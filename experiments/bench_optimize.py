@@ -24,7 +24,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from mfdesign.optimize import MASSES_N, TARGET_SETS, Waypoints, height_loss, multistart, trajectory_loss
+from mfdesign.optimization import MASSES_N, TARGET_SETS, Waypoints, height_loss, multistart, trajectory_loss
 from mfdesign.design import DesignSpace
 
 from _common import PAPER_DESIGN_MODEL, machine, parser, timed, write_json  # experiments/ is on a script's path

@@ -2,7 +2,7 @@
 
 For each effect (at its ``typical`` magnitude) and seed, the virtual rig measures 6
 membranes (the bundled dataset's designs; deflation on, so that hysteresis is visible)
-with that effect hidden; :func:`mfdesign.diagnose.pipeline.diagnose` then screens every
+with that effect hidden; :func:`mfdesign.diagnosis.pipeline.diagnose` then screens every
 effect (exact autodiff sensitivities) and refits the best three (nonlinear, with held-out
 membranes). Recorded per case: the screen's rank of the hidden effect, the effect(s)
 claimed, the held-out (leave-membranes-out) RMSE after adding it, over the noise floor.
@@ -116,7 +116,7 @@ def narrow_ring_plane(design, h_grid, p_grid, params):
 def backend(physics):
     """Truth plane function for the rig (module doc); ``None``: the rig's own simulator."""
     if physics not in _BACKENDS:
-        from mfdesign.diagnose.emulated import emulator_plane
+        from mfdesign.diagnosis.emulated import emulator_plane
         from mfdesign.models.standin import standin_plane
 
         if physics == "standin":
@@ -132,8 +132,8 @@ def backend(physics):
 
 def run_case(hidden, seed, physics, sample_hz):
     from mfdesign.design import Membrane
-    from mfdesign.diagnose.emulated import forward_model
-    from mfdesign.diagnose.pipeline import diagnose
+    from mfdesign.diagnosis.emulated import forward_model
+    from mfdesign.diagnosis.pipeline import diagnose
     from mfdesign.physics import effects as fx
     from mfdesign.physics.planes import cache_dir
     from mfdesign.rig.virtual import Protocol, VirtualRig
@@ -164,7 +164,7 @@ def run_case(hidden, seed, physics, sample_hz):
     # else the model's as given.
     floor = best_checks[0].noise_floor_n if best_checks else d.before.noise_floor_n
     # The attainable floor: the true model (hidden effects at their true values) on the same rows.
-    from mfdesign.diagnose.residuals import compute_residuals, worst_regions
+    from mfdesign.diagnosis.residuals import compute_residuals, worst_regions
 
     oracle = compute_residuals(meas, sim.expected_force(meas, list(hidden), fx.typical_theta(hidden))).rmse_n
     after = d.after.rmse_n if d.after is not None else d.before.rmse_n
@@ -238,9 +238,9 @@ def fe_protocol(reduced: bool = False):
 
 def run_fe_case(name, theta, seed, reduced=False):
     from mfdesign.design import Membrane
-    from mfdesign.diagnose.emulated import forward_model
-    from mfdesign.diagnose.pipeline import diagnose
-    from mfdesign.diagnose.residuals import compute_residuals
+    from mfdesign.diagnosis.emulated import forward_model
+    from mfdesign.diagnosis.pipeline import diagnose
+    from mfdesign.diagnosis.residuals import compute_residuals
     from mfdesign.physics.planes import cache_dir
     from mfdesign.rig.fe_truth import fe_plane
     from mfdesign.rig.virtual import VirtualRig

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mfdesign.optimize import (
+from mfdesign.optimization import (
     HeightTargets,
     check_with_simulator,
     PAPER_WEIGHTS,

@@ -19,14 +19,12 @@ Physics runs in float64 (JAX's 64-bit mode is on once a JAX-using module is impo
 from __future__ import annotations
 
 import os
-import sys
-import types
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # names for the annotations only: importing them at run time would pull in JAX
     from mfdesign.data.measurements import Measurements
-    from mfdesign.diagnose.residuals import Residuals
+    from mfdesign.diagnosis.residuals import Residuals
 
 __version__ = "0.1.0"
 
@@ -42,9 +40,9 @@ _WHERE = {
     "Effect": "mfdesign.physics.effects",
     "calibrate": "mfdesign.calibration.mcmc",
     "fit_multi_fidelity": "mfdesign.calibration.workflow",
-    "diagnose": "mfdesign.diagnose.pipeline",
+    "diagnose": "mfdesign.diagnosis.pipeline",
     "propose": "mfdesign.acquire",
-    "optimize": "mfdesign.optimize",
+    "optimize": "mfdesign.optimization",
     "enable_x64": "mfdesign._x64",
     "Campaign": "mfdesign.campaign",
 }
@@ -88,44 +86,20 @@ def compare(meas: Measurements, sim=None) -> Residuals:
     - `meas`: the measurements (:class:`Measurements`, e.g. from :func:`load`).
     - `sim`: the forward model, as in :func:`diagnose`: default the bundled neural emulator
       (fast; about 1 N RMS off the simulator); for simulator accuracy
-      ``mfdesign.diagnose.emulated.forward_model("exact", meas)`` (simulator planes of the
+      ``mfdesign.diagnosis.emulated.forward_model("exact", meas)`` (simulator planes of the
       measured membranes, solved once and cached; minutes the first time).
 
     **Returns:**
 
-    A :class:`~mfdesign.diagnose.residuals.Residuals`: one row per usable measurement
+    A :class:`~mfdesign.diagnosis.residuals.Residuals`: one row per usable measurement
     (``frame`` with ``height_mm``, ``pressure_pa``, ``observed_n``, ``predicted_n``,
     ``residual_n`` = observed - predicted [N], ...), the noise floor ``noise_floor_n`` [N]
     estimated from the data alone, ``rmse_n`` and ``bias_n`` [N], ``summary()``, and the rows
     left out with their reason (``dropped``: e.g. lift rows with the plate on its stop).
     """
-    from mfdesign.diagnose.pipeline import diagnose
+    from mfdesign.diagnosis.pipeline import diagnose
 
     return diagnose(meas, sim, search=False).before
-
-
-# Public functions that share their name with a subpackage: importing the subpackage
-# (``mfdesign.diagnose.residuals``, by anything) makes the import system set this package's
-# attribute ``diagnose`` to it, and ``mfdesign.diagnose(...)`` would then call a module.
-# The package's own code imports names FROM these modules (``from mfdesign.optimize import
-# optimize``), never the module through the package, so the function always wins.
-_FUNCTION_OVER_SUBMODULE = frozenset({"diagnose", "optimize"})
-
-
-class _Facade(types.ModuleType):
-    """The package's module type: a subpackage named in :data:`_FUNCTION_OVER_SUBMODULE`
-    does not hide the function of that name. The subpackage stays in ``sys.modules``
-    (``from mfdesign.diagnose.pipeline import diagnose`` works as ever); the attribute stays
-    the function, loaded by :func:`__getattr__`.
-    """
-
-    def __setattr__(self, name: str, value) -> None:
-        if name in _FUNCTION_OVER_SUBMODULE and isinstance(value, types.ModuleType):
-            return
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Facade
 
 
 def __getattr__(name: str):

@@ -601,10 +601,10 @@ class Campaign:
         effects in force; what it finds joins them. The search tries every registered effect
         a reopened campaign can register again (mfdesign's and its effects files'; not one
         registered in Python only). Writes ``diagnosis.json`` (copied into the next round).
-        Returns the :class:`~mfdesign.diagnose.pipeline.Diagnosis`."""
+        Returns the :class:`~mfdesign.diagnosis.pipeline.Diagnosis`."""
         from mfdesign import outputs
-        from mfdesign.diagnose.emulated import forward_model, likelihood_effects
-        from mfdesign.diagnose.pipeline import diagnose
+        from mfdesign.diagnosis.emulated import forward_model, likelihood_effects
+        from mfdesign.diagnosis.pipeline import diagnose
 
         s = self.settings
         with self._lock():
@@ -677,7 +677,7 @@ class Campaign:
     def adopt(self, fit, diagnosis=None, *, call: str = "", posterior_nc: Path | None = None) -> Round:
         """Record a fit made elsewhere (the demo's, on the campaign's data, effects and
         settings) as the campaign's next round, as :meth:`fit` would have written it; with
-        ``diagnosis`` (a :class:`~mfdesign.diagnose.pipeline.Diagnosis`) its record too.
+        ``diagnosis`` (a :class:`~mfdesign.diagnosis.pipeline.Diagnosis`) its record too.
         So ``mfdesign demo --out D`` leaves a campaign that ``ask`` / ``tell`` / ``fit``
         continue without refitting. ``posterior_nc``: the fit's ``posterior.nc``, already
         written on the campaign's data with the round's seed and ``max_rows``: copied, not

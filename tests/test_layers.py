@@ -29,8 +29,8 @@ LAYERS = (
     # physics, data, the rig's I/O, and the loader of a user's effects files (beside the registry)
     ("mfdesign.physics", "mfdesign.data", "mfdesign.rig", "mfdesign.user_effects"),
     ("mfdesign.models",),
-    ("mfdesign.calibration", "mfdesign.diagnose"),
-    ("mfdesign.acquire", "mfdesign.discriminate", "mfdesign.optimize", "mfdesign.sim_runs"),
+    ("mfdesign.calibration", "mfdesign.diagnosis"),
+    ("mfdesign.acquire", "mfdesign.discriminate", "mfdesign.optimization", "mfdesign.sim_runs"),
     ("mfdesign.campaign",),  # a lab's loop: every step above, kept in one folder
     ("mfdesign.report",),
     ("mfdesign.workflows",),  # each command's workflow (load, fit, write, summarise): the CLI's library

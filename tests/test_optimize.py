@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from mfdesign.optimize import (
+from mfdesign.optimization import (
     HeightTargets,
     MASSES_N,
     TARGET_SETS,
@@ -242,7 +242,7 @@ def test_losses_take_the_padded_cube_and_share_one_structure_across_ring_counts(
 
 # --------------------------------------------------------------------------- limits, ties, check
 def test_limit_flags_name_grid_rig_and_design_space_limits():
-    from mfdesign.optimize import limit_flags
+    from mfdesign.optimization import limit_flags
 
     design = Membrane.from_key("[1.0, 30.0, 40.0, 6.0, nan, nan]")  # ring 1 starts 1 mm past the gap
     targets = HeightTargets([10.0, 20.0, 30.0, 40.0], [5000.0, 5000.0, 13000.0, 5000.0])
@@ -343,7 +343,7 @@ def test_starts_are_a_sobol_sequence_that_covers_the_cube_better_than_uniform_dr
     uniform starts leave parts of the design cube unexplored)."""
     from scipy.stats import qmc
 
-    from mfdesign.optimize import sobol_starts
+    from mfdesign.optimization import sobol_starts
 
     u = sobol_starts(300, 6, seed=0)
     assert u.shape == (300, 6) and 0.0 <= u.min() and u.max() < 1.0

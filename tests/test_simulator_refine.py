@@ -13,7 +13,7 @@ import pytest
 
 from mfdesign._x64 import enable_x64
 from mfdesign.design import Membrane
-from mfdesign.optimize import HeightTargets, _disagrees
+from mfdesign.optimization import HeightTargets, _disagrees
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.solve import PATH_STEPS, force_at, point_force, traced_params
 
@@ -75,7 +75,7 @@ def test_optimize_refines_on_the_simulator_where_the_model_is_wrong():
     refine runs from the winner, never raises the simulator's loss, and its design's
     heights come from the simulator proper (height_at). ~2 minutes on 2 cores (compiles)."""
     from mfdesign.models.predictor import AbstractPredictor
-    from mfdesign.optimize import optimize
+    from mfdesign.optimization import optimize
 
     class Linear(AbstractPredictor):
         @property

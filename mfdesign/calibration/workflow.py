@@ -260,7 +260,7 @@ def fit_multi_fidelity(
       `"emulator"`: the bundled neural emulator, fast, about 1 N RMS off the simulator;
       `"standin"`: tests) or a built force model.
     - `effects`: names (or instances) of the effects to calibrate with the material, e.g.
-      what :func:`~mfdesign.diagnose.pipeline.diagnose` found (`Diagnosis.found`).
+      what :func:`~mfdesign.diagnosis.pipeline.diagnose` found (`Diagnosis.found`).
     - `n_steps`: the most emcee steps (fewer when `stop_when_converged`).
     - `n_walkers`: emcee walkers (default `max(32, 2 dim + 2)`).
     - `max_rows`: rows the likelihood uses (evenly within trials).
@@ -294,7 +294,7 @@ def fit_multi_fidelity(
     (:class:`~mfdesign.calibration.posterior.Posterior`: `summary()`, `convergence`), the
     discrepancy ensemble `delta`, the residual noise `noise_n` [N] and the predictive `mf`
     (:class:`~mfdesign.models.predictive.MultiFidelity`; `mf.predictor(n_draws)` is what
-    :func:`~mfdesign.acquire.propose` and :func:`~mfdesign.optimize.optimize` take).
+    :func:`~mfdesign.acquire.propose` and :func:`~mfdesign.optimization.optimize` take).
     """
     enable_x64()  # float64 physics: mfdesign._x64
     from mfdesign.calibration.mcmc import calibrate

@@ -191,7 +191,7 @@ class FunctionPredictor(AbstractPredictor):
 class SimulatorPredictor(AbstractPredictor):
     """The simulator itself at constants ``params``, one member, for both fidelities (the
     simulator at calibrated constants standing for the rig): for a few search steps on the
-    simulator near a model's optimum (:func:`mfdesign.optimize.simulator_refine`).
+    simulator near a model's optimum (:func:`mfdesign.optimization.simulator_refine`).
 
     Each point is solved by its own continuation
     (:func:`~mfdesign.physics.solve.point_force`): seconds per batch, so it is for local

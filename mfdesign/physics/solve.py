@@ -243,7 +243,7 @@ def point_force(design, h_mm, p_pa, params: SimParams, path_steps: int = PATH_ST
 
     For searches that differentiate the simulator itself (forward mode: ``jax.jacfwd``
     or ``jax.jvp`` in the design; the shooting solves are differentiated implicitly), e.g.
-    :func:`mfdesign.optimize.simulator_refine`. It skips :func:`force_at`'s stress checks
+    :func:`mfdesign.optimization.simulator_refine`. It skips :func:`force_at`'s stress checks
     (wrinkling, Gent locking): a result it leads to is checked by the simulator proper.
     ``params`` fields must be arrays (:func:`traced_params`), and the caller picks the path
     (:func:`fine_path`: ``STIFF_RING_PATH_REFINE`` times the steps for stiff rings)."""

@@ -1,4 +1,4 @@
-"""Pictures, HTML and JSON of a :class:`~mfdesign.diagnose.pipeline.Diagnosis`.
+"""Pictures, HTML and JSON of a :class:`~mfdesign.diagnosis.pipeline.Diagnosis`.
 
 Diagnosis produces the numbers and the words (``Diagnosis.to_json()``); this module draws
 them and renders the page. ``write_report(diagnosis, out_dir)`` writes ``diagnosis.json``,
@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from mfdesign import outputs  # atomic writes: a reader never sees a torn file
-from mfdesign.diagnose.check import FLOOR_FACTOR
-from mfdesign.diagnose.residuals import Residuals, breakdowns
+from mfdesign.diagnosis.check import FLOOR_FACTOR
+from mfdesign.diagnosis.residuals import Residuals, breakdowns
 from mfdesign.report.render import write_html
 
 __all__ = ["floor_banner", "limit_banners", "write_report"]

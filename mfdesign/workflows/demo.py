@@ -327,7 +327,7 @@ def _verdict(diag) -> str:
     """One sentence on what the diagnosis found, from every round together: the report's
     summary and its diagnosis section both print this one (a round's own verdict speaks
     only for that round: a last round that finds nothing more does not undo the first)."""
-    from mfdesign.diagnose.check import FLOOR_FACTOR  # the factor the verdicts use
+    from mfdesign.diagnosis.check import FLOOR_FACTOR  # the factor the verdicts use
 
     found = list(diag.found)
     b, floor = diag.before.rmse_n, diag.before.noise_floor_n
@@ -851,8 +851,8 @@ def _diagnose_stage(run: _Run):
     Not the calibrated model at its posterior median: its per-membrane thickness latents
     soak up part of a measurement effect, and without them (diagnosis has none) the
     leftover looks like a thickness deviation (seen on the bundled data)."""
-    from mfdesign.diagnose.emulated import forward_model
-    from mfdesign.diagnose.pipeline import diagnose
+    from mfdesign.diagnosis.emulated import forward_model
+    from mfdesign.diagnosis.pipeline import diagnose
     from mfdesign.report.diagnosis import write_report
 
     s = run.s
@@ -908,7 +908,7 @@ def _optimise_stage(run: _Run, predictor, fit) -> dict:
     calibrated constants before the report shows it (seconds): the headline gives the
     simulator's heights and the emulator's error there, not the emulator's word alone. A
     stand-in fit stands for no physics: checking it would compare unrelated models."""
-    from mfdesign.optimize import TARGET_SETS, optimize, plot as plot_optimum
+    from mfdesign.optimization import TARGET_SETS, optimize, plot as plot_optimum
 
     s = run.s
     check = s.force_model != "standin"

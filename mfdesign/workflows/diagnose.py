@@ -1,5 +1,5 @@
 """``mfdesign diagnose``: compare a model with measurements, find the missing effect, add it
-(:func:`diagnose`; the analysis itself is :func:`mfdesign.diagnose.pipeline.diagnose`).
+(:func:`diagnose`; the analysis itself is :func:`mfdesign.diagnosis.pipeline.diagnose`).
 
 ``data``: Measurements sources (:func:`mfdesign.workflows.data.load_data`). Without a
 ``model`` folder the model is the plain simulator (authors' constants), evaluated by
@@ -102,7 +102,7 @@ def _items(values: Any) -> list[str]:
 @dataclass(frozen=True)
 class DiagnoseResult:
     """What :func:`diagnose` found and wrote: the
-    :class:`~mfdesign.diagnose.pipeline.Diagnosis` and the report's files by kind
+    :class:`~mfdesign.diagnosis.pipeline.Diagnosis` and the report's files by kind
     (``html``, ``json``, ...)."""
 
     diagnosis: Any
@@ -112,7 +112,7 @@ class DiagnoseResult:
         """RMSE [N] and noise floor before; the worst regions in words; where lift plates
         stall; each round's screen and verdict; what was not screened; RMSE after."""
         from mfdesign.data.lifts import STALL_PA
-        from mfdesign.diagnose.residuals import stall_words, worst_regions
+        from mfdesign.diagnosis.residuals import stall_words, worst_regions
 
         diag = self.diagnosis
         b = diag.before
@@ -258,8 +258,8 @@ def diagnose(
 
     Raises :class:`~mfdesign.errors.InputError` (one line) for bad options, config, effects
     or data."""
-    from mfdesign.diagnose.emulated import forward_model, likelihood_effects
-    from mfdesign.diagnose.pipeline import diagnose as run
+    from mfdesign.diagnosis.emulated import forward_model, likelihood_effects
+    from mfdesign.diagnosis.pipeline import diagnose as run
     from mfdesign.report.diagnosis import write_report
     from mfdesign.workflows.data import load_data
 

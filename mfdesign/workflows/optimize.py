@@ -1,5 +1,5 @@
 """``mfdesign optimize``: design a membrane for a lift task (:func:`optimize`; the search
-itself is :func:`mfdesign.optimize.optimize`).
+itself is :func:`mfdesign.optimization.optimize`).
 
 Targets: one of the paper's height-maximisation sets (``A`` / ``B``: the three masses at
 6.9 / 8.3 kPa) or a CSV / JSON table (:func:`read_targets`) with columns ``force_n`` [N]
@@ -27,7 +27,7 @@ __all__ = ["OptimizeResult", "check_line", "optimize", "read_targets"]
 
 
 def read_targets(path: Path) -> Any:
-    """``HeightTargets`` or ``Waypoints`` (:mod:`mfdesign.optimize`) from a CSV / JSON file.
+    """``HeightTargets`` or ``Waypoints`` (:mod:`mfdesign.optimization`) from a CSV / JSON file.
 
     Arguments:
         path: a ``.csv`` or ``.json`` table with columns ``force_n`` [N] and ``pressure_pa``
@@ -37,7 +37,7 @@ def read_targets(path: Path) -> Any:
     Raises ``ValueError`` (mostly :class:`~mfdesign.errors.InputError`) saying what is wrong."""
     import pandas as pd
 
-    from mfdesign.optimize import HeightTargets, Waypoints
+    from mfdesign.optimization import HeightTargets, Waypoints
 
     path = Path(path)
     if not path.is_file():
@@ -75,7 +75,7 @@ def check_line(sim: dict) -> str:
     """The simulator check in one line: simulated vs model height [mm] per target, MAE, status.
 
     Arguments:
-        sim: the result's ``simulator`` entry (:func:`mfdesign.optimize.check_with_simulator`)."""
+        sim: the result's ``simulator`` entry (:func:`mfdesign.optimization.check_with_simulator`)."""
     pairs = ", ".join(
         f"{'-' if s is None else f'{s:.1f}'} vs {m:.1f}" for s, m in zip(sim["h_sim_mm"], sim["h_model_mm"])
     )
@@ -87,7 +87,7 @@ def check_line(sim: dict) -> str:
 class OptimizeResult:
     """What :func:`optimize` found and wrote.
 
-    ``result``: the search's :class:`mfdesign.optimize.Result` (winner, prediction,
+    ``result``: the search's :class:`mfdesign.optimization.Result` (winner, prediction,
     limits, alternatives, simulator check); ``json_path`` / ``png_path``: the files;
     ``why_not_checked``: why the simulator did not check the winner ("" when it could)."""
 
@@ -131,7 +131,7 @@ class OptimizeResult:
 
 
 def _problem(targets: Path | None, target_set: str | None) -> Any:
-    from mfdesign.optimize import TARGET_SETS
+    from mfdesign.optimization import TARGET_SETS
 
     if target_set is not None:
         if target_set.upper() not in TARGET_SETS:
@@ -184,12 +184,12 @@ def optimize(
         tie_tol: report designs within this fraction of the best loss as alternatives.
         sim_refine_steps: with the check, where it disagrees with the model, this many
             gradient steps on the simulator itself from the winner
-            (:func:`mfdesign.optimize.simulator_refine`; 0: never).
+            (:func:`mfdesign.optimization.simulator_refine`; 0: never).
 
     Raises :class:`~mfdesign.errors.InputError` (one line) for bad options, targets or
     model folder."""
     from mfdesign import outputs
-    from mfdesign.optimize import optimize as search, plot
+    from mfdesign.optimization import optimize as search, plot
     from mfdesign.workflows.models import load_fit, load_model, simulator_constants, simulator_for_check
     from mfdesign.workflows.space import design_space
 

@@ -130,11 +130,13 @@ def test_optimize_checks_a_fit_with_its_calibrated_constants(folder, tmp_path, m
             mae_mm=1.0,
         )
 
-    # the module, not the function mfdesign.optimize that the package re-exports
-    monkeypatch.setattr(importlib.import_module("mfdesign.optimize"), "check_with_simulator", fake_check)
+    monkeypatch.setattr(importlib.import_module("mfdesign.optimization"), "check_with_simulator", fake_check)
     out = tmp_path / "o"
     args = ["optimize", "--model", str(folder), "--target-set", "A", "--rings", "0", "--starts", "4"]
-    r = runner.invoke(app, [*args, "--refine", "2", "--opt-steps", "2", "--check", "--out", str(out)])
+    # the fake check disagrees with the model: no simulator search here (tests/test_simulator_refine.py)
+    r = runner.invoke(
+        app, [*args, "--refine", "2", "--opt-steps", "2", "--check", "--sim-refine-steps", "0", "--out", str(out)]
+    )
     assert r.exit_code == 0, r.output
     assert seen["params"].mu_pa == params.mu_pa and seen["params"].jm == params.jm
     sim = json.loads((out / "optimize.json").read_text())["simulator"]

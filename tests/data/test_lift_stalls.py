@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 
 from mfdesign.data.lifts import stalls
-from mfdesign.diagnose.residuals import stall_words
+from mfdesign.diagnosis.residuals import stall_words
 
 
 def _trial(trial, force, stops, top_mm=40.0, key="[2.0, 38.1, 47.55, 6.45, 62.0, 5.0]"):

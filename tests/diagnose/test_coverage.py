@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 from mfdesign.design import Membrane
-from mfdesign.diagnose.emulated import forward_model
-from mfdesign.diagnose.pipeline import diagnose
+from mfdesign.diagnosis.emulated import forward_model
+from mfdesign.diagnosis.pipeline import diagnose
 from mfdesign.physics import planes as pl
 from mfdesign.rig.fe_truth import fe_plane
 from mfdesign.rig.virtual import Protocol, VirtualRig

@@ -16,10 +16,10 @@ import pandas as pd
 import pytest
 
 from mfdesign.design import Membrane
-from mfdesign.diagnose import compute_residuals, noise_floor, worst_regions
-from mfdesign.diagnose.emulated import EmulatorForwardModel, emulator_plane
+from mfdesign.diagnosis import compute_residuals, noise_floor, worst_regions
+from mfdesign.diagnosis.emulated import EmulatorForwardModel, emulator_plane
 from mfdesign.models.standin import StandinForceModel
-from mfdesign.diagnose.pipeline import diagnose
+from mfdesign.diagnosis.pipeline import diagnose
 from mfdesign.physics import effects as fx
 from mfdesign.models.standin import standin_plane
 from mfdesign.rig.virtual import Protocol, VirtualRig
@@ -84,7 +84,7 @@ def _random_emulator_data():
 
 def test_emulator_backend_screen_ranks_a_hidden_pressure_offset_first():
     """Emulator back end, exact autodiff screen: pressure_sensor first, offset near 150 Pa."""
-    from mfdesign.diagnose.screen import screen
+    from mfdesign.diagnosis.screen import screen
 
     model, m = _random_emulator_data()
     res = compute_residuals(m, model.predict)
@@ -235,7 +235,7 @@ def test_an_effect_the_force_model_cannot_represent_is_named_not_screened():
     'explains nothing'; it is named as not screened instead, with the reason."""
     import types
 
-    from mfdesign.diagnose.pipeline import unmodelled
+    from mfdesign.diagnosis.pipeline import unmodelled
     from mfdesign.models.emulator import load_default
     from mfdesign.models.standin import StandinForceModel
 

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 
 from mfdesign.data.measurements import Measurements
-from mfdesign.diagnose.expected import usable_rows
+from mfdesign.diagnosis.expected import usable_rows
 
 
 def _lift(h, p, trial=0, key="[2.0, 25.4, nan, nan, nan, nan]"):

@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mfdesign.diagnose.residuals import Residuals, residual_shape, shape_words
+from mfdesign.diagnosis.residuals import Residuals, residual_shape, shape_words
 
 
 def _res(residual_of):
@@ -39,7 +39,7 @@ def test_shares_sum_to_one_and_find_the_shape_that_was_put_in():
 
 
 def test_a_refit_with_non_finite_forces_is_named_not_ranked():
-    from mfdesign.diagnose.check import CheckResult, verdict
+    from mfdesign.diagnosis.check import CheckResult, verdict
 
     res = _res(lambda f: np.array([3.0, -2.0, 1.0, -4.0])[f["m"]])
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from mfdesign.diagnose.check import verdict
-from mfdesign.diagnose.refit import CheckResult, _undefined_words
-from mfdesign.diagnose.residuals import Residuals
+from mfdesign.diagnosis.check import verdict
+from mfdesign.diagnosis.refit import CheckResult, _undefined_words
+from mfdesign.diagnosis.residuals import Residuals
 
 
 def _res(rms: float = 2.0, floor: float = 0.3) -> Residuals:

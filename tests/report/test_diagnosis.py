@@ -141,7 +141,7 @@ def small_residuals():
 
     from mfdesign.workflows.demo import BUNDLED
     from mfdesign.data.store import read_parquet
-    from mfdesign.diagnose.residuals import compute_residuals
+    from mfdesign.diagnosis.residuals import compute_residuals
 
     meas = read_parquet(BUNDLED)
     meas = meas.subset(meas.design_keys[:2])

@@ -2,10 +2,10 @@
 
 For a set of effects the model becomes ``F(theta) = base + [E(theta) - E(theta0)]`` with
 ``E`` the expected observed force of the forward model with the effects
-(:meth:`~mfdesign.diagnose.emulated.ForwardModel.expected_force`) and ``base`` the model
+(:meth:`~mfdesign.diagnosis.emulated.ForwardModel.expected_force`) and ``base`` the model
 under diagnosis (for the plain simulator ``base = E(theta0)``, so ``F = E``).
 
-Every parameter of the set is refitted nonlinearly (:mod:`mfdesign.diagnose.refit`:
+Every parameter of the set is refitted nonlinearly (:mod:`mfdesign.diagnosis.refit`:
 Levenberg-Marquardt, optimistix), on all membranes and per fold, in one compiled call;
 delta BIC with the calibration's likelihood
 (:meth:`~mfdesign.models.hierarchical.HierarchicalModel.log_lik`). Mechanical effects are
@@ -33,9 +33,9 @@ from typing import Sequence
 
 import numpy as np
 
-# The refits themselves live in :mod:`mfdesign.diagnose.refit` (nonlinear, exact lattice).
-from mfdesign.diagnose.refit import CheckResult, calibrate_effects, full_check
-from mfdesign.diagnose.residuals import Residuals, shape_words
+# The refits themselves live in :mod:`mfdesign.diagnosis.refit` (nonlinear, exact lattice).
+from mfdesign.diagnosis.refit import CheckResult, calibrate_effects, full_check
+from mfdesign.diagnosis.residuals import Residuals, shape_words
 
 __all__ = ["CheckResult", "calibrate_effects", "full_check", "verdict"]
 

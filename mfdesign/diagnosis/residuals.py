@@ -1,7 +1,7 @@
 """Residuals of a model against measurements: breakdowns, noise floor, worst regions in words.
 
 Residual ``r = F_observed - F_predicted`` [N] at the recorded (height, pressure) of each
-usable row (see :func:`mfdesign.diagnose.expected.usable_rows`); ``r < 0`` means the model
+usable row (see :func:`mfdesign.diagnosis.expected.usable_rows`); ``r < 0`` means the model
 over-predicts the force.
 
 Noise floor: the white measurement noise, estimated from the data without any model of
@@ -27,7 +27,7 @@ import pandas as pd
 
 from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
-from mfdesign.diagnose.expected import query_heights, trial_order, usable_rows
+from mfdesign.diagnosis.expected import query_heights, trial_order, usable_rows
 
 __all__ = [
     "SHAPES",

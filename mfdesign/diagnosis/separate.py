@@ -1,6 +1,6 @@
 """Which measurement would tell two explanations apart, when the data cannot.
 
-Two candidate sets that fit the data equally well (:func:`~mfdesign.diagnose.check.ties`)
+Two candidate sets that fit the data equally well (:func:`~mfdesign.diagnosis.check.ties`)
 may still predict different forces elsewhere. Each fitted set is evaluated on the force
 trials the rig can run on the measured membranes (plate heights 0-70 mm every 10 mm, the
 pressure ramp to each membrane's limit; :class:`~mfdesign.rig.virtual.Protocol`), and the
@@ -24,7 +24,7 @@ from mfdesign.design import Membrane
 from mfdesign.physics import effects as fx
 
 if TYPE_CHECKING:
-    from mfdesign.diagnose.emulated import ForwardModel
+    from mfdesign.diagnosis.emulated import ForwardModel
 
 __all__ = ["SEPARABLE", "separating_trial"]
 

@@ -7,11 +7,11 @@
 * ``before``: residuals of the model as given; ``after``: with the user's effects
   (calibrated) or, when the search claims one, with the claimed effects;
 * ``steps``: forward selection (Efroymson 1960), at most ``max_steps`` rounds of: screen
-  every candidate on the current residuals (:func:`~mfdesign.diagnose.screen.screen`) and
-  every pair of candidates jointly (:func:`~mfdesign.diagnose.screen.screen_pairs`), full
+  every candidate on the current residuals (:func:`~mfdesign.diagnosis.screen.screen`) and
+  every pair of candidates jointly (:func:`~mfdesign.diagnosis.screen.screen_pairs`), full
   check of the ``check_top`` best single effects and, where none of them reaches the
-  noise floor, of the ``check_pairs`` best pairs (:func:`~mfdesign.diagnose.check.full_check`), verdict
-  (:func:`~mfdesign.diagnose.check.verdict`: a pair is claimed only where it beats the best
+  noise floor, of the ``check_pairs`` best pairs (:func:`~mfdesign.diagnosis.check.full_check`), verdict
+  (:func:`~mfdesign.diagnosis.check.verdict`: a pair is claimed only where it beats the best
   single effect by the claim's margins); claimed effects join the model and the next
   round asks what is still missing. It stops at the first round that claims nothing.
 
@@ -36,8 +36,8 @@ from mfdesign.data.lifts import STALL_PA
 from mfdesign.data.lifts import stalls as find_stalls
 from mfdesign.data.measurements import Measurements
 from mfdesign.errors import InputError
-from mfdesign.diagnose.check import calibrate_effects, full_check, verdict
-from mfdesign.diagnose.residuals import (
+from mfdesign.diagnosis.check import calibrate_effects, full_check, verdict
+from mfdesign.diagnosis.residuals import (
     Residuals,
     breakdowns,
     compute_residuals,
@@ -46,11 +46,11 @@ from mfdesign.diagnose.residuals import (
     trend_words,
     worst_regions,
 )
-from mfdesign.diagnose.screen import screen, screen_pairs
+from mfdesign.diagnosis.screen import screen, screen_pairs
 from mfdesign.physics import effects as fx
 
 if TYPE_CHECKING:
-    from mfdesign.diagnose.emulated import ForwardModel
+    from mfdesign.diagnosis.emulated import ForwardModel
 
 __all__ = ["Diagnosis", "diagnose"]
 
@@ -159,10 +159,10 @@ def _refit(picks, *, sim, meas, res, names, theta0, base_pred, n_folds, progress
 
 def _degeneracies(sim, meas, res, v: dict, checks, names, theta0, base_pred, n_folds: int) -> None:
     """For each set the data cannot tell from the claimed one (``v["alternatives"]``): the
-    force trial that would separate them (:func:`~mfdesign.diagnose.separate.separating_trial`)
+    force trial that would separate them (:func:`~mfdesign.diagnosis.separate.separating_trial`)
     and their joint posterior (the union refitted jointly; Laplace approximation: the
     parameters' correlation). Adds them to ``v`` and to its words."""
-    from mfdesign.diagnose.separate import separating_trial
+    from mfdesign.diagnosis.separate import separating_trial
 
     floor = v.get("noise_floor_n") or res.noise_floor_n
     words = []
@@ -199,7 +199,7 @@ def _count_arg(name: str, v, low: int, high: int) -> None:
 
 def _check_arguments(meas, sim, model, effects, theta, candidates, check_top, check_pairs, max_steps, n_folds):
     """:func:`diagnose`'s arguments, each bad one an ``InputError`` in one line (issue 44, class 6)."""
-    from mfdesign.diagnose.emulated import ForwardModel
+    from mfdesign.diagnosis.emulated import ForwardModel
 
     if not isinstance(meas, Measurements):
         raise InputError(
@@ -210,7 +210,7 @@ def _check_arguments(meas, sim, model, effects, theta, candidates, check_top, ch
     if sim is not None and not isinstance(sim, ForwardModel):
         raise InputError(
             f"sim: a {type(sim).__name__}; allowed: None or a ForwardModel "
-            "(mfdesign.diagnose.emulated.forward_model('exact' | 'emulator' | 'standin', meas))"
+            "(mfdesign.diagnosis.emulated.forward_model('exact' | 'emulator' | 'standin', meas))"
         )
     if model is not None and not callable(model):
         raise InputError(f"model: a {type(model).__name__}; allowed: None or predict(meas) -> force [N] per row")
@@ -280,8 +280,8 @@ def diagnose(
     **Arguments:**
 
     - `meas`: the measurements (:class:`~mfdesign.data.measurements.Measurements`).
-    - `sim`: the forward model, a :class:`~mfdesign.diagnose.emulated.ForwardModel` (build
-      one with :func:`~mfdesign.diagnose.emulated.forward_model`: `"exact"` simulator planes
+    - `sim`: the forward model, a :class:`~mfdesign.diagnosis.emulated.ForwardModel` (build
+      one with :func:`~mfdesign.diagnosis.emulated.forward_model`: `"exact"` simulator planes
       of the measured designs, `"emulator"` or `"standin"`); default the bundled emulator.
     - `model`: the model under diagnosis, `predict(meas) -> force [N] per row` (default: the
       plain simulator of `sim`).
@@ -306,7 +306,7 @@ def diagnose(
     enable_x64()  # float64 physics: mfdesign._x64
     _check_arguments(meas, sim, model, effects, theta, candidates, check_top, check_pairs, max_steps, n_folds)
     if sim is None:
-        from mfdesign.diagnose.emulated import forward_model
+        from mfdesign.diagnosis.emulated import forward_model
 
         sim = forward_model("emulator", meas, progress=progress)
     effects = [fx.effect(e) for e in effects]
@@ -337,7 +337,7 @@ def diagnose(
     if candidates is not None:
         pool = list(candidates)
     else:  # every effect with a likelihood hook
-        from mfdesign.diagnose.emulated import likelihood_effects
+        from mfdesign.diagnosis.emulated import likelihood_effects
 
         pool = likelihood_effects()
     skipped = unmodelled(pool, sim)

@@ -21,7 +21,7 @@ calibration's likelihood model (:mod:`mfdesign.physics.effects`, "the likelihood
     params = apply_row_sim_params(effects, theta, base, rows)           # mechanics, per row
     F      = apply_expected_force(effects, theta, force_model(., params), rows)   # measurement chain
 
-with the query height of :func:`~mfdesign.diagnose.expected.query_heights` (set-point in force
+with the query height of :func:`~mfdesign.diagnosis.expected.query_heights` (set-point in force
 trials) and ``h``, ``p`` clipped to the force model's input range
 (:class:`ClippedForceModel`).
 
@@ -46,7 +46,7 @@ import numpy as np
 
 from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
-from mfdesign.diagnose.expected import query_heights, trial_order
+from mfdesign.diagnosis.expected import query_heights, trial_order
 from mfdesign.models.force import ForceModel
 from mfdesign.physics import effects as fx
 from mfdesign.physics.params import SimParams
