@@ -4,7 +4,8 @@
 interpreter's: jupyter_client starts the native kernel with ``sys.executable``) in a temporary
 folder; a cell appended to a copy prints what the notebook found, and the test checks it:
 diagnosis names the bundled data's hidden effect (``bundled_card.json``), the residual falls,
-two membranes are proposed and a design is optimised. Slow (minutes): ``pytest -m slow``.
+two membranes are proposed, a design is optimised and a campaign runs two rounds on the
+virtual rig. Slow (minutes): ``pytest -m slow``.
 Needs the ``[notebook]`` extra (part of ``[test]``).
 """
 
@@ -34,6 +35,8 @@ print("NOTEBOOK-RESULT " + _json.dumps({
     "loss": float(result.loss),
     "design_key": result.design_key,
     "hidden": card["name"],
+    "rounds": campaign.rounds(),
+    "heldout_rmse_n": float(done.record["heldout"]["rmse_n"]),
 }))
 """
 
@@ -75,3 +78,6 @@ def test_tutorial_notebook_runs(tmp_path, monkeypatch):
     assert got["compare_rmse_n"] == pytest.approx(got["rmse_before_n"]), got  # compare is diagnose's "before"
     assert got["n_proposed"] == 2 and set(got["fidelities"]) <= {"rig", "sim"}, got
     assert math.isfinite(got["loss"]) and got["design_key"].startswith("["), got
+    # the rounds in Python (issue 41): a campaign fitted three times, the last round's
+    # held-out error on the membrane told since round 1 a number
+    assert got["rounds"] == [0, 1, 2] and math.isfinite(got["heldout_rmse_n"]), got
