@@ -138,7 +138,9 @@ class Settings:
     @classmethod
     def quick(cls, physics: str = "standin", **changes) -> "Settings":
         """Small settings for a smoke run or a test (seconds a step on the stand-in)."""
-        small = dict(mcmc_steps=40, walkers=16, max_rows=60, members=2, delta_steps=20, restarts=8, refine=2)
+        # walkers left to the sampler (0: max(32, 2 dim + 2)): a fixed 16 was fewer than
+        # emcee allows once six membranes' latents and an effect are sampled (dim 12)
+        small = dict(mcmc_steps=40, walkers=0, max_rows=60, members=2, delta_steps=20, restarts=8, refine=2)
         small |= dict(opt_steps=2, sim_heights=4, sim_pressures=4, diagnose_search=False)
         return cls(physics=physics, **(small | changes))
 

@@ -405,7 +405,15 @@ def convergence_report(
         "adapt_steps": int(discard),
     }
     problems = []
-    if ratio < min_ratio:
+    if not np.all(np.isfinite(tau)):
+        # a chain too short (or too stuck) for emcee to estimate tau at all: a NaN here
+        # crashed the report (math.ceil) of a 40-step campaign smoke run
+        bad = [n for n, t in zip(names, tau) if not np.isfinite(t)]
+        problems.append(
+            f"chain of {n_after} steps (after {discard} adaptation steps) is too short to estimate the "
+            f"autocorrelation time of {', '.join(bad[:3])}{' ...' if len(bad) > 3 else ''}; want >= {min_ratio:g} tau"
+        )
+    elif ratio < min_ratio:
         worst = names[int(np.argmax(tau))]
         problems.append(
             f"chain of {n_after} steps (after {discard} adaptation steps) is {ratio:.1f} tau long (tau_max {np.max(tau):.1f} for "
