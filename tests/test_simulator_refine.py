@@ -13,7 +13,7 @@ import pytest
 
 from mfdesign._x64 import enable_x64
 from mfdesign.design import Membrane
-from mfdesign.optimization import HeightTargets, _disagrees
+from mfdesign.optimization import CHECK_H_MAX_MM, CHECK_N_HEIGHTS, HeightTargets, _disagrees
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.solve import PATH_STEPS, force_at, point_force, traced_params
 
@@ -106,7 +106,7 @@ def test_optimize_refines_on_the_simulator_where_the_model_is_wrong():
     assert design.n_rings == 2
     from mfdesign.physics.solve import height_at
 
-    h, _ = height_at(design, problem.force_n, problem.p_pa, h_max_mm=120.0, n_heights=25)
+    h, _ = height_at(design, problem.force_n, problem.p_pa, h_max_mm=CHECK_H_MAX_MM, n_heights=CHECK_N_HEIGHTS)
     np.testing.assert_allclose(
         np.asarray([np.nan if v is None else v for v in ref["check"]["h_sim_mm"]]), h, equal_nan=True
     )
