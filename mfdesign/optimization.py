@@ -807,20 +807,19 @@ def _check_flags(check: dict | None) -> list[str]:
     """The simulator check's heights above the rig's travel, one sentence each."""
     if not check:
         return []
+    top = check.get("h_max_mm", CHECK_H_MAX_MM)
     out = []
     for f, pp, h, st in zip(check["force_n"], check["p_pa"], check["h_sim_mm"], check["status"]):
-        where = (
-            f"to {h:.3g} mm"
-            if h is not None
-            else f"past {check.get('h_max_mm', CHECK_H_MAX_MM):g} mm (the top of its height grid)"
-            if st == "BEYOND_GRID"
-            else None
+        if h is not None and h > RIG_HEIGHT_MAX_MM:
+            where = f"to {h:.3g} mm"
+        elif h is None and st == "BEYOND_GRID":
+            where = f"past {top:g} mm (the top of its height grid)"
+        else:
+            continue
+        out.append(
+            f"the simulator lifts {f:.3g} N at {pp / 1e3:.3g} kPa {where}, above the rig's "
+            f"{RIG_HEIGHT_MAX_MM:g} mm travel (cannot be measured)"
         )
-        if where is not None and (h is None or h > RIG_HEIGHT_MAX_MM):
-            out.append(
-                f"the simulator lifts {f:.3g} N at {pp / 1e3:.3g} kPa {where}, above the rig's "
-                f"{RIG_HEIGHT_MAX_MM:g} mm travel (cannot be measured)"
-            )
     return out
 
 

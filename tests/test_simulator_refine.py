@@ -111,3 +111,18 @@ def test_optimize_refines_on_the_simulator_where_the_model_is_wrong():
         np.asarray([np.nan if v is None else v for v in ref["check"]["h_sim_mm"]]), h, equal_nan=True
     )
     assert res.to_json()["simulator_refined"]["design_key"] == ref["design_key"]
+
+
+def test_heights_above_the_rigs_travel_are_limits():
+    from mfdesign.optimization import _check_flags
+
+    check = {
+        "force_n": [14.7, 24.5, 39.2],
+        "p_pa": [6895.0] * 3,
+        "h_sim_mm": [99.5, None, 40.0],
+        "status": ["OK", "BEYOND_GRID", "OK"],
+        "h_max_mm": 120.0,
+    }
+    flags = _check_flags(check)
+    assert len(flags) == 2 and "to 99.5 mm" in flags[0] and "past 120 mm" in flags[1]
+    assert _check_flags(None) == []

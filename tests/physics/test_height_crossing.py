@@ -62,6 +62,14 @@ def test_first_crossing_matches_reference_on_random_tables():
     }
 
 
+def _interpolate_only(design, params, Fq, pq, Fh, hgrid, lo_idx, refine, height, status):
+    """``_refine_crossings`` without the simulator: the bracket's linear interpolation."""
+    idx = np.nonzero(refine)[0]
+    j = lo_idx[idx]
+    f0, f1 = Fh[idx, j], Fh[idx, j + 1]
+    height[idx] = hgrid[j] + (f0 - Fq[idx]) / (f0 - f1) * (hgrid[1] - hgrid[0])
+
+
 def test_lift_curve_flags_a_jump_over_a_dip(monkeypatch):
     """A synthetic plane whose force dips below the load between two branches: as the
     pressure rises the first crossing jumps past the dip; that pressure is SNAP_THROUGH."""
@@ -78,14 +86,8 @@ def test_lift_curve_flags_a_jump_over_a_dip(monkeypatch):
     def fake_plane(design, h, pp, params):
         return SimpleNamespace(force_n=F, status=np.zeros(F.shape, np.int8))
 
-    def interpolate_only(design, params, Fq, pq, Fh, hgrid, lo_idx, refine, height, status):
-        idx = np.nonzero(refine)[0]
-        j = lo_idx[idx]
-        f0, f1 = Fh[idx, j], Fh[idx, j + 1]
-        height[idx] = hgrid[j] + (f0 - Fq[idx]) / (f0 - f1) * (hgrid[1] - hgrid[0])
-
     monkeypatch.setattr(solve, "force_plane", fake_plane)
-    monkeypatch.setattr(solve, "_refine_crossings", interpolate_only)
+    monkeypatch.setattr(solve, "_refine_crossings", _interpolate_only)
     h, st = solve.lift_curve(Membrane.from_key("[2.0, 25.4, nan, nan, nan, nan]"), 20.0, p)
     jump = np.argmax(np.diff(h)) + 1
     assert np.diff(h)[jump - 1] > 20.0  # the plate leaps onto the far branch
@@ -136,13 +138,7 @@ def test_height_at_reads_outside_model_nodes_as_above_the_load(monkeypatch):
 
         return force_at
 
-    def interpolate_only(design, params, Fq, pq, Fh, hgrid, lo_idx, refine, height, status):
-        idx = np.nonzero(refine)[0]
-        j = lo_idx[idx]
-        f0, f1 = Fh[idx, j], Fh[idx, j + 1]
-        height[idx] = hgrid[j] + (f0 - Fq[idx]) / (f0 - f1) * (hgrid[1] - hgrid[0])
-
-    monkeypatch.setattr(solve, "_refine_crossings", interpolate_only)
+    monkeypatch.setattr(solve, "_refine_crossings", _interpolate_only)
     design = Membrane.from_key("[1.2, 37.5, nan, nan, nan, nan]")
     loads = np.array([14.7, 39.2])
     monkeypatch.setattr(solve, "force_at", fake_points(Status.OUTSIDE_MODEL))
