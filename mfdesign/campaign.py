@@ -65,8 +65,8 @@ _ROUND_PREFIX = "round-"
 # ----------------------------------------------------------------------------- settings
 @dataclasses.dataclass(frozen=True)
 class Settings:
-    """Every default of a campaign, in one place (the CLI commands' own defaults differ:
-    issue 41 lists them; a campaign uses these for every round).
+    """Every default of a campaign, in one place; ``mfdesign calibrate`` and ``fit-mf`` take
+    their defaults from here too (steps, walkers, rows, ensemble, seed).
 
     Physics and calibration: ``physics`` where the model meets the data (``"exact"``
     simulator planes, ``"emulator"``, ``"standin"`` for tests; design searches run on the

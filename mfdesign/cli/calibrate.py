@@ -21,11 +21,21 @@ from typing import Annotated, List, Optional
 
 import typer
 
+import dataclasses
+from types import SimpleNamespace
+
+from mfdesign.campaign import Settings
 from mfdesign.cli._app import ALLOW_OUTSIDE, SCHEDULER, show
 from mfdesign.cli._contract import effect_name, item_parser
 from mfdesign.workflows.calibrate import bundled_truths as _bundled_truths  # noqa: F401 -- old name, still read
 from mfdesign.workflows.calibrate import calibrate  # light: its heavy imports are inside its functions
 
+# One set of defaults for a calibration, wherever it runs: the campaign's (issue 41; calibrate
+# used to take 3000 steps / 3000 rows and fit-mf 2000 / 1500). A chain stops once it is 50
+# autocorrelation times long, so the step count is a ceiling, not the work done. The
+# fields' declared defaults, not ``Settings()``: its validation imports JAX, and a
+# ``--help`` page must not (tests/cli/test_help.py).
+DEFAULTS = SimpleNamespace(**{f.name: f.default for f in dataclasses.fields(Settings)})
 
 # Options both commands take, declared once (typer reads them as parameter defaults).
 DATA = typer.Argument(
@@ -54,7 +64,7 @@ LIKELIHOOD = typer.Option(
     help="student_t (nu = 4: robust to rows the model cannot hold, e.g. a "
     "lifted plate mid snap-through or at the rig's top stop) | gaussian",
 )
-SEED = typer.Option(0, help="Random seed.")
+SEED = typer.Option(DEFAULTS.seed, help="Random seed.")
 MATERIAL = typer.Option(
     "free",
     help="The rubber: free (the data calibrate mu and J_m) | coupons (held at the coupons' 31.5 kPa "
@@ -90,27 +100,26 @@ def _register(
     doc: str,
     *,
     multi_fidelity: bool,
-    steps_default: int,
-    rows_default: int,
     out_help: str,
     walkers_help: str,
     rows_help: str,
 ) -> None:
-    """Add ``calibrate`` or ``fit-mf`` to ``app``: one parameter list for both commands, which
-    differ in defaults, help texts and (fit-mf only) the :data:`ENSEMBLE_OPTIONS`."""
+    """Add ``calibrate`` or ``fit-mf`` to ``app``: one parameter list for both commands, with
+    the campaign's defaults (:data:`DEFAULTS`); they differ in help texts and (fit-mf only)
+    the :data:`ENSEMBLE_OPTIONS`."""
 
     def command(
         data: List[Path] = DATA,
         out: Path = typer.Option(..., help=out_help),
         effects: Optional[List[str]] = EFFECTS,
         effects_module: Optional[List[Path]] = EFFECTS_MODULE,
-        steps: int = _mcmc_steps(steps_default),
-        walkers: int = typer.Option(0, min=0, help=walkers_help),
-        max_rows: int = typer.Option(rows_default, min=10, help=rows_help),
+        steps: int = _mcmc_steps(DEFAULTS.mcmc_steps),
+        walkers: int = typer.Option(DEFAULTS.walkers, min=0, help=walkers_help),
+        max_rows: int = typer.Option(DEFAULTS.max_rows, min=10, help=rows_help),
         physics: str = PHYSICS,
         likelihood: str = LIKELIHOOD,
-        members: Annotated[int, typer.Option(min=1, help="Discrepancy ensemble members.")] = 8,
-        delta_steps: Annotated[int, typer.Option(min=1, help="Discrepancy training steps.")] = 3000,
+        members: Annotated[int, typer.Option(min=1, help="Discrepancy ensemble members.")] = DEFAULTS.members,
+        delta_steps: Annotated[int, typer.Option(min=1, help="Discrepancy training steps.")] = DEFAULTS.delta_steps,
         seed: int = SEED,
         resume: bool = RESUME,
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
@@ -154,8 +163,6 @@ def register(app: typer.Typer) -> None:
         "calibrate",
         "Calibrate mu [Pa], J_m and the effects' parameters with emcee (posterior table, corner plot, chain).",
         multi_fidelity=False,
-        steps_default=3000,
-        rows_default=3000,
         out_help="Output folder (chain.h5, posterior.json/.npz, corner.png).",
         walkers_help="emcee walkers (0: max(32, 2 dim + 2)).",
         rows_help="Rows used by the likelihood (evenly within trials).",
@@ -165,8 +172,6 @@ def register(app: typer.Typer) -> None:
         "fit-mf",
         "Multi-fidelity fit: calibrated simulator + RPN discrepancy ensemble + noise.",
         multi_fidelity=True,
-        steps_default=2000,
-        rows_default=1500,
         out_help="Output folder.",
         walkers_help="emcee walkers (0: automatic).",
         rows_help="Rows used by the likelihood.",

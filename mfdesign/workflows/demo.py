@@ -51,8 +51,9 @@ class DemoSettings:
     # membranes, solved once and cached). emcee stops once the chain is 50 autocorrelation
     # times long (``mcmc_steps`` is the most it may take): with the centred thickness
     # latents and the two-stage independence move tau is ~8-10 steps (session 8), so
-    # ~600 steps at ~0.05 s each.
-    mcmc_steps: int = 4000
+    # ~600 steps at ~0.05 s each. The ceiling is the campaign's (Settings.mcmc_steps: one
+    # default for calibrate, fit-mf, the campaign and the demo; issue 41).
+    mcmc_steps: int = 2000
     walkers: int = 32
     max_rows: int = 1500
     # The plain model calibrated by emcee too (its mu absorbs what the missing effect does):
@@ -150,7 +151,7 @@ class _Log:
         self.cpu0 = time.process_time()
         self.resources: dict[str, dict] = {}
 
-    def stage(self, name: str):
+    def stage(self, name: str, release: bool = True):
         log = self
 
         class _Stage:
@@ -160,8 +161,10 @@ class _Log:
 
             def __exit__(self, *exc):
                 # the stage's compiled programs and freed heap go back (mfdesign._memory:
-                # the demo's peak RSS was the sum of its stages' compilations, issue 40)
-                release_memory()
+                # the demo's peak RSS was the sum of its stages' compilations, issue 40;
+                # kept, the programs of every stage held 4.05 GB against 1.79 GB, warm)
+                if release:
+                    release_memory()
                 wall = round(time.perf_counter() - self.t, 2)
                 log.times[name] = wall
                 log.resources[name] = {
@@ -1056,7 +1059,9 @@ def run_demo(
     s, log = settings, _Log(echo)
     summary: dict = {"settings": dataclasses.asdict(s), "data": str(data_path)}
     card = json.loads(CARD.read_text()) if Path(data_path) == BUNDLED and CARD.exists() else None
-    with log.stage("load data and force model"):
+    # Loading compiles only the plane solver's kernels, and the diagnosis solves planes
+    # with the same ones: dropping them retraced the solver (~10 s of one core, cold).
+    with log.stage("load data and force model", release=False):
         meas = read_parquet(data_path)
         run = _Run(
             out,
