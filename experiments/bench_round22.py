@@ -24,7 +24,7 @@ peak RSS):
 4. ``ask``: ``mfdesign ask D --q 2`` (propose).
 
 The campaign's settings are the ones ``mfdesign demo`` leaves in its campaign
-(``mcmc_steps`` 4000 at most, 1500 rows, 8 x 2000-step members, 2 effects checked in
+(``mcmc_steps`` 2000 at most, 1500 rows, 8 x 2000-step members, 2 effects checked in
 full; ``restarts`` 64, ``refine`` 4, ``opt_steps`` 10: the campaign defaults 1000 / 32 /
 20 held an exact-physics ask at 7.6 GB and over 14 minutes), except the walkers:
 automatic (``max(32, 2 dim + 2)``), as the demo's 32 are fewer than emcee needs with 22
@@ -62,7 +62,7 @@ TARGET_S = 900.0
 TIME_V = Path("/usr/bin/time")
 
 # What `mfdesign demo` leaves in its campaign (mfdesign/workflows/demo.py, _leave_campaign).
-FULL = dict(mcmc_steps=4000, walkers=0, max_rows=1500, members=8, delta_steps=2000, check_top=2)
+FULL = dict(mcmc_steps=2000, walkers=0, max_rows=1500, members=8, delta_steps=2000, check_top=2)
 FULL |= dict(restarts=64, refine=4, opt_steps=10)
 QUICK = dict(mcmc_steps=60, walkers=0, max_rows=200, members=2, delta_steps=50, check_top=1, check_pairs=0)
 QUICK |= dict(diagnose_rounds=1, restarts=8, refine=2, opt_steps=2, sim_heights=4, sim_pressures=4)
