@@ -165,6 +165,19 @@ def run_step(name: str, argv: list[str], env: dict, tmp: Path, timeout_s: float)
     return row
 
 
+def chain_of(camp: Path) -> dict | None:
+    """The round's emcee chain as its posterior records it (the last round's
+    ``model/posterior.json``): a round within the time target with a chain that has not
+    converged is not the round a lab needs, so the JSON and the last line say which."""
+    rounds = sorted((camp / "rounds").glob("round-*"))
+    post = rounds[-1] / "model" / "posterior.json" if rounds else None
+    if post is None or not post.is_file():
+        return None
+    conv = json.loads(post.read_text()).get("convergence") or {}
+    keep = ("converged", "steps_over_tau", "tau_max", "acceptance", "problems")
+    return {k: conv[k] for k in keep if k in conv}
+
+
 def table(steps: dict) -> list[str]:
     lines = [f"{'step':<10} {'wall s':>8} {'cpu s':>8} {'peak GB':>8}  status"]
     for name, r in steps.items():
@@ -306,6 +319,7 @@ def main() -> None:
         if diag.is_file():
             d = json.loads(diag.read_text())
             record["diagnosis_found"] = d.get("effects_after")
+        record["chain"] = chain_of(camp)
     write_json(out_json, record)
 
     print("\n".join(table(steps)))
@@ -317,9 +331,15 @@ def main() -> None:
         print(line)
     rss = record["peak_rss_gb"]
     state = "" if complete else f" (NOT complete: stopped at {bad[0] if bad else '?'})"
+    chain, chain_state = record.get("chain") or {}, ""
+    if chain.get("converged"):
+        chain_state = "; chain converged"
+    elif chain:
+        tau, acc = chain.get("steps_over_tau", float("nan")), chain.get("acceptance", float("nan"))
+        chain_state = f"; chain NOT converged ({tau:.1f} tau, acceptance {acc:.2f})"
     print(
         f"{NAME}: cold round of {len(keys)} membranes {total:.1f} s (target {TARGET_S:.0f} s){state}, "
-        f"peak RSS {'unknown' if rss is None else f'{rss:.2f}'} GB"
+        f"peak RSS {'unknown' if rss is None else f'{rss:.2f}'} GB{chain_state}"
     )
     shutil.rmtree(cache, ignore_errors=True)
     if not complete:

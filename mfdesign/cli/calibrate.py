@@ -15,14 +15,13 @@ copy (sha256 in ``effects/modules.json``) that every ``--model OUT`` imports aga
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Annotated, List, Optional
 
 import typer
-
-import dataclasses
-from types import SimpleNamespace
 
 from mfdesign.campaign import Settings
 from mfdesign.cli._app import ALLOW_OUTSIDE, SCHEDULER, show

@@ -31,9 +31,9 @@ from mfdesign.physics.membrane import Segment, jump_lambda1, rhs
 from mfdesign.physics.params import SimParams
 from mfdesign.units import PA_TO_MPA
 
-# The integration's tolerances: at 1e-7 / 1e-8 a simulator plane solves 1.5x faster than at
-# 1e-8 / 1e-9 (2.7-3.2 s -> 1.6-2.0 s a plane on one core; issue 40) and its forces move by
-# at most 3e-5 N (1.2e-5 N RMS; experiments/bench_ode_tol.py measures both), a hundredth
+# The integration's tolerances: at 1e-7 / 1e-8 a simulator plane solves 1.4-1.5x faster than
+# at 1e-8 / 1e-9 (2.3-3.0 s -> 1.6-2.1 s a plane on one core; issue 40) and its forces move by
+# at most 3.2e-5 N (experiments/bench_ode_tol.py measures both, JSON in experiments/out), a hundredth
 # of the planes' interpolation error (~3e-3 N RMS) and far below any rig's noise. The
 # convergence test |r| < 1e-7 (solve_force) is on the integrated map itself, which is
 # deterministic, so it holds as before (no plane node changed its converged state).
