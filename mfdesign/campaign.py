@@ -76,7 +76,10 @@ class Settings:
     imported, not here), ``mcmc_steps`` (most emcee steps; sampling stops once converged),
     ``walkers`` (0: automatic), ``max_rows`` (rows the likelihood uses), ``likelihood``,
     ``material`` (:func:`~mfdesign.calibration.workflow.material_priors`),
-    ``membrane_latents``; the discrepancy ensemble: ``members``, ``delta_steps``.
+    ``membrane_latents``, ``membrane_effects`` (effect parameters, ``"effect.param"`` or an
+    effect's name, that vary from membrane to membrane around a calibrated population:
+    applied once their effect is in force); the discrepancy ensemble: ``members``,
+    ``delta_steps``.
     Acquisition: ``restarts``, ``refine``, ``opt_steps``, the costs ``cost_rig`` /
     ``cost_sim``, the plane of a simulator run ``sim_heights`` x ``sim_pressures``.
     Diagnosis: ``diagnose_search`` (False: residuals only), ``check_top``, ``check_pairs``,
@@ -91,6 +94,7 @@ class Settings:
     likelihood: str = "student_t"
     material: str = "free"
     membrane_latents: bool = True
+    membrane_effects: tuple[str, ...] = ()
     members: int = 8
     delta_steps: int = 3000
     restarts: int = 1000
@@ -107,7 +111,11 @@ class Settings:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        for name in ("effects", "membrane_effects"):
+            if isinstance(getattr(self, name), str):  # tuple("abc") would be its letters
+                raise InputError(f"settings.{name} = {getattr(self, name)!r}; allowed: a list of names")
         object.__setattr__(self, "effects", tuple(self.effects))
+        object.__setattr__(self, "membrane_effects", tuple(self.membrane_effects))
         if self.physics not in PHYSICS:
             raise InputError(f"settings.physics {self.physics!r}; allowed: {', '.join(PHYSICS)}")
         if self.likelihood not in ("gaussian", "student_t"):
@@ -129,6 +137,11 @@ class Settings:
                 raise InputError(f"settings.{name} = {value!r}; allowed: a positive finite number")
         if not all(isinstance(e, str) for e in self.effects):
             raise InputError(f"settings.effects {list(self.effects)!r}; allowed: effect names (strings)")
+        if not all(isinstance(e, str) for e in self.membrane_effects):
+            raise InputError(
+                f"settings.membrane_effects {list(self.membrane_effects)!r}; allowed: effect parameter names "
+                "('effect.param') or effect names (strings)"
+            )
 
     def check_effects(self, where: str = "settings.effects") -> None:
         """``InputError`` when an effect of the settings is not registered (run once the
@@ -145,7 +158,11 @@ class Settings:
         return cls(physics=physics, **(small | changes))
 
     def to_json(self) -> dict:
-        return {**dataclasses.asdict(self), "effects": list(self.effects)}
+        return {
+            **dataclasses.asdict(self),
+            "effects": list(self.effects),
+            "membrane_effects": list(self.membrane_effects),
+        }
 
     @classmethod
     def from_json(cls, raw: Any, where: str = "settings") -> "Settings":
@@ -156,7 +173,9 @@ class Settings:
         if unknown:
             raise InputError(f"{where}: unknown setting(s) {unknown}; allowed: {sorted(known)}")
         try:
-            values: dict[str, Any] = {k: tuple(v) if k == "effects" else v for k, v in raw.items()}
+            values: dict[str, Any] = {
+                k: tuple(v) if k in ("effects", "membrane_effects") else v for k, v in raw.items()
+            }
             return cls(**values)
         except TypeError as err:
             raise InputError(f"{where}: {err}") from None
@@ -605,7 +624,7 @@ class Campaign:
         registered in Python only). Writes ``diagnosis.json`` (copied into the next round).
         Returns the :class:`~mfdesign.diagnosis.pipeline.Diagnosis`."""
         from mfdesign import outputs
-        from mfdesign.diagnosis.emulated import forward_model, likelihood_effects
+        from mfdesign.diagnosis.forward import forward_model, likelihood_effects
         from mfdesign.diagnosis.pipeline import diagnose
 
         s = self.settings
@@ -672,6 +691,7 @@ class Campaign:
                 progress=progress,
                 likelihood=s.likelihood,
                 membrane_latents=s.membrane_latents,
+                membrane_effects=[q for q in s.membrane_effects if q.split(".")[0] in state.effects],
                 **material_priors(s.material),
             )
             return self._commit_round(state, fit, table, number, seed, heldout, call or "Campaign.fit()")

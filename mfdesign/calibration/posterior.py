@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from mfdesign.models.hierarchical import LATENT
+from mfdesign.models.hierarchical import LATENT, membrane_block
 
 __all__ = [
     "Posterior",
@@ -56,6 +56,13 @@ def convergence_rule() -> str:
         "computed on the draws posterior.nc holds) are reported beside it as checks of mixing, not as part "
         "of the rule: emcee's walkers are not independent chains."
     )
+
+
+def _nc_name(var: str) -> str:
+    """The ``posterior.nc`` variable of a per-membrane block (one value per ``membrane``):
+    ``thickness``, or ``membrane.<effect.param>`` for a per-membrane effect parameter (its
+    population centre keeps the parameter's own name)."""
+    return "thickness" if var + "[" == LATENT else f"membrane.{var}"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,26 +104,43 @@ class Posterior:
     def median(self) -> np.ndarray:
         return np.median(self.samples, axis=0)
 
+    def _blocks(self) -> dict[str, list[int]]:
+        """Per-membrane parameters grouped: ``{variable: [column of membrane 0, 1, ...]}``
+        (``"thickness"``, and each per-membrane effect parameter ``"effect.param"``)."""
+        out: dict[str, list[int]] = {}
+        for i, name in enumerate(self.names):
+            b = membrane_block(name)
+            if b is not None:
+                out.setdefault(b[0], []).append(i)
+        return out
+
     def derived(self) -> tuple[list[str], list[str], np.ndarray]:
-        """Per-membrane relative thickness ``t_m`` [S, M] (if latent), named by design key."""
-        if f"{LATENT}0]" not in self.names:
-            return [], [], np.zeros((len(self.samples), 0))
-        k = self.names.index(f"{LATENT}0]")
-        names = [f"thickness_rel {key}" for key in self.design_keys]
-        return names, ["1"] * len(names), self.samples[:, k : k + len(names)]
+        """Per-membrane values [S, M] named by design key: the relative thickness
+        (``thickness_rel KEY``) where latent, and each per-membrane effect parameter
+        (``effect.param KEY``, its own unit)."""
+        names: list[str] = []
+        units: list[str] = []
+        cols: list[int] = []
+        for var, idx in self._blocks().items():
+            label = "thickness_rel" if var + "[" == LATENT else var
+            keys = self.design_keys if len(self.design_keys) == len(idx) else [str(m) for m in range(len(idx))]
+            names += [f"{label} {key}" for key in keys]
+            units += ["1" if label == "thickness_rel" else self.units[idx[0]]] * len(idx)
+            cols += idx
+        return names, units, self.samples[:, cols] if cols else np.zeros((len(self.samples), 0))
+
+    def _derived_columns(self) -> list[int]:
+        return [i for idx in self._blocks().values() for i in idx]
 
     def summary(self) -> pd.DataFrame:
-        """One row per parameter (and derived per-membrane thickness): unit, median, 5 / 95 %
+        """One row per parameter (and derived per-membrane values): unit, median, 5 / 95 %
         and 2.5 / 97.5 % quantiles, MAP."""
         d_names, d_units, d_samples = self.derived()
-        keep = [i for i, n in enumerate(self.names) if not n.startswith(LATENT)]
+        keep = [i for i, n in enumerate(self.names) if membrane_block(n) is None]
         names = [self.names[i] for i in keep] + d_names
         units = [self.units[i] for i in keep] + d_units
         samples = np.concatenate([self.samples[:, keep], d_samples], axis=1)
-        x_map = list(self.x_map[keep])
-        if d_names:
-            k = self.names.index(f"{LATENT}0]")
-            x_map += list(self.x_map[k : k + len(d_names)])
+        x_map = list(self.x_map[keep]) + list(self.x_map[self._derived_columns()])
         q = np.quantile(samples, [0.5, 0.05, 0.95, 0.025, 0.975], axis=0)
         return pd.DataFrame(
             {
@@ -227,14 +251,15 @@ class Posterior:
             x, lp = x[:, ::step], lp[:, ::step]
             n_draw = x.shape[1]
         posterior, dims, units = {}, {}, {}
-        z = [i for i, n in enumerate(self.names) if n.startswith(LATENT)]
+        blocks = self._blocks()
         for i, name in enumerate(self.names):
-            if i not in z:
+            if membrane_block(name) is None:
                 posterior[name], units[name] = x[..., i], self.units[i]
         coords: dict[str, Any] = {}
-        if z:
-            posterior["thickness"], units["thickness"] = x[..., z], self.units[z[0]]
-            dims["thickness"] = ["membrane"]
+        for var, z in blocks.items():
+            key = _nc_name(var)
+            posterior[key], units[key] = x[..., z], self.units[z[0]]
+            dims[key] = ["membrane"]
             coords["membrane"] = list(self.design_keys) if len(self.design_keys) == len(z) else list(range(len(z)))
         groups: dict[str, Any] = {"posterior": posterior, "sample_stats": {"lp": lp}}
         if model is not None and data is not None:
@@ -514,10 +539,11 @@ def file_diagnostics(idata, names) -> dict[str, Any]:
     post = idata.posterior
     cols = []
     for name in names:
-        if name.startswith(LATENT):
-            cols.append(np.asarray(post["thickness"])[..., int(name[len(LATENT) : -1])])
-        else:
+        b = membrane_block(name)
+        if b is None:
             cols.append(np.asarray(post[name]))
+        else:
+            cols.append(np.asarray(post[_nc_name(b[0])])[..., b[1]])
     x = np.stack(cols, axis=-1)  # [chain, draw, dim]
     return arviz_diagnostics(np.swapaxes(x, 0, 1), names)
 

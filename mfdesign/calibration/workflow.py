@@ -201,6 +201,7 @@ class MFFit:
             # the model's layout and priors, for load_multi_fidelity to rebuild it
             "material": material,
             "membrane_latents": bool(self.model.membrane_latents),  # type: ignore[attr-defined]
+            "membrane_effects": list(self.model.membrane_effects),  # type: ignore[attr-defined]
             "thin_seed": int(self.seed),
             # how far the discrepancy reaches beyond its membranes (leave-one-membrane-out)
             "discrepancy_gate": {
@@ -241,6 +242,7 @@ def fit_multi_fidelity(
     jm_prior=None,
     mu_prior=None,
     membrane_latents: bool = True,
+    membrane_effects: Sequence[str] = (),
     release_memory: bool = False,
 ) -> MFFit:
     """The multi-fidelity model: calibrate the physics, then fit the sim-to-real discrepancy.
@@ -284,6 +286,10 @@ def fit_multi_fidelity(
       (the hierarchy); `False`: none, every membrane at its nominal thickness (what the
       membranes share, e.g. an effect's geometry, is then not traded against each
       membrane's own scale; their differences go to the discrepancy and the noise).
+    - `membrane_effects`: parameters of `effects` (`"effect.param"`, or an effect's name)
+      that vary from membrane to membrane: a hierarchical random effect around the
+      population centre, whose spread is calibrated; a new membrane's prediction draws its
+      value from that population (:class:`~mfdesign.models.hierarchical.HierarchicalModel`).
     - `release_memory`: between the chain and the discrepancy, drop JAX's compiled programs
       and return the free heap (:func:`mfdesign._memory.release_memory`); for a process
       that owns JAX (the demo, a CLI command): it clears JAX's caches for everyone.
@@ -309,7 +315,13 @@ def fit_multi_fidelity(
     data = data.padded(max(len(data), max_rows + n_trials))  # equal shapes across folds: one compile
     priors = {k: v for k, v in (("jm_prior", jm_prior), ("mu_prior", mu_prior)) if v is not None}
     model = model_for(
-        force_model, data.design_keys, effects, likelihood=likelihood, membrane_latents=membrane_latents, **priors
+        force_model,
+        data.design_keys,
+        effects,
+        likelihood=likelihood,
+        membrane_latents=membrane_latents,
+        membrane_effects=tuple(membrane_effects),
+        **priors,
     )
     post = calibrate(
         data,
@@ -399,6 +411,7 @@ def load_multi_fidelity(folder) -> MFFit:
             effects,
             likelihood=meta.get("likelihood", "gaussian"),
             membrane_latents=bool(meta.get("membrane_latents", True)),
+            membrane_effects=tuple(map(str, meta.get("membrane_effects", ()))),
             **material_priors(str(meta.get("material", "free"))),
         )
     except Exception as err:  # noqa: BLE001 -- unknown simulator / effect / likelihood named in the file

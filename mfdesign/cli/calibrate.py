@@ -75,6 +75,13 @@ LATENTS = typer.Option(
     "nominal thickness (an effect shared by the membranes is then not traded against each one's scale: "
     "what predicted new membranes best on the real lifts, docs/real_data_log.md section 7).",
 )
+PER_MEMBRANE = typer.Option(
+    None,
+    "--per-membrane",
+    help="An effect parameter (effect.param, or an effect's name) that varies from membrane to membrane: "
+    "each membrane has its own value, drawn from a population whose spread is calibrated; a new membrane's "
+    "interval integrates over it. Repeatable; its effect must be among --effects.",
+)
 RESUME = typer.Option(True, help="Resume the chain in OUT/chain.h5 if it exists.")
 
 
@@ -124,6 +131,7 @@ def _register(
         allow_outside_design_space: bool = ALLOW_OUTSIDE,
         material: str = MATERIAL,
         latents: bool = LATENTS,
+        per_membrane: Optional[List[str]] = PER_MEMBRANE,
         scheduler: Optional[str] = SCHEDULER,
     ) -> None:
         show(
@@ -140,6 +148,7 @@ def _register(
                 material=material,
                 latents=latents,
                 effects_module=effects_module,
+                per_membrane=list(per_membrane or []),
             )
         )
 

@@ -20,6 +20,14 @@ For row i of membrane m(i), recorded at height h_i [mm] and pressure p_i [Pa]::
   curved ridge ``z_m ~ t_m / sigma_t`` (Papaspiliopoulos, Roberts & Skold 2007; measured:
   the non-centred chains' autocorrelation time was ~2x longer). The simulator sees ``thickness_factor * (1 + t_m)``; an
   active ``thickness_deviation`` effect then acts as the population mean.
+* per-membrane effect parameters (``membrane_effects``, e.g. ``fabric_inset.inset_mm``): a
+  hierarchical random effect like the thickness. Membrane m has its own value ``v_m``; in
+  the parameter's unconstrained coordinate ``b^-1`` (the bijection of its prior's support)
+  ``b^-1(v_m) ~ N(b^-1(c), s)``, with the population centre ``c`` the effect's global
+  parameter (its own prior, physical units) and the spread ``s`` (``"<param>_sd"``,
+  unconstrained units, log-normal prior) calibrated. A new membrane's prediction draws its
+  ``v`` from that population (Gelman & Hill 2007, ch. 12-13: varying intercepts), so its
+  interval widens by what the membranes disagree on. Centred, like the thickness.
 * ``eps``: noise of scale ``noise_n`` [N] (fitted; Gaussian or Student-t with ``nu``).
 * ``delta``: the discrepancy, an RPN ensemble (:mod:`mfdesign.models.ensemble`) fitted to
   the residuals ``F - E(theta_MAP)`` (:func:`fit_discrepancy`), gated so that it shrinks
@@ -54,10 +62,21 @@ from mfdesign.physics.effects import LogNormal, Normal, Rows
 from mfdesign.physics.params import SimParams
 from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
-__all__ = ["LATENT", "CalibrationData", "HierarchicalModel", "ParamSpec", "fit_discrepancy"]
+__all__ = ["LATENT", "SPREAD", "CalibrationData", "HierarchicalModel", "ParamSpec", "fit_discrepancy", "membrane_block"]
 
 ForceFn = Callable[..., jax.Array]  # force_model(design [N, 6], h [N], p [N], SimParams) -> [N] N
 LATENT = "thickness["  # name prefix of the per-membrane thickness latents
+SPREAD = "_sd"  # suffix of a per-membrane effect parameter's population spread
+
+
+def membrane_block(name: str) -> tuple[str, int] | None:
+    """``(variable, membrane index)`` of a per-membrane parameter name (``"thickness[3]"`` ->
+    ``("thickness", 3)``, ``"fabric_inset.inset_mm[0]"`` -> ``("fabric_inset.inset_mm", 0)``),
+    else ``None``: how files and tables group one value per membrane."""
+    if not name.endswith("]") or "[" not in name:
+        return None
+    var, _, idx = name[:-1].rpartition("[")
+    return (var, int(idx)) if idx.isdigit() else None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,7 +197,11 @@ class HierarchicalModel(eqx.Module):
     ``effects``: names of the active effects; ``n_membranes``: how many membranes the data
     hold (one latent thickness each; 0 or ``membrane_latents=False``: none);
     ``likelihood``: ``"gaussian"`` or ``"student_t"`` (``nu`` degrees of freedom);
-    ``base``: SimParams of everything not sampled (ring constants, ...).
+    ``base``: SimParams of everything not sampled (ring constants, ...);
+    ``membrane_effects``: parameters of ``effects`` (``"effect.param"``, or an effect's name
+    for all of its parameters) that vary from membrane to membrane around the population
+    centre (module doc), with ``effect_sd_prior`` the prior of their spread (unconstrained
+    units: near the middle of a ``[0, 2]`` mm support one unit is about 0.5 mm).
     """
 
     force_model: ForceFn
@@ -192,14 +215,34 @@ class HierarchicalModel(eqx.Module):
     noise_prior: object = eqx.field(default=LogNormal(1.0, 1.5, 1e-4, 1e3), static=True)
     thickness_sd_prior: object = eqx.field(default=LogNormal(0.05, 0.8, 1e-3, 0.5), static=True)
     base: SimParams = SimParams()
+    membrane_effects: tuple[str, ...] = eqx.field(default=(), converter=tuple, static=True)
+    effect_sd_prior: object = eqx.field(default=LogNormal(1.0, 1.0, 1e-2, 10.0), static=True)
 
     def __check_init__(self):
         if self.likelihood not in ("gaussian", "student_t"):
             raise ValueError(f"likelihood must be 'gaussian' or 'student_t', got {self.likelihood!r}")
         if not (isinstance(self.n_membranes, (int, np.integer)) and self.n_membranes >= 0):
             raise ValueError(f"n_membranes must be an integer >= 0, got {self.n_membranes!r}")
+        if self.membrane_effects and self.n_membranes < 1:
+            raise ValueError("per-membrane effect parameters need membranes (n_membranes >= 1)")
+        self.membrane_params  # noqa: B018 -- validates the names
 
     # -- layout -----------------------------------------------------------------------------
+    @property
+    def membrane_params(self) -> tuple[str, ...]:
+        """The qualified effect parameters (``"effect.param"``) that vary per membrane."""
+        allowed = list(fx.neutral_theta(self.effects))
+        out: list[str] = []
+        for name in self.membrane_effects:
+            got = [q for q in allowed if q == name or q.split(".")[0] == name]
+            if not got:
+                raise ValueError(
+                    f"per-membrane parameter {name!r} is not a parameter of the effects in the model; "
+                    f"allowed: {allowed or 'none (no effects)'}"
+                )
+            out += [q for q in got if q not in out]
+        return tuple(out)
+
     @property
     def uses_latents(self) -> bool:
         return self.membrane_latents and self.n_membranes > 0
@@ -234,6 +277,18 @@ class HierarchicalModel(eqx.Module):
                 )
                 for m in range(self.n_membranes)
             ]
+        by_name = {sp.name: sp for sp in out}
+        for q in self.membrane_params:
+            centre = by_name[q]
+            out.append(
+                ParamSpec(q + SPREAD, "1", self.effect_sd_prior, f"population spread of {q} (unconstrained units)")
+            )
+            # The prior N(b^-1(centre), spread) in the unconstrained coordinate replaces this
+            # spec's (log_prior_u); the spec keeps the effect's prior for its support.
+            out += [
+                ParamSpec(f"{q}[{m}]", centre.unit, centre.prior, f"{q} of membrane m, around the population centre")
+                for m in range(self.n_membranes)
+            ]
         return tuple(out)
 
     @property
@@ -262,6 +317,9 @@ class HierarchicalModel(eqx.Module):
             "thickness_sd": self.thickness_sd_prior.center,
         }
         start.update(fx.neutral_theta(self.effects))
+        for q in self.membrane_params:
+            start.update({f"{q}[{m}]": start[q] for m in range(self.n_membranes)})
+            start[q + SPREAD] = self.effect_sd_prior.center
         x = []
         for s in self.specs:
             v = start.get(s.name, 0.0)
@@ -271,12 +329,27 @@ class HierarchicalModel(eqx.Module):
         return np.asarray(x)
 
     def unpack(self, x) -> dict[str, jax.Array]:
-        """Physical vector [dim] -> ``{name: value}`` (``thickness`` as one [M] array)."""
-        out = {s.name: x[i] for i, s in enumerate(self.specs) if not s.name.startswith(LATENT)}
+        """Physical vector [dim] -> ``{name: value}`` (``thickness`` and each per-membrane
+        effect parameter ``"effect.param[]"`` as one [M] array)."""
+        out = {s.name: x[i] for i, s in enumerate(self.specs) if membrane_block(s.name) is None}
         if self.uses_latents:
             k = self.names.index(f"{LATENT}0]")
             out["thickness"] = x[k : k + self.n_membranes]
+        for q in self.membrane_params:
+            k = self.names.index(f"{q}[0]")
+            out[q + "[]"] = x[k : k + self.n_membranes]
         return out
+
+    def _membrane_prior_u(self, u) -> jax.Array:
+        """log density of the per-membrane effect values in the sampler's coordinate:
+        ``u_m ~ N(u_centre, spread)`` (the bijection's Jacobian of ``v_m`` cancels there)."""
+        terms = []
+        for q in self.membrane_params:
+            i, k = self.names.index(q), self.names.index(f"{q}[0]")
+            sd = self.specs[self.names.index(q + SPREAD)].to_physical(u[self.names.index(q + SPREAD)])
+            z = (u[k : k + self.n_membranes] - u[i]) / sd
+            terms.append(jnp.sum(-0.5 * z**2 - jnp.log(sd)) - 0.5 * self.n_membranes * math.log(2 * math.pi))
+        return jnp.sum(jnp.stack(terms)) if terms else jnp.asarray(0.0)
 
     # -- densities --------------------------------------------------------------------------
     def log_prior_u(self, u) -> jax.Array:
@@ -285,8 +358,9 @@ class HierarchicalModel(eqx.Module):
         terms = [
             s.prior.logpdf(x[i]) + s.log_jacobian(u[i])
             for i, s in enumerate(self.specs)
-            if not s.name.startswith(LATENT)
+            if membrane_block(s.name) is None
         ]
+        terms.append(self._membrane_prior_u(u))
         if self.uses_latents:  # t_m ~ N(0, thickness_sd): the hierarchy
             v = self.unpack(x)
             sd = v["thickness_sd"]
@@ -296,11 +370,28 @@ class HierarchicalModel(eqx.Module):
             )
         return jnp.sum(jnp.stack(terms))
 
-    def sim_params(self, x, data: CalibrationData, thickness_rel=None) -> SimParams:
-        """Row-wise SimParams at physical ``x``: mechanical effects, then the latent thickness
-        (``thickness_rel`` [N] overrides the membranes' latents, e.g. for a new membrane)."""
+    def theta_rows(self, x, data: CalibrationData, effect_rows=None) -> dict[str, jax.Array]:
+        """The effects' parameters at physical ``x`` (``{"effect.param": value}``): scalars,
+        and [N] per row for a per-membrane parameter (the row's membrane's own value; a row of
+        a membrane the model was not calibrated on gets the population centre). ``effect_rows``
+        (``{"effect.param": [N]}``) overrides them, e.g. draws for a new membrane."""
         v = self.unpack(x)
-        theta_fx = {k: v[k] for k in fx.neutral_theta(self.effects)}
+        theta = {k: v[k] for k in fx.neutral_theta(self.effects)}
+        if self.membrane_params:
+            m = data.rows.membrane
+            known = m < self.n_membranes
+            for q in self.membrane_params:
+                own = v[q + "[]"][jnp.clip(m, 0, self.n_membranes - 1)]
+                theta[q] = jnp.where(known, own, v[q])
+        theta.update(effect_rows or {})
+        return theta
+
+    def sim_params(self, x, data: CalibrationData, thickness_rel=None, effect_rows=None) -> SimParams:
+        """Row-wise SimParams at physical ``x``: mechanical effects, then the latent thickness
+        (``thickness_rel`` [N] overrides the membranes' latents, e.g. for a new membrane;
+        ``effect_rows`` the per-membrane effect values, :meth:`theta_rows`)."""
+        v = self.unpack(x)
+        theta_fx = self.theta_rows(x, data, effect_rows)
         base = dataclasses.replace(self.base, mu_pa=v["mu_pa"], jm=v["jm"])
         params = fx.apply_row_sim_params(self.effects, theta_fx, base, data.rows)
         if thickness_rel is None and self.uses_latents:
@@ -309,13 +400,15 @@ class HierarchicalModel(eqx.Module):
             params = dataclasses.replace(params, thickness_factor=params.thickness_factor * (1.0 + thickness_rel))
         return params
 
-    def expected_force(self, x, data: CalibrationData, thickness_rel=None, marked: bool = False) -> jax.Array:
+    def expected_force(
+        self, x, data: CalibrationData, thickness_rel=None, marked: bool = False, effect_rows=None
+    ) -> jax.Array:
         """Expected recorded force [N] of every row at physical ``x`` (fidelity "sim" + effects).
         ``marked``: rows outside the physical model read ``+inf`` (``ForceModel.marking``),
-        else NaN (or, for a model held at its lattice's edge, the plane's number)."""
-        v = self.unpack(x)
-        theta_fx = {k: v[k] for k in fx.neutral_theta(self.effects)}
-        params = self.sim_params(x, data, thickness_rel)
+        else NaN (or, for a model held at its lattice's edge, the plane's number).
+        ``thickness_rel`` / ``effect_rows``: as in :meth:`sim_params`."""
+        theta_fx = self.theta_rows(x, data, effect_rows)
+        params = self.sim_params(x, data, thickness_rel, effect_rows)
         fm = self.force_model
         if marked and hasattr(fm, "marking"):
             fm = fm.marking(True)
@@ -386,15 +479,41 @@ class HierarchicalModel(eqx.Module):
         fresh = sd[:, None] * jax.random.normal(key, (S, n_keys))[:, data.rows.membrane]
         return jnp.where((data.rows.membrane < self.n_membranes)[None, :], known, fresh)
 
+    def effects_for(self, x_samples, data: CalibrationData, key=None) -> dict[str, jax.Array]:
+        """Per-membrane effect values [S, N] of each row for each posterior sample
+        (``{"effect.param": ...}``, :attr:`membrane_params`): the membrane's own where it was
+        calibrated, else a draw from the population (``b^-1(v) ~ N(b^-1(c), spread)``: a new
+        membrane), independent of :meth:`thickness_for`'s draws."""
+        x_samples = jnp.atleast_2d(x_samples)
+        S = x_samples.shape[0]
+        m = data.rows.membrane
+        known = (m < self.n_membranes)[None, :]
+        key = jax.random.PRNGKey(1) if key is None else jax.random.fold_in(key, 1)
+        out = {}
+        for j, q in enumerate(self.membrane_params):
+            spec = self.specs[self.names.index(q)]
+            k = self.names.index(f"{q}[0]")
+            own = x_samples[:, k : k + self.n_membranes][:, jnp.clip(m, 0, self.n_membranes - 1)]
+            u_c = spec.to_unconstrained(x_samples[:, self.names.index(q)])
+            sd = x_samples[:, self.names.index(q + SPREAD)]
+            eps = jax.random.normal(jax.random.fold_in(key, j), (S, len(data.design_keys)))[:, m]
+            fresh = spec.to_physical(u_c[:, None] + sd[:, None] * eps)
+            out[q] = jnp.where(known, own, fresh)
+        return out
+
     def sample_force(self, x_samples, data: CalibrationData, key=None) -> jax.Array:
         """Expected recorded force [S, N] for posterior samples ``x_samples`` [S, dim]
         (``data.rows.membrane`` indexes the calibrated membranes first; higher indices are
-        new membranes whose thickness comes from the population prior)."""
+        new membranes whose thickness and per-membrane effect values come from the
+        population)."""
         t = self.thickness_for(x_samples, data, key)
+        e = self.effects_for(x_samples, data, key)
         # lax.map in small batches, not one vmap: S draws x N rows x the emulator's hidden
         # width at once runs to tens of GB on a trajectory grid.
         return jax.lax.map(
-            lambda a: self.expected_force(a[0], data, a[1]), (jnp.atleast_2d(x_samples), t), batch_size=SAMPLE_BATCH
+            lambda a: self.expected_force(a[0], data, a[1], effect_rows=a[2]),
+            (jnp.atleast_2d(x_samples), t, e),
+            batch_size=SAMPLE_BATCH,
         )
 
 

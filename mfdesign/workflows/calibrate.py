@@ -101,8 +101,11 @@ class CalibrationResult:
         return "\n".join(lines)
 
 
-def _check_options(effects: Sequence[str], walkers: int, likelihood: str, material: str) -> dict:
-    """The material's priors; ``InputError`` for a bad likelihood, walker count, material or effect."""
+def _check_options(
+    effects: Sequence[str], walkers: int, likelihood: str, material: str, per_membrane: Sequence[str] = ()
+) -> dict:
+    """The material's priors; ``InputError`` for a bad likelihood, walker count, material,
+    effect or per-membrane parameter."""
     from mfdesign.calibration.workflow import MATERIALS, material_priors
     from mfdesign.physics.effects import EFFECTS
 
@@ -118,6 +121,15 @@ def _check_options(effects: Sequence[str], walkers: int, likelihood: str, materi
         raise InputError(
             f"unknown effect(s) {unknown}; registered: {sorted(EFFECTS)} (a user's own effect: "
             "--effects-module FILE.py, the file that registers it)"
+        )
+    from mfdesign.physics.effects import neutral_theta
+
+    allowed = list(neutral_theta(effects))
+    bad = [n for n in per_membrane if not any(q == n or q.split(".")[0] == n for q in allowed)]
+    if bad:
+        raise InputError(
+            f"--per-membrane {bad}: not a parameter of the effects calibrated (--effects {list(effects)}); "
+            f"allowed: {allowed or 'none: name the effect with --effects first'}"
         )
     return priors
 
@@ -156,6 +168,7 @@ def _sample(table: Any, force_model: Any, effects: list[str], chain: Path, s: di
             seed=s["seed"],
             likelihood=s["likelihood"],
             membrane_latents=s["latents"],
+            membrane_effects=s["per_membrane"],
             **priors,
         )
         return fit, (fit.posterior, fit.model)
@@ -166,6 +179,7 @@ def _sample(table: Any, force_model: Any, effects: list[str], chain: Path, s: di
         effects,
         likelihood=s["likelihood"],
         membrane_latents=s["latents"],
+        membrane_effects=s["per_membrane"],
         **priors,
     )
     post = run_emcee(
@@ -184,7 +198,9 @@ def _corner(post: Any, data: Any, effects: list[str], path: Path) -> None:
     """The corner plot (no per-membrane thickness rows); red lines at the bundled data's truths."""
     from mfdesign.calibration.plots import corner_plot
 
-    keep = [i for i, n in enumerate(post.names) if not n.startswith("thickness[")]
+    from mfdesign.models.hierarchical import membrane_block
+
+    keep = [i for i, n in enumerate(post.names) if membrane_block(n) is None]
     names = [post.names[i] for i in keep]
     truths = bundled_truths(data)  # the bundled data's card knows what made them: red lines
     corner_plot(
@@ -215,6 +231,7 @@ def calibrate(
     material: str = "free",
     latents: bool = True,
     effects_module: Sequence[Path] | None = None,
+    per_membrane: Sequence[str] = (),
 ) -> CalibrationResult:
     """Calibrate the rubber's ``mu`` [Pa] and ``J_m`` and the effects' parameters with emcee
     (``calibrate``), or fit the multi-fidelity model: calibrated simulator + RPN
@@ -240,6 +257,9 @@ def calibrate(
         effects_module: Python files registering new effects, imported before ``effects``
             are checked (their code runs); their sha256 join the provenance's inputs, and
             ``out/effects/`` keeps copies that every ``--model out`` imports again.
+        per_membrane: parameters of ``effects`` (``effect.param``, or an effect's name) that
+            vary from membrane to membrane around a calibrated population (a hierarchical
+            random effect; a new membrane's interval integrates over it).
 
     Raises :class:`~mfdesign.errors.InputError` (one line) for bad options, data or chain."""
     import warnings
@@ -252,7 +272,7 @@ def calibrate(
     modules = [Path(m) for m in effects_module or []]
     registered = [load_effects_module(m) for m in modules]  # before the names are checked: they may register them
     effects = list(effects)
-    priors = _check_options(effects, walkers, likelihood, material)
+    priors = _check_options(effects, walkers, likelihood, material, per_membrane)
     table, force_model = _load(data, physics, multi_fidelity, allow_outside_design_space)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -271,6 +291,7 @@ def calibrate(
         seed=seed,
         likelihood=likelihood,
         latents=latents,
+        per_membrane=tuple(per_membrane),
     )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ConvergenceWarning)
