@@ -256,7 +256,7 @@ class Lab:
         from mfdesign.rig.virtual import VirtualRig
 
         if simulator == "emulator":
-            from mfdesign.diagnosis.emulated import emulator_plane
+            from mfdesign.diagnosis.forward import emulator_plane
             from mfdesign.models.emulator import load_default
 
             sim = emulator_plane(load_default())

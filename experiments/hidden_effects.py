@@ -116,7 +116,7 @@ def narrow_ring_plane(design, h_grid, p_grid, params):
 def backend(physics):
     """Truth plane function for the rig (module doc); ``None``: the rig's own simulator."""
     if physics not in _BACKENDS:
-        from mfdesign.diagnosis.emulated import emulator_plane
+        from mfdesign.diagnosis.forward import emulator_plane
         from mfdesign.models.standin import standin_plane
 
         if physics == "standin":
@@ -132,7 +132,7 @@ def backend(physics):
 
 def run_case(hidden, seed, physics, sample_hz):
     from mfdesign.design import Membrane
-    from mfdesign.diagnosis.emulated import forward_model
+    from mfdesign.diagnosis.forward import forward_model
     from mfdesign.diagnosis.pipeline import diagnose
     from mfdesign.physics import effects as fx
     from mfdesign.physics.planes import cache_dir
@@ -238,7 +238,7 @@ def fe_protocol(reduced: bool = False):
 
 def run_fe_case(name, theta, seed, reduced=False):
     from mfdesign.design import Membrane
-    from mfdesign.diagnosis.emulated import forward_model
+    from mfdesign.diagnosis.forward import forward_model
     from mfdesign.diagnosis.pipeline import diagnose
     from mfdesign.diagnosis.residuals import compute_residuals
     from mfdesign.physics.planes import cache_dir

@@ -86,7 +86,7 @@ def compare(meas: Measurements, sim=None) -> Residuals:
     - `meas`: the measurements (:class:`Measurements`, e.g. from :func:`load`).
     - `sim`: the forward model, as in :func:`diagnose`: default the bundled neural emulator
       (fast; about 1 N RMS off the simulator); for simulator accuracy
-      ``mfdesign.diagnosis.emulated.forward_model("exact", meas)`` (simulator planes of the
+      ``mfdesign.diagnosis.forward.forward_model("exact", meas)`` (simulator planes of the
       measured membranes, solved once and cached; minutes the first time).
 
     **Returns:**

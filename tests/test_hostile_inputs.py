@@ -648,7 +648,7 @@ def test_class7_diagnose_api_bad_input_is_input_error(small_parquet):
     """Before: AttributeError, KeyError, TypeError, numpy's UFuncTypeError or a broadcast
     ValueError from deep inside, or a silent run (theta naming no parameter, theta NaN)."""
     import mfdesign
-    from mfdesign.diagnosis.emulated import forward_model
+    from mfdesign.diagnosis.forward import forward_model
 
     meas = mfdesign.load(small_parquet)
     sim = forward_model("standin", meas)

@@ -1,9 +1,11 @@
 """Diagnosis: compare a model with measurements, see where it fails, find the missing effect.
 
-* :mod:`~mfdesign.diagnosis.emulated`: the forward model, one interface
-  (:class:`ForwardModel`) on two back ends (:class:`ExactForwardModel`: exact simulator planes;
+* :mod:`~mfdesign.diagnosis.forward`: the forward model, one interface
+  (:class:`ForwardModel`, the diagnosis' :class:`~mfdesign.models.force.RecordedForceModel`)
+  on two back ends (:class:`ExactForwardModel`: exact simulator planes;
   :class:`EmulatorForwardModel`: the emulator or the stand-in; :func:`forward_model` by name):
-  a JAX force model + the effects' likelihood hooks, exact autodiff;
+  a JAX force model + the effects' likelihood hooks (:func:`~mfdesign.models.force.recorded_force`),
+  exact autodiff;
 * :mod:`~mfdesign.diagnosis.expected`: query heights, usable rows, trial order;
 * :mod:`~mfdesign.diagnosis.refit`: the full check's nonlinear refit (optimistix);
 * :mod:`~mfdesign.diagnosis.residuals`: residuals, breakdowns, noise floor, worst regions in words;
@@ -17,7 +19,7 @@ See ``docs/diagnose.md``.
 """
 
 from mfdesign.diagnosis.check import CheckResult, calibrate_effects, full_check, verdict
-from mfdesign.diagnosis.emulated import (
+from mfdesign.diagnosis.forward import (
     EmulatorForwardModel,
     ExactForwardModel,
     ForwardModel,

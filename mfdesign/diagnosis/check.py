@@ -2,7 +2,7 @@
 
 For a set of effects the model becomes ``F(theta) = base + [E(theta) - E(theta0)]`` with
 ``E`` the expected observed force of the forward model with the effects
-(:meth:`~mfdesign.diagnosis.emulated.ForwardModel.expected_force`) and ``base`` the model
+(:meth:`~mfdesign.diagnosis.forward.ForwardModel.expected_force`) and ``base`` the model
 under diagnosis (for the plain simulator ``base = E(theta0)``, so ``F = E``).
 
 Every parameter of the set is refitted nonlinearly (:mod:`mfdesign.diagnosis.refit`:

@@ -5,7 +5,7 @@ height is a noisy reading of it), so the set-point is used where it is finite; i
 the recorded height. Lift rows where the plate rests on its stop (``h < resting_mm``) or
 at the top of the rig carry no information on the membrane's push (the force column is
 the weight) and are masked (:func:`usable_rows`). The forward model itself is
-:class:`~mfdesign.diagnosis.emulated.ForwardModel`.
+:class:`~mfdesign.diagnosis.forward.ForwardModel`.
 """
 
 from __future__ import annotations

@@ -1,8 +1,10 @@
 """Differentiable forward model of diagnosis: a JAX force model + the effects.
 
-:class:`ForwardModel` is the one interface diagnosis calls (screen, refit, check, pipeline):
-``expected_force(meas, effects, theta, rows) -> F [N] per row``, its exact derivative
-``jacobian`` and the batched refit ``fit``. It evaluates a pure JAX force model
+:class:`ForwardModel` is what diagnosis calls (screen, refit, check, pipeline): the
+force-model family's interface for the expected recorded force of a table's rows
+(:class:`~mfdesign.models.force.RecordedForceModel`:
+``expected_force(meas, effects, theta, rows) -> F [N] per row`` and its exact derivative
+``jacobian``), with the batched refit ``fit``. It evaluates a pure JAX force model
 (:class:`~mfdesign.models.force.ForceModel`: ``(design [N, 6] mm, h_mm [N], p_pa [N],
 SimParams) -> F [N]``) at every row. Two back ends, built by name with :func:`forward_model`:
 
@@ -16,7 +18,8 @@ SimParams) -> F [N]``) at every row. Two back ends, built by name with :func:`fo
   the virtual rig's truth with ``simulator=standin_plane`` is the same formula).
 
 The expected recorded force of a row recorded at ``(h, p)`` with effects ``theta`` is the
-calibration's likelihood model (:mod:`mfdesign.physics.effects`, "the likelihood side")::
+calibration's likelihood model (:mod:`mfdesign.physics.effects`, "the likelihood side"),
+:func:`~mfdesign.models.force.recorded_force`, the one place that applies the effects::
 
     params = apply_row_sim_params(effects, theta, base, rows)           # mechanics, per row
     F      = apply_expected_force(effects, theta, force_model(., params), rows)   # measurement chain
@@ -47,7 +50,7 @@ import numpy as np
 from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
 from mfdesign.diagnosis.expected import query_heights, trial_order
-from mfdesign.models.force import ForceModel
+from mfdesign.models.force import ForceModel, RecordedForceModel, recorded_force, row_sim_params
 from mfdesign.physics import effects as fx
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.solve import SimResult
@@ -175,9 +178,7 @@ class ClippedForceModel(ForceModel):
 def _forward(force_model: ClippedForceModel, order: tuple, names: tuple, base: SimParams, t0, P, x, design, rows):
     """Expected recorded force [N] of ``rows`` at ``theta = t0 + P @ x`` (all effects of ``order``)."""
     th = t0 + P @ x
-    theta = {n: th[i] for i, n in enumerate(names)}
-    params = fx.apply_row_sim_params(order, theta, base, rows)
-    return fx.apply_expected_force(order, theta, lambda h, p: force_model(design, h, p, params), rows)
+    return recorded_force(force_model, design, rows, order, {n: th[i] for i, n in enumerate(names)}, base)
 
 
 @eqx.filter_jit
@@ -213,9 +214,7 @@ def _fit_batch(force_model, order, names, base, design, rows, obs, sigma, t0, P,
 def _row_params(order, names, base: SimParams, rows: fx.Rows, thetas) -> SimParams:
     """Simulator constants of every row at each parameter vector of ``thetas`` [B, n]."""
     thetas = jnp.atleast_2d(jnp.asarray(thetas, float))
-    return jax.vmap(lambda th: fx.apply_row_sim_params(order, {n: th[i] for i, n in enumerate(names)}, base, rows))(
-        thetas
-    )
+    return jax.vmap(lambda th: row_sim_params(order, {n: th[i] for i, n in enumerate(names)}, base, rows))(thetas)
 
 
 def _rows_of(meas: Measurements) -> tuple[jax.Array, fx.Rows]:
@@ -284,22 +283,21 @@ def _input_max(force_model: ForceModel) -> tuple[float, float]:
 
 
 # -- the interface ----------------------------------------------------------------------------------
-class ForwardModel(eqx.Module):
+class ForwardModel(RecordedForceModel):
     """Expected recorded force per row of a measurement table from a JAX force model and the
     effects (module doc): what the screen, the refit, the check and the pipeline call.
+
+    The diagnosis' :class:`~mfdesign.models.force.RecordedForceModel`: a force model
+    answers for (design, h, p, simulator constants); this answers for the rows of a
+    measurement table through the effects (mechanics per row, then the measurement chain:
+    :func:`~mfdesign.models.force.recorded_force`), and is built on a force model.
 
     A back end provides the force model, the plain model's constants ``base_params``
     (authors'), the force model's input range (``h_max_mm`` mm, ``p_max_pa`` Pa: queries are
     clipped to it), a :class:`RowTable`, and :meth:`cover`: how its force model comes to
     hold the simulator constants a call needs. Evaluation, derivatives and fits are here, once.
-
-    Not a :class:`~mfdesign.models.force.ForceModel`: a force model answers for (design, h,
-    p, simulator constants); this answers for the rows of a measurement table through the
-    effects (mechanics per row, then the measurement chain), and is built on a force model.
     """
 
-    force_model: eqx.AbstractVar[ForceModel]
-    base_params: eqx.AbstractVar[SimParams]
     h_max_mm: eqx.AbstractVar[float]
     p_max_pa: eqx.AbstractVar[float]
     tables: eqx.AbstractVar[RowTable]
@@ -375,10 +373,6 @@ class ForwardModel(eqx.Module):
         self.cover(meas, order, t[None], rows)
         design, rws = self.table(meas, rows)
         return self._eval(_forward, design, rws, order, t, np.zeros((len(t), 1)), np.zeros(1))
-
-    def predict(self, meas: Measurements) -> np.ndarray:
-        """The plain model (no effects): ``expected_force(meas)`` [N] per row."""
-        return self.expected_force(meas)
 
     def jacobian(
         self,

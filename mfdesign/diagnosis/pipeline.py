@@ -50,7 +50,7 @@ from mfdesign.diagnosis.screen import screen, screen_pairs
 from mfdesign.physics import effects as fx
 
 if TYPE_CHECKING:
-    from mfdesign.diagnosis.emulated import ForwardModel
+    from mfdesign.diagnosis.forward import ForwardModel
 
 __all__ = ["Diagnosis", "diagnose"]
 
@@ -199,7 +199,7 @@ def _count_arg(name: str, v, low: int, high: int) -> None:
 
 def _check_arguments(meas, sim, model, effects, theta, candidates, check_top, check_pairs, max_steps, n_folds):
     """:func:`diagnose`'s arguments, each bad one an ``InputError`` in one line (issue 44, class 6)."""
-    from mfdesign.diagnosis.emulated import ForwardModel
+    from mfdesign.diagnosis.forward import ForwardModel
 
     if not isinstance(meas, Measurements):
         raise InputError(
@@ -210,7 +210,7 @@ def _check_arguments(meas, sim, model, effects, theta, candidates, check_top, ch
     if sim is not None and not isinstance(sim, ForwardModel):
         raise InputError(
             f"sim: a {type(sim).__name__}; allowed: None or a ForwardModel "
-            "(mfdesign.diagnosis.emulated.forward_model('exact' | 'emulator' | 'standin', meas))"
+            "(mfdesign.diagnosis.forward.forward_model('exact' | 'emulator' | 'standin', meas))"
         )
     if model is not None and not callable(model):
         raise InputError(f"model: a {type(model).__name__}; allowed: None or predict(meas) -> force [N] per row")
@@ -280,8 +280,8 @@ def diagnose(
     **Arguments:**
 
     - `meas`: the measurements (:class:`~mfdesign.data.measurements.Measurements`).
-    - `sim`: the forward model, a :class:`~mfdesign.diagnosis.emulated.ForwardModel` (build
-      one with :func:`~mfdesign.diagnosis.emulated.forward_model`: `"exact"` simulator planes
+    - `sim`: the forward model, a :class:`~mfdesign.diagnosis.forward.ForwardModel` (build
+      one with :func:`~mfdesign.diagnosis.forward.forward_model`: `"exact"` simulator planes
       of the measured designs, `"emulator"` or `"standin"`); default the bundled emulator.
     - `model`: the model under diagnosis, `predict(meas) -> force [N] per row` (default: the
       plain simulator of `sim`).
@@ -306,7 +306,7 @@ def diagnose(
     enable_x64()  # float64 physics: mfdesign._x64
     _check_arguments(meas, sim, model, effects, theta, candidates, check_top, check_pairs, max_steps, n_folds)
     if sim is None:
-        from mfdesign.diagnosis.emulated import forward_model
+        from mfdesign.diagnosis.forward import forward_model
 
         sim = forward_model("emulator", meas, progress=progress)
     effects = [fx.effect(e) for e in effects]
@@ -337,7 +337,7 @@ def diagnose(
     if candidates is not None:
         pool = list(candidates)
     else:  # every effect with a likelihood hook
-        from mfdesign.diagnosis.emulated import likelihood_effects
+        from mfdesign.diagnosis.forward import likelihood_effects
 
         pool = likelihood_effects()
     skipped = unmodelled(pool, sim)

@@ -1,4 +1,4 @@
-"""Full check on the forward model (:class:`~mfdesign.diagnosis.emulated.ForwardModel`): nonlinear refit,
+"""Full check on the forward model (:class:`~mfdesign.diagnosis.forward.ForwardModel`): nonlinear refit,
 held-out error, calibration's BIC.
 
 For each candidate set of effects (the effects already in the model plus one candidate):
@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mfdesign.data.measurements import Measurements
-from mfdesign.diagnosis.emulated import ForwardModel, effect_order, parameter_names, theta_vector
+from mfdesign.diagnosis.forward import ForwardModel, effect_order, parameter_names, theta_vector
 from mfdesign.diagnosis.residuals import Residuals, noise_floor, subsample
 from mfdesign.diagnosis.screen import lag1_autocorrelation, parameter_scale, parameter_step
 from mfdesign.physics import effects as fx

@@ -3,7 +3,7 @@
 For a candidate effect with parameters ``theta`` (neutral ``theta0``), the sensitivity of
 the expected observed force at every recorded (h, p) is the derivative
 ``J[:, j] = dF/dtheta_j (theta0)`` of the forward model
-(:meth:`~mfdesign.diagnosis.emulated.ForwardModel.jacobian`: forward-mode autodiff,
+(:meth:`~mfdesign.diagnosis.forward.ForwardModel.jacobian`: forward-mode autodiff,
 ``jax.jacfwd``, one call for every candidate's parameters at once; a mechanical effect
 differentiates through the exact model's lattice).
 
@@ -30,7 +30,7 @@ from mfdesign.diagnosis.residuals import Residuals, subsample
 from mfdesign.physics import effects as fx
 
 if TYPE_CHECKING:
-    from mfdesign.diagnosis.emulated import ForwardModel
+    from mfdesign.diagnosis.forward import ForwardModel
 
 SCREEN_ROWS = 10000  # rows the screen differentiates at most
 

@@ -24,7 +24,7 @@ from mfdesign.design import Membrane
 from mfdesign.physics import effects as fx
 
 if TYPE_CHECKING:
-    from mfdesign.diagnosis.emulated import ForwardModel
+    from mfdesign.diagnosis.forward import ForwardModel
 
 __all__ = ["SEPARABLE", "separating_trial"]
 

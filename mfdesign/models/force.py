@@ -17,18 +17,37 @@ with ``params`` fields scalar or ``[N]`` (row-wise effects). Three implementatio
 
 Sensitivities are autodiff (``jax.jacfwd``) through the implementation. One is chosen by
 name with :func:`mfdesign.models.backends.force_model_for`.
+
+What a rig records is that force seen through the effects (:mod:`mfdesign.physics.effects`):
+:func:`recorded_force` is the one place that applies them to a force model, row by row::
+
+    params = row_sim_params(effects, theta, base, rows, thickness_rel)   # mechanics, per row
+    F      = apply_expected_force(effects, theta, force_model(design, ., ., params), rows)  # measurement chain
+
+The calibration's likelihood (:class:`~mfdesign.models.hierarchical.HierarchicalModel`) and
+the diagnosis' forward model both call it. :class:`RecordedForceModel` is the interface of a
+model of the expected recorded force of a measurement table's rows: a force model (its
+``force_model``) and the plain model's constants (``base_params``) seen through the effects;
+the diagnosis' back ends (:mod:`mfdesign.diagnosis.forward`) implement it.
 """
 
 from __future__ import annotations
 
 import abc
-from typing import ClassVar
+import dataclasses
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping, Sequence
 
 import equinox as eqx
+import jax
+import numpy as np
 
+from mfdesign.physics import effects as fx
 from mfdesign.physics.params import SimParams
 
-__all__ = ["FORCE_MODELS", "ForceModel"]
+if TYPE_CHECKING:
+    from mfdesign.data.measurements import Measurements
+
+__all__ = ["FORCE_MODELS", "ForceModel", "RecordedForceModel", "recorded_force", "row_sim_params"]
 
 FORCE_MODELS = ("exact", "emulator", "standin")
 
@@ -89,3 +108,86 @@ class ForceModel(eqx.Module):
         """The model for a sampler (``True``: NaN where it cannot vouch for a number) or for an
         optimiser (``False``: no NaN, values held at the edge of its validity)."""
         return self
+
+
+# -- the force a rig records: the force model through the effects ---------------------------------
+def row_sim_params(effects, theta, base: SimParams, rows: fx.Rows, thickness_rel=None) -> SimParams:
+    """Row-wise simulator constants: every mechanical effect of ``effects`` at ``theta``
+    (:func:`~mfdesign.physics.effects.apply_row_sim_params`), then, with ``thickness_rel``
+    (scalar or [N]), the thickness factor times ``1 + thickness_rel`` (the calibration's
+    per-membrane latent thickness; JAX)."""
+    params = fx.apply_row_sim_params(effects, theta, base, rows)
+    if thickness_rel is not None:
+        params = dataclasses.replace(params, thickness_factor=params.thickness_factor * (1.0 + thickness_rel))
+    return params
+
+
+def recorded_force(
+    force_model, design, rows: fx.Rows, effects, theta, base: SimParams, thickness_rel=None
+) -> jax.Array:
+    """Expected recorded force [N] of every row (JAX): ``force_model`` (``(design [N, 6] mm,
+    h_mm [N], p_pa [N], SimParams) -> F [N]``) at the row-wise constants of
+    :func:`row_sim_params` (mechanical effects on ``base``, then ``thickness_rel``), seen
+    through the measurement effects at the rows' recorded ``(h, p)``
+    (:func:`~mfdesign.physics.effects.apply_expected_force`).
+
+    The one place that applies the effects to a force model: the likelihood's mean and the
+    diagnosis' forward model. ``effects``: names or effects, applied in that order;
+    ``theta``: ``{"effect.param": value}`` of every parameter of ``effects``."""
+    params = row_sim_params(effects, theta, base, rows, thickness_rel)
+    return fx.apply_expected_force(effects, theta, lambda h, p: force_model(design, h, p, params), rows)
+
+
+class RecordedForceModel(eqx.Module):
+    """Abstract model of the expected recorded force of a measurement table's rows (module doc).
+
+    A :class:`ForceModel` answers for (design, h, p, simulator constants); a recorded-force
+    model answers for the rows of a table through the effects (mechanics per row, then the
+    measurement chain: :func:`recorded_force`), built on a force model (``force_model``)
+    and the plain model's constants (``base_params``). The diagnosis' forward model
+    (:class:`~mfdesign.diagnosis.forward.ForwardModel`: the exact planes, the emulator, the
+    stand-in) implements it; its screen, refit and check call nothing else.
+    """
+
+    force_model: eqx.AbstractVar[ForceModel]
+    base_params: eqx.AbstractVar[SimParams]
+
+    @abc.abstractmethod
+    def expected_force(
+        self,
+        meas: "Measurements",
+        effects: Sequence[str | fx.Effect] = (),
+        theta: Mapping[str, Any] | None = None,
+        rows: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Expected recorded force [N] per row of ``meas`` (or of its rows ``rows``) with
+        ``effects`` at ``theta`` (``{"effect.param": value}``; parameters not given neutral);
+        NaN where the model has no number."""
+
+    @abc.abstractmethod
+    def outside_model(
+        self,
+        meas: "Measurements",
+        effects: Sequence[str | fx.Effect] = (),
+        theta: Mapping[str, Any] | None = None,
+        rows: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Rows [N] bool of ``meas`` (or of its rows ``rows``) outside the physical model
+        (``Status.OUTSIDE_MODEL``) with ``effects`` at ``theta``."""
+
+    @abc.abstractmethod
+    def jacobian(
+        self,
+        meas: "Measurements",
+        free: Sequence[str],
+        effects: Sequence[str | fx.Effect] = (),
+        theta: Mapping[str, Any] | None = None,
+        rows: np.ndarray | None = None,
+        pad_cols: int = 0,
+    ) -> np.ndarray:
+        """``dF/dtheta`` [N per unit, rows x len(free)] of :meth:`expected_force` with respect
+        to the parameters ``free`` (``"effect.param"``) at ``theta``."""
+
+    def predict(self, meas: "Measurements") -> np.ndarray:
+        """The plain model (no effects): ``expected_force(meas)`` [N] per row."""
+        return self.expected_force(meas)

@@ -854,7 +854,7 @@ def _diagnose_stage(run: _Run):
     Not the calibrated model at its posterior median: its per-membrane thickness latents
     soak up part of a measurement effect, and without them (diagnosis has none) the
     leftover looks like a thickness deviation (seen on the bundled data)."""
-    from mfdesign.diagnosis.emulated import forward_model
+    from mfdesign.diagnosis.forward import forward_model
     from mfdesign.diagnosis.pipeline import diagnose
     from mfdesign.report.diagnosis import write_report
 

@@ -258,7 +258,7 @@ def diagnose(
 
     Raises :class:`~mfdesign.errors.InputError` (one line) for bad options, config, effects
     or data."""
-    from mfdesign.diagnosis.emulated import forward_model, likelihood_effects
+    from mfdesign.diagnosis.forward import forward_model, likelihood_effects
     from mfdesign.diagnosis.pipeline import diagnose as run
     from mfdesign.report.diagnosis import write_report
     from mfdesign.workflows.data import load_data

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from mfdesign.design import Membrane
-from mfdesign.diagnosis.emulated import forward_model
+from mfdesign.diagnosis.forward import forward_model
 from mfdesign.diagnosis.pipeline import diagnose
 from mfdesign.physics import planes as pl
 from mfdesign.rig.fe_truth import fe_plane

@@ -17,7 +17,7 @@ import pytest
 
 from mfdesign.design import Membrane
 from mfdesign.diagnosis import compute_residuals, noise_floor, worst_regions
-from mfdesign.diagnosis.emulated import EmulatorForwardModel, emulator_plane
+from mfdesign.diagnosis.forward import EmulatorForwardModel, emulator_plane
 from mfdesign.models.standin import StandinForceModel
 from mfdesign.diagnosis.pipeline import diagnose
 from mfdesign.physics import effects as fx

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mfdesign.design import Membrane
-from mfdesign.diagnosis.emulated import (
+from mfdesign.diagnosis.forward import (
     EmulatorForwardModel,
     ExactForwardModel,
     ForwardModel,

@@ -94,7 +94,7 @@ def test_the_likelihood_drops_outside_rows_not_poisons_them(model):
 
 def test_diagnosis_residuals_drop_and_count_outside_rows(model):
     from mfdesign.data.measurements import Measurements
-    from mfdesign.diagnosis.emulated import EmulatorForwardModel
+    from mfdesign.diagnosis.forward import EmulatorForwardModel
     from mfdesign.diagnosis.residuals import compute_residuals
 
     sim = EmulatorForwardModel(model)
