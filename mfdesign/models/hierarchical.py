@@ -6,9 +6,9 @@ For row i of membrane m(i), recorded at height h_i [mm] and pressure p_i [Pa]::
 
 * ``E_i``: the expected RECORDED force: the force model (emulator of the simulator, or
   any ``force_model(design [N, 6], h [N], p [N], SimParams) -> F [N]``) run with
-  SimParams built from the global parameters and the row (mechanical effects,
-  :func:`~mfdesign.physics.effects.apply_row_sim_params`), then passed through the
-  measurement effects (:func:`~mfdesign.physics.effects.apply_expected_force`).
+  SimParams built from the global parameters and the row (mechanical effects), then passed
+  through the measurement effects: :func:`~mfdesign.models.force.recorded_force`, the one
+  place that applies the effects to a force (the diagnosis' forward model calls it too).
 * ``theta_global``: ``mu_pa`` [Pa] (Gent shear modulus, prior log-normal around the
   paper's 31.7 kPa, sd 0.5 in log), ``jm`` [1] (Gent J_m, log-normal around 39.6, sd 0.6
   in log) and the active effects' parameters with the effects' own priors and units.
@@ -60,6 +60,7 @@ from mfdesign.data.lifts import floating_rows
 from mfdesign.physics import effects as fx
 from mfdesign.physics.effects import LogNormal, Normal, Rows
 from mfdesign.physics.params import SimParams
+from mfdesign.models.force import recorded_force, row_sim_params
 from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
 __all__ = ["LATENT", "SPREAD", "CalibrationData", "HierarchicalModel", "ParamSpec", "fit_discrepancy", "membrane_block"]
@@ -386,34 +387,36 @@ class HierarchicalModel(eqx.Module):
         theta.update(effect_rows or {})
         return theta
 
+    def _row_inputs(self, x, data: CalibrationData, thickness_rel=None, effect_rows=None):
+        """``(theta, base, thickness_rel)`` of every row at physical ``x``: the effects'
+        parameters (:meth:`theta_rows`), the base constants with the sampled material, and
+        the rows' relative thickness (the membranes' latents unless ``thickness_rel`` is given)."""
+        v = self.unpack(x)
+        base = dataclasses.replace(self.base, mu_pa=v["mu_pa"], jm=v["jm"])
+        if thickness_rel is None and self.uses_latents:
+            thickness_rel = v["thickness"][data.rows.membrane]
+        return self.theta_rows(x, data, effect_rows), base, thickness_rel
+
     def sim_params(self, x, data: CalibrationData, thickness_rel=None, effect_rows=None) -> SimParams:
         """Row-wise SimParams at physical ``x``: mechanical effects, then the latent thickness
         (``thickness_rel`` [N] overrides the membranes' latents, e.g. for a new membrane;
         ``effect_rows`` the per-membrane effect values, :meth:`theta_rows`)."""
-        v = self.unpack(x)
-        theta_fx = self.theta_rows(x, data, effect_rows)
-        base = dataclasses.replace(self.base, mu_pa=v["mu_pa"], jm=v["jm"])
-        params = fx.apply_row_sim_params(self.effects, theta_fx, base, data.rows)
-        if thickness_rel is None and self.uses_latents:
-            thickness_rel = v["thickness"][data.rows.membrane]
-        if thickness_rel is not None:
-            params = dataclasses.replace(params, thickness_factor=params.thickness_factor * (1.0 + thickness_rel))
-        return params
+        theta_fx, base, t = self._row_inputs(x, data, thickness_rel, effect_rows)
+        return row_sim_params(self.effects, theta_fx, base, data.rows, t)
 
     def expected_force(
         self, x, data: CalibrationData, thickness_rel=None, marked: bool = False, effect_rows=None
     ) -> jax.Array:
-        """Expected recorded force [N] of every row at physical ``x`` (fidelity "sim" + effects).
+        """Expected recorded force [N] of every row at physical ``x`` (fidelity "sim" + effects:
+        :func:`~mfdesign.models.force.recorded_force`, the one place that applies them).
         ``marked``: rows outside the physical model read ``+inf`` (``ForceModel.marking``),
         else NaN (or, for a model held at its lattice's edge, the plane's number).
         ``thickness_rel`` / ``effect_rows``: as in :meth:`sim_params`."""
-        theta_fx = self.theta_rows(x, data, effect_rows)
-        params = self.sim_params(x, data, thickness_rel, effect_rows)
+        theta_fx, base, t = self._row_inputs(x, data, thickness_rel, effect_rows)
         fm = self.force_model
         if marked and hasattr(fm, "marking"):
             fm = fm.marking(True)
-        force_fn = lambda h, p: fm(data.design, h, p, params)  # noqa: E731
-        return fx.apply_expected_force(self.effects, theta_fx, force_fn, data.rows)
+        return recorded_force(fm, data.design, data.rows, self.effects, theta_fx, base, t)
 
     def outside_rows(self, x, data: CalibrationData) -> jax.Array:
         """Rows [N] bool that are outside the physical model at physical ``x`` (the force
