@@ -95,6 +95,12 @@ def main():
         help="no per-membrane thickness latents in (b) and (e) (every membrane at its nominal thickness): with them the six training membranes trade their own scale against the fabric inset; use its own --out",
     )
     ap.add_argument(
+        "--per-membrane",
+        nargs="*",
+        default=[],
+        help="effect parameters (effect.param, or an effect's name; among --effects) that vary from membrane to membrane: a hierarchical random effect whose spread is calibrated; the held-out membrane draws its value from the population",
+    )
+    ap.add_argument(
         "--draws", type=int, default=32, help="posterior draws in the predictive (evaluation cost scales with it)"
     )
     args = ap.parse_args()
@@ -125,7 +131,7 @@ def main():
     # (the output folder is where, not what: a checkpoint serves any --out)
     settings = {k: v for k, v in vars(args).items() if k not in ("only", "out", "posterior_only")}
     # flags added later: off, they name the same computation as before
-    for flag in ("jm_coupons", "material_coupons", "no_latents"):
+    for flag in ("jm_coupons", "material_coupons", "no_latents", "per_membrane"):
         if not settings[flag]:
             del settings[flag]
     settings["lift_rows"] = (
@@ -177,6 +183,7 @@ def main():
             jm_prior=jm_prior,
             mu_prior=mu_prior,
             membrane_latents=not args.no_latents,
+            membrane_effects=tuple(args.per_membrane),
         )
         t_fit = fold_clock.elapsed()
         # the same posterior draws as (e) (fit_multi_fidelity thins with seed + i): (b) and (e)
@@ -228,6 +235,7 @@ def main():
             jm=float(s.loc["jm", "median"]),
             thickness_sd=float(s.loc["thickness_sd", "median"]) if "thickness_sd" in s.index else None,
             tau_ratio=fit.posterior.convergence["steps_over_tau"],
+            **_per_membrane(fit.model, s),
         )
         print(
             f"fold {i} {key}: "
@@ -267,6 +275,7 @@ def main():
             jm_prior=jm_prior,
             mu_prior=mu_prior,
             membrane_latents=not args.no_latents,
+            membrane_effects=tuple(args.per_membrane),
         )
         saved = {"settings": settings, "posterior": full.posterior.to_json()}
         write_json(post_ckpt, saved, indent=1, default=float)
@@ -314,6 +323,19 @@ def main():
     print(json.dumps(summary, indent=1))
     print(f"mu {out['mu_pa']} (paper 31.5 kPa), J_m {out['jm']} (paper 39.6)")
     _plot(summary, rows, names, args.out / f"{stem}.png")
+
+
+def _per_membrane(model, s) -> dict:
+    """Posterior medians of each per-membrane effect parameter (by training membrane) and of
+    its population centre and spread, from a posterior summary ``s`` (indexed by parameter)."""
+    out = {}
+    for q in model.membrane_params:
+        out[q] = {
+            "centre": float(s.loc[q, "median"]),
+            "spread_unconstrained": float(s.loc[q + "_sd", "median"]),
+            "by_membrane": {p[len(q) + 1 :]: float(s.loc[p, "median"]) for p in s.index if p.startswith(q + " ")},
+        }
+    return {"per_membrane": out} if out else {}
 
 
 def _plot(summary, rows, names, path):

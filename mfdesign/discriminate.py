@@ -69,6 +69,7 @@ BOX_HILL_1967 = (
 G_N_PER_KG = 9.80665
 MATERIALS = ("free", "coupons", "coupons-jm")  # mfdesign.calibration.workflow.MATERIALS
 NO_EFFECTS = ("none", "plain", "free rubber", "")
+PER_MEMBRANE = "[m]"  # an effect written "fabric_inset[m]" varies from membrane to membrane
 
 # Measurements off the rig for hypotheses the rig cannot tell apart (the effects' stories).
 # An effect not named here falls back to its own ``direct_check``.
@@ -86,35 +87,57 @@ OUTSIDE_RIG: dict[str, str] = {
 # --------------------------------------------------------------------------- hypotheses
 @dataclasses.dataclass(frozen=True)
 class Hypothesis:
-    """A named effect set (registered effect names) and the rubber's priors (``material``:
-    ``free``, ``coupons``, ``coupons-jm``; :func:`mfdesign.calibration.workflow.material_priors`)."""
+    """A named effect set (registered effect names), the rubber's priors (``material``:
+    ``free``, ``coupons``, ``coupons-jm``; :func:`mfdesign.calibration.workflow.material_priors`),
+    whether each membrane has a thickness latent (``latents``), and which effects vary from
+    membrane to membrane (``per_membrane``: a hierarchical random effect,
+    :class:`~mfdesign.models.hierarchical.HierarchicalModel`)."""
 
     name: str
     effects: tuple[str, ...] = ()
     material: str = "free"
+    latents: bool = True
+    per_membrane: tuple[str, ...] = ()
 
     @classmethod
     def parse(cls, text: str) -> "Hypothesis":
-        """``"fabric_inset+ring_stiffening"``, ``"none"`` (no effect), optionally
-        ``":coupons"`` after it for the rubber's priors. Raises :class:`InputError` naming
-        an unknown effect or material."""
+        """``"fabric_inset+ring_stiffening"``, ``"none"`` (no effect); an effect written
+        ``"fabric_inset[m]"`` varies per membrane; after ``":"`` comma-separated options:
+        a material (``coupons``, ``coupons-jm``, ``free``) and ``no-latents``, e.g.
+        ``"fabric_inset[m]+ring_stiffening:coupons,no-latents"``. Raises
+        :class:`InputError` naming an unknown effect, material or option."""
         from mfdesign.physics import effects as fx
 
         raw = str(text).strip()
-        body, _, material = raw.partition(":")
-        material = material.strip() or "free"
-        if material not in MATERIALS:
-            raise InputError(f"hypothesis {raw!r}: material {material!r}; allowed {', '.join(MATERIALS)}")
+        body, _, opts = raw.partition(":")
+        material, latents = "free", True
+        for opt in (o.strip() for o in opts.split(",") if o.strip()):
+            if opt in MATERIALS:
+                material = opt
+            elif opt == "no-latents":
+                latents = False
+            else:
+                raise InputError(
+                    f"hypothesis {raw!r}: option {opt!r}; allowed after ':' (comma-separated): "
+                    f"a material ({', '.join(MATERIALS)}) and no-latents"
+                )
         names = [] if body.strip().lower() in NO_EFFECTS else [n.strip() for n in body.split("+")]
+        per = tuple(n[: -len(PER_MEMBRANE)] for n in names if n.endswith(PER_MEMBRANE))
+        names = [n[: -len(PER_MEMBRANE)] if n.endswith(PER_MEMBRANE) else n for n in names]
         for n in names:
             if n not in fx.EFFECTS:
                 raise InputError(
                     f"hypothesis {raw!r}: unknown effect {n!r}; allowed: none, or effects joined by '+' "
-                    f"from {', '.join(sorted(fx.EFFECTS))}"
+                    f"from {', '.join(sorted(fx.EFFECTS))} (one written NAME{PER_MEMBRANE} varies per membrane)"
                 )
         if len(set(names)) != len(names):
             raise InputError(f"hypothesis {raw!r} names an effect twice")
-        return cls(raw or "none", tuple(names), material)
+        return cls(raw or "none", tuple(names), material, latents, per)
+
+    @property
+    def key(self) -> tuple:
+        """What makes two hypotheses the same model."""
+        return (frozenset(self.effects), self.material, self.latents, frozenset(self.per_membrane))
 
 
 def parse_hypotheses(texts: Sequence[str]) -> list[Hypothesis]:
@@ -124,10 +147,9 @@ def parse_hypotheses(texts: Sequence[str]) -> list[Hypothesis]:
         raise InputError(f"need at least two hypotheses to tell apart, got {len(hyps)}")
     seen: dict = {}
     for h in hyps:
-        k = (frozenset(h.effects), h.material)
-        if k in seen:
-            raise InputError(f"hypotheses {seen[k]!r} and {h.name!r} are the same effect set")
-        seen[k] = h.name
+        if h.key in seen:
+            raise InputError(f"hypotheses {seen[h.key]!r} and {h.name!r} are the same model")
+        seen[h.key] = h.name
     return hyps
 
 
@@ -144,6 +166,11 @@ def outside_rig(hypotheses: Sequence[Hypothesis]) -> list[dict]:
             checks = {n: OUTSIDE_RIG.get(n) or fx.effect(n).direct_check for n in differ}
             if a.material != b.material:
                 checks["material"] = OUTSIDE_RIG["material"]
+            if a.latents != b.latents:
+                checks["thickness"] = OUTSIDE_RIG["thickness_deviation"]
+            for n in sorted(set(a.per_membrane) ^ set(b.per_membrane)):
+                checks.setdefault(n, OUTSIDE_RIG.get(n) or fx.effect(n).direct_check)
+                checks[n] += " (on several membranes: does it differ from one to the next?)"
             out.append({"pair": [a.name, b.name], "measurements": {k: v for k, v in checks.items() if v}})
     return out
 

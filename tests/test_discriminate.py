@@ -106,7 +106,7 @@ def test_bad_input_fails_in_one_line():
     assert "\n" not in str(e.value)
     with pytest.raises(InputError, match="at least two"):
         parse_hypotheses(["fabric_inset"])
-    with pytest.raises(InputError, match="same effect set"):
+    with pytest.raises(InputError, match="same model"):
         parse_hypotheses(["fabric_inset+ring_stiffening", "ring_stiffening+fabric_inset"])
     with pytest.raises(InputError, match="material"):
         Hypothesis.parse("none:steel")
@@ -120,6 +120,20 @@ def test_bad_input_fails_in_one_line():
         Hypothesis.parse("none").effects == ()
         and Hypothesis.parse("a:coupons".replace("a", "none")).material == "coupons"
     )
+    with pytest.raises(InputError, match="option 'latents'.*no-latents"):
+        Hypothesis.parse("fabric_inset:coupons,latents")
+
+
+def test_hypothesis_options_per_membrane_and_latents():
+    h = Hypothesis.parse("fabric_inset[m]+ring_stiffening:coupons,no-latents")
+    assert h.effects == ("fabric_inset", "ring_stiffening") and h.per_membrane == ("fabric_inset",)
+    assert h.material == "coupons" and h.latents is False
+    shared = Hypothesis.parse("fabric_inset+ring_stiffening:coupons,no-latents")
+    assert shared.per_membrane == () and shared.key != h.key
+    pairs = outside_rig([shared, h])
+    assert "differ from one to the next" in pairs[0]["measurements"]["fabric_inset"]
+    with pytest.raises(InputError, match="unknown effect 'fabric_insert'"):
+        Hypothesis.parse("fabric_insert[m]")
 
 
 def test_probabilities_and_outside_measurements():

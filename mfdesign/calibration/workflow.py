@@ -77,9 +77,13 @@ _LATTICE_START: dict[str, dict[str, dict[str, tuple[float, float]]]] = {
 }
 
 
-def force_model_named(name: str, table=None, progress: bool = False, effect_axes: str = "tensor"):
+def force_model_named(
+    name: str, table=None, progress: bool = False, effect_axes: str = "tensor", extra_designs: Sequence[str] = ()
+):
     """The force model ``name`` (:data:`~mfdesign.models.force.FORCE_MODELS`) for the rows of
-    ``table`` (Measurements; the exact model needs its designs, heights and pressures).
+    ``table`` (Measurements; the exact model needs its designs, heights and pressures) and,
+    for the exact model, the planes of ``extra_designs`` too (design keys not measured yet,
+    e.g. membranes a lab could make: predicted on the simulator itself).
 
     ``effect_axes`` (exact only): where a calibrated effect's lattice axis goes.
 
@@ -103,7 +107,7 @@ def force_model_named(name: str, table=None, progress: bool = False, effect_axes
         df = table.df
         return force_model_for(
             "exact",
-            tuple(dict.fromkeys(df["design_key"])),
+            tuple(dict.fromkeys([*df["design_key"], *extra_designs])),
             h_max_mm=float(
                 max(
                     df["height_mm"].max(),

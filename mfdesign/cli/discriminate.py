@@ -31,10 +31,19 @@ def register(app: typer.Typer) -> None:
         hypotheses: List[str] = typer.Option(
             ...,
             "--hypotheses",
-            help='Hypotheses, two or more: the values after --hypotheses (or repeat it), e.g. "fabric_inset" "fabric_inset+ring_stiffening" "none".',
+            help='Hypotheses, two or more: the values after --hypotheses (or repeat it), e.g. "fabric_inset" '
+            '"fabric_inset+ring_stiffening" "none"; NAME[m] varies per membrane; options after ":", comma-separated: '
+            'a material (coupons, coupons-jm, free) and no-latents, e.g. "fabric_inset[m]+ring_stiffening:coupons,no-latents".',
         ),
         out: Path = typer.Option(Path("out/discriminate"), help="Output folder (discriminate.json, discriminate.png)."),
-        physics: str = typer.Option("emulator", help="emulator | exact | standin (the fits' force model)."),
+        physics: str = typer.Option(
+            "emulator",
+            help="emulator | exact | standin (the fits' and the candidates' force model; exact solves the "
+            "simulator's planes of the measured and the new membranes).",
+        ),
+        effect_axes: str = typer.Option(
+            "tensor", help="Exact physics' lattice: tensor | tensor-jm | additive (docs/physics.md)."
+        ),
         new_design: List[str] = typer.Option(
             [], "--new-design", help='A membrane that could be made, "[t, c, r1, w1, r2, w2]" mm (repeat).'
         ),
@@ -70,5 +79,6 @@ def register(app: typer.Typer) -> None:
                 max_rows=max_rows,
                 seed=seed,
                 top=top,
+                effect_axes=effect_axes,
             )
         )
