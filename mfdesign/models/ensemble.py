@@ -425,12 +425,18 @@ def _predict(model: Ensemble, design, h_mm, p_pa):
     return out.astype(jnp.result_type(float))
 
 
+@eqx.filter_jit
+def _nets(cfg: EnsembleConfig, keys) -> "ForceNet":
+    # one compiled program (cfg static): eagerly, every layer's initialiser compiled its own
+    # small program (~21 jax.random programs a demo, issue 40); the weights are bit-identical
+    return eqx.filter_vmap(lambda k: ForceNet(cfg, k))(keys)
+
+
 def init_ensemble(cfg: EnsembleConfig, norm: Normaliser, key, beta: float | None = None) -> Ensemble:
     """Random initial ensemble: trainable and prior nets, each stacked over members."""
     kt, kp = jax.random.split(key)
-    make = eqx.filter_vmap(lambda k: ForceNet(cfg, k))
-    trainable = make(jax.random.split(kt, cfg.n_members))
-    prior = make(jax.random.split(kp, cfg.n_members))
+    trainable = _nets(cfg, jax.random.split(kt, cfg.n_members))
+    prior = _nets(cfg, jax.random.split(kp, cfg.n_members))
     return Ensemble(trainable, prior, norm, float(cfg.beta if beta is None else beta), cfg)
 
 
