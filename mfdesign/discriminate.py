@@ -314,6 +314,9 @@ class Ranking:
     prior: np.ndarray
     level: float
     method: str = BOX_HILL_1967
+    # candidates no hypothesis has a number for at any of their rows (every row outside the
+    # physical model or off the exact model's planes): left out of ``order``, said
+    unscored: tuple[int, ...] = ()
 
     def top(self, n: int = 5) -> list[int]:
         return [int(i) for i in self.order[:n]]
@@ -577,9 +580,17 @@ def rank_experiments(
             axis=(0, 1),
         )
         mask[i, :n_pressures] = floating.astype(float)
-    bad = [exps[i].label() for i in range(len(exps)) if not np.all(np.isfinite(obs[i][..., mask[i] > 0]))]
-    if bad:
-        raise InputError(f"the models have no finite prediction for {len(bad)} candidate(s), e.g. {bad[0]}")
+    # A row some hypothesis has no number for (outside the physical model: a force above
+    # p pi R^2; off the exact model's planes) is not counted, as the calibration leaves such
+    # rows out; a candidate left with no row is not scored (Ranking.unscored), not ranked last.
+    raw = obs.copy()
+    mask = mask * np.all(np.isfinite(obs), axis=(1, 2))
+    obs = np.where(np.isfinite(obs), obs, 0.0)  # a masked row must not poison the sums
+    unscored = tuple(i for i in range(len(exps)) if not mask[i].any())
+    if len(unscored) == len(exps):
+        raise InputError(
+            f"the models have no finite prediction for any of the {len(exps)} candidates, e.g. {exps[0].label()}"
+        )
 
     eps = np.asarray(jax.random.normal(jax.random.fold_in(key, 10_000), (len(exps), n_draws, r_obs)))
     crit = jax.jit(
@@ -591,6 +602,7 @@ def rank_experiments(
     score = np.sum(pi[None] * off.min(axis=2), axis=1)
     exp_p = np.sum(pi[None] * p_true, axis=1)
     order = np.lexsort((np.arange(len(exps)), -np.round(score, 9)))
+    order = np.array([i for i in order if i not in unscored], dtype=int)
 
     # predictions: observable mean and central interval with the noise, per hypothesis
     rng = np.random.default_rng(seed)
@@ -600,11 +612,11 @@ def rank_experiments(
         m = np.arange(r_obs) < len(rows_of[i])  # every row of the trial (counted or not)
         by = {}
         for j, nm in enumerate(names):
-            y = obs[i, j][:, m][None] + sig[i, j][m] * rng.standard_normal((8, n_draws, int(m.sum())))
+            y = raw[i, j][:, m][None] + sig[i, j][m] * rng.standard_normal((8, n_draws, int(m.sum())))
             y = y.reshape(-1, int(m.sum()))
             lo, hi = np.quantile(y, [a, 1 - a], axis=0)
             by[nm] = {
-                "mean": obs[i, j][:, m].mean(0).round(3).tolist(),
+                "mean": raw[i, j][:, m].mean(0).round(3).tolist(),
                 "lo": lo.round(3).tolist(),
                 "hi": hi.round(3).tolist(),
             }
@@ -617,7 +629,7 @@ def rank_experiments(
                 "by_hypothesis": by,
             }
         )
-    return Ranking(names, exps, score, pair, exp_p, order, tuple(preds), pi, level)
+    return Ranking(names, exps, score, pair, exp_p, order, tuple(preds), pi, level, unscored=unscored)
 
 
 def decisive(ranking: Ranking, i: int) -> bool:

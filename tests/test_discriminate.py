@@ -100,6 +100,42 @@ def test_equal_predictives_score_zero_and_a_parting_candidate_beats_a_silent_one
     assert np.allclose(same.p_truth, 0.5, atol=0.02)
 
 
+class _NanAbove:
+    """A predictive with no number above ``h_max`` mm (as the exact model outside the physical
+    model or off its planes): the rows there must not count, a candidate with no other row
+    must not be scored."""
+
+    def __init__(self, inner, h_max):
+        self._inner, self.h_max = inner, h_max
+
+    def thinned(self, n):
+        return _NanAbove(self._inner.thinned(n), self.h_max)
+
+    def __getattr__(self, name):
+        return getattr(self._inner, name)
+
+    def sample_data(self, data, key):
+        f = np.asarray(self._inner.sample_data(data, key))
+        return np.where(np.asarray(data.rows.h_mm)[None, :] > self.h_max, np.nan, f)
+
+
+def test_rows_without_a_number_are_left_out_and_a_candidate_without_any_is_not_scored(fits):
+    _, f = fits
+    nan_fit = {"fabric_inset": _NanAbove(f["fabric_inset"].mf, 30.0), "none": f["none"]}
+    high = Experiment(RINGLESS, "force", 6000.0, (40.0,), cost=1.0)  # every row above 30 mm: no number
+    mixed = Experiment(RINGLESS, "force", 6000.0, (0.0, 40.0), cost=1.0)
+    low = Experiment(RINGLESS, "force", 6000.0, (0.0,), cost=1.0)
+    r = rank_experiments(nan_fit, [high, mixed, low], n_draws=8, n_pressures=4, seed=0)
+    assert r.unscored == (0,) and sorted(r.order) == [1, 2] and np.all(np.isfinite(r.score[[1, 2]]))
+    counted = r.predictions[1]["counted"]
+    assert counted == [True] * 4 + [False] * 4  # h = 0 counted, h = 40 mm not
+    # what each hypothesis predicts there is said as it is: no number (NaN), not a zero
+    mean = np.asarray(r.predictions[1]["by_hypothesis"]["fabric_inset"]["mean"], float)
+    assert np.all(np.isfinite(mean[:4])) and np.all(np.isnan(mean[4:]))
+    with pytest.raises(InputError, match="no finite prediction for any"):
+        rank_experiments(nan_fit, [high], n_draws=8, n_pressures=4, seed=0)
+
+
 def test_bad_input_fails_in_one_line():
     with pytest.raises(InputError, match="unknown effect 'fabric_insert'") as e:
         parse_hypotheses(["fabric_inset", "fabric_insert"])

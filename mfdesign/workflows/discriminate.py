@@ -48,10 +48,13 @@ class DiscriminateResult:
         r = self.ranking
         lines = ["hypotheses (BIC on the data -> probability):"]
         lines += [f"  {h}: BIC {self.bic[h]:.1f} -> P {self.probability[h]:.3f}" for h in r.hypotheses]
-        lines.append(
-            f"experiments ranked by expected log Bayes factor (Box & Hill 1967), {len(r.experiments)} candidates:"
-        )
+        lines.append(f"experiments ranked by expected log Bayes factor (Box & Hill 1967), {len(r.order)} candidates:")
         lines += ["  " + s for s in r.lines(self.top)]
+        if r.unscored:
+            lines.append(
+                f"not scored ({len(r.unscored)}: no hypothesis has a number at any of their rows, outside the "
+                f"physical model or off the planes): " + "; ".join(r.experiments[i].label() for i in r.unscored)
+            )
         lines.append("measurements off the rig that would decide:")
         for o in self.outside:
             for name, text in o["measurements"].items():
@@ -271,6 +274,10 @@ def discriminate(
             effect_axes=effect_axes,
         ),
         "ranked": [ranking.entry(i) | {"rank": k + 1} for k, i in enumerate(ranking.order)],
+        "not_scored": [
+            {"label": ranking.experiments[i].label(), "why": "no hypothesis has a number at any of its rows"}
+            for i in ranking.unscored
+        ],
         "outside_rig": outside,
     }
     from mfdesign.provenance import call_line, input_hashes, provenance
