@@ -7,15 +7,17 @@ Steps of :func:`calibrate`:
 2. MAP: ``optimistix.BFGS`` on the negative log posterior in the unconstrained
    parameterisation ``u`` (see :mod:`mfdesign.models.hierarchical`), from ``map_starts``
    starts at once (``jax.vmap``), the best kept; the Hessian ``H`` there by autodiff;
-3. walkers: a small Gaussian ball around the MAP, per-coordinate width
+3. walkers: with the default moves' adaptation, draws of the Laplace approximation
+   (``_laplace_start``); else a small Gaussian ball around the MAP, per-coordinate width
    ``ball * sqrt(diag H^-1)`` (Laplace widths; 1e-3 where H is not positive definite);
 4. emcee's ensemble sampler with a jitted,
    vectorised log posterior (``vectorize=True``: one JAX call per step for all walkers; a
    ``pool`` splits that batch over its workers), ``emcee.backends.HDFBackend`` so that a
    killed run resumes at the stored iteration (same file, same model: the chain goes on).
-   Default moves (:func:`default_moves`, :func:`adapted_moves`): ``ADAPT_STEPS`` of
-   independence proposals from the Laplace approximation mixed with differential
-   evolution (ter Braak 2006), then independence proposals refitted to those draws;
+   Default moves (:func:`default_moves`, :func:`adapted_moves`): adaptation rounds
+   (``ADAPT_ROUNDS``, ``ADAPT_STEPS`` in all) of independence proposals, first from the
+   Laplace approximation, then refitted to the round before's draws, mixed with
+   differential evolution (ter Braak 2006); after them the last refit, fixed;
 5. convergence: integrated autocorrelation time tau per parameter (Sokal 1989, emcee's
    estimator), chain length >= 50 tau, mean acceptance fraction in [0.2, 0.9]; a
    :class:`ConvergenceWarning` when one fails; burn-in ``2 max tau``, thinning ``min tau / 2``;
@@ -333,15 +335,34 @@ def _ball(result: MapResult, n_walkers: int, scale: float, rng: np.random.Genera
     return np.asarray(result.u)[None, :] + width[None, :] * rng.standard_normal((n_walkers, h.shape[0]))
 
 
-LAPLACE_SHARE = 0.6  # of the steps: independence proposals from the Laplace approximation
-ADAPT_STEPS = 200  # first stage of the default moves (see calibrate)
-ADAPTED_SHARE = 0.8  # of the second stage's steps: independence proposals fitted to the walkers
+LAPLACE_SHARE = 0.6  # of the first round's steps: independence proposals from the Laplace approximation
+# Ends of the adaptation rounds (burn-in): round 1 uses the Laplace approximation at the MAP,
+# every later round the independence proposal refitted to the draws of the round before.
+# With 28 parameters (22 membranes' latents) the Laplace widths were up to 2.5x the
+# posterior's and one refit on 100 correlated steps left the chain at acceptance 0.09 and
+# tau ~25-40 (14 tau in 2000 steps, not converged); an independence proposal's acceptance
+# falls fast with the error of its covariance in many dimensions, and every round's draws
+# come from a better proposal, so the estimate improves round by round
+# (experiments/bench_chain_latents.py).
+ADAPT_ROUNDS = (50, 100, 200, 300)
+ADAPT_STEPS = ADAPT_ROUNDS[-1]  # burn-in of the default moves (see calibrate)
+ADAPTED_SHARE = 0.8  # of the later rounds' steps: independence proposals fitted to the walkers
+ADAPTED_INFLATE = 1.1  # scale factor s of the fitted proposal (log weights' variance ~ d (1 - 1/s^2)^2 / 2)
+LAPLACE_DF = 5.0  # Student-t dof of the first round (the Laplace approximation may fit badly)
 
 
-def _mixture(mean, cov, share: float, inflate: float) -> list:
-    """``share`` of the steps independence proposals (Student-t at ``mean`` with scale
-    ``cov``), the rest differential evolution and its snooker update (ter Braak 2006; ter
-    Braak & Vrugt 2008); DE alone where ``cov`` is not positive definite or ``share`` <= 0."""
+def adapted_df(dim: int) -> float:
+    """Student-t dof of the fitted proposal: ``2 dim`` (at least ``LAPLACE_DF``). A t with few
+    dof spreads its draws' radius far wider than a near-Gaussian posterior's in many
+    dimensions (the exact posterior covariance and 5 dof accept ~0.4 of the proposals in
+    28 dimensions, 2 dim dof ~0.6); 2 dim keeps the t's polynomial tails."""
+    return max(LAPLACE_DF, 2.0 * dim)
+
+
+def _mixture(mean, cov, share: float, inflate: float, df: float = LAPLACE_DF) -> list:
+    """``share`` of the steps independence proposals (Student-t with ``df`` dof at ``mean``
+    with scale ``cov``), the rest differential evolution and its snooker update (ter Braak
+    2006; ter Braak & Vrugt 2008); DE alone where ``cov`` is not positive definite or ``share`` <= 0."""
     import emcee
 
     from mfdesign.calibration.laplace_move import LaplaceMove
@@ -350,7 +371,7 @@ def _mixture(mean, cov, share: float, inflate: float) -> list:
     if share <= 0:
         return de
     try:
-        lap = LaplaceMove(mean, cov, inflate=inflate)
+        lap = LaplaceMove(mean, cov, df=df, inflate=inflate)
     except np.linalg.LinAlgError:
         return de
     if not np.all(np.isfinite(lap.chol)):
@@ -359,14 +380,19 @@ def _mixture(mean, cov, share: float, inflate: float) -> list:
 
 
 def adapted_moves(draws: np.ndarray) -> list:
-    """The second stage's moves: the independence proposal with the mean and covariance of
-    ``draws`` [K, dim] (the first stage's second half) for ``ADAPTED_SHARE`` of the steps,
-    differential evolution for the rest (it keeps exploring where the Student-t fits badly)."""
-    return _mixture(np.mean(draws, 0), np.cov(draws.T), ADAPTED_SHARE, inflate=1.2)
+    """The moves of an adaptation round after the first, and of the chain after them: the
+    independence proposal with the mean and covariance of ``draws`` [K, dim] (the round
+    before's), ``adapted_df(dim)`` dof, scale ``ADAPTED_INFLATE``, for ``ADAPTED_SHARE`` of
+    the steps, differential evolution for the rest (it keeps exploring where the Student-t
+    fits badly)."""
+    draws = np.asarray(draws, float)
+    return _mixture(
+        np.mean(draws, 0), np.cov(draws.T), ADAPTED_SHARE, inflate=ADAPTED_INFLATE, df=adapted_df(draws.shape[1])
+    )
 
 
 def default_moves(result: MapResult, laplace_share: float | None = None) -> list:
-    """emcee moves of the first stage: independence proposals from the Laplace
+    """emcee moves of the first adaptation round: independence proposals from the Laplace
     approximation at the MAP (:class:`~mfdesign.calibration.laplace_move.LaplaceMove`) for
     ``laplace_share`` of the steps, differential evolution for the rest."""
     share = LAPLACE_SHARE if laplace_share is None else float(laplace_share)
@@ -375,7 +401,30 @@ def default_moves(result: MapResult, laplace_share: float | None = None) -> list
         cov = np.linalg.inv(0.5 * (h + h.T))
     except np.linalg.LinAlgError:
         return _mixture(None, None, 0.0, 1.0)
-    return _mixture(np.asarray(result.u), cov, share, inflate=1.3)
+    return _mixture(np.asarray(result.u), cov, share, inflate=1.3, df=LAPLACE_DF)
+
+
+def _laplace_start(result: MapResult, n_walkers: int, rng: np.random.Generator) -> np.ndarray | None:
+    """Walkers drawn from the Laplace approximation at the MAP (Gaussian, the inverse
+    Hessian as covariance), each coordinate's offsets shrunk to at most 0.5 in ``u`` a
+    standard deviation (as :func:`_ball` caps its widths: the exact force model's lattice
+    holds ``LATTICE_SD`` of them); None where the Hessian is not positive definite. The
+    start of the default moves: a tight ball grows to the posterior's spread only through
+    differential evolution (tens of steps in 28 dimensions), and an independence proposal
+    fitted to an ensemble narrower than the posterior stays too narrow (on a 30-dimensional
+    Gaussian like tests/calibration/test_default_moves.py's, Laplace widths 2x too wide:
+    from a 0.1-sd ball the rounds ended at 0.86 of its spread, tau 19 after them; from the
+    Laplace draws at 1.0, tau 6)."""
+    h = np.asarray(result.hessian, float)
+    try:
+        chol = np.linalg.cholesky(np.linalg.inv(0.5 * (h + h.T)))
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(chol)):
+        return None
+    sd = np.sqrt(np.sum(chol**2, axis=1))
+    z = (rng.standard_normal((n_walkers, h.shape[0])) @ chol.T) * np.minimum(1.0, 0.5 / np.maximum(sd, 1e-300))
+    return np.asarray(result.u)[None, :] + z
 
 
 def convergence_report(
@@ -517,7 +566,8 @@ def calibrate(
     - `progress`: progress bars.
     - `max_rows`: rows the likelihood uses (evenly within trials; `None`: all).
     - `map_starts`: optimiser starts of the MAP search.
-    - `ball`: width of the walkers' start ball in Laplace standard deviations.
+    - `ball`: width of the walkers' start ball in Laplace standard deviations (when the
+      default moves adapt, the walkers start from the Laplace approximation instead).
     - `callback`: called with the iteration after every step.
     - `warn`: emit a `ConvergenceWarning` when the chain has not converged.
     - `moves`: emcee moves (default above).
@@ -572,16 +622,18 @@ def calibrate(
             stacklevel=2,
         )
 
-    # Two stages when the moves are ours: ADAPT_STEPS with the Laplace approximation at the
-    # MAP, then the independence proposal refitted to the second half of those draws (the
-    # MAP's Hessian misjudges the hierarchy's spread: there tau stayed ~20 steps, on the
-    # walkers' own covariance it is a few). The first stage is burn-in; the second is a
-    # fixed kernel, so the chain after it is an ordinary MCMC chain.
+    # Adaptation rounds when the moves are ours (ADAPT_ROUNDS): the first with the Laplace
+    # approximation at the MAP, each later one with the independence proposal refitted to
+    # the draws of the round before (the MAP's Hessian misjudges the hierarchy's spread:
+    # there tau stayed ~20 steps, on the walkers' own covariance it is a few). The rounds
+    # are burn-in; the chain after the last is sampled with a fixed kernel (the proposal
+    # fitted to the last round), so it is an ordinary MCMC chain. Each round's moves
+    # follow from the stored chain alone, so a resumed run rebuilds them.
     adapt = ADAPT_STEPS if moves is None and n_steps >= 3 * ADAPT_STEPS else 0
     first = default_moves(res) if moves is None else moves
     logp = LogPosterior(model, data, pool=pool)  # the model as the lattice fit left it
     if backend is None:
-        backend = emcee.backends.Backend()  # in memory, shared by both stages' samplers
+        backend = emcee.backends.Backend()  # in memory, shared by every round's sampler
         backend.reset(n_walkers, dim)
     done = int(backend.iteration)
     if done and backend.shape != (n_walkers, dim):
@@ -611,17 +663,19 @@ def calibrate(
     sampler = sampler_with(first)
     if done == 0:
         sampler.random_state = np.random.RandomState(seed).get_state()
-        start = _ball(res, n_walkers, ball, np.random.default_rng(seed))
+        rng = np.random.default_rng(seed)
+        start = _laplace_start(res, n_walkers, rng) if adapt else None  # over-dispersed, not a ball
+        start = _ball(res, n_walkers, ball, rng) if start is None else start
     else:
         start = sampler.get_last_sample()  # continue from the stored walkers (and random state)
-    if done < adapt:
-        run(sampler, adapt, start)
+    begin = 0
+    for end in ADAPT_ROUNDS if adapt else ():
+        if done < end:
+            run(sampler, end, start)
+            start = sampler.get_last_sample()
+        sampler = sampler_with(adapted_moves(backend.get_chain(discard=begin, flat=True)[: (end - begin) * n_walkers]))
         start = sampler.get_last_sample()
-    if adapt:
-        sampler = sampler_with(
-            adapted_moves(backend.get_chain(discard=adapt // 2, flat=True)[: (adapt - adapt // 2) * n_walkers])
-        )
-        start = sampler.get_last_sample()
+        begin = end
     run(sampler, n_steps, start)
 
     report = convergence_report(sampler, model.names, warn=warn, discard=adapt)
