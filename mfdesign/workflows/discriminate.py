@@ -90,10 +90,11 @@ def plot_top(ranking: Any, i: int, path: Path) -> Path:
         ax.set_ylabel("force [N]" if e.kind == "force" else "plate height [mm]")
         ax.set_title(f"h = {h:g} mm" if h is not None else f"lift, load {e.load_n:.1f} N", fontsize=9)
     axes[0][0].legend(fontsize=8)
-    fig.suptitle(
-        f"top experiment: {e.label()}\nE[ln BF] {ranking.score[i]:.2f}; bands: {ranking.level:.0%} intervals",
-        fontsize=9,
-    )
+    import textwrap
+
+    width = max(40, int(13 * (4.2 * len(heights) + 0.8)))  # characters that fit the figure at 9 pt
+    title = textwrap.fill(f"top experiment: {e.label()}", width)
+    fig.suptitle(f"{title}\nE[ln BF] {ranking.score[i]:.2f}; bands: {ranking.level:.0%} intervals", fontsize=9)
     fig.tight_layout()
     outputs.savefig(fig, path, dpi=110)
     plt.close(fig)
