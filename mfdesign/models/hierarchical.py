@@ -186,6 +186,11 @@ class CalibrationData(eqx.Module):
 SAMPLE_BATCH = 4  # posterior draws evaluated at once by sample_force (memory bound)
 
 
+def _names(names) -> tuple[str, ...]:
+    """A name or names as a tuple (``tuple("fabric_inset")`` would be its letters)."""
+    return (names,) if isinstance(names, str) else tuple(names)
+
+
 def _effect_names(effects) -> tuple[str, ...]:
     return tuple(fx.effect(e).name for e in effects)
 
@@ -216,7 +221,7 @@ class HierarchicalModel(eqx.Module):
     noise_prior: object = eqx.field(default=LogNormal(1.0, 1.5, 1e-4, 1e3), static=True)
     thickness_sd_prior: object = eqx.field(default=LogNormal(0.05, 0.8, 1e-3, 0.5), static=True)
     base: SimParams = SimParams()
-    membrane_effects: tuple[str, ...] = eqx.field(default=(), converter=tuple, static=True)
+    membrane_effects: tuple[str, ...] = eqx.field(default=(), converter=_names, static=True)
     effect_sd_prior: object = eqx.field(default=LogNormal(1.0, 1.0, 1e-2, 10.0), static=True)
 
     def __check_init__(self):

@@ -59,9 +59,11 @@ def model(data):
     return build_model(standin_force, data, ["fabric_inset"], membrane_effects=("fabric_inset",))
 
 
-def test_layout_names_and_blocks(model):
+def test_layout_names_and_blocks(model, data):
     names = model.names
     assert model.membrane_params == (Q,)
+    one = build_model(standin_force, data, ["fabric_inset"], membrane_effects="fabric_inset")
+    assert one.membrane_effects == ("fabric_inset",) and one.names == names  # a bare name, not its letters
     assert [n for n in names if n.startswith(Q)] == [Q, Q + "_sd"] + [f"{Q}[{m}]" for m in range(4)]
     assert membrane_block(f"{Q}[3]") == (Q, 3) and membrane_block("thickness[0]") == ("thickness", 0)
     assert membrane_block(Q) is None and membrane_block("thickness_sd") is None
