@@ -63,7 +63,16 @@ from mfdesign.physics.params import SimParams
 from mfdesign.models.force import recorded_force, row_sim_params
 from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
-__all__ = ["LATENT", "SPREAD", "CalibrationData", "HierarchicalModel", "ParamSpec", "fit_discrepancy", "membrane_block"]
+__all__ = [
+    "LATENT",
+    "SPREAD",
+    "CalibrationData",
+    "HierarchicalModel",
+    "ParamSpec",
+    "fit_discrepancy",
+    "membrane_block",
+    "membrane_parameters",
+]
 
 ForceFn = Callable[..., jax.Array]  # force_model(design [N, 6], h [N], p [N], SimParams) -> [N] N
 LATENT = "thickness["  # name prefix of the per-membrane thickness latents
@@ -186,6 +195,23 @@ class CalibrationData(eqx.Module):
 SAMPLE_BATCH = 4  # posterior draws evaluated at once by sample_force (memory bound)
 
 
+def membrane_parameters(effects, names) -> tuple[str, ...]:
+    """The qualified parameters (``"effect.param"``) of ``effects`` that ``names`` select (a
+    parameter's own name, or an effect's name for all of its parameters); ``ValueError``
+    naming one that selects nothing, with the allowed names."""
+    allowed = list(fx.neutral_theta(effects))
+    out: list[str] = []
+    for name in names:
+        got = [q for q in allowed if q == name or q.split(".")[0] == name]
+        if not got:
+            raise ValueError(
+                f"per-membrane parameter {name!r} is not a parameter of the effects in the model; "
+                f"allowed: {allowed or 'none (no effects)'}"
+            )
+        out += [q for q in got if q not in out]
+    return tuple(out)
+
+
 def _names(names) -> tuple[str, ...]:
     """A name or names as a tuple (``tuple("fabric_inset")`` would be its letters)."""
     return (names,) if isinstance(names, str) else tuple(names)
@@ -237,17 +263,7 @@ class HierarchicalModel(eqx.Module):
     @property
     def membrane_params(self) -> tuple[str, ...]:
         """The qualified effect parameters (``"effect.param"``) that vary per membrane."""
-        allowed = list(fx.neutral_theta(self.effects))
-        out: list[str] = []
-        for name in self.membrane_effects:
-            got = [q for q in allowed if q == name or q.split(".")[0] == name]
-            if not got:
-                raise ValueError(
-                    f"per-membrane parameter {name!r} is not a parameter of the effects in the model; "
-                    f"allowed: {allowed or 'none (no effects)'}"
-                )
-            out += [q for q in got if q not in out]
-        return tuple(out)
+        return membrane_parameters(self.effects, self.membrane_effects)
 
     @property
     def uses_latents(self) -> bool:

@@ -122,15 +122,12 @@ def _check_options(
             f"unknown effect(s) {unknown}; registered: {sorted(EFFECTS)} (a user's own effect: "
             "--effects-module FILE.py, the file that registers it)"
         )
-    from mfdesign.physics.effects import neutral_theta
+    from mfdesign.models.hierarchical import membrane_parameters
 
-    allowed = list(neutral_theta(effects))
-    bad = [n for n in per_membrane if not any(q == n or q.split(".")[0] == n for q in allowed)]
-    if bad:
-        raise InputError(
-            f"--per-membrane {bad}: not a parameter of the effects calibrated (--effects {list(effects)}); "
-            f"allowed: {allowed or 'none: name the effect with --effects first'}"
-        )
+    try:
+        membrane_parameters(effects, per_membrane)
+    except ValueError as err:
+        raise InputError(f"--per-membrane: {err} (name the effect with --effects first)") from None
     return priors
 
 
