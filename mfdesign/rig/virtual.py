@@ -418,6 +418,41 @@ class VirtualRig:
         top = max(*protocol.ringed_limits_pa, protocol.ringless_limit_pa, protocol.lift_limit_pa)
         self._size = len(self._ramp(top)[0])
 
+    @classmethod
+    def from_card(
+        cls,
+        card: Mapping[str, Any],
+        simulator: Callable | None = None,
+        seed: int | None = None,
+        noise: Noise | None = None,
+        **protocol: Any,
+    ) -> "VirtualRig":
+        """The rig a dataset's card (``bundled_card.json``, read as a dict) describes: its
+        hidden effect, seed, noise and protocol, the authors' simulator constants.
+
+        Arguments:
+            card: the card (``hidden_effect``, ``seed``, ``noise``, ``protocol``).
+            simulator: the truth's plane solver (default the simulator; the stand-in demo
+                passes :func:`~mfdesign.models.standin.standin_plane`, a world of its own).
+            seed: the rig's noise seed (default the card's: the card's own measurements).
+            noise: the sensors (default the card's; ``Noise.none()`` records the truth itself).
+            **protocol: fields of :class:`Protocol` to change (e.g. ``sample_hz=2.0``).
+        """
+
+        def fields(kind, given):
+            names = {f.name for f in dataclasses.fields(kind)}
+            return {k: tuple(v) if isinstance(v, list) else v for k, v in given.items() if k in names}
+
+        hidden = card["hidden_effect"]
+        return cls(
+            effects=[hidden["name"]],
+            theta=hidden["theta"],
+            seed=int(card.get("seed", 0)) if seed is None else int(seed),
+            noise=Noise(**fields(Noise, card.get("noise", {}))) if noise is None else noise,
+            protocol=Protocol(**(fields(Protocol, card.get("protocol", {})) | protocol)),
+            simulator=simulator,
+        )
+
     # -- truth -------------------------------------------------------------------------------
     def _theta(self, design: Membrane) -> dict:
         theta = dict(self.theta)

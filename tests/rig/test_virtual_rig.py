@@ -267,3 +267,23 @@ def test_bundled_dataset_regenerates_bit_for_bit(tmp_path, monkeypatch):
         pytest.skip("the simulator's source changed since the dataset was made: regenerate it")
     out = _load_script(monkeypatch).build(tmp_path, cache_dir=None)
     assert _sha(Path(out["parquet"])) == card["sha256"]
+
+
+def test_a_rig_from_the_bundled_card_is_the_rig_the_card_describes():
+    """``VirtualRig.from_card``: the card's hidden effect, seed, noise and protocol (the
+    stand-in demo measures its world with it); overrides change only what they name."""
+    from mfdesign.data.shipped import bundled_card_path
+
+    card = json.loads(bundled_card_path().read_text())
+    rig = VirtualRig.from_card(card, simulator=standin_plane)
+    assert [e.name for e in rig.effects] == [card["hidden_effect"]["name"]]
+    assert rig.theta == card["hidden_effect"]["theta"] and rig.seed == card["seed"]
+    assert rig.noise.force_sd_n == card["noise"]["force_sd_n"] > 0
+    assert list(rig.protocol.heights_mm) == card["protocol"]["heights_mm"]
+    assert rig.protocol.sample_hz == card["protocol"]["sample_hz"]
+    quiet = VirtualRig.from_card(card, simulator=standin_plane, seed=7, noise=Noise.none(), sample_hz=2.0)
+    assert quiet.seed == 7 and quiet.noise == Noise.none() and quiet.protocol.sample_hz == 2.0
+    assert quiet.protocol.heights_mm == rig.protocol.heights_mm
+    # the truth itself: a noise-free trial reads the hidden offset on an exact plane
+    one = quiet.run([Membrane.from_key(card["designs"][1])], lift=False, progress=False).df
+    assert len(one) > 10 and np.all(np.isfinite(one["force_n"]))
