@@ -780,7 +780,7 @@ class Campaign:
 
     def _heldout(self, state: _State, last: Path) -> dict | None:
         """The last round's model on the sources told after it (membranes it never saw)."""
-        from mfdesign.calibration.workflow import MFFit
+        from mfdesign.calibration.workflow import MFFit, for_table
         from mfdesign.models.predictive import coverage
 
         seen = json.loads((last / "round.json").read_text())["data"]["sources"]
@@ -789,7 +789,11 @@ class Campaign:
             return None
         table = self.data(new)
         prev = MFFit.load(last / "model")
-        cov = coverage(prev.mf, table, level=0.9, key=prev.seed)  # type: ignore[arg-type]
+        # where the model meets data: on the campaign's physics (exact: the told membranes'
+        # own planes, which the fit that follows reads from the cache), not on the search
+        # physics the round was saved with (the emulator's error is not the model's)
+        mf = for_table(prev, table, self.settings.physics)
+        cov = coverage(mf, table, level=0.9, key=prev.seed)
         return {
             "model_round": int(last.name[len(_ROUND_PREFIX) :]),
             "sources": new,
@@ -797,6 +801,7 @@ class Campaign:
             "rows": len(table),
             "rmse_n": cov["rmse_n"],
             "coverage90": cov["coverage"],
+            "physics": self.settings.physics,
         }
 
     def ask(self, q: int = 2, sim_runs: int = 0, *, progress: bool = False, simulate=None, call: str = ""):

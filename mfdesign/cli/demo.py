@@ -16,7 +16,9 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("out/demo"), help="Output folder (report: OUT/index.html)."),
         quick: bool = typer.Option(False, help="Shrink every stage (a smoke test of the whole loop)."),
         physics: str = typer.Option(
-            "exact", help="Where the model meets the data: exact (simulator planes) | emulator | standin (tests)."
+            "exact",
+            help="Where the model meets the data: exact (simulator planes) | emulator | standin (tests: the bundled "
+            "designs measured on the virtual rig over the stand-in, a world of its own).",
         ),
         seed: int = typer.Option(0, help="Random seed."),
         calibrate_plain: bool = typer.Option(
