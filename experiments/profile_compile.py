@@ -85,9 +85,10 @@ def main(argv=None) -> dict:
         if args.core is not None:
             cmd = ["taskset", "-c", str(args.core), *cmd]
         t0, r0 = time.perf_counter(), os.times()
-        proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        # one stream: the stage lines (stdout) and the compile log (stderr) in their order
+        proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         r1 = os.times()
-        lines = (proc.stdout + proc.stderr).splitlines()
+        lines = proc.stdout.splitlines()
         result |= {
             "command": " ".join(cmd),
             "planes_preloaded": str(args.planes) if args.planes else None,
