@@ -21,7 +21,9 @@ within trials), emcee ``--walkers`` x ``--steps``, ensembles ``--members`` x ``-
 
     python experiments/real_mass_lift.py [--steps 1000] [--max-rows 400] [--folds 7]
 
-Writes ``experiments/out/real_mass_lift.{json,png}``.
+Writes ``OUT/real_mass_lift.{json,png}``; give every variant its own ``--out`` (the default
+folder's ``real_mass_lift.json`` holds the nested leave-one-membrane-out of
+``experiments/real_nested_lomo.py``, which this script refuses to overwrite).
 """
 
 from __future__ import annotations
@@ -319,7 +321,12 @@ def main():
         ),
     }
     stem = "real_mass_lift" if args.physics == "exact" else "real_mass_lift_emulator"
-    write_json(args.out / f"{stem}.json", out, default=float)
+    target = args.out / f"{stem}.json"
+    if target.is_file() and "nested" in json.loads(target.read_text()):
+        # experiments/out/real_mass_lift.json holds the nested leave-one-membrane-out
+        # (experiments/real_nested_lomo.py; issue 42): a variant's run goes to its own folder
+        raise SystemExit(f"{target} holds the nested leave-one-membrane-out; give this variant its own --out")
+    write_json(target, out, default=float)
     print(json.dumps(summary, indent=1))
     print(f"mu {out['mu_pa']} (paper 31.5 kPa), J_m {out['jm']} (paper 39.6)")
     _plot(summary, rows, names, args.out / f"{stem}.png")

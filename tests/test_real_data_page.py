@@ -23,10 +23,10 @@ OUT = ROOT / "experiments" / "out"
 
 RECOMMENDED = "real_mass_lift_rings_coupons_tensor"
 # The eight leave-one-membrane-out variants the recommended one was chosen from, in the
-# page's order: folder under experiments/out ("." = the default file names) and the words
-# the page gives it.
+# page's order: folder under experiments/out and the words the page gives it.
+SUPERSEDED = "real_mass_lift_free_latents"
 VARIANTS = {
-    ".": "rubber free, latents, `fabric_inset`, tensor-jm (superseded)",
+    SUPERSEDED: "rubber free, latents, `fabric_inset`, tensor-jm (superseded)",
     "real_mass_lift_jm_coupons": "J_m held, latents, `fabric_inset`, tensor-jm",
     "real_mass_lift_material_coupons": "coupons' rubber, latents, `fabric_inset`, tensor-jm",
     "real_mass_lift_material_nolatents": "coupons' rubber, no latents, `fabric_inset`, tensor-jm",
@@ -35,12 +35,15 @@ VARIANTS = {
     "real_mass_lift_rings_coupons": "coupons' rubber, no latents, `fabric_inset` + `ring_stiffening`, tensor-jm",
     RECOMMENDED: "**coupons' rubber, no latents, `fabric_inset` + `ring_stiffening`, tensor (recommended)**",
 }
+# The default file names hold the nested leave-one-membrane-out (issue 42 item 2): the
+# variant chosen inside each fold from its candidates, beside the best of eight.
+NESTED = "real_mass_lift.json"
 # The ninth variant: an inset per membrane (issue 42 item 3), scored on the same folds.
 PER_MEMBRANE = "real_mass_lift_inset_per_membrane"
 DISCRIMINATE = "real_discriminate/discriminate.json"
 # What each variant's settings must be for its words above to be true.
 SETTINGS = {
-    ".": dict(
+    SUPERSEDED: dict(
         effects=["fabric_inset"], effect_axes="tensor-jm", material_coupons=False, jm_coupons=False, no_latents=False
     ),
     "real_mass_lift_jm_coupons": dict(
@@ -108,7 +111,7 @@ def _load(name: str) -> dict:
 
 
 def _lomo(folder: str) -> dict:
-    return _load(f"{folder}/real_mass_lift.json" if folder != "." else "real_mass_lift.json")
+    return _load(f"{folder}/real_mass_lift.json")
 
 
 def _post(res: dict, name: str) -> dict:
@@ -152,7 +155,7 @@ def _checks() -> list[str]:
     e = {v: _lomo(v)["metrics_held_out"]["e_multi_fidelity"] for v in VARIANTS}
     free = _lomo("real_mass_lift_nolatents")
     rings_free = _lomo("real_mass_lift_rings")
-    old = _lomo(".")
+    old = _lomo(SUPERSEDED)
     latent_odd = _post(old, f"thickness_rel {ODD}")["median"]  # the run with latents: its relative thickness
     a, ee = "a_sim_paper", "e_multi_fidelity"
     return [
@@ -213,7 +216,7 @@ def _checks() -> list[str]:
         "pooled force {:.2f} -> {:.2f} N (coupons' rubber), {:.2f} -> {:.2f} N (rubber free)".format(
             e["real_mass_lift_material_coupons"]["rmse_n"],
             e["real_mass_lift_material_nolatents"]["rmse_n"],
-            e["."]["rmse_n"],
+            e[SUPERSEDED]["rmse_n"],
             e["real_mass_lift_nolatents"]["rmse_n"],
         ),
         "calibrated noise {:.2f} N [{:.2f}, {:.2f}]".format(noise["median"], noise["q05"], noise["q95"]),
@@ -223,7 +226,61 @@ def _checks() -> list[str]:
         "the {:.2f}x the lifts ask for".format(ring["median"]),
         *_per_membrane_checks(),
         *_discriminate_checks(),
+        *_nested_checks(),
     ]
+
+
+def _short(folder: str) -> str:
+    return "`" + folder.removeprefix("real_mass_lift_") + "`"
+
+
+def _nested_checks() -> list[str]:
+    """The sentences of the nested leave-one-membrane-out, from the default file names' JSON."""
+    nest = _load(NESTED)
+    n, b = nest["nested"]["pooled"], nest["best_of_eight"]["pooled"]
+    chosen = [r["variant"] for r in nest["nested"]["folds"]]
+    counts = sorted({v: chosen.count(v) for v in chosen}.items(), key=lambda kv: (-kv[1], kv[0]))
+    words = ("none", "one", "two", "three", "four", "five", "six", "seven", "eight")
+    return [
+        "Candidates: {} ({} of the eight)".format(
+            ", ".join(_short(v) for v in nest["candidates"]), words[len(nest["candidates"])]
+        ),
+        "every fold chose {}".format(_short(chosen[0]))
+        if len(counts) == 1
+        else "the folds chose {}".format(
+            ", ".join(f"{_short(v)} {words[c]} times" if c > 1 else f"{_short(v)} once" for v, c in counts)
+        ),
+        "pooled force {:.2f} against {:.2f} N, trajectory mean / median {:.3f} / {:.3f} against {:.3f} / {:.3f}, "
+        "coverage {:.2f} against {:.2f}".format(
+            n["rmse_n"],
+            b["rmse_n"],
+            n["traj_mean"],
+            n["traj_median"],
+            b["traj_mean"],
+            b["traj_median"],
+            n["coverage90"],
+            b["coverage90"],
+        ),
+    ]
+
+
+def _nested_rows() -> list[str]:
+    """The nested table: per held-out membrane the variant its fold chose and that variant's
+    (e) row, beside the best of eight's; then the pooled figures."""
+    nest = _load(NESTED)
+    cell = lambda x: f"{x['rmse_n']:.2f} / {x['traj_rmse_p']:.3f} / {x['coverage90']:.2f}"  # noqa: E731
+    rows = []
+    for x, y in zip(nest["nested"]["folds"], nest["best_of_eight"]["folds"]):
+        assert x["membrane"] == y["membrane"]
+        rows.append(f"| {NAMES[x['membrane']][1]} | {_short(x['variant'])} | {cell(x)} | {cell(y)} |")
+    n, b = nest["nested"]["pooled"], nest["best_of_eight"]["pooled"]
+    rows += [
+        f"| pooled force RMSE | | {n['rmse_n']:.2f} | {b['rmse_n']:.2f} |",
+        f"| trajectory mean / median | | {n['traj_mean']:.3f} / {n['traj_median']:.3f} | "
+        f"{b['traj_mean']:.3f} / {b['traj_median']:.3f} |",
+        f"| 90 % coverage | | {n['coverage90']:.2f} | {b['coverage90']:.2f} |",
+    ]
+    return rows
 
 
 def _per_membrane_checks() -> list[str]:
@@ -268,12 +325,6 @@ def _discriminate_checks() -> list[str]:
     d = _load(DISCRIMINATE)
     bic = [h["bic"] for h in d["hypotheses"]]
     top = d["ranked"][0]
-    pr = top["predictions"]
-    last = len(pr["rows"]) - 1
-    cells = [
-        "{:.1f} [{:.1f}, {:.1f}] mm".format(v["mean"][last], v["lo"][last], v["hi"][last])
-        for v in pr["by_hypothesis"].values()
-    ]
     return [
         "BIC {:.1f} against {:.1f} for one inset and {:.1f} without stiff rings".format(bic[1], bic[0], bic[2]),
         "`{}`".format(top["experiment"]["design"]),
@@ -283,10 +334,6 @@ def _discriminate_checks() -> list[str]:
         "expected log Bayes factor {:.2f}, expected probability of the truth after it {:.2f}".format(
             top["score_expected_log_bf"], top["expected_p_truth"]
         ),
-        "at {:g} Pa the plate should float at {} (one inset), {} (an inset per membrane) or {} (no stiff rings)".format(
-            pr["rows"][last]["pressure_pa"], *cells
-        ),
-        "{} of the {} candidates".format(len(d["not_scored"]), len(d["ranked"]) + len(d["not_scored"])),
     ]
 
 
@@ -300,30 +347,31 @@ def _table_rows() -> list[str]:
     out, and the eight variants it was chosen from."""
     rec = _lomo(RECOMMENDED)
     f, m = rec["folds"], rec["metrics_held_out"]
-    models = ("a_sim_paper", "b_sim_calibrated", "e_multi_fidelity")
+    models = ("a_sim_paper", "e_multi_fidelity")
     rows = [f"| {x['membrane']} | {NAMES[x['membrane']][0]} | {x['n']} |" for x in f["a_sim_paper"]]
     for k, x in enumerate(f["a_sim_paper"]):
         cells = [
             f"{f[n][k]['rmse_n']:.2f} / {f[n][k]['traj_rmse_p']:.3f} / {f[n][k]['coverage90']:.2f}" for n in models
         ]
-        rows.append(f"| {x['membrane']} | {' | '.join(cells)} | {f['b_sim_calibrated'][k]['tau_ratio']:.1f} |")
-    rows.append("| pooled force RMSE | " + " | ".join(f"{m[n]['rmse_n']:.2f}" for n in models) + " | |")
+        rows.append(f"| {x['membrane']} | {' | '.join(cells)} |")
+    rows.append("| pooled force RMSE | " + " | ".join(f"{m[n]['rmse_n']:.2f}" for n in models) + " |")
     rows.append(
         "| trajectory mean / median | "
         + " | ".join(f"{m[n]['traj_mean']:.3f} / {m[n]['traj_median']:.3f}" for n in models)
-        + " | |"
+        + " |"
     )
-    rows.append("| 90 % coverage | " + " | ".join(f"{m[n]['coverage90']:.2f}" for n in models) + " | |")
+    rows.append("| 90 % coverage | " + " | ".join(f"{m[n]['coverage90']:.2f}" for n in models) + " |")
     worse_force = [", ".join(NAMES[k][1] for k in m[n]["worse_than_paper"]) for n in models[1:]]
-    rows.append("| worse than plain physics on force | | " + " | ".join(worse_force) + " | |")
+    rows.append("| worse than plain physics on force | | " + " | ".join(worse_force) + " |")
     worse_traj = [", ".join(_worse_on_trajectory(rec, n)) for n in models[1:]]
-    rows.append("| worse than plain physics on trajectory | | " + " | ".join(worse_traj) + " | |")
+    rows.append("| worse than plain physics on trajectory | | " + " | ".join(worse_traj) + " |")
     rows += _per_membrane_rows()
+    rows += _nested_rows()
     for folder, words in VARIANTS.items():
         res = _lomo(folder)
         e = res["metrics_held_out"]["e_multi_fidelity"]
         taus = [x["tau_ratio"] for x in res["folds"]["b_sim_calibrated"]]
-        name = "real_mass_lift.json" if folder == "." else folder + "/"
+        name = folder + "/"
         inset = _post(res, "fabric_inset.inset_mm")["median"]
         rows.append(
             f"| {words} | {name} | {e['rmse_n']:.2f} | {e['traj_mean']:.3f} / {e['traj_median']:.3f} | "
@@ -333,7 +381,8 @@ def _table_rows() -> list[str]:
 
 
 def _per_membrane_rows() -> list[str]:
-    """The per-membrane inset's held-out table beside the recommended variant's (e)."""
+    """The per-membrane inset's held-out table beside the recommended variant's (e) (plain
+    physics is in the table above it)."""
     pm, rec = _lomo(PER_MEMBRANE), _lomo(RECOMMENDED)
     f, g = pm["folds"], rec["folds"]
     cell = lambda x: f"{x['rmse_n']:.2f} / {x['traj_rmse_p']:.3f} / {x['coverage90']:.2f}"  # noqa: E731
@@ -341,15 +390,14 @@ def _per_membrane_rows() -> list[str]:
     for k, x in enumerate(f["a_sim_paper"]):
         (j,) = [i for i, y in enumerate(g["a_sim_paper"]) if y["membrane"] == x["membrane"]]
         rows.append(
-            f"| {NAMES[x['membrane']][1]} | {cell(x)} | {cell(g['e_multi_fidelity'][j])} | "
-            f"{cell(f['e_multi_fidelity'][k])} | {f['b_sim_calibrated'][k]['tau_ratio']:.1f} |"
+            f"| {NAMES[x['membrane']][1]} | {cell(g['e_multi_fidelity'][j])} | {cell(f['e_multi_fidelity'][k])} |"
         )
     worse = [
         ", ".join(NAMES[k][1] for k in r["metrics_held_out"]["e_multi_fidelity"]["worse_than_paper"]) for r in (rec, pm)
     ]
-    rows.append(f"| worse than plain physics on force | | {worse[0]} | {worse[1]} | |")
+    rows.append(f"| worse than plain physics on force | {worse[0]} | {worse[1]} |")
     traj = [", ".join(_worse_on_trajectory(r, "e_multi_fidelity")) for r in (rec, pm)]
-    rows.append(f"| worse than plain physics on trajectory | | {traj[0]} | {traj[1]} | |")
+    rows.append(f"| worse than plain physics on trajectory | {traj[0]} | {traj[1]} |")
     return rows
 
 
@@ -413,8 +461,8 @@ def test_the_variants_are_what_the_page_says():
     rings = _lomo("real_mass_lift_rings")
     assert sum(x["tau_ratio"] < 50 for x in rings["folds"]["b_sim_calibrated"]) == 1
     assert len(e["real_mass_lift_rings"]["worse_than_paper"]) == 2
-    # the default file names hold the superseded run, unconverged
-    old = _lomo(".")
+    # the superseded run, unconverged
+    old = _lomo(SUPERSEDED)
     assert not old["posterior_all_membranes"]["convergence"]["converged"]
     assert max(x["tau_ratio"] for x in old["folds"]["b_sim_calibrated"]) < 50
     # two trials a weight on every membrane
@@ -422,6 +470,31 @@ def test_the_variants_are_what_the_page_says():
     for t in _load("real_floor.json")["stalls"]:
         trials[(t["membrane"], t["force_n"])] = trials.get((t["membrane"], t["force_n"]), 0) + 1
     assert set(trials.values()) == {2} and len(trials) == 7 * 3
+
+
+def test_the_nested_selection_is_what_its_json_says():
+    """The default file names' JSON: every fold's choice is the lowest inner score of its
+    candidates; its held-out row is that variant's committed (e) row (trained on the same six,
+    no leak); the pooled figures are pooled as real_mass_lift.py pools them; the best of eight
+    beside it is the recommended variant's table."""
+    nest = _load(NESTED)
+    assert set(nest["candidates"]) <= set(VARIANTS)
+    for folder, s in nest["candidates"].items():
+        assert {k: s.get(k) for k in SETTINGS[folder] if k != "physics"} == {
+            k: v for k, v in SETTINGS[folder].items() if k != "physics"
+        }, folder
+    rows = nest["nested"]["folds"]
+    assert [r["membrane"] for r in rows] == list(NAMES)
+    for r in rows:
+        scores = nest["inner_scores"][r["membrane"]]
+        assert set(scores) == set(nest["candidates"])
+        assert r["variant"] == min(scores, key=lambda v: scores[v]["force_rmse_n"]) == nest["choice"][r["membrane"]]
+        (own,) = [x for x in _lomo(r["variant"])["folds"]["e_multi_fidelity"] if x["membrane"] == r["membrane"]]
+        assert all(r[k] == own[k] for k in ("rmse_n", "traj_rmse_p", "coverage90", "n"))
+    rec = _lomo(RECOMMENDED)["metrics_held_out"]["e_multi_fidelity"]
+    assert nest["best_of_eight"]["variant"] == RECOMMENDED
+    for k in ("rmse_n", "coverage90", "traj_mean", "traj_median"):
+        assert nest["best_of_eight"]["pooled"][k] == pytest.approx(rec[k], abs=1e-12)
 
 
 def test_the_figure_names_its_variant():
