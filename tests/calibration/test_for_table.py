@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from mfdesign.design import Membrane
+from mfdesign.physics.solve import force_at
 
 CALIBRATED = "[2.0, 25.4, nan, nan, nan, nan]"
 NEW = "[1.75, 32.0, nan, nan, nan, nan]"
@@ -53,11 +54,17 @@ def test_a_fit_predicts_a_new_membrane_on_its_own_planes(tmp_path, monkeypatch):
     data = mf.data_for(None, None, None, table=new)
     draws = np.asarray(mf.sample_data(data, 0))
     assert np.all(np.isfinite(draws))  # every posterior draw inside the lattice at every row
-    # the new membrane's rows at the posterior median are the simulator's own planes there
+    # at the posterior median, the new membrane's rows are the simulator's own forces there
+    # (within the lattice's interpolation: tests/calibration/test_effect_axes.py allows 0.15 N)
+    import jax
+
     x = np.median(np.asarray(mf.theta), axis=0)
     params = mf.model.sim_params(jnp.asarray(x), data)
-    direct = force_model_named("exact", new).covering(params)
-    h, p = data.rows.h_mm, data.rows.p_pa  # any set-points: the two models must agree there
-    got = np.asarray(fm(data.design, h, p, params))
-    ref = np.asarray(direct(data.design, h, p, params))
-    assert np.all(np.isfinite(ref)) and np.max(np.abs(got - ref)) < 1e-6
+    pick = np.linspace(0, len(data) - 1, 8).astype(int)
+    one = jax.tree.map(lambda a: float(np.asarray(a).reshape(-1)[pick[0]]), params)  # one membrane: one row's
+    h, p = np.asarray(data.rows.h_mm)[pick], np.asarray(data.rows.p_pa)[pick]
+    got = np.asarray(fm(jnp.asarray(np.asarray(data.design)[pick]), jnp.asarray(h), jnp.asarray(p), one))
+    ref = np.asarray(force_at(Membrane.from_key(NEW), h, p, one).force_n)
+    ok = np.isfinite(ref)
+    assert ok.sum() >= 6 and np.all(np.isfinite(got[ok]))
+    assert np.max(np.abs(got[ok] - ref[ok])) <= 0.15, got - ref
