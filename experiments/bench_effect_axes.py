@@ -5,7 +5,8 @@ J_m and the ring ratio on a crossed (tensor) lattice and the inset's axis added 
 reference material: ``G = G_T(jm, ring) + G_inset(c) - G_inset(0)``, first order in the
 cross terms. This measures that approximation against direct simulator calls
 (``force_at``, the truth) on the real membranes' floating lift rows, at the constants the
-calibration reaches (by default the posterior medians that ``real_mass_lift.json`` holds,
+calibration reaches (by default the posterior medians that the first variant's
+``real_mass_lift_free_latents/real_mass_lift.json`` holds, the run the committed JSON measured,
 else ``--mu-pa/--jm/--inset-mm``), and writes RMS / max error per membrane, and both
 models' RMSE against the measured force on the same rows (what the lattice's error does to
 a fit's figures).
@@ -52,7 +53,8 @@ def main():
     from mfdesign.physics.params import SimParams
     from mfdesign.physics.solve import force_at
 
-    src = OUT / "real_mass_lift.json"
+    # the first variant's run (real_mass_lift.json now holds the nested leave-one-membrane-out)
+    src = OUT / "real_mass_lift_free_latents" / "real_mass_lift.json"
     post = {}
     if src.is_file():
         rows = {r["parameter"]: r for r in json.loads(src.read_text())["posterior_all_membranes"]["parameters"]}
