@@ -393,7 +393,10 @@ class ForwardModel(RecordedForceModel):
         if missing:
             raise KeyError(f"no parameter(s) {missing}; known: {list(names)}")
         t = theta_vector(order, theta)
-        k = max(len(free), pad_cols)
+        # columns to the next power of two: the screen's rounds ask for 16, then 14 (the
+        # found effect's out), the refit for KMAX = 4; each count was its own compile
+        # (~5 s each on the exact model, issue 40), a few padded columns cost less
+        k = _pow2(max(len(free), pad_cols, 1))
         P = np.zeros((len(names), k))
         for j, f in enumerate(free):
             P[names.index(f), j] = 1.0
@@ -437,7 +440,30 @@ class ForwardModel(RecordedForceModel):
         x = np.asarray(x0, float)
         self.cover(meas, order, t0 + np.einsum("bij,bj->bi", P, x), rows)
         for _ in range(LATTICE_ROUNDS):
-            x, ok = _fit_batch(
+            x, ok = self._fit_chunks(design, rws, target, order, names, sigma, t0, P, w, tau, x, max_steps)
+            if not self.cover(meas, order, t0 + np.einsum("bij,bj->bi", P, x), rows):
+                break
+        return x, ok
+
+    def _fit_chunks(self, design, rws, target, order, names, sigma, t0, P, w, tau, x, max_steps):
+        """:func:`_fit_batch` on chunks of :data:`FIT_CHUNK` problems: a batch of any size
+        runs one compiled program (its size was in the shapes: 8 and 12 problems were two
+        compiles of ~10 s, issue 40). The fits run one after the other anyway (``lax.map``),
+        so chunks cost no speed; the last one is filled with inert problems (weight 0, start
+        0, no free direction: their residuals are 0 at the start, so they stop at once)."""
+        b = len(x)
+        m = -(-b // FIT_CHUNK) * FIT_CHUNK
+        fill = lambda a, v: np.concatenate([a, np.full((m - b,) + a.shape[1:], v, float)])  # noqa: E731
+        args = (
+            np.concatenate([t0, np.broadcast_to(t0[:1], (m - b,) + t0.shape[1:])]),
+            fill(P, 0.0),
+            fill(np.asarray(w, float), 0.0),
+            fill(np.asarray(tau, float), 1.0),
+            fill(x, 0.0),
+        )
+        xs, oks = [], []
+        for a in range(0, m, FIT_CHUNK):
+            xc, okc = _fit_batch(
                 self.clipped,
                 order,
                 names,
@@ -446,16 +472,22 @@ class ForwardModel(RecordedForceModel):
                 rws,
                 jnp.asarray(target, float),
                 float(sigma),
-                *(jnp.asarray(a, float) for a in (t0, P, w, tau, x)),
+                *(jnp.asarray(v[a : a + FIT_CHUNK], float) for v in args),
                 int(max_steps),
             )
-            x, ok = np.asarray(x), np.asarray(ok)
-            if not self.cover(meas, order, t0 + np.einsum("bij,bj->bi", P, x), rows):
-                break
-        return x, ok
+            xs.append(np.asarray(xc))
+            oks.append(np.asarray(okc))
+        return np.concatenate(xs)[:b], np.concatenate(oks)[:b]
 
 
 JACOBIAN_COVER_STEP = 1e-3  # parameter units: a step that reaches the first lattice node of its axis
+# Problems per compiled fit call: a full check's batch is candidate sets x (1 + 3 folds)
+FIT_CHUNK = 4
+
+
+def _pow2(k: int) -> int:
+    """The smallest power of two >= ``k`` (a compiled shape that many counts share)."""
+    return 1 << (k - 1).bit_length()
 
 
 # -- the back ends ----------------------------------------------------------------------------------

@@ -297,7 +297,12 @@ class Emulator(ForceModel):
             )
         cfg = EmulatorConfig.from_dict(meta["config"])
         ranges = {k: tuple(v) for k, v in meta["ranges"].items()}
-        skeleton = init_emulator(cfg, np.asarray(meta["feat_mean"]), np.asarray(meta["feat_std"]), ranges)
+        # shapes only (eval_shape): every weight is read from the file, and running the
+        # members' initialisers eagerly under vmap compiled one random program per layer
+        # shape (5 of them, ~2.9 s of a cold demo, issue 40)
+        skeleton = eqx.filter_eval_shape(
+            init_emulator, cfg, np.asarray(meta["feat_mean"]), np.asarray(meta["feat_std"]), ranges
+        )
         return eqx.tree_deserialise_leaves(path / "emulator.eqx", skeleton)
 
 

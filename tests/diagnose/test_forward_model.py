@@ -97,3 +97,52 @@ def test_the_exact_back_end_grows_its_lattice_in_the_cache(meas):
     start = emu.force_model
     emu.expected_force(meas, ["contact_offset"], THETA)
     assert emu.force_model is start
+
+
+def test_padded_shapes_give_the_unpadded_numbers(meas):
+    """Columns padded to a power of two and fits run in chunks of FIT_CHUNK problems (one
+    compiled program for every count, issue 40) give what the unpadded calls give: each
+    Jacobian column as when asked alone, each fit as the whole batch in one call."""
+    import jax.numpy as jnp
+
+    from mfdesign.diagnosis import forward as fw
+
+    sim = EmulatorForwardModel(StandinForceModel())
+    rows = np.arange(0, len(meas), 5)
+    effects = ["contact_offset", "pressure_sensor"]
+    free = ["contact_offset.offset_mm", "pressure_sensor.gain", "pressure_sensor.offset_pa"]
+    J = sim.jacobian(meas, free, effects, THETA, rows=rows)  # 3 columns, computed as 4
+    assert J.shape == (len(rows), 3)
+    for j, f in enumerate(free):
+        np.testing.assert_allclose(J[:, j], sim.jacobian(meas, [f], effects, THETA, rows=rows)[:, 0], rtol=1e-12)
+
+    order = fw.effect_order(["contact_offset"])
+    names = fw.parameter_names(order)
+    t0 = fw.theta_vector(order, None)
+    target = sim.expected_force(meas, ["contact_offset"], THETA, rows=rows)
+    b = fw.FIT_CHUNK + 1  # a full chunk and one problem in a padded one
+    P = np.zeros((b, len(names), 1))
+    P[:, names.index("contact_offset.offset_mm"), 0] = 1.0
+    rng = np.random.default_rng(0)
+    w = (rng.random((b, len(rows))) < 0.7).astype(float)
+    tau = np.full((b, 1), 2.0)
+    x0 = np.linspace(0.0, 0.4, b)[:, None]
+    t0s = np.broadcast_to(t0, (b, len(t0)))
+    x, ok = sim.fit(meas, rows, target, order, t0s, P, w, tau, x0, 0.1)
+    assert x.shape == (b, 1) and ok.shape == (b,) and ok.all()
+    design, rws = sim.table(meas, rows)
+    x_all, ok_all = fw._fit_batch(  # the whole batch in one call, as before the chunks
+        sim.clipped,
+        order,
+        names,
+        sim.base_params,
+        design,
+        rws,
+        jnp.asarray(target),
+        0.1,
+        *(jnp.asarray(a, float) for a in (t0s, P, w, tau, x0)),
+        60,
+    )
+    np.testing.assert_allclose(x, np.asarray(x_all), rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(ok, np.asarray(ok_all))
+    assert np.allclose(x, 0.5, atol=0.05)
