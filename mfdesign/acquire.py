@@ -36,7 +36,9 @@ ring count, plain L-BFGS from 100 starts 18.7-20.1 s, for the same utility. The 
 ``u = (1 + sin z) / 2`` with ``z`` unconstrained, so every iterate is a valid design.
 Restarts and ring counts run together under ``jax.vmap`` in one ``jax.jit`` per fidelity
 (the ring count is data, :meth:`~mfdesign.design.DesignSpace.decode_any`: three ring counts
-cost one compilation, not three). The final batch is the
+cost one compilation, not three), or one for every fidelity when the predictor takes the
+fidelity as data (``fidelity_as_data``: :class:`~mfdesign.models.predictive.MultiFidelityPredictor`;
+a budget's smaller counts are then padded to the largest with masked slots). The final batch is the
 best of (a) each arm's best joint batch and (b) a cost-benefit greedy mix over the pool of
 all optimised designs of all arms (Leskovec et al. 2007, "Cost-effective outbreak
 detection in networks"; ``U`` is a facility-location function, hence submodular), which
@@ -142,7 +144,10 @@ class BatchUncertainty(eqx.Module):
 
     predictor: AbstractPredictor
     pending: jax.Array  # [M] N
-    fidelity: str = eqx.field(static=True)
+    # a name (static: one compiled program per fidelity), or, for a predictor that takes
+    # the fidelity as data (``fidelity_as_data``), an integer index into its fidelities
+    # (:func:`_fidelity_arg`): one program serves every fidelity
+    fidelity: str | jax.Array
     grid: Grid = eqx.field(static=True)
 
     def deviation(self, design):
@@ -152,6 +157,17 @@ class BatchUncertainty(eqx.Module):
     def __call__(self, design):
         """``U(B | P)`` (N) of designs ``[q, 6]`` mm."""
         return batch_utility(self.deviation(design), self.pending)
+
+
+def _fidelity_arg(predictor: AbstractPredictor, fidelity: str):
+    """``fidelity`` as the compiled kernels take it: an index array (data) for a predictor
+    whose members take the fidelity as data (``fidelity_as_data``, e.g.
+    :class:`~mfdesign.models.predictive.MultiFidelityPredictor`), so that every fidelity
+    shares one compiled program; the name (static) otherwise."""
+    if getattr(predictor, "fidelity_as_data", False):
+        predictor.check_fidelity(fidelity)
+        return jnp.asarray(predictor.fidelities.index(fidelity), jnp.int32)
+    return fidelity
 
 
 @eqx.filter_jit
@@ -175,7 +191,8 @@ def pending_deviation(predictor: AbstractPredictor, pending, grid: Grid = Grid()
     broadcasts over the members, and every deviation is > 0, so the score is unchanged)."""
     if len(pending) == 0:
         return np.zeros(1)
-    return np.asarray(_deviation(predictor, _PENDING_FIDELITY, jnp.asarray(_rows(pending)), grid)).max(axis=1)
+    fid = _fidelity_arg(predictor, _PENDING_FIDELITY)
+    return np.asarray(_deviation(predictor, fid, jnp.asarray(_rows(pending)), grid)).max(axis=1)
 
 
 # Pending designs are membranes being fabricated: their measurements will be rig data.
@@ -204,7 +221,9 @@ def evaluate(
     dev = [None] * len(rows)
     for f in dict.fromkeys(fidelities):  # one compiled call per fidelity
         idx = [j for j, g in enumerate(fidelities) if g == f]
-        d = np.asarray(_deviation(predictor, f, jnp.asarray(rows[idx]), grid))  # [M, len(idx)]
+        d = np.asarray(
+            _deviation(predictor, _fidelity_arg(predictor, f), jnp.asarray(rows[idx]), grid)
+        )  # [M, len(idx)]
         for k, j in enumerate(idx):
             dev[j] = d[:, k]
     dev = np.stack(dev, axis=0)  # [q, M]
@@ -218,6 +237,13 @@ def evaluate(
 # Restarts screened per block: the ensemble's hidden activations for a block of restarts
 # are [M, block, q, heights, width]; blocks keep them to tens of MB at 1,000+ restarts.
 SCREEN_BLOCK = 128
+
+
+def _masked(dev, mask):
+    """Deviations ``[M, q]`` with the padding slots (``mask`` [q] False) at 0: every
+    deviation is > 0, so a padding slot never wins a member's max (:func:`batch_utility`)
+    and its coordinates get no gradient."""
+    return dev if mask is None else jnp.where(mask, dev, 0.0)
 
 
 @eqx.filter_jit
@@ -234,14 +260,17 @@ def _screen(acq: BatchUncertainty, u0, n_rings, space):
     return jax.vmap(arm)(u0, n_rings)
 
 
-def initial_batches(acq: BatchUncertainty, u0, n_rings, space: DesignSpace, n_best: int):
+def initial_batches(acq: BatchUncertainty, u0, n_rings, space: DesignSpace, n_best: int, mask=None):
     """The optimiser's start heuristic, apart from the acquisition (BoTorch's raw-sample
     screen, ``optim.initializers``): random batches ``u0 [A, R, q, 6]`` (unit cube) of ring
     counts ``n_rings [A]`` are scored by one forward pass of ``acq`` and the best ``n_best``
-    per ring count kept, ``[A, n_best, q, 6]`` (all of them when ``n_best >= R``)."""
+    per ring count kept, ``[A, n_best, q, 6]`` (all of them when ``n_best >= R``).
+    ``mask`` [q]: the batch's slots (False: padding, left out of the score)."""
     if n_best >= u0.shape[1]:
         return u0
     dev0 = np.asarray(_screen(acq, u0, n_rings, space))  # [A, R, q, M]
+    if mask is not None:
+        dev0 = np.where(np.asarray(mask)[:, None], dev0, 0.0)
     util0 = np.asarray(batch_utility(np.moveaxis(dev0, -1, 0), acq.pending))  # [A, R]
     util0 = np.nan_to_num(util0, nan=-np.inf)
     order = np.argsort(-util0, axis=1, kind="stable")[:, :n_best]
@@ -256,22 +285,30 @@ LINESEARCH_STEPS = 4
 
 
 @eqx.filter_jit
-def _optimise(acq: BatchUncertainty, z0, n_rings, space, n_steps):
+def _optimise(acq: BatchUncertainty, z0, n_rings, space, n_steps, mask=None):
     """``z0 [A, R, q, 6]``, ring counts ``n_rings [A]`` -> ``(u [A, R, q, 6], dev [A, R, q, M])``:
     every restart of every ring count runs ``n_steps`` L-BFGS iterations on ``-acq``
-    (``jax.vmap`` over ring counts and restarts: one compiled call per fidelity, reused for
-    any predictor of the same structure, e.g. a refitted ensemble). The ring count is data
-    (:meth:`~mfdesign.design.DesignSpace.decode_any`), so it costs no extra compilation."""
+    (``jax.vmap`` over ring counts and restarts: one compiled call per fidelity, or one for
+    all when the fidelity is data, reused for any predictor of the same structure, e.g. a
+    refitted ensemble). The ring count is data
+    (:meth:`~mfdesign.design.DesignSpace.decode_any`), so it costs no extra compilation.
+    ``mask`` [q]: the batch's slots; False marks padding (:func:`_masked`: no score, no
+    gradient, so its coordinates stay where they start and the others' L-BFGS steps are
+    those of the unpadded batch)."""
     opt = optax.lbfgs(
         linesearch=optax.scale_by_backtracking_linesearch(max_backtracking_steps=LINESEARCH_STEPS, store_grad=True)
     )
 
     def one(z, n):
         def dev_of(z):
+            if mask is not None:
+                # a padding slot's coordinates carry no gradient, even where its forces are
+                # NaN (a zero cotangent times a NaN derivative would be NaN)
+                z = jnp.where(mask[:, None], z, jax.lax.stop_gradient(z))
             return acq.deviation(space.decode_any(_to_unit(z), n))  # [M, q]
 
         def loss(z):
-            return -batch_utility(dev_of(z), acq.pending)
+            return -batch_utility(_masked(dev_of(z), mask), acq.pending)
 
         value_and_grad = optax.value_and_grad_from_state(loss)
 
@@ -590,7 +627,7 @@ def explain(predictor: AbstractPredictor, design, fidelity: str, grid: Grid = Gr
     phrase "at 40-60 mm, 4-6 kPa where the members disagree most (member std up to 3.1 N)"
     and its numbers."""
     row = _rows([design])
-    f = np.asarray(_grid_members(predictor, fidelity, jnp.asarray(row), grid))[:, 0]  # [M, G]
+    f = np.asarray(_grid_members(predictor, _fidelity_arg(predictor, fidelity), jnp.asarray(row), grid))[:, 0]  # [M, G]
     spread = f.std(axis=0).reshape(len(grid.h_mm), len(grid.p_pa))  # heights outer
     top = float(np.nanmax(spread)) if np.isfinite(spread).any() else float("nan")
     hot = spread >= REASON_FRACTION * top if np.isfinite(top) else np.ones_like(spread, bool)
@@ -691,17 +728,29 @@ def propose(
 
     arms, pool_u, pool_dev, pool_cost, pool_arm = [], [], [], [], []
     n_arr = jnp.asarray(n_rings)
+    # With the fidelity as data, every fidelity's batch is padded to the largest count (a
+    # budget's 2 rig + 1 sim: the sim batch gets one padding slot, masked), so that one
+    # compiled screen and L-BFGS serve all of them; the padding's forward passes cost far
+    # less than a second compilation (~9 s on a cold demo, issue 40).
+    shared = getattr(predictor, "fidelity_as_data", False)
+    q_pad = max(sizes[f] for f in fidelities)
     for f, k in zip(
         tqdm(fidelities, desc="acquisition (fidelities)", disable=not progress), jax.random.split(key, len(fidelities))
     ):
         qf = sizes[f]
-        acq = BatchUncertainty(predictor, jnp.asarray(base), f, grid)
+        acq = BatchUncertainty(predictor, jnp.asarray(base), _fidelity_arg(predictor, f), grid)
         u0 = jax.random.uniform(k, (len(n_rings), n_restarts, qf, 6), minval=0.0, maxval=1.0)
+        mask = None
+        if shared:
+            # padding slots at the cube's centre (z = 0); the real slots' draws are unchanged
+            u0 = jnp.concatenate([u0, jnp.full(u0.shape[:2] + (q_pad - qf, 6), 0.5)], axis=2)
+            mask = jnp.arange(q_pad) < qf
         ta = time.perf_counter()
         top = min(int(n_refine), n_restarts)
-        u0 = initial_batches(acq, u0, n_arr, space, top)  # screen, then refine the best starts
-        u_all, dev_all = _optimise(acq, jnp.arcsin(2.0 * u0 - 1.0), n_arr, space, int(n_steps))
-        u_all, dev_all = np.asarray(u_all), np.asarray(dev_all)  # [A, top, q, 6], [A, top, q, M]
+        u0 = initial_batches(acq, u0, n_arr, space, top, mask)  # screen, then refine the best starts
+        u_all, dev_all = _optimise(acq, jnp.arcsin(2.0 * u0 - 1.0), n_arr, space, int(n_steps), mask)
+        # [A, top, q, 6], [A, top, q, M] without the padding slots
+        u_all, dev_all = np.asarray(u_all)[:, :, :qf], np.asarray(dev_all)[:, :, :qf]
         wall = time.perf_counter() - ta
         for i, n in enumerate(n_rings):
             u, dev = space.cube_of(u_all[i], n), dev_all[i]  # [top, q, dim], [top, q, M]

@@ -433,3 +433,39 @@ def test_cli_budget_and_bounds_errors_are_one_line(tmp_path):
         text = _text(r).strip()
         assert r.exit_code == 2, (args, text)
         assert msg in text and len(text.splitlines()) == 1, (args, text)
+
+
+class _DataFidelity(FunctionPredictor):
+    """PRED's rig and flat members, the fidelity taken as data (an index, traced or not):
+    what MultiFidelityPredictor offers acquisition."""
+
+    fidelity_as_data = True
+
+    def members(self, fidelity, design, h_mm, p_pa):
+        if isinstance(fidelity, str):
+            return super().members(fidelity, design, h_mm, p_pa)
+        f = toy_members(design, h_mm, p_pa)
+        return jnp.where(jnp.asarray(fidelity) == 0, f, 0.5 * f)
+
+
+def test_a_fidelity_as_data_shares_one_program_and_pads_the_smaller_count():
+    """A budget of 2 rig + 1 sim with the fidelity as data: the sim batch is padded to 2
+    (a masked slot) and one compiled L-BFGS serves both fidelities; the proposal is that
+    of the same members given by name, one program per fidelity, unpadded."""
+    from mfdesign.acquire import _optimise
+
+    twin = FunctionPredictor({"rig": toy_members, "sim": lambda d, h, p: 0.5 * toy_members(d, h, p)})
+    data = _DataFidelity({"rig": toy_members, "sim": lambda d, h, p: 0.5 * toy_members(d, h, p)})
+    kw = dict(budget={"rig": 2, "sim": 1}, n_rings=(0, 1), n_restarts=6, n_refine=3, grid=GRID, n_steps=4, key=2)
+    before = _optimise._cached._cache_size()
+    got = propose(data, **kw)
+    assert _optimise._cached._cache_size() == before + 1  # one program for rig and sim
+    ref = propose(twin, **kw)
+    assert got.fidelities == ref.fidelities
+    for a, b in zip(got.designs, ref.designs):
+        np.testing.assert_allclose(a.to_array(), b.to_array(), rtol=1e-9, equal_nan=True)
+    assert got.utility == pytest.approx(ref.utility, rel=1e-9)
+    for a, b in zip(got.arms, ref.arms):
+        np.testing.assert_allclose(a["restart_utility"], b["restart_utility"], rtol=1e-9)
+        assert a["u"].shape == b["u"].shape and a["dev"].shape == b["dev"].shape
+    assert [r.reason for r in got.runs] == [r.reason for r in ref.runs]

@@ -25,8 +25,9 @@ import pandas as pd
 
 from mfdesign._x64 import enable_x64
 from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
+from mfdesign.models.predictor import AbstractPredictor
 
-__all__ = ["MultiFidelity", "coverage"]
+__all__ = ["MultiFidelity", "MultiFidelityPredictor", "coverage"]
 
 
 class MultiFidelity(eqx.Module):
@@ -81,15 +82,27 @@ class MultiFidelity(eqx.Module):
         )
         return CalibrationData(jnp.asarray(design), rows, jnp.zeros(n), jnp.ones(n), tuple(keys))
 
-    def sample_data(self, data: CalibrationData, key=0) -> jax.Array:
-        """``F_s`` [S, N] at the rows of ``data`` (module doc)."""
+    def sample_data(self, data: CalibrationData, key=0, discrepancy=True) -> jax.Array:
+        """``F_s`` [S, N] at the rows of ``data`` (module doc). ``discrepancy``: add the
+        discrepancy draws (True), or not (False: the physics alone, the ``sim`` fidelity);
+        a traced boolean chooses at run time (one compiled program serves both)."""
         key = jax.random.PRNGKey(key) if isinstance(key, int) else key
         f = _sim_draws(self.model, self.theta, data, key)
-        if self.delta is not None:
-            # its own stream: the physics draws stay what they were without a discrepancy
-            k_delta = jax.random.fold_in(key, 1)
-            f = f + _delta_draws(self.delta, data.design, data.rows.h_mm, data.rows.p_pa, f.shape[0], k_delta)
-        return f
+        if self.delta is None or discrepancy is False:
+            return f
+
+        inputs = (data.design, data.rows.h_mm, data.rows.p_pa)
+        if discrepancy is not True:
+            # Traced: the draws are computed either way and selected, and where they are
+            # not wanted their inputs carry no gradient (the gate's sqrt(1 - g^2) has an
+            # infinite slope on a training membrane: 0 x inf would be NaN). A select, not a
+            # lax.cond: under the acquisition's vmap x grad x L-BFGS a cond compiled slower
+            # (14 s) than the two programs it replaced together (8 + 4 s).
+            inputs = tuple(jnp.where(discrepancy, a, jax.lax.stop_gradient(a)) for a in inputs)
+        # its own stream: the physics draws stay what they were without a discrepancy
+        k_delta = jax.random.fold_in(key, 1)
+        g = f + _delta_draws(self.delta, *inputs, f.shape[0], k_delta)
+        return g if discrepancy is True else jnp.where(discrepancy, g, f)
 
     def predict(self, design, h_mm, p_pa):
         """``ForceModel`` protocol: draws ``F_s`` [S, N] N at force rows (new designs draw
@@ -104,13 +117,13 @@ class MultiFidelity(eqx.Module):
         pad = lambda a: np.concatenate([a, np.repeat(a[-1:], size - n, axis=0)])  # noqa: E731
         return self.sample_data(self.data_for(pad(design), pad(h_mm), pad(p_pa)))[:, :n]
 
-    def members(self, design, h_mm, p_pa, key=0) -> jax.Array:
+    def members(self, design, h_mm, p_pa, key=0, discrepancy=True) -> jax.Array:
         """Traceable ``F_s`` [S, N] N at force rows ``design`` [N, 6] mm, ``h_mm`` [N],
         ``p_pa`` [N]: a row of a calibrated membrane (the same design to 1e-6 mm) takes that
         membrane's own latent thickness, as :meth:`predict` does; any other design draws its
         thickness from the population prior. Unlike :meth:`predict` nothing leaves JAX, so
         acquisition and design optimisation can differentiate through it (their
-        ``members`` protocol)."""
+        ``members`` protocol). ``discrepancy``: as in :meth:`sample_data`."""
         from mfdesign.design import Membrane
         from mfdesign.physics.effects import Rows
 
@@ -128,24 +141,18 @@ class MultiFidelity(eqx.Module):
             jnp.where(same.any(1), jnp.argmax(same, 1), k).astype(jnp.int32),
         )
         data = CalibrationData(design, rows, jnp.zeros(n), jnp.ones(n), self.design_keys + ("<new membrane>",))
-        return self.sample_data(data, key)
+        return self.sample_data(data, key, discrepancy)
 
     def thinned(self, n_draws: int) -> "MultiFidelity":
         """The first ``n_draws`` posterior draws (already a random permutation): searches that
         differentiate through every draw pay for each one."""
         return MultiFidelity(self.model, self.theta[:n_draws], self.delta, self.noise_n, self.design_keys)
 
-    def predictor(self, n_draws: int = 16):
-        """A :class:`~mfdesign.models.predictor.FunctionPredictor` with two fidelities:
-        ``rig`` (physics draws + discrepancy members) and ``sim`` (physics draws only: what a
-        simulator run informs, never the sim-to-real discrepancy)."""
-        from mfdesign.models.predictor import FunctionPredictor
-
-        thin = self.thinned(n_draws)
-        sim = MultiFidelity(thin.model, thin.theta, None, thin.noise_n, thin.design_keys)
-        return FunctionPredictor(
-            {"rig": lambda d, h, p: thin.members(d, h, p), "sim": lambda d, h, p: sim.members(d, h, p)}
-        )
+    def predictor(self, n_draws: int = 16) -> "MultiFidelityPredictor":
+        """A :class:`MultiFidelityPredictor` of the first ``n_draws`` draws, with two
+        fidelities: ``rig`` (physics draws + discrepancy members) and ``sim`` (physics draws
+        only: what a simulator run informs, never the sim-to-real discrepancy)."""
+        return MultiFidelityPredictor(self.thinned(n_draws))
 
     def interval(self, data: CalibrationData, level: float = 0.9, n_noise: int = 8, key=0):
         """Mean [N] and central ``level`` interval ``(lo, hi)`` [N] of the observation ``y``."""
@@ -158,6 +165,32 @@ class MultiFidelity(eqx.Module):
         a = (1 - level) / 2
         lo, hi = np.quantile(y, [a, 1 - a], axis=0)
         return f.mean(0), lo, hi
+
+
+class MultiFidelityPredictor(AbstractPredictor):
+    """The acquisition's and design search's predictor of a :class:`MultiFidelity` ``mf``
+    (:meth:`MultiFidelity.predictor`): ``rig`` members are the physics draws plus the
+    discrepancy, ``sim`` members the physics draws alone (paired: draw ``s`` of both is
+    one hypothesis).
+
+    The fidelity may be data (``fidelity_as_data``): :meth:`members` takes a name or an
+    integer index into :attr:`fidelities`, traced or not, so one compiled program serves
+    both (acquisition's L-BFGS compiled once per fidelity, ~9 s each on a cold demo,
+    issue 40). ``mf`` is a pytree leaf, not a closure: programs compiled for one fit are
+    reused by another of the same structure (a campaign's next round)."""
+
+    mf: MultiFidelity
+    fidelity_as_data = True
+
+    @property
+    def fidelities(self) -> tuple[str, ...]:
+        return ("rig", "sim")
+
+    def members(self, fidelity, design, h_mm, p_pa):
+        if isinstance(fidelity, str):
+            self.check_fidelity(fidelity)
+            return self.mf.members(design, h_mm, p_pa, discrepancy=fidelity == "rig")
+        return self.mf.members(design, h_mm, p_pa, discrepancy=jnp.asarray(fidelity) == self.fidelities.index("rig"))
 
 
 @eqx.filter_jit

@@ -107,3 +107,38 @@ def test_coverage_leaves_out_rows_without_a_value_and_counts_them(setup, monkeyp
     holed = coverage(mf, meas, 0.9)
     assert np.isfinite(holed["rmse_n"]) and holed["rows_without_value"] > 1000  # every 10th of ~20k rows
     assert holed["rmse_n"] == pytest.approx(whole["rmse_n"], rel=0.2) and whole["rows_without_value"] == 0
+
+
+def test_the_predictor_takes_the_fidelity_by_name_or_as_data(setup):
+    """``rig`` = physics + discrepancy, ``sim`` = physics alone, whether the fidelity comes
+    as a name or as a traced index (one compiled program for both, issue 40); and the
+    ``sim`` members carry no gradient through the discrepancy (finite on a training
+    membrane, where the gate's sqrt(1 - g^2) has an infinite slope)."""
+    import jax
+    import jax.numpy as jnp
+
+    from mfdesign.design import Membrane
+    from mfdesign.models.discrepancy import Discrepancy
+    from mfdesign.models.predictive import MultiFidelityPredictor
+    from tiny_models import tiny_ensemble
+
+    _, data, model, post = setup
+    anchors = jnp.asarray(np.array([Membrane.from_key(k).to_array() for k in data.design_keys]))
+    delta = Discrepancy(tiny_ensemble(4), anchors, 0.3, 1.5)
+    mf = MultiFidelity.from_posterior(model, post, delta=delta, noise_n=0.5)
+    pred = mf.predictor(8)
+    assert isinstance(pred, MultiFidelityPredictor) and pred.fidelities == ("rig", "sim")
+    design = jnp.concatenate([anchors[:1], jnp.asarray([[1.7, 31.0, np.nan, np.nan, np.nan, np.nan]])])
+    h, p = jnp.array([20.0, 30.0]), jnp.array([5000.0, 6000.0])
+    thin = mf.thinned(8)
+    physics = MultiFidelity(thin.model, thin.theta, None, thin.noise_n, thin.design_keys)
+    want = {"rig": np.asarray(thin.members(design, h, p)), "sim": np.asarray(physics.members(design, h, p))}
+    assert not np.allclose(want["rig"], want["sim"])
+    by_index = jax.jit(lambda i, d: pred.members(i, d, h, p))
+    for i, f in enumerate(pred.fidelities):
+        np.testing.assert_array_equal(np.asarray(pred.members(f, design, h, p)), want[f])
+        np.testing.assert_allclose(np.asarray(by_index(jnp.asarray(i), design)), want[f], rtol=1e-13, atol=1e-12)
+    g = jax.grad(lambda d: by_index(jnp.asarray(1), d).sum())(design)
+    assert np.all(np.isfinite(np.asarray(g)[:, :2]))
+    with pytest.raises(ValueError, match="not offered"):
+        pred.members("lab", design, h, p)
