@@ -189,8 +189,20 @@ class MultiFidelityPredictor(AbstractPredictor):
     def members(self, fidelity, design, h_mm, p_pa):
         if isinstance(fidelity, str):
             self.check_fidelity(fidelity)
-            return self.mf.members(design, h_mm, p_pa, discrepancy=fidelity == "rig")
-        return self.mf.members(design, h_mm, p_pa, discrepancy=jnp.asarray(fidelity) == self.fidelities.index("rig"))
+            rig = fidelity == "rig"
+        else:
+            rig = jnp.asarray(fidelity) == self.fidelities.index("rig")
+        args = (design, h_mm, p_pa)
+        if any(isinstance(a, jax.core.Tracer) for a in args + (rig,)) or np.ndim(h_mm) != 1 or len(h_mm) == 0:
+            return self.mf.members(*args, discrepancy=rig)  # traced: compiled into the caller's shapes
+        # Called eagerly (a simulated plane's rows, a sanity probe): rows padded to a power of
+        # two (>= 256, as :meth:`MultiFidelity.predict`) so that a few compiled shapes serve
+        # every table (a plane of 255 and one of 211 rows were two compiles); the draws are
+        # per membrane, not per row, so the padding changes no number.
+        n = len(h_mm)
+        size = max(256, 1 << (n - 1).bit_length())
+        pad = lambda a: jnp.asarray(np.concatenate([a, np.repeat(a[-1:], size - n, axis=0)]))  # noqa: E731
+        return self.mf.members(*(pad(np.asarray(a, float)) for a in args), discrepancy=rig)[:, :n]
 
 
 @eqx.filter_jit

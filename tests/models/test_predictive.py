@@ -136,7 +136,9 @@ def test_the_predictor_takes_the_fidelity_by_name_or_as_data(setup):
     assert not np.allclose(want["rig"], want["sim"])
     by_index = jax.jit(lambda i, d: pred.members(i, d, h, p))
     for i, f in enumerate(pred.fidelities):
-        np.testing.assert_array_equal(np.asarray(pred.members(f, design, h, p)), want[f])
+        # eagerly the rows are padded to 256 (one compiled shape for every table): the
+        # same numbers but for the last bit (the vectorised loops differ)
+        np.testing.assert_allclose(np.asarray(pred.members(f, design, h, p)), want[f], rtol=1e-13, atol=1e-12)
         np.testing.assert_allclose(np.asarray(by_index(jnp.asarray(i), design)), want[f], rtol=1e-13, atol=1e-12)
     g = jax.grad(lambda d: by_index(jnp.asarray(1), d).sum())(design)
     assert np.all(np.isfinite(np.asarray(g)[:, :2]))
