@@ -74,7 +74,8 @@ class Settings:
     it finds; a user's own effect needs the file that registers it, ``Campaign.create``'s
     ``effects_module``: the names are checked there and on every open, once that file is
     imported, not here), ``mcmc_steps`` (most emcee steps; sampling stops once converged),
-    ``walkers`` (0: automatic), ``max_rows`` (rows the likelihood uses), ``likelihood``,
+    ``walkers`` (at least this many; 0: automatic, ``max(32, 2 dim + 2)``; a round whose model
+    has more parameters, a latent per membrane, takes ``2 dim + 2``), ``max_rows`` (rows the likelihood uses), ``likelihood``,
     ``material`` (:func:`~mfdesign.calibration.workflow.material_priors`),
     ``membrane_latents``, ``membrane_effects`` (effect parameters, ``"effect.param"`` or an
     effect's name, that vary from membrane to membrane around a calibrated population:
@@ -685,6 +686,7 @@ class Campaign:
                 state.effects,
                 n_steps=s.mcmc_steps,
                 n_walkers=s.walkers or None,
+                grow_walkers=True,  # a latent per membrane: more membranes than walkers allow
                 max_rows=s.max_rows,
                 ensemble_config=EnsembleConfig(n_members=s.members, steps=s.delta_steps, monotone=False),
                 seed=seed,

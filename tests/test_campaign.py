@@ -311,3 +311,13 @@ def test_ask_checks_its_membranes_to_build_with_the_simulator(fitted, tmp_path):
     assert len(calls) == 1 and calls[0] == [entry.design]  # one batch
     assert entry.status == "pending" and entry.note.startswith("simulator check (converged): model (sim fidelity)")
     assert "well beyond the predicted spread" in entry.note
+
+
+def test_walkers_are_a_least_number_as_the_membranes_grow(tmp_path):
+    """A campaign's model grows a thickness latent per membrane: settings' walkers fixed for
+    round 0 (the demo's 32) must not fail a later round with more parameters ("emcee needs
+    n_walkers >= 2 * dim"); that round takes 2 dim + 2."""
+    campaign = Campaign.create(tmp_path / "c", data=rig_data(), settings=Settings.quick("standin", walkers=4))
+    done = campaign.fit()
+    dim = done.fit.model.dim
+    assert dim >= 3 and done.fit.posterior.convergence["n_walkers"] == 2 * dim + 2

@@ -249,6 +249,7 @@ def fit_multi_fidelity(
     membrane_latents: bool = True,
     membrane_effects: Sequence[str] = (),
     release_memory: bool = False,
+    grow_walkers: bool = False,
 ) -> MFFit:
     """The multi-fidelity model: calibrate the physics, then fit the sim-to-real discrepancy.
 
@@ -270,6 +271,8 @@ def fit_multi_fidelity(
       what :func:`~mfdesign.diagnosis.pipeline.diagnose` found (`Diagnosis.found`).
     - `n_steps`: the most emcee steps (fewer when `stop_when_converged`).
     - `n_walkers`: emcee walkers (default `max(32, 2 dim + 2)`).
+    - `grow_walkers`: `n_walkers` is a least number: a model with more parameters takes
+      `2 dim + 2` (a campaign's model grows a latent per membrane, round after round).
     - `max_rows`: rows the likelihood uses (evenly within trials).
     - `chain_path`: HDF5 file of the chain (a rerun resumes it); `None`: in memory.
     - `ensemble_config`: the discrepancy ensemble's
@@ -328,6 +331,8 @@ def fit_multi_fidelity(
         membrane_effects=tuple(membrane_effects),
         **priors,
     )
+    if grow_walkers and n_walkers is not None:
+        n_walkers = max(int(n_walkers), 2 * model.dim + 2)
     post = calibrate(
         data,
         model,
