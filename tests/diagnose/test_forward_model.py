@@ -100,7 +100,7 @@ def test_the_exact_back_end_grows_its_lattice_in_the_cache(meas):
 
 
 def test_padded_shapes_give_the_unpadded_numbers(meas):
-    """Columns padded to a power of two and fits run in chunks of FIT_CHUNK problems (one
+    """Columns padded to one per parameter and fits run in chunks of FIT_CHUNK problems (one
     compiled program for every count, issue 40) give what the unpadded calls give: each
     Jacobian column as when asked alone, each fit as the whole batch in one call."""
     import jax.numpy as jnp
@@ -111,7 +111,7 @@ def test_padded_shapes_give_the_unpadded_numbers(meas):
     rows = np.arange(0, len(meas), 5)
     effects = ["contact_offset", "pressure_sensor"]
     free = ["contact_offset.offset_mm", "pressure_sensor.gain", "pressure_sensor.offset_pa"]
-    J = sim.jacobian(meas, free, effects, THETA, rows=rows)  # 3 columns, computed as 4
+    J = sim.jacobian(meas, free, effects, THETA, rows=rows)  # 3 columns of one per parameter
     assert J.shape == (len(rows), 3)
     for j, f in enumerate(free):
         np.testing.assert_allclose(J[:, j], sim.jacobian(meas, [f], effects, THETA, rows=rows)[:, 0], rtol=1e-12)
