@@ -211,6 +211,13 @@ def _fit_batch(force_model, order, names, base, design, rows, obs, sigma, t0, P,
     return jax.lax.map(lambda a: one(*a), (t0, P, w, tau, x0))
 
 
+@eqx.filter_jit
+def _take(design, rows: fx.Rows, idx) -> tuple[jax.Array, fx.Rows]:
+    # one program per shape pair: op by op, the design and each of the six row fields
+    # compiled a gather of their own (~90 small programs a demo, issue 40)
+    return design[idx], rows.take(idx)
+
+
 def _row_params(order, names, base: SimParams, rows: fx.Rows, thetas) -> SimParams:
     """Simulator constants of every row at each parameter vector of ``thetas`` [B, n]
     (NumPy leaves, leading axis B). One compiled call, the vectors padded to a power of
@@ -334,8 +341,7 @@ class ForwardModel(RecordedForceModel):
         design, rws = self.tables(meas)
         if rows is None:
             return design, rws
-        idx = jnp.asarray(rows)
-        return design[idx], rws.take(idx)
+        return _take(design, rws, jnp.asarray(rows))
 
     # -- evaluation -----------------------------------------------------------------------------
     def _eval(self, fn, design, rows, order, t0, P, x) -> np.ndarray:
@@ -349,7 +355,7 @@ class ForwardModel(RecordedForceModel):
             b = min(a + CHUNK, n)
             # the last chunk repeats its last row up to CHUNK: every chunk shares one compile
             idx = jnp.asarray(np.minimum(np.arange(a, a + CHUNK), n - 1))
-            d, r = (design, rows) if n == CHUNK else (design[idx], rows.take(idx))
+            d, r = (design, rows) if n == CHUNK else _take(design, rows, idx)
             out.append(np.asarray(fn(fm, order, names, self.base_params, *args, d, r))[: b - a])
         return np.concatenate(out, axis=0)
 
