@@ -13,7 +13,9 @@ From the log it sums, per jitted function and per demo stage, the seconds XLA re
     python experiments/profile_compile.py --planes ~/.cache/mfdesign/planes [--full] [--core 0]
 
 ``--log FILE`` reads an existing log of such a run instead of running one (the JSON then
-says so, and has no timings of its own).
+says so, and has no timings of its own); ``--save-log FILE`` keeps the run's log (with
+``JAX_LOG_COMPILES`` it names each compiled program's argument shapes: why a kernel
+compiled twice). ``recompiled`` in the JSON lists the kernels compiled more than once.
 """
 
 from __future__ import annotations
@@ -52,11 +54,15 @@ def parse(lines) -> dict:
             count[name] += 1
             per_stage[stage] += secs
     top = sorted(per_fn, key=per_fn.get, reverse=True)
+    row = lambda f: {"function": f, "seconds": round(per_fn[f], 2), "compilations": count[f]}  # noqa: E731
     return {
         "compile_s_total": round(sum(per_fn.values()), 1),
         "compilations": int(sum(count.values())),
         "per_stage_s": {k: round(v, 1) for k, v in per_stage.items()},
-        "per_function": [{"function": f, "seconds": round(per_fn[f], 2), "compilations": count[f]} for f in top[:40]],
+        "per_function": [row(f) for f in top[:40]],
+        # kernels compiled more than once (new shapes or structures) taking 0.5 s or more:
+        # what bucketing shapes can still save
+        "recompiled": [row(f) for f in top if count[f] > 1 and per_fn[f] >= 0.5],
     }
 
 
@@ -66,6 +72,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--full", action="store_true", help="the full demo, not --quick")
     ap.add_argument("--core", type=int, default=None, help="pin the run to this CPU core (taskset)")
     ap.add_argument("--log", type=Path, default=None, help="parse this existing log instead of running")
+    ap.add_argument(
+        "--save-log", type=Path, default=None, help="also write the run's log here (the compiled shapes, per call)"
+    )
     args = ap.parse_args(argv)
     commit, dirty = git_state()
     result: dict = {"commit": commit, "dirty": dirty, "machine": machine(), "load_before": load()}
@@ -89,6 +98,9 @@ def main(argv=None) -> dict:
         proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         r1 = os.times()
         lines = proc.stdout.splitlines()
+        if args.save_log is not None:
+            args.save_log.parent.mkdir(parents=True, exist_ok=True)
+            args.save_log.write_text(proc.stdout)
         result |= {
             "command": " ".join(cmd),
             "planes_preloaded": str(args.planes) if args.planes else None,
