@@ -19,6 +19,12 @@ this experiment follows from round to round.
 
     python experiments/campaign_rounds.py --campaign out/demo --rounds 2 --q 2
 
+``--world stiff-rings --start`` runs in a world the model does not hold instead: the
+stand-in whose rings raise the contact pressure 0.65 each where the model says 0.4
+(:class:`mfdesign.models.standin.StandinWorld`), round 0 the stand-in demo on the card's
+designs measured there (without thickness latents: the world casts every membrane alike),
+and six test membranes over the design space (docs/campaign.md).
+
 Writes ``experiments/out/campaign_rounds.json`` (one row per round, the commands' times,
 the machine) and ``.png`` (test RMSE and coverage against the round).
 """
@@ -37,20 +43,73 @@ OUT = HERE / "out"
 # Two membranes no round sees: a thin ringless one and a one-ring one, inside the design
 # space and away from the bundled six.
 TEST_DESIGNS = ("[1.75, 32.0, nan, nan, nan, nan]", "[2.5, 27.0, 40.0, 5.5, nan, nan]")
+# A world with a ring-dependent misfit is judged over the design space: ringless, one- and
+# two-ring membranes, thin and thick (the first two are TEST_DESIGNS).
+WIDE_TEST_DESIGNS = TEST_DESIGNS + (
+    "[1.25, 30.0, 42.0, 6.0, 58.0, 6.0]",
+    "[2.75, 34.0, 46.0, 5.5, 60.0, 5.0]",
+    "[2.25, 36.0, nan, nan, nan, nan]",
+    "[1.5, 26.0, 38.0, 8.0, nan, nan]",
+)
 
 
-def _rig(card: dict, truth: str, sample_hz: float, seed: int, noise=None):
-    """The rig the campaign's data came from (the bundled card's: simulator or stand-in),
-    one trial per height at ``sample_hz``, noise seed ``seed`` (new draws, not the card's);
-    ``noise=Noise.none()`` records the truth itself."""
+WORLDS = ("card", "stiff-rings")
+
+
+def _world_plane(truth: str, world: str):
+    """The truth's plane solver: the bundled card's world (the simulator, or the stand-in for
+    a stand-in campaign: the model holds it) or ``stiff-rings`` (the stand-in whose rings
+    raise the contact pressure 0.65 each where the model says 0.4: a misfit no effect
+    reaches, which only the discrepancy can learn)."""
+    if world == "stiff-rings":
+        from mfdesign.models.standin import StandinWorld
+
+        return StandinWorld()
+    if truth == "standin":
+        from mfdesign.models.standin import standin_plane
+
+        return standin_plane
+    return None
+
+
+def _rig(card: dict, truth: str, sample_hz: float, seed: int, noise=None, world: str = "card"):
+    """The rig the campaign's data came from (the bundled card's hidden effect and noise, on
+    the world's planes), one trial per height at ``sample_hz``, noise seed ``seed`` (new
+    draws, not the card's); ``noise=Noise.none()`` records the truth itself."""
     from mfdesign.rig.virtual import VirtualRig
 
-    simulator = None
-    if truth == "standin":
-        from mfdesign.models.standin import standin_plane as simulator
     return VirtualRig.from_card(
-        card, simulator=simulator, seed=seed, noise=noise, sample_hz=sample_hz, trials_per_height=1
+        card,
+        simulator=_world_plane(truth, world),
+        seed=seed,
+        noise=noise,
+        sample_hz=sample_hz,
+        trials_per_height=1,
     )
+
+
+def start(folder: Path, card: dict, world: str, quick: bool) -> dict:
+    """Round 0 in ``world``: the card's six designs measured there with the card's own
+    protocol, seed and noise (as the bundled data were), then the stand-in demo on them
+    (:func:`mfdesign.workflows.demo.run_demo`), which leaves its campaign in ``folder``."""
+    import dataclasses
+    import tempfile
+
+    from mfdesign.data.store import write_parquet
+    from mfdesign.design import Membrane
+    from mfdesign.rig.virtual import VirtualRig
+    from mfdesign.workflows.demo import DemoSettings, run_demo
+
+    rig = VirtualRig.from_card(card, simulator=_world_plane("standin", world))
+    table = rig.run([Membrane.from_key(k) for k in card["designs"]], progress=False)
+    settings = DemoSettings.quick("standin") if quick else DemoSettings(force_model="standin", search_model="standin")
+    # the world casts every membrane alike: per-membrane latents would absorb its ring misfit
+    # membrane by membrane, leaving the discrepancy nothing to carry to a new one (docs/campaign.md)
+    settings = dataclasses.replace(settings, membrane_latents=world == "card")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"{world}.parquet"
+        write_parquet(table, path)
+        return run_demo(folder, settings, data_path=path, progress=False)
 
 
 def _test_error(campaign, number: int, test, truth) -> dict:
@@ -73,6 +132,7 @@ def _test_error(campaign, number: int, test, truth) -> dict:
         "test_coverage90": cov["coverage"],
         "test_truth_rmse_n": exact["rmse_n"],
         "test_truth_rmse_saved_model_n": saved["rmse_n"],
+        "test_truth_rmse_per_membrane_n": {k: v["rmse_n"] for k, v in exact["per_membrane"].items()},
     }
 
 
@@ -91,6 +151,16 @@ def _recorded(record: dict | None) -> dict:
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--campaign", required=True, help="a folder `mfdesign demo --out` left (it is modified)")
+    ap.add_argument(
+        "--world",
+        choices=WORLDS,
+        default="card",
+        help="the truth: the bundled card's (the model holds it) or stiff-rings (a stand-in world it does not)",
+    )
+    ap.add_argument(
+        "--start", action="store_true", help="first run the stand-in demo into --campaign on the world's data"
+    )
+    ap.add_argument("--quick", action="store_true", help="with --start: the quick demo")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--q", type=int, default=2, help="membranes built per round")
     ap.add_argument("--sample-hz", type=float, default=2.0, help="the virtual rig's sampling rate [Hz]")
@@ -113,16 +183,26 @@ def main(argv=None) -> dict:
 
     enable_compilation_cache()
     folder = Path(args.campaign)
-    campaign = Campaign.open(folder)
     card = json.loads(bundled_card_path().read_text())
+    if args.start:
+        t = time.perf_counter()
+        demo = start(folder, card, args.world, args.quick)
+        print(
+            f"round 0 (the demo in the {args.world} world): found {demo['diagnosis']['found']}, "
+            f"{time.perf_counter() - t:.0f} s"
+        )
+    campaign = Campaign.open(folder)
     truth = "standin" if campaign.settings.physics == "standin" else "simulator"
-    rig = _rig(card, truth, args.sample_hz, args.seed)
+    if args.world != "card" and truth != "standin":
+        ap.error(f"--world {args.world} is a stand-in world: the campaign's physics must be standin")
+    rig = _rig(card, truth, args.sample_hz, args.seed, world=args.world)
     built = folder / "built"
     built.mkdir(exist_ok=True)
     t0 = time.perf_counter()
-    test_designs = [Membrane.from_key(k) for k in TEST_DESIGNS]
+    test_keys = TEST_DESIGNS if args.world == "card" else WIDE_TEST_DESIGNS
+    test_designs = [Membrane.from_key(k) for k in test_keys]
     test = rig.run(test_designs, lift=False, progress=False)
-    truth_rig = _rig(card, truth, args.sample_hz, args.seed, noise=Noise.none())
+    truth_rig = _rig(card, truth, args.sample_hz, args.seed, noise=Noise.none(), world=args.world)
     test_truth = truth_rig.run(test_designs, lift=False, progress=False)
     first = campaign.rounds() if args.evaluate else campaign.rounds()[-1:]
     records = {r["round"]: r for r in campaign.status().rounds}
@@ -165,8 +245,10 @@ def main(argv=None) -> dict:
     result = {
         "campaign": str(folder),
         "physics": campaign.settings.physics,
-        "truth": f"virtual rig on the {truth} with {card['hidden_effect']['name']} {card['hidden_effect']['theta']}",
-        "test_designs": list(TEST_DESIGNS),
+        "truth": f"virtual rig on the {truth if args.world == 'card' else 'stand-in with stiff rings (0.65, model 0.4)'}"
+        f" with {card['hidden_effect']['name']} {card['hidden_effect']['theta']}",
+        "world": args.world,
+        "test_designs": list(test_keys),
         "q": args.q,
         "sample_hz": args.sample_hz,
         "rounds": rows,
@@ -199,6 +281,11 @@ def _figure(rows: list[dict], path: Path, truth: str) -> None:
     saved = [r.get("test_truth_rmse_saved_model_n") for r in rows]
     if all(v is not None for v in saved):
         a.plot(x, saved, "^--", label="noise-free truth, saved model (search physics)")
+    per = [r.get("test_truth_rmse_per_membrane_n") for r in rows]
+    if all(per):  # each test membrane against the truth: which of them the mean hides
+        for key in per[0]:
+            a.plot(x, [p[key] for p in per], color="0.7", lw=0.8)
+            a.annotate(key.replace(", nan", "").replace("nan", ""), (x[-1], per[-1][key]), fontsize=5, color="0.4")
     a.set(xlabel="round", ylabel="test RMSE [N]", title="membranes no round saw", ylim=(0, None))
     a.legend(fontsize=7)
     b.plot(x, [r["test_coverage90"] for r in rows], "o-")

@@ -26,8 +26,9 @@ carries the shape near the data)::
 ``l`` and ``sigma`` come from the training data by leave-one-membrane-out
 (:func:`fit_gated`): every fold's ensemble is trained at once (``member_weight`` masks the
 held-out membrane), ``l`` is the shortest candidate whose held-out mean square of the
-residual is within one standard error of the best (``0``: no transfer between membranes,
-a reference row; ``inf``: the ungated ensemble), and
+residual is within one standard error of the best, the error of the paired difference
+over the held-out membranes (``0``: no transfer between membranes, a reference row;
+``inf``: the ungated ensemble), and
 ``sigma^2`` the held-out excess variance per unit of ``1 - g^2`` (method of moments).
 """
 
@@ -195,6 +196,28 @@ class Discrepancy(eqx.Module):
         )
 
 
+def _one_se_choice(mse, per_membrane) -> int:
+    """Index into :data:`LENGTHS` of the gate's length, from the pooled held-out mean squares
+    ``mse`` [lengths] and the per-membrane ones ``per_membrane`` [lengths, membranes] N^2.
+
+    One-standard-error rule (Breiman et al. 1984; Hastie, Tibshirani & Friedman 2009,
+    sec. 7.10): the least transfer (shortest length > 0) whose held-out mean square is
+    within one standard error of the best. Six or seven membranes rank lengths noisily: a
+    transfer must win clearly to be kept (on the real rig's data a 1 % inner gain picked a
+    transfer that hurt the held-out membrane). The error is that of the paired difference
+    over the held-out membranes: every length is scored on the same ones, and the spread of
+    their own difficulty is no evidence against a transfer (one extreme membrane at 18 N^2
+    made any length "within one SE" of a transfer that won on 8 of 10, and a campaign's
+    round kept no transfer at 1.01 N against 0.65 N; issue 41)."""
+    mse, pm = np.asarray(mse, float), np.asarray(per_membrane, float)
+    top = int(np.argmin(mse))
+    se = np.nan_to_num(np.std(pm - pm[top], axis=1, ddof=1) / math.sqrt(pm.shape[1]))
+    within = [i for i, ell in enumerate(LENGTHS) if ell > 0 and mse[i] - mse[top] <= se[i]]
+    # no transfer at all the best, and clearly (every length > 0 worse by more than its
+    # error): the least transfer there is
+    return min(within) if within else next(i for i, ell in enumerate(LENGTHS) if ell > 0)
+
+
 def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=None, *, key=0, progress=False):
     """Fit the gated discrepancy to residuals ``resid_n`` [n] N at rows (``design`` [n, 6]
     mm, ``h_mm``, ``p_pa``), ``weight`` [n], ``membrane`` [n] integer ids of the rows'
@@ -204,7 +227,8 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
     membranes, one more training run holds ``K x M`` members, member block ``j`` blind to
     membrane ``j`` (leave-one-membrane-out, one compile): each candidate of
     :data:`LENGTHS` is scored by the held-out RMSE of ``resid - g delta_j``; the shortest
-    length within one standard error of the best wins (the one-standard-error rule), and
+    length within one standard error of the best wins (the one-standard-error rule, on the
+    membranes' paired differences to the best), and
     ``sigma^2 = sum(w ((r - g delta_j)^2 - noise^2)) / sum(w (1 - g^2) (p / p_ref)^2)`` (>= 0)
     with ``noise`` the within-membrane residual scale after the full ensemble (or
     ``noise_n``). The ensemble has no constant term (``config.intercept`` is set False):
@@ -261,15 +285,7 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
             {"length": None if math.isinf(ell) else ell, "heldout_rmse_n": rmse, "sigma_n": math.sqrt(max(s2, 0.0))}
         )
         per_membrane.append([np.average(e2[row_fold == j], weights=w[row_fold == j]) for j in range(len(ids))])
-    # One-standard-error rule (Breiman et al. 1984; Hastie, Tibshirani & Friedman 2009,
-    # sec. 7.10): the least transfer (shortest length > 0) whose held-out mean square is
-    # within one standard error (over the held-out membranes) of the best. Six or seven
-    # membranes rank lengths noisily: a transfer must win clearly to be kept (on the real
-    # rig's data a 1 % inner gain picked a transfer that hurt the held-out membrane).
-    mse = np.array([r_["heldout_rmse_n"] ** 2 for r_ in rows])
-    top = int(np.argmin(mse))
-    se = float(np.std(per_membrane[top], ddof=1) / math.sqrt(len(ids)))
-    best = min(i for i, ell in enumerate(LENGTHS) if ell > 0 and mse[i] <= mse[top] + se)
+    best = _one_se_choice(np.array([r_["heldout_rmse_n"] ** 2 for r_ in rows]), np.asarray(per_membrane))
     ell = LENGTHS[best]
     sigma = rows[best]["sigma_n"] if not math.isinf(ell) else 0.0
     for i, x in enumerate(rows):

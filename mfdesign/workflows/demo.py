@@ -63,6 +63,10 @@ class DemoSettings:
     # plain simulator at those constants. ``mfdesign demo --calibrate-plain`` turns it on.
     calibrate_plain: bool = False
     plain_max_rows: int = 600
+    # One thickness latent per membrane (the hierarchy). Off for a world whose membranes are
+    # all cast alike: there the latents absorb a shared misfit membrane by membrane, and
+    # nothing is left for the discrepancy to carry to the next membrane (issue 41).
+    membrane_latents: bool = True
     delta_members: int = 8
     delta_steps: int = 2000
     check_top: int = 2  # effects refitted in full per diagnosis round
@@ -789,6 +793,7 @@ class _Run:
             ensemble_config=cfg,
             seed=s.seed,
             progress=self.progress,
+            membrane_latents=s.membrane_latents,
             release_memory=True,
         )
 
@@ -1018,6 +1023,7 @@ def _leave_campaign(run: _Run, found: list[str], fit, diag):
         mcmc_steps=s.mcmc_steps,
         walkers=s.walkers,
         max_rows=s.max_rows,
+        membrane_latents=s.membrane_latents,
         members=s.delta_members,
         delta_steps=s.delta_steps,
         check_top=s.check_top,

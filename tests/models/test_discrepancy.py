@@ -115,3 +115,50 @@ def test_no_pressure_no_discrepancy_near_or_far():
     at_half = np.asarray(far.draws(DESIGNS[4:5], np.array([20.0]), np.array([2000.0]), 512, jax.random.PRNGKey(1)))
     assert at_ref.std() == pytest.approx(2.0, rel=0.15)
     np.testing.assert_allclose(at_half, 0.5 * at_ref, atol=1e-9)
+
+
+# Per-membrane held-out mean squares [N^2] over LENGTHS (rows) and 10 membranes, as a
+# stand-in campaign's round measured them (issue 41, session 30): membrane 6 is an extreme
+# one at 8-18 N^2; the transfer at length 0.5 wins on 8 of the 10 and pools 0.645 N
+# against 1.013 N without one.
+_PM = np.array(
+    [
+        [3.87, 0.54, 0.06, 0.13, 0.17, 0.51, 18.44, 0.79, 0.18, 0.07],
+        [3.87, 0.54, 0.06, 0.13, 0.17, 0.51, 18.44, 0.79, 0.18, 0.07],
+        [3.87, 0.54, 0.06, 0.13, 0.17, 0.51, 18.44, 0.79, 0.18, 0.07],
+        [3.07, 0.54, 0.06, 0.13, 0.17, 0.51, 18.43, 0.71, 0.18, 0.07],
+        [0.78, 0.48, 0.06, 0.12, 0.12, 0.49, 17.44, 0.41, 0.17, 0.07],
+        [0.64, 0.38, 0.06, 0.12, 0.10, 0.45, 14.90, 0.26, 0.16, 0.07],
+        [1.23, 0.31, 0.09, 0.11, 0.10, 0.41, 11.77, 0.18, 0.15, 0.07],
+        [1.64, 0.29, 0.11, 0.11, 0.10, 0.39, 10.24, 0.15, 0.15, 0.07],
+        [2.02, 0.29, 0.13, 0.11, 0.10, 0.38, 9.02, 0.14, 0.15, 0.07],
+        [2.25, 0.29, 0.15, 0.11, 0.10, 0.37, 8.35, 0.13, 0.15, 0.07],
+        [2.39, 0.29, 0.16, 0.11, 0.10, 0.36, 7.97, 0.13, 0.15, 0.07],
+    ]
+)
+
+
+def test_the_gate_rule_is_not_fooled_by_one_extreme_membrane():
+    """The one-standard-error rule on the paired differences keeps the transfer that wins
+    on 8 of 10 membranes; the unpaired error (one membrane's 18 N^2 in it) kept none."""
+    from mfdesign.models.discrepancy import LENGTHS, _one_se_choice
+
+    # the pooled held-out RMSEs [N] of that round (rows weighted, so not the membranes' mean)
+    mse = np.array([1.013, 1.013, 1.012, 0.943, 0.693, 0.645, 0.688, 0.726, 0.761, 0.782, 0.795]) ** 2
+    top = int(np.argmin(mse))
+    unpaired_se = np.std(_PM[top], ddof=1) / np.sqrt(_PM.shape[1])
+    assert mse[1] - mse[top] < unpaired_se  # the unpaired rule would keep no transfer (0.05)
+    # the shortest transfer within one paired SE of the best (0.5): 0.35, pooled 0.693 N
+    assert LENGTHS[_one_se_choice(mse, _PM)] == 0.35
+    # a transfer that wins on one membrane and loses on the rest is not kept
+    mixed = np.stack([np.array([1.0, 1.0, 1.0, 1.0]), np.array([0.2, 1.1, 1.1, 1.1])])
+    mixed = np.concatenate([np.repeat(mixed[:1], 6, 0), np.repeat(mixed[1:], len(LENGTHS) - 6, 0)])
+    assert LENGTHS[_one_se_choice(mixed.mean(axis=1), mixed)] == 0.05
+
+
+def test_the_gate_rule_takes_the_least_transfer_when_no_transfer_is_clearly_best():
+    from mfdesign.models.discrepancy import LENGTHS, _one_se_choice
+
+    # "none" (length 0) best on every membrane, by far more than the membranes' scatter
+    pm = np.linspace(1.0, 2.0, len(LENGTHS))[:, None] + 0.01 * np.random.default_rng(0).random((len(LENGTHS), 5))
+    assert LENGTHS[_one_se_choice(pm.mean(axis=1), pm)] == 0.05

@@ -287,3 +287,19 @@ def test_a_rig_from_the_bundled_card_is_the_rig_the_card_describes():
     # the truth itself: a noise-free trial reads the hidden offset on an exact plane
     one = quiet.run([Membrane.from_key(card["designs"][1])], lift=False, progress=False).df
     assert len(one) > 10 and np.all(np.isfinite(one["force_n"]))
+
+
+def test_the_stiff_rings_world_differs_from_the_standin_only_on_ringed_membranes():
+    """``StandinWorld`` (issue 41's world the model does not hold): a ringless membrane's
+    plane is the stand-in's; a ringed one needs more pressure to reach the plate, so it
+    pushes less; its repr (the rig's plane-cache key) names the coefficient."""
+    from mfdesign.design import Membrane
+    from mfdesign.models.standin import RING_COEFFICIENT, StandinWorld, standin_plane
+
+    h, p = [10.0, 30.0, 50.0], [2000.0, 4000.0, 6000.0]
+    ringless, ringed = Membrane(2.0, 25.4), Membrane.from_key("[2.0, 25.4, 33.4, 5.0, 46.4, 5.0]")
+    world = StandinWorld(0.65)
+    assert np.array_equal(world(ringless, h, p).force_n, standin_plane(ringless, h, p).force_n)
+    assert np.all(world(ringed, h, p).force_n < standin_plane(ringed, h, p).force_n)
+    assert StandinWorld(RING_COEFFICIENT)(ringed, h, p).force_n == pytest.approx(standin_plane(ringed, h, p).force_n)
+    assert repr(world) == "StandinWorld(ring_coefficient=0.65)"
