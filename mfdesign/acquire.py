@@ -38,7 +38,8 @@ Restarts and ring counts run together under ``jax.vmap`` in one ``jax.jit`` per 
 (the ring count is data, :meth:`~mfdesign.design.DesignSpace.decode_any`: three ring counts
 cost one compilation, not three), or one for every fidelity when the predictor takes the
 fidelity as data (``fidelity_as_data``: :class:`~mfdesign.models.predictive.MultiFidelityPredictor`;
-a budget's smaller counts are then padded to the largest with masked slots). The final batch is the
+a budget's smaller counts are then padded to the largest with masked slots, while that
+padding is cheap: :data:`SHARED_MAX_PADDING`). The final batch is the
 best of (a) each arm's best joint batch and (b) a cost-benefit greedy mix over the pool of
 all optimised designs of all arms (Leskovec et al. 2007, "Cost-effective outbreak
 detection in networks"; ``U`` is a facility-location function, hence submodular), which
@@ -323,6 +324,27 @@ def _optimise(acq: BatchUncertainty, z0, n_rings, space, n_steps, mask=None):
 
     per_arm = jax.vmap(one, in_axes=(0, None))  # restarts
     return jax.vmap(per_arm, in_axes=(0, 0))(z0, n_rings)  # ring counts
+
+
+# With the fidelity as data (``fidelity_as_data``) one compiled screen and L-BFGS serve
+# every fidelity, each fidelity's batch padded to the largest count (a budget's 2 rig +
+# 1 sim: the sim batch gets one masked slot). That saves a compilation (~7 s of a cold
+# demo, issue 40) but the padding slots cost L-BFGS steps: with the campaign's defaults (32
+# refined restarts x 20 steps x 3 ring counts) the sim arm of a 2 rig + 1 sim budget took
+# 168 s instead of 85 s, warm (emulator physics, 16 draws, 100 screened restarts). So
+# fidelities share a program only while the padding is at most this many slot-steps
+# (:func:`_padding_work`; ~45 ms each on the 2-core CPU with the emulator's physics and
+# 16 draws: ~4.5 s, less than the compilation it saves); the demo's 2 restarts x 5 steps
+# are 30. Above it every fidelity has its own program, by name, unpadded.
+SHARED_MAX_PADDING = 100
+
+
+def _padding_work(counts, q_pad: int, n_arms: int, n_restarts: int, top: int, n_steps: int) -> int:
+    """Slot-steps the padding of ``counts`` (runs per fidelity) to ``q_pad`` adds: L-BFGS
+    steps of the refined restarts, and the screen's forward passes (a quarter of a step
+    each: no gradient, no line search) when it runs."""
+    screened = n_restarts // 4 if top < n_restarts else 0
+    return sum((q_pad - q) * n_arms * (top * max(n_steps, 1) + screened) for q in counts)
 
 
 # --------------------------------------------------------------------------- proposal
@@ -728,17 +750,18 @@ def propose(
 
     arms, pool_u, pool_dev, pool_cost, pool_arm = [], [], [], [], []
     n_arr = jnp.asarray(n_rings)
-    # With the fidelity as data, every fidelity's batch is padded to the largest count (a
-    # budget's 2 rig + 1 sim: the sim batch gets one padding slot, masked), so that one
-    # compiled screen and L-BFGS serve all of them; the padding's forward passes cost far
-    # less than a second compilation (~9 s on a cold demo, issue 40).
-    shared = getattr(predictor, "fidelity_as_data", False)
+    top = min(int(n_refine), n_restarts)
     q_pad = max(sizes[f] for f in fidelities)
+    shared = (
+        getattr(predictor, "fidelity_as_data", False)
+        and _padding_work([sizes[f] for f in fidelities], q_pad, len(n_rings), n_restarts, top, int(n_steps))
+        <= SHARED_MAX_PADDING
+    )
     for f, k in zip(
         tqdm(fidelities, desc="acquisition (fidelities)", disable=not progress), jax.random.split(key, len(fidelities))
     ):
         qf = sizes[f]
-        acq = BatchUncertainty(predictor, jnp.asarray(base), _fidelity_arg(predictor, f), grid)
+        acq = BatchUncertainty(predictor, jnp.asarray(base), _fidelity_arg(predictor, f) if shared else f, grid)
         u0 = jax.random.uniform(k, (len(n_rings), n_restarts, qf, 6), minval=0.0, maxval=1.0)
         mask = None
         if shared:
@@ -746,7 +769,6 @@ def propose(
             u0 = jnp.concatenate([u0, jnp.full(u0.shape[:2] + (q_pad - qf, 6), 0.5)], axis=2)
             mask = jnp.arange(q_pad) < qf
         ta = time.perf_counter()
-        top = min(int(n_refine), n_restarts)
         u0 = initial_batches(acq, u0, n_arr, space, top, mask)  # screen, then refine the best starts
         u_all, dev_all = _optimise(acq, jnp.arcsin(2.0 * u0 - 1.0), n_arr, space, int(n_steps), mask)
         # [A, top, q, 6], [A, top, q, M] without the padding slots

@@ -469,3 +469,14 @@ def test_a_fidelity_as_data_shares_one_program_and_pads_the_smaller_count():
         np.testing.assert_allclose(a["restart_utility"], b["restart_utility"], rtol=1e-9)
         assert a["u"].shape == b["u"].shape and a["dev"].shape == b["dev"].shape
     assert [r.reason for r in got.runs] == [r.reason for r in ref.runs]
+
+
+def test_fidelities_share_a_program_only_while_the_padding_is_cheap():
+    """The demo's budget (2 rig + 1 sim, 2 restarts x 5 steps) pads one slot for a few
+    L-BFGS steps: shared. The campaign's defaults (1,000 screened, 32 refined x 20 steps)
+    would pad thousands of slot-steps (the sim arm took twice as long): one program each."""
+    from mfdesign.acquire import SHARED_MAX_PADDING, _padding_work
+
+    assert _padding_work([2, 1], 2, 3, 2, 2, 5) == 30 <= SHARED_MAX_PADDING
+    assert _padding_work([2, 2], 2, 3, 1000, 32, 20) == 0  # equal counts: nothing to pad
+    assert _padding_work([2, 1], 2, 3, 1000, 32, 20) > SHARED_MAX_PADDING
