@@ -92,10 +92,11 @@ class StandinWorld:
     """A stand-in world the stand-in model does not hold: its rings raise the contact
     pressure by ``ring_coefficient`` each, where the model says :data:`RING_COEFFICIENT`.
     No effect of the library reaches that coefficient, so a campaign in this world keeps a
-    ring-dependent misfit that only the data-driven discrepancy can learn, from the ringed
-    membranes it is told: the world where the held-out error can fall from round to round
-    (``experiments/campaign_rounds.py --world stiff-rings``, issue 41). A plane solver for
-    :class:`~mfdesign.rig.virtual.VirtualRig` (its repr is the rig's plane-cache key)."""
+    ring-dependent misfit: a test of whether its rounds learn what the physics cannot hold
+    (``experiments/campaign_rounds.py --world stiff-rings``, issue 41; measured: they did not,
+    the calibration carried part of the misfit to ringless membranes, docs/campaign.md). A
+    plane solver for :class:`~mfdesign.rig.virtual.VirtualRig` (its repr is the rig's
+    plane-cache key)."""
 
     ring_coefficient: float = 0.65
 
