@@ -18,6 +18,7 @@ PKG = Path(__file__).resolve().parents[1] / "mfdesign"
 LAYERS = (
     (
         "mfdesign._x64",
+        "mfdesign._padding",
         "mfdesign._cache",
         "mfdesign._memory",
         "mfdesign.units",

@@ -47,6 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mfdesign._padding import pad_last, padded_size
 from mfdesign.data.measurements import Measurements
 from mfdesign.design import Membrane
 from mfdesign.diagnosis.expected import query_heights, trial_order
@@ -225,9 +226,7 @@ def _row_params(order, names, base: SimParams, rows: fx.Rows, thetas) -> SimPara
     is): op by op under vmap every (B, rows) pair compiled ~25 small programs (issue 40)."""
     thetas = np.atleast_2d(np.asarray(thetas, float))
     b = len(thetas)
-    size = 1 << (b - 1).bit_length()
-    padded = np.concatenate([thetas, np.repeat(thetas[-1:], size - b, axis=0)])
-    out = _row_params_of(order, names, base, rows, jnp.asarray(padded))
+    out = _row_params_of(order, names, base, rows, jnp.asarray(pad_last(thetas, padded_size(b))))
     return jax.tree.map(lambda a: np.asarray(a)[:b], out)
 
 

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from mfdesign._padding import pad_last, padded_size
 from mfdesign._x64 import enable_x64
 from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
 from mfdesign.models.predictor import AbstractPredictor
@@ -113,9 +114,8 @@ class MultiFidelity(eqx.Module):
         n = len(design)
         if n == 0:
             return np.zeros((self.theta.shape[0], 0))
-        size = max(256, 1 << (n - 1).bit_length())
-        pad = lambda a: np.concatenate([a, np.repeat(a[-1:], size - n, axis=0)])  # noqa: E731
-        return self.sample_data(self.data_for(pad(design), pad(h_mm), pad(p_pa)))[:, :n]
+        size = padded_size(n, 256)
+        return self.sample_data(self.data_for(*(pad_last(a, size) for a in (design, h_mm, p_pa))))[:, :n]
 
     def members(self, design, h_mm, p_pa, key=0, discrepancy=True) -> jax.Array:
         """Traceable ``F_s`` [S, N] N at force rows ``design`` [N, 6] mm, ``h_mm`` [N],
@@ -200,9 +200,10 @@ class MultiFidelityPredictor(AbstractPredictor):
         # every table (a plane of 255 and one of 211 rows were two compiles); the draws are
         # per membrane, not per row, so the padding changes no number.
         n = len(h_mm)
-        size = max(256, 1 << (n - 1).bit_length())
-        pad = lambda a: jnp.asarray(np.concatenate([a, np.repeat(a[-1:], size - n, axis=0)]))  # noqa: E731
-        return self.mf.members(*(pad(np.asarray(a, float)) for a in args), discrepancy=rig)[:, :n]
+        size = padded_size(n, 256)
+        return self.mf.members(*(jnp.asarray(pad_last(np.asarray(a, float), size)) for a in args), discrepancy=rig)[
+            :, :n
+        ]
 
 
 @eqx.filter_jit
