@@ -325,4 +325,7 @@ def calibrate(
             f"90 % coverage {meta['train_coverage90']:.2f}; {fit.delta.describe()}"
         )
         written.update(delta=str(out / "delta"), mf=str(out / "mf.json"))
-    return CalibrationResult(post, written, mf_line, tuple(f"warning: {w.message}" for w in caught))
+    # the chain's convergence only: a library's own notices (ArviZ's "undergoing a major
+    # refactor" FutureWarning on import) are not the user's business
+    said = tuple(f"warning: {w.message}" for w in caught if issubclass(w.category, ConvergenceWarning))
+    return CalibrationResult(post, written, mf_line, said)

@@ -196,3 +196,28 @@ def test_calibrate_command_writes_posterior_nc(tmp_path):
     assert GROUPS <= set(idata.groups())
     assert idata.posterior["mu_pa"].dims == ("chain", "draw") and idata.posterior.sizes["chain"] == 16
     assert 10e3 < float(idata.posterior["mu_pa"].mean()) < 100e3  # pascals (bundled truth 31.7e3), not ~0.16
+
+
+def test_calibrate_prints_convergence_warnings_not_library_notices(tmp_path, monkeypatch):
+    """A cold `demo --quick` printed ArviZ's import-time FutureWarning ("ArviZ is undergoing
+    a major refactor ...") as a "warning:" line: only the chain's own warnings are the user's."""
+    import mfdesign.workflows.calibrate as wc
+    from mfdesign.cli import app
+    from mfdesign.data.store import read_parquet, write_parquet
+    from mfdesign.workflows.demo import BUNDLED
+
+    real = wc._sample
+
+    def noisy(*args, **kwargs):
+        warnings.warn("a library's notice about its next release", FutureWarning, stacklevel=1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(wc, "_sample", noisy)
+    meas = read_parquet(BUNDLED)
+    data = tmp_path / "one.parquet"
+    write_parquet(meas.subset(meas.design_keys[:1]), data)
+    args = ["calibrate", str(data), "--out", str(tmp_path / "cal"), "--physics", "standin"]
+    r = CliRunner().invoke(app, [*args, "--mcmc-steps", "40", "--walkers", "16", "--max-rows", "60"])
+    assert r.exit_code == 0, r.output
+    assert "next release" not in r.output
+    assert "warning: chain of 40 steps" in r.output  # 40 steps never converge: that one is said
