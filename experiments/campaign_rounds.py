@@ -162,7 +162,17 @@ def main(argv=None) -> dict:
     )
     ap.add_argument("--quick", action="store_true", help="with --start: the quick demo")
     ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--q", type=int, default=2, help="membranes built per round")
+    ap.add_argument(
+        "--q", type=int, default=2, help="membranes built per round (with --each-ring-count: per ring count)"
+    )
+    ap.add_argument(
+        "--each-ring-count",
+        action="store_true",
+        help="ask once per ring count (0, 1, 2) each round, --q membranes each: every kind of membrane is built",
+    )
+    ap.add_argument(
+        "--rediagnose", action="store_true", help="diagnose again before each round's fit (what it finds joins the fit)"
+    )
     ap.add_argument("--sample-hz", type=float, default=2.0, help="the virtual rig's sampling rate [Hz]")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--out", default=str(OUT / "campaign_rounds.json"))
@@ -214,7 +224,10 @@ def main(argv=None) -> dict:
     )
     for r in range(0 if args.evaluate else args.rounds):
         t = time.perf_counter()
-        asked = [e for e in campaign.ask(q=args.q, progress=True) if e.fidelity == "rig"]
+        asks = [(n,) for n in (0, 1, 2)] if args.each_ring_count else [(0, 1, 2)]
+        asked = [
+            e for rings in asks for e in campaign.ask(q=args.q, n_rings=rings, progress=True) if e.fidelity == "rig"
+        ]
         t_ask = time.perf_counter() - t
         for e in asked:
             table = rig.run([Membrane.from_key(e.design)], lift=False, progress=False)
@@ -222,6 +235,9 @@ def main(argv=None) -> dict:
             write_parquet(table, path)
             campaign.tell(e.id, str(path))
         t_build = time.perf_counter() - t - t_ask
+        if args.rediagnose:
+            found = campaign.diagnose(progress=False).found
+            print(f"round {r + 1}: diagnosis found {list(found)}; effects in force {list(campaign.effects)}")
         done = campaign.fit(progress=True)
         t_fit = time.perf_counter() - t - t_ask - t_build
         rows.append(
@@ -250,6 +266,8 @@ def main(argv=None) -> dict:
         "world": args.world,
         "test_designs": list(test_keys),
         "q": args.q,
+        "each_ring_count": args.each_ring_count,
+        "rediagnose": args.rediagnose,
         "sample_hz": args.sample_hz,
         "rounds": rows,
         "test_rmse_falls_every_round": bool(np.all(np.diff(rmse) < 0)),

@@ -806,7 +806,16 @@ class Campaign:
             "physics": self.settings.physics,
         }
 
-    def ask(self, q: int = 2, sim_runs: int = 0, *, progress: bool = False, simulate=None, call: str = ""):
+    def ask(
+        self,
+        q: int = 2,
+        sim_runs: int = 0,
+        *,
+        n_rings: Sequence[int] = (0, 1, 2),
+        progress: bool = False,
+        simulate=None,
+        call: str = "",
+    ):
         """The next membranes to build (``q``, rig) and simulator runs to make (``sim_runs``).
 
         Membranes asked for earlier and still pending count as measured
@@ -821,6 +830,9 @@ class Campaign:
 
         - `q`: membranes to fabricate (>= 0; `q + sim_runs` >= 1).
         - `sim_runs`: simulator planes to make (>= 0).
+        - `n_rings`: the ring counts to search (default all: 0, 1, 2). One ask per ring
+          count covers each kind of membrane in a round; an acquisition left free builds
+          where the force spread is largest, often ringed membranes only (docs/campaign.md).
         - `progress`: progress output.
         - `simulate`: the simulator runs' solver (tests).
         - `call`: the command line, for the provenance.
@@ -856,6 +868,7 @@ class Campaign:
                 progress=progress,
                 budget={"rig": q, "sim": sim_runs},
                 pending=pending,
+                n_rings=tuple(n_rings),
             )
             start = len(state.proposals)
             entries = [
@@ -877,7 +890,8 @@ class Campaign:
             report = proposal.to_json() | {
                 "ids": {e.id: e.design for e in entries},
                 "provenance": provenance(
-                    call or f"Campaign.ask(q={q}, sim_runs={sim_runs})", {"key": s.seed + 1000 * n_ask}
+                    call or f"Campaign.ask(q={q}, sim_runs={sim_runs}, n_rings={tuple(n_rings)})",
+                    {"key": s.seed + 1000 * n_ask},
                 ),
             }
             (self.folder / "asks").mkdir(exist_ok=True)

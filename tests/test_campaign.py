@@ -321,3 +321,23 @@ def test_walkers_are_a_least_number_as_the_membranes_grow(tmp_path):
     done = campaign.fit()
     dim = done.fit.model.dim
     assert dim >= 3 and done.fit.posterior.convergence["n_walkers"] == 2 * dim + 2
+
+
+def test_ask_searches_only_the_ring_counts_asked_for(fitted, tmp_path):
+    """`ask --rings 0` builds ringless membranes only (a lab without fabric rings in stock, or
+    one ask per ring count so that a round covers every kind); a ring count outside 0-2
+    fails in one line, exit 2."""
+    import shutil
+
+    from mfdesign.design import Membrane
+
+    folder = tmp_path / "c"
+    shutil.copytree(fitted[0], folder)
+    r = runner.invoke(app, ["ask", str(folder), "--q", "2", "--rings", "0"])
+    assert r.exit_code == 0, r.output
+    asked = Campaign.open(folder).status().proposals
+    assert len(asked) == 2 and all(Membrane.from_key(e.design).n_rings == 0 for e in asked)
+    (two,) = Campaign.open(folder).ask(q=1, n_rings=(2,))
+    assert Membrane.from_key(two.design).n_rings == 2
+    r = runner.invoke(app, ["ask", str(folder), "--q", "1", "--rings", "3"])
+    assert r.exit_code == 2 and "ring" in r.output and "Traceback" not in r.output, r.output

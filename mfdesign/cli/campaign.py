@@ -73,12 +73,15 @@ def register(app: typer.Typer) -> None:
         folder: Path = FOLDER,
         q: int = typer.Option(2, help="Membranes to fabricate this round (rig runs)."),
         sim_runs: int = typer.Option(0, "--sim-runs", help="Simulator planes the tool makes now (they join the data)."),
+        rings: List[int] = typer.Option(
+            [0, 1, 2], parser=item_parser(int, "a ring count"), help="Ring counts to search (repeat): 0, 1, 2."
+        ),
         scheduler: Optional[str] = SCHEDULER,
     ) -> None:
         """Ask a campaign which membranes to build next (the latest round's model; pending ones count as measured)."""
         from mfdesign.campaign import Campaign
 
-        entries = Campaign.open(folder).ask(q=q, sim_runs=sim_runs, progress=True, call=_call())
+        entries = Campaign.open(folder).ask(q=q, sim_runs=sim_runs, n_rings=rings, progress=True, call=_call())
         for e in entries:
             typer.echo(f"{e.id}  {e.fidelity}  {e.design}  {e.status}: {e.reason} {e.note}".rstrip())
 
