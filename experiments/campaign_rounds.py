@@ -224,9 +224,8 @@ def main(argv=None) -> dict:
     )
     for r in range(0 if args.evaluate else args.rounds):
         t = time.perf_counter()
-        asks = [(n,) for n in (0, 1, 2)] if args.each_ring_count else [(0, 1, 2)]
         asked = [
-            e for rings in asks for e in campaign.ask(q=args.q, n_rings=rings, progress=True) if e.fidelity == "rig"
+            e for e in campaign.ask(args.q, each_ring_count=args.each_ring_count, progress=True) if e.fidelity == "rig"
         ]
         t_ask = time.perf_counter() - t
         for e in asked:

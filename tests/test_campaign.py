@@ -324,9 +324,9 @@ def test_walkers_are_a_least_number_as_the_membranes_grow(tmp_path):
 
 
 def test_ask_searches_only_the_ring_counts_asked_for(fitted, tmp_path):
-    """`ask --rings 0` builds ringless membranes only (a lab without fabric rings in stock, or
-    one ask per ring count so that a round covers every kind); a ring count outside 0-2
-    fails in one line, exit 2."""
+    """`ask --rings 0` builds ringless membranes only (a lab without fabric rings in stock);
+    `--each-ring-count` asks for q of each kind, one ask per ring count; a ring count
+    outside 0-2 fails in one line, exit 2."""
     import shutil
 
     from mfdesign.design import Membrane
@@ -339,5 +339,10 @@ def test_ask_searches_only_the_ring_counts_asked_for(fitted, tmp_path):
     assert len(asked) == 2 and all(Membrane.from_key(e.design).n_rings == 0 for e in asked)
     (two,) = Campaign.open(folder).ask(q=1, n_rings=(2,))
     assert Membrane.from_key(two.design).n_rings == 2
+    r = runner.invoke(app, ["ask", str(folder), "--q", "1", "--each-ring-count"])
+    assert r.exit_code == 0, r.output
+    each = Campaign.open(folder).status().proposals[3:]  # after p1, p2 (ringless) and p3 (two rings)
+    assert sorted(Membrane.from_key(e.design).n_rings for e in each) == [0, 1, 2], r.output
+    assert all(e.id in r.output for e in each) and len({e.design for e in (*asked, two, *each)}) == 6
     r = runner.invoke(app, ["ask", str(folder), "--q", "1", "--rings", "3"])
     assert r.exit_code == 2 and "ring" in r.output and "Traceback" not in r.output, r.output

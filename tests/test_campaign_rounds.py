@@ -25,6 +25,7 @@ import pytest
 from typer.testing import CliRunner
 
 from mfdesign.cli import app
+from mfdesign.design import Membrane
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -60,3 +61,40 @@ def test_the_demos_campaign_continues_two_rounds_on_the_virtual_rig(tmp_path, mo
     table = [ln.split() for ln in lines if ln.strip()[:1].isdigit()]
     assert [row[0] for row in table] == ["0", "1", "2"]
     assert table[0][-1] == "-" and all(row[-2] != "-" for row in table[1:])  # held-out RMSE of rounds 1, 2
+
+
+@pytest.mark.slow
+def test_in_a_world_the_model_does_not_hold_the_heldout_error_falls_when_each_round_builds_every_kind(
+    tmp_path, monkeypatch
+):
+    """Issue 41 item 3 where there is something to learn: the stiff-rings stand-in world
+    (``StandinWorld``: each ring raises the contact pressure by 0.65 where the model says
+    0.4, a misfit no effect of the library reaches). Round 0 is the full stand-in demo on the
+    card's six designs measured there; each later round asks for one membrane of each ring
+    count (``Campaign.ask(each_ring_count=True)``), "builds" them in the same world, tells
+    and refits. Six test membranes no round sees, over the design space.
+
+    Measured (session 31, docs/campaign.md): the error against the noise-free truth fell
+    1.257 -> 0.991 -> 0.939 -> 0.465 N over three rounds. A free batch of three did not fall
+    every round (1.257 -> 1.441 -> 1.075 -> 0.791 N), nor did two (1.257 -> 1.445 -> 1.348 ->
+    1.269 N): it builds where the force spread is largest, ringed membranes, and the
+    calibration fitted mostly on them carries their misfit to ringless ones. Not robust to
+    every setting: from the quick demo the same asks gave 0.642 -> 0.571 -> 1.740 N, when
+    round 2's data moved the calibration to another compromise (J_m 29 instead of 39; 31
+    log units higher on those data, so no failed search)."""
+    monkeypatch.syspath_prepend(str(ROOT / "experiments"))
+    spec = importlib.util.spec_from_file_location("campaign_rounds", ROOT / "experiments" / "campaign_rounds.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    folder = tmp_path / "stiff"
+    args = ["--campaign", str(folder), "--world", "stiff-rings", "--start", "--rounds", "2", "--q", "1"]
+    result = mod.main([*args, "--each-ring-count", "--out", str(tmp_path / "r.json"), "--no-figure"])
+
+    rounds = result["rounds"]
+    assert [r["round"] for r in rounds] == [0, 1, 2]
+    truth = [r["test_truth_rmse_n"] for r in rounds]
+    assert truth[1] < truth[0] and truth[2] < truth[1], rounds
+    for r in rounds:
+        assert 0.8 <= r["test_coverage90"] <= 1.0, rounds
+    for r in rounds[1:]:  # every kind of membrane built every round
+        assert sorted(Membrane.from_key(k).n_rings for k in r["built"]) == [0, 1, 2], r["built"]

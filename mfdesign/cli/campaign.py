@@ -76,12 +76,16 @@ def register(app: typer.Typer) -> None:
         rings: List[int] = typer.Option(
             [0, 1, 2], parser=item_parser(int, "a ring count"), help="Ring counts to search (repeat): 0, 1, 2."
         ),
+        each_ring_count: bool = typer.Option(
+            False, "--each-ring-count", help="Q membranes of each ring count in --rings (one ask per ring count)."
+        ),
         scheduler: Optional[str] = SCHEDULER,
     ) -> None:
         """Ask a campaign which membranes to build next (the latest round's model; pending ones count as measured)."""
         from mfdesign.campaign import Campaign
 
-        entries = Campaign.open(folder).ask(q=q, sim_runs=sim_runs, n_rings=rings, progress=True, call=_call())
+        campaign = Campaign.open(folder)
+        entries = campaign.ask(q, sim_runs, n_rings=rings, each_ring_count=each_ring_count, progress=True, call=_call())
         for e in entries:
             typer.echo(f"{e.id}  {e.fidelity}  {e.design}  {e.status}: {e.reason} {e.note}".rstrip())
 
