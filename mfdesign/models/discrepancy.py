@@ -24,8 +24,8 @@ carries the shape near the data)::
   training rows' RMS pressure, so ``sigma`` is the spread at a typical pressure).
 
 ``l`` and ``sigma`` come from the training data by leave-one-membrane-out
-(:func:`fit_gated`): every fold's ensemble is trained at once (``member_weight`` masks the
-held-out membrane), ``l`` is the shortest candidate whose held-out mean square of the
+(:func:`fit_gated`): every fold's ensemble is trained at once, with the full one
+(``member_weight`` masks the held-out membrane), ``l`` is the shortest candidate whose held-out mean square of the
 residual is within one standard error of the best, the error of the paired difference
 over the held-out membranes (``0``: no transfer between membranes, a reference row;
 ``inf``: the ungated ensemble), and
@@ -34,6 +34,7 @@ over the held-out membranes (``0``: no transfer between membranes, a reference r
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -218,14 +219,35 @@ def _one_se_choice(mse, per_membrane) -> int:
     return min(within) if within else next(i for i, ell in enumerate(LENGTHS) if ell > 0)
 
 
+def _fit_with_folds(config, design, h_mm, p_pa, r, w, row_fold, n_folds, key, progress):
+    """The full ensemble and every leave-one-membrane-out fold's, in ONE training run of
+    ``(K + 1) M`` members: block 0 sees every row (weight 1), block ``j + 1`` is blind to
+    the rows of fold ``j`` (``row_fold`` [n] in 0..K-1). Members train independently
+    (their own minibatches, Adam element-wise), so block 0 is an ordinary M-member fit;
+    one shape compiles once, where two runs of M and K M members compiled every training
+    program twice (issue 40: ``_nets``, ``_train_chunk``, ``_training_data``, ~12 s a cold
+    demo). Returns the full ensemble (M members) and the blocks' mean predictions
+    [K + 1, n] N at the rows."""
+    from mfdesign.models.ensemble import fit_ensemble
+
+    m = config.n_members
+    seen = np.concatenate([np.ones((1, len(r))), row_fold[None, :] != np.arange(n_folds)[:, None]])
+    mask = np.repeat(seen.astype(float), m, axis=0)  # [(K + 1) M, n]
+    both_cfg = dataclasses.replace(config, n_members=m * (n_folds + 1))
+    both = fit_ensemble(both_cfg, design, h_mm, p_pa, r, w, member_weight=mask, key=key, progress=progress)
+    pred = np.asarray(both.predict(design, h_mm, p_pa)).reshape(n_folds + 1, m, -1).mean(1)
+    return both.subset(0, m), pred
+
+
 def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=None, *, key=0, progress=False):
     """Fit the gated discrepancy to residuals ``resid_n`` [n] N at rows (``design`` [n, 6]
     mm, ``h_mm``, ``p_pa``), ``weight`` [n], ``membrane`` [n] integer ids of the rows'
     membranes.
 
     One ensemble on every row (the discrepancy near the data). With three or more
-    membranes, one more training run holds ``K x M`` members, member block ``j`` blind to
-    membrane ``j`` (leave-one-membrane-out, one compile): each candidate of
+    membranes, the same training run also holds ``K x M`` members, member block ``j`` blind
+    to membrane ``j`` (leave-one-membrane-out; one run, one compile: :func:`_fit_with_folds`):
+    each candidate of
     :data:`LENGTHS` is scored by the held-out RMSE of ``resid - g delta_j``; the shortest
     length within one standard error of the best wins (the one-standard-error rule, on the
     membranes' paired differences to the best), and
@@ -236,8 +258,6 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
     ensemble everywhere), said in the report.
     """
     enable_x64()  # float64 physics: mfdesign._x64
-    import dataclasses
-
     from mfdesign.models.ensemble import fit_ensemble
 
     # no pressure, no force, on the rig as in the simulator: the discrepancy is 0 at p = 0 (a
@@ -252,23 +272,18 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
     ids = np.unique(membrane)
     first = np.array([np.flatnonzero(membrane == i)[0] for i in ids])
     anchors = design[first]
-    k0, k1 = jax.random.split(jax.random.PRNGKey(key) if isinstance(key, int) else key)
-    full = fit_ensemble(config, design, h_mm, p_pa, r, w, key=k0, progress=progress)
-    if noise_n is None:
-        d_full = np.asarray(full.predict(design, h_mm, p_pa)).mean(0)
-        noise_n = float(np.sqrt(np.average((r - d_full) ** 2, weights=w)))
+    k0, _ = jax.random.split(jax.random.PRNGKey(key) if isinstance(key, int) else key)
     if len(ids) < 3:
+        full = fit_ensemble(config, design, h_mm, p_pa, r, w, key=k0, progress=progress)
         report = ({"length": None, "note": f"{len(ids)} membrane(s): nothing to hold out, no gate"},)
         return Discrepancy(
             full, jnp.asarray(anchors), math.inf, 0.0, tuple(tuple(sorted(x.items())) for x in report), p_ref
         )
-    m = config.n_members
-    cv_cfg = dataclasses.replace(config, n_members=m * len(ids))
-    blind = np.repeat((membrane[None, :] != ids[:, None]).astype(float), m, axis=0)  # [K M, n]
-    cv = fit_ensemble(cv_cfg, design, h_mm, p_pa, r, w, member_weight=blind, key=k1, progress=progress)
-    pred = np.asarray(cv.predict(design, h_mm, p_pa)).reshape(len(ids), m, -1).mean(1)  # [K, n]
     row_fold = np.searchsorted(ids, membrane)
-    d_held = pred[row_fold, np.arange(len(r))]  # each row by the fold blind to its membrane
+    full, pred = _fit_with_folds(config, design, h_mm, p_pa, r, w, row_fold, len(ids), k0, progress)
+    if noise_n is None:
+        noise_n = float(np.sqrt(np.average((r - pred[0]) ** 2, weights=w)))
+    d_held = pred[1:][row_fold, np.arange(len(r))]  # each row by the fold blind to its membrane
     feats = np.asarray(membrane_features(design))
     fa = np.asarray(membrane_features(anchors))
     d2 = np.sum((feats[:, None, :] - fa[None, :, :]) ** 2, -1)

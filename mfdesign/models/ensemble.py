@@ -286,6 +286,15 @@ class Ensemble(eqx.Module):
         h_mm, p_pa = jnp.broadcast_arrays(jnp.asarray(h_mm), jnp.asarray(p_pa))
         return _predict(self, jnp.asarray(design), h_mm, p_pa)
 
+    def subset(self, start: int, stop: int) -> "Ensemble":
+        """Members ``start .. stop - 1`` as an ensemble of their own (same normalisation):
+        one training run of several ensembles' members (``member_weight``) split apart."""
+        if not 0 <= start < stop <= self.n_members:
+            raise ValueError(f"members {start}..{stop - 1} of {self.n_members}: allowed 0 <= start < stop <= members")
+        cut = lambda t: jax.tree.map(lambda a: a[start:stop] if eqx.is_array(a) else a, t)  # noqa: E731
+        cfg = dataclasses.replace(self.config, n_members=stop - start)
+        return Ensemble(cut(self.trainable), cut(self.prior), self.norm, self.beta, cfg)
+
     def mean_std(self, design, h_mm, p_pa):
         """Ensemble mean and standard deviation [n] of the force (N)."""
         f = self.predict(design, h_mm, p_pa)

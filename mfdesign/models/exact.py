@@ -46,6 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mfdesign._padding import pad_last, padded_size
 from mfdesign._x64 import enable_x64
 from mfdesign.design import Membrane
 from mfdesign.models.force import ForceModel
@@ -520,18 +521,32 @@ class ExactForceModel(ForceModel):
         return jax.vmap(one)(m, ii, tt, ih, ip, th, tp)
 
 
+@jax.jit
+def _coords(prm: SimParams, base: SimParams) -> dict:
+    """Every lattice axis' coordinate [n] at constants ``prm`` (fields [n]) around ``base``
+    (scalar fields): one program per ``n``, where the axes' jnp ops on NumPy arrays ran
+    eagerly and compiled one small program per op and shape (~30 a demo, issue 40)."""
+    return {name: axis.coord(prm, base) for name, axis in pl.AXES.items()}
+
+
 def _box_of(params: SimParams, base: SimParams, any_ringed: bool, axis_names=frozenset()) -> dict:
     """Coordinate range per axis of ``params`` (fields of any shape); axes whose coordinate
     never leaves 0 are omitted (unless in ``axis_names``), and ``ring`` without ringed designs."""
-    prm = jax.tree.map(lambda a: np.asarray(a, float), params)
+    leaves, tree = jax.tree.flatten(jax.tree.map(lambda a: np.asarray(a, float), params))
     # Fields batched as [K] (per draw) and [K, N] (per draw and row) align on the left.
-    nd = max(np.ndim(a) for a in jax.tree.leaves(prm))
-    prm = jax.tree.map(lambda a: a.reshape(a.shape + (1,) * (nd - a.ndim)), prm)
+    nd = max(a.ndim for a in leaves)
+    flat = [a.ravel() for a in np.broadcast_arrays(*(a.reshape(a.shape + (1,) * (nd - a.ndim)) for a in leaves))]
+    if not flat[0].size:
+        return {}
+    # padded to a power of two by repeating the last entry (ranges unchanged): few shapes
+    size = padded_size(flat[0].size)
+    prm = jax.tree.unflatten(tree, [pad_last(a, size) for a in flat])
+    coords = _coords(prm, jax.tree.map(lambda a: np.asarray(a, float), base))
     box = {}
     for name, axis in pl.AXES.items():
         if axis.ringed_only and not any_ringed:
             continue
-        c = np.asarray(axis.coord(prm, base), float)
+        c = np.asarray(coords[name], float)
         c = c[np.isfinite(c)]
         if c.size and (np.max(np.abs(c)) > 1e-9 or name in axis_names):
             box[name] = (float(np.min(c)), float(np.max(c)))

@@ -162,3 +162,26 @@ def test_the_gate_rule_takes_the_least_transfer_when_no_transfer_is_clearly_best
     # "none" (length 0) best on every membrane, by far more than the membranes' scatter
     pm = np.linspace(1.0, 2.0, len(LENGTHS))[:, None] + 0.01 * np.random.default_rng(0).random((len(LENGTHS), 5))
     assert LENGTHS[_one_se_choice(pm.mean(axis=1), pm)] == 0.05
+
+
+def test_one_training_run_serves_the_full_ensemble_and_every_fold(monkeypatch):
+    """The full ensemble is the fold that holds nothing out: one ``fit_ensemble`` call of
+    (K + 1) M members trains both (one compile, issue 40). Block j + 1 never sees membrane
+    j (its residuals shuffled within the membrane, block j + 1 is bit-identical; the full
+    block is not), and block 0 is the returned ensemble."""
+    import mfdesign.models.ensemble as ens
+    from mfdesign.models.discrepancy import _fit_with_folds
+
+    d, h, p, m = _rows(DESIGNS[:3], n=30)
+    r = np.sin(h / 10) + m
+    calls = []
+    fit = ens.fit_ensemble
+    monkeypatch.setattr(ens, "fit_ensemble", lambda cfg, *a, **k: calls.append(cfg.n_members) or fit(cfg, *a, **k))
+    full, pred = _fit_with_folds(CFG, d, h, p, r, np.ones(len(h)), m, 3, jax.random.PRNGKey(0), False)
+    assert calls == [4 * CFG.n_members] and full.n_members == CFG.n_members and pred.shape == (4, len(h))
+    np.testing.assert_allclose(pred[0], np.asarray(full.predict(d, h, p)).mean(0), rtol=1e-12)
+    shuffled = r.copy()
+    shuffled[m == 1] = r[m == 1][::-1]  # same values (same normalisation), other rows
+    _, pred2 = _fit_with_folds(CFG, d, h, p, shuffled, np.ones(len(h)), m, 3, jax.random.PRNGKey(0), False)
+    np.testing.assert_array_equal(pred2[2], pred[2])  # blind to membrane 1
+    assert np.max(np.abs(pred2[0] - pred[0])) > 1e-3 and np.max(np.abs(pred2[1] - pred[1])) > 1e-3

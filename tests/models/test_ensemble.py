@@ -156,3 +156,14 @@ def test_predict_in_row_passes_equals_one_pass(fitted):
     np.testing.assert_allclose(chunked, whole, rtol=1e-6, atol=1e-6)
     grad = jax.grad(lambda pp: fitted.predict(d, h, pp).sum())(jnp.asarray(p))
     assert grad.shape == p.shape and np.all(np.isfinite(grad))
+
+
+def test_subset_is_the_members_it_names(fitted):
+    """A training run of several ensembles' members splits into ensembles of their own
+    (the discrepancy trains its full and leave-one-out members at once, issue 40)."""
+    d, h, p, *_ = toy_data(20, seed=3)
+    part = fitted.subset(1, 3)
+    assert part.n_members == 2 and part.config.n_members == 2
+    np.testing.assert_array_equal(np.asarray(part.predict(d, h, p)), np.asarray(fitted.predict(d, h, p))[1:3])
+    with pytest.raises(ValueError, match="allowed"):
+        fitted.subset(2, 5)
