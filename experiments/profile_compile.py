@@ -16,6 +16,9 @@ From the log it sums, per jitted function and per demo stage, the seconds XLA re
 says so, and has no timings of its own); ``--save-log FILE`` keeps the run's log (with
 ``JAX_LOG_COMPILES`` it names each compiled program's argument shapes: why a kernel
 compiled twice). ``recompiled`` in the JSON lists the kernels compiled more than once.
+``--keep DIR`` keeps the run's folder there instead of deleting it: the demo's output
+(``DIR/demo``: its summary, to check a change left the results as they were) and the cache
+(``DIR/cache/planes``: the planes a next run can preload with ``--planes``).
 """
 
 from __future__ import annotations
@@ -75,6 +78,9 @@ def main(argv=None) -> dict:
     ap.add_argument(
         "--save-log", type=Path, default=None, help="also write the run's log here (the compiled shapes, per call)"
     )
+    ap.add_argument(
+        "--keep", type=Path, default=None, help="keep the run's folder (demo output, cache with planes) here"
+    )
     args = ap.parse_args(argv)
     commit, dirty = git_state()
     result: dict = {"commit": commit, "dirty": dirty, "machine": machine(), "load_before": load()}
@@ -110,7 +116,11 @@ def main(argv=None) -> dict:
             "system_s": round(r1.children_system - r0.children_system, 1),
             "load_after": load(),
         }
-        shutil.rmtree(work, ignore_errors=True)
+        if args.keep is None:
+            shutil.rmtree(work, ignore_errors=True)
+        else:
+            shutil.move(work, args.keep)
+            result |= {"kept": str(args.keep)}
     result |= parse(lines)
     path = write_json(args.out / "profile_compile.json", result, indent=1)
     print(f"{path}: XLA compile {result['compile_s_total']} s in {result['compilations']} compilations")
