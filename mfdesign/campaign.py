@@ -831,9 +831,7 @@ class Campaign:
 
         - `q`: membranes to fabricate (>= 0; `q + sim_runs` >= 1).
         - `sim_runs`: simulator planes to make (>= 0).
-        - `n_rings`: the ring counts to search (default all: 0, 1, 2). One ask per ring
-          count covers each kind of membrane in a round; an acquisition left free builds
-          where the force spread is largest, often ringed membranes only (docs/campaign.md).
+        - `n_rings`: the ring counts to search (default all: 0, 1, 2).
         - `each_ring_count`: `q` membranes of each ring count in `n_rings`, one ask per ring
           count (each counting the ones before as pending), then the simulator runs over
           every ring count. In the stiff-rings world of docs/campaign.md this made the
@@ -859,8 +857,12 @@ class Campaign:
             raise InputError("q + sim_runs = 0: the ask holds no run; allowed: q >= 1 or sim_runs >= 1")
         if each_ring_count:  # one ask per ring count: each one's membranes pending for the next
             kw = dict(progress=progress, simulate=simulate, call=call)
-            entries = [e for n in dict.fromkeys(n_rings) if q for e in self.ask(q, n_rings=(n,), **kw)]
-            return entries + (self.ask(0, sim_runs, n_rings=n_rings, **kw) if sim_runs else [])
+            entries = []
+            for n in dict.fromkeys(n_rings) if q else ():
+                entries += self.ask(q, n_rings=(n,), **kw)
+            if sim_runs:
+                entries += self.ask(0, sim_runs, n_rings=n_rings, **kw)
+            return entries
         s = self.settings
         with self._lock():
             state = self._read()
