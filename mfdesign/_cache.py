@@ -54,6 +54,12 @@ def enable_compilation_cache() -> Path:
         "jax_compilation_cache_dir": str(cache),
         "jax_persistent_cache_min_compile_time_secs": 0.0,
         "jax_persistent_cache_min_entry_size_bytes": 0,
+        # JAX's default adds XLA's GPU autotuning folder, a path inside this one, to every
+        # program's compile options, and so to its cache key: a cache copied or moved to
+        # another folder (a CI cache restored elsewhere, a warm cache carried to the rig's
+        # laptop, bench_demo's copies) missed every program and compiled it again (session
+        # 32: a "warm" demo on a copied cache spent 270 s in XLA). "none": keys without it.
+        "jax_persistent_cache_enable_xla_caches": "none",
     }
     os.environ.update({name.upper(): str(value) for name, value in settings.items()})
     if "jax" in sys.modules:  # already imported: it read its environment then, tell it now
