@@ -640,32 +640,6 @@ def check_with_simulator(
     )
 
 
-# The membrane warm_simulator_check solves: two rings, so every ring slot of the padded
-# Geometry is live (the programs serve every ring count, mfdesign.physics.shooting).
-_WARM_DESIGN = Membrane(2.0, 30.0, rings=((45.0, 3.0), (55.0, 2.0)))
-
-
-def warm_simulator_check(problem: "HeightTargets | None" = None, params=None) -> float:
-    """Compile the simulator check's programs (:func:`check_with_simulator` at ``problem``'s
-    targets and ``params``) by running it once on a reference membrane; returns the seconds
-    it took.
-
-    The check's programs do not depend on the membrane, only on the targets' count and the
-    constants' kind, but their first call costs ~80 s of tracing and XLA compilation on a
-    2-core CPU (cold; ~3 s once compiled, session 32). A caller that starts this in a
-    background thread while it does other work (the demo, during its propose and make
-    stages: one core sits idle there) finds them compiled when the search's winner is
-    checked. The reference's heights are thrown away.
-    """
-    problem = TARGET_SETS["A"] if problem is None else problem
-    if not isinstance(problem, HeightTargets):
-        raise TypeError(f"the simulator check needs HeightTargets, got {type(problem).__name__}")
-    t0 = time.perf_counter()
-    force_n = np.asarray(problem.force_n, float)
-    check_with_simulator(_WARM_DESIGN, force_n, np.asarray(problem.p_pa, float), np.zeros_like(force_n), params)
-    return time.perf_counter() - t0
-
-
 def simulator_refine(
     problem: "HeightTargets | Waypoints",
     space: DesignSpace,

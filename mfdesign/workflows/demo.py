@@ -20,10 +20,7 @@ targets < 10 minutes on a 2-core CPU.
 
 from __future__ import annotations
 
-import concurrent.futures
 import json
-import logging
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -913,37 +910,6 @@ def _propose_stage(run: _Run, predictor):
     return proposal
 
 
-def _warm_check(fit) -> concurrent.futures.Future:
-    """:func:`mfdesign.optimization.warm_simulator_check` at the fit's calibrated constants
-    (the check's own), in a background thread. A daemon thread: a demo that fails or is
-    interrupted before its check exits at once instead of waiting for the compilations
-    (a pool's worker would be joined at exit)."""
-    from mfdesign.calibration.workflow import calibrated_sim_params
-    from mfdesign.optimization import TARGET_SETS, warm_simulator_check
-
-    params, _ = calibrated_sim_params(fit)
-    future: concurrent.futures.Future = concurrent.futures.Future()
-
-    def work() -> None:
-        try:
-            future.set_result(warm_simulator_check(TARGET_SETS["A"], params))
-        except BaseException as err:  # noqa: BLE001 (handed to the joiner, _joined)
-            future.set_exception(err)
-
-    threading.Thread(target=work, name="warm-check", daemon=True).start()
-    return future
-
-
-def _joined(future) -> float | None:
-    """Wait for a warm-up; its seconds, or None when it failed (the check then compiles its
-    programs itself: a warm-up only saves time, it never decides a result)."""
-    try:
-        return round(future.result(), 1)
-    except Exception as err:  # noqa: BLE001 (any failure of a warm-up is harmless)
-        logging.getLogger(__name__).debug("the simulator check's warm-up failed: %r", err)
-        return None
-
-
 def _optimise_stage(run: _Run, predictor, fit) -> dict:
     """Optimise a membrane for lift task A. The search runs on the emulator (1-3 N off the
     simulator at lift points), so its winner is re-computed by the simulator at the
@@ -1146,26 +1112,20 @@ def run_demo(
     summary["discrepancy_gate"] = fit1.delta.describe()
     if card is not None:
         summary["truth_check"] = _truth_check(fit1.posterior, card)
-    # The optimum's simulator check compiles ~80 s of programs (cold, 2-core CPU) that do not
-    # depend on the membrane: compile them on the core the propose and make stages leave
-    # idle, and keep them (no release at those stages' ends) until the check runs.
-    warm = _warm_check(fit1) if s.force_model != "standin" else None
     predictor = (for_search(fit1, s.search_model) if s.force_model == "exact" else fit1.mf).predictor(s.design_draws)
-    with log.stage("propose 2 membranes to build and 1 simulator run", release=warm is None):
+    with log.stage("propose 2 membranes to build and 1 simulator run"):
         proposal = _propose_stage(run, predictor)
     # membranes a person builds, ranked, each with why; simulator runs are the tool's own work
     summary["proposals"] = [_run_json(r) for r in proposal.fabricate]
     summary["simulator_runs"] = [_run_json(r) for r in proposal.simulate]
     if proposal.simulate and s.force_model != "standin":  # a stand-in's runs would teach nothing real
-        with log.stage(f"make the {len(proposal.simulate)} simulator run(s) the proposal chose", release=warm is None):
+        with log.stage(f"make the {len(proposal.simulate)} simulator run(s) the proposal chose"):
             made, checks = _make_sim_runs(proposal, predictor, fit1, out)
             for entry, m in zip(summary["simulator_runs"], made):
                 entry.update(m)
             for entry, check in zip(summary["proposals"], checks):
                 entry["simulator_check"] = check
     with log.stage("optimise a membrane for lift task A (height maximisation), check it with the simulator"):
-        if warm is not None:
-            summary["check_warmed_s"] = _joined(warm)
         summary["optimum"] = _optimise_stage(run, predictor, fit1)
     with log.stage("leave a campaign: round 0 is the corrected fit"):
         summary["campaign"] = {"folder": str(out), "round": _leave_campaign(run, found, fit1, diag).rounds()[-1]}
