@@ -7,7 +7,8 @@ run pays for compilation and computation but not for planes: the difference to a
 bench_demo run is the planes' cost.
 
 From the log it sums, per jitted function and per demo stage, the seconds XLA reported
-("Finished XLA compilation of ... in S sec") and the number of compilations, and writes
+("Finished XLA compilation of ... in S sec") and the number of compilations, the seconds
+of tracing ("Finished tracing ...") and of lowering to MLIR, and writes
 ``out/profile_compile.json`` with the commit, the load and the process's wall / user time.
 
     python experiments/profile_compile.py --planes ~/.cache/mfdesign/planes [--full] [--core 0]
@@ -36,6 +37,10 @@ from pathlib import Path
 from _common import git_state, load, machine, parser, write_json
 
 _COMPILE = re.compile(r"Finished XLA compilation of (\S+).*? in ([\d.e+-]+) sec")
+# Python's share: tracing a function to a jaxpr, then lowering it to MLIR. A warm run (the
+# persistent cache serves XLA's part) still pays both, every run.
+_TRACE = re.compile(r"Finished tracing (?:\+ transforming )?(\S+) for \S+ in ([\d.e+-]+) sec")
+_LOWER = re.compile(r"Finished jaxpr to MLIR module conversion (\S+) in ([\d.e+-]+) sec")
 _STAGE = re.compile(r"^\[\s*[\d.]+ s\] (.+?) \.\.\.\s*$")
 
 
@@ -44,11 +49,23 @@ def parse(lines) -> dict:
     per_fn: dict[str, float] = collections.Counter()
     count: dict[str, int] = collections.Counter()
     per_stage: dict[str, float] = collections.Counter()
+    traced: dict[str, float] = collections.Counter()
+    trace_stage: dict[str, float] = collections.Counter()
+    lower_stage: dict[str, float] = collections.Counter()
     stage = "start"
     for line in lines:
         m = _STAGE.match(line)
         if m:
             stage = m.group(1)
+            continue
+        m = _TRACE.search(line)
+        if m:
+            traced[m.group(1)] += float(m.group(2))
+            trace_stage[stage] += float(m.group(2))
+            continue
+        m = _LOWER.search(line)
+        if m:
+            lower_stage[stage] += float(m.group(2))
             continue
         m = _COMPILE.search(line)
         if m:
@@ -66,6 +83,12 @@ def parse(lines) -> dict:
         # kernels compiled more than once (new shapes or structures) taking 0.5 s or more:
         # what bucketing shapes can still save
         "recompiled": [row(f) for f in top if count[f] > 1 and per_fn[f] >= 0.5],
+        # tracing counts a jit called inside another twice (its own line and its caller's)
+        "trace_s_per_stage": {k: round(v, 1) for k, v in trace_stage.items()},
+        "lower_s_per_stage": {k: round(v, 1) for k, v in lower_stage.items()},
+        "traced_per_function": [
+            {"function": f, "seconds": round(v, 2)} for f, v in sorted(traced.items(), key=lambda kv: -kv[1])[:20]
+        ],
     }
 
 
@@ -123,7 +146,10 @@ def main(argv=None) -> dict:
             result |= {"kept": str(args.keep)}
     result |= parse(lines)
     path = write_json(args.out / "profile_compile.json", result, indent=1)
-    print(f"{path}: XLA compile {result['compile_s_total']} s in {result['compilations']} compilations")
+    print(
+        f"{path}: XLA compile {result['compile_s_total']} s in {result['compilations']} compilations; "
+        f"tracing {sum(result['trace_s_per_stage'].values()):.1f} s, lowering {sum(result['lower_s_per_stage'].values()):.1f} s"
+    )
     for row in result["per_function"][:8]:
         print(f"  {row['seconds']:7.1f} s  {row['compilations']:4d} x  {row['function']}")
     return result
