@@ -412,15 +412,25 @@ def force_at(
     usable, never a silent number), status codes, locking, rise and wrinkling checks.
     """
     enable_x64()  # float64 physics: mfdesign._x64
+    return _force_and_state(design, h_mm, p_pa, params, path_steps, signed)[0]
+
+
+def _force_and_state(
+    design: Membrane, h_mm, p_pa, params: SimParams, path_steps: int = PATH_STEPS, signed: bool = False
+) -> tuple[SimResult, np.ndarray]:
+    """:func:`force_at`'s result and each point's first shooting unknown ``a = log(lambda1 - 1)``
+    at the state its path ended in (the last converged one on a failed path; NaN where none):
+    :func:`height_at` starts its fixed-force solves from these instead of solving a path again."""
     h, p = np.broadcast_arrays(np.asarray(h_mm, float), np.asarray(p_pa, float))
     shape_ = h.shape
     hs, ps = _sanitize(h.ravel(), p.ravel())
     if hs.size == 0:
         empty = np.zeros(shape_)
-        return SimResult(empty, empty.astype(np.int8), empty, empty, empty.astype(bool))
+        return SimResult(empty, empty.astype(np.int8), empty, empty, empty.astype(bool)), np.full(shape_, np.nan)
     out = _solve_points(design, hs, ps, params, path_steps)
     res = _classify(h.ravel(), p.ravel(), out, signed=signed, outer_radius_mm=design.outer_radius_mm)
-    return jax.tree.map(lambda a: a.reshape(shape_), res)
+    a = np.asarray(out.state, float)[:, 0]
+    return jax.tree.map(lambda v: v.reshape(shape_), res), np.where(np.isfinite(a), a, np.nan).reshape(shape_)
 
 
 def _solve_points(
@@ -870,15 +880,22 @@ def height_at(
     hg = np.linspace(0.0, h_max_mm, n_heights)
     Hq = np.broadcast_to(hg[None, :], (F.size, n_heights))
     Pq = np.broadcast_to(p[:, None], (F.size, n_heights))
-    Fh = _lift_forces(force_at(design, Hq, Pq, params), Pq, design.outer_radius_mm)
+    res, a_grid = _force_and_state(design, Hq, Pq, params)
+    Fh = _lift_forces(res, Pq, design.outer_radius_mm)
     height, status, lo_idx, for_refine = _first_crossing(F, p, Fh)
-    _refine_crossings(design, params, F, p, Fh, hg, lo_idx, for_refine, height, status)
+    _refine_crossings(design, params, F, p, Fh, hg, lo_idx, for_refine, height, status, a_grid)
     return height.reshape(shape_), status.reshape(shape_)
 
 
-def _refine_crossings(design, params, F, p, Fh, hg, lo_idx, refine, height, status):
+def _refine_crossings(design, params, F, p, Fh, hg, lo_idx, refine, height, status, a_grid=None):
     """Crossings bracketed on the height grid: linear interpolation, then shooting at fixed
-    force (one batched solve). Writes ``height`` and ``status`` in place."""
+    force (one batched solve). Writes ``height`` and ``status`` in place.
+
+    The solve starts from the grid states' unknown ``a_grid`` interpolated like the height
+    (the bracket's two nodes were solved on the way there). A path solved at the guessed
+    height for the start compiled a program of its own for this alone (~18 s of XLA and
+    ~4 s of tracing on 2 cores, session 32); it remains for a bracket without states (and for
+    ``a_grid`` None: :func:`lift_curve`'s plane keeps none)."""
     idx = np.nonzero(refine)[0]
     if not idx.size:
         return
@@ -886,7 +903,14 @@ def _refine_crossings(design, params, F, p, Fh, hg, lo_idx, refine, height, stat
     f0, f1 = Fh[idx, j], Fh[idx, j + 1]
     w = (f0 - F[idx]) / np.where(f0 != f1, f0 - f1, 1.0)
     h_guess = hg[j] + w * (hg[j + 1] - hg[j])
-    a0 = _a_guess(design, params, h_guess, p[idx])
+    a_grid = np.full(Fh.shape, np.nan) if a_grid is None else a_grid  # a plane keeps no states (lift_curve)
+    a_lo, a_hi = a_grid[idx, j], a_grid[idx, j + 1]
+    a0 = np.where(
+        np.isfinite(a_lo) & np.isfinite(a_hi), a_lo + w * (a_hi - a_lo), np.where(np.isfinite(a_lo), a_lo, a_hi)
+    )
+    lost = ~np.isfinite(a0)
+    if lost.any():
+        a0[lost] = _a_guess(design, params, h_guess[lost], p[idx][lost])
     geom = sh.geometry_of(design)
     params = traced_params(params)
     m = idx.size
