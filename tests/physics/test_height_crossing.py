@@ -62,7 +62,7 @@ def test_first_crossing_matches_reference_on_random_tables():
     }
 
 
-def _interpolate_only(design, params, Fq, pq, Fh, hgrid, lo_idx, refine, height, status):
+def _interpolate_only(design, params, Fq, pq, Fh, hgrid, lo_idx, refine, height, status, a_grid=None):
     """``_refine_crossings`` without the simulator: the bracket's linear interpolation."""
     idx = np.nonzero(refine)[0]
     j = lo_idx[idx]
@@ -97,8 +97,11 @@ def test_lift_curve_flags_a_jump_over_a_dip(monkeypatch):
 
 
 @pytest.mark.slow
-def test_lift_curve_agrees_with_height_at_on_the_simulator():
+def test_lift_curve_agrees_with_height_at_on_the_simulator(monkeypatch):
+    """lift_curve starts each fixed-force solve from a path solved at the guessed height;
+    height_at from the grid states force_at solved (no path again, no program of its own)."""
     from mfdesign.design import Membrane
+    from mfdesign.physics import solve
     from mfdesign.physics.solve import force_at, height_at, lift_curve
 
     # A ringed paper membrane: it lifts 25 N from ~3 to ~67 mm over 3.7-7 kPa. (The ringless
@@ -107,7 +110,10 @@ def test_lift_curve_agrees_with_height_at_on_the_simulator():
     d = Membrane.from_key("[2.0, 25.4, 49.0, 5.0, 62.0, 5.0]")
     p = np.linspace(3000.0, 7000.0, 7)
     h, st = lift_curve(d, 25.0, p)
+    paths, path_guess = [], solve._a_guess
+    monkeypatch.setattr(solve, "_a_guess", lambda *a: paths.append(a) or path_guess(*a))
     h2, st2 = height_at(d, np.full(p.size, 25.0), p)
+    assert not paths  # every bracket had its two states
     ok = (st == Status.OK) & (st2 == Status.OK)
     assert ok.sum() >= 4
     np.testing.assert_allclose(h[ok], h2[ok], atol=1e-3)
@@ -131,22 +137,22 @@ def test_height_at_reads_outside_model_nodes_as_above_the_load(monkeypatch):
     row[0] = 99.0
 
     def fake_points(status_between):
-        def force_at(design, H, P, params):
+        def force_and_state(design, H, P, params):
             F = np.broadcast_to(row, H.shape).copy()
             st = np.where(np.isnan(F), status_between, Status.OK).astype(np.int8)
-            return SimpleNamespace(force_n=F, status=st)
+            return SimpleNamespace(force_n=F, status=st), np.zeros(H.shape)
 
-        return force_at
+        return force_and_state
 
     monkeypatch.setattr(solve, "_refine_crossings", _interpolate_only)
     design = Membrane.from_key("[1.2, 37.5, nan, nan, nan, nan]")
     loads = np.array([14.7, 39.2])
-    monkeypatch.setattr(solve, "force_at", fake_points(Status.OUTSIDE_MODEL))
+    monkeypatch.setattr(solve, "_force_and_state", fake_points(Status.OUTSIDE_MODEL))
     h, st = solve.height_at(design, loads, 6895.0, h_max_mm=120.0, n_heights=25)
     assert list(st) == [Status.OK, Status.OK]
     want = [np.interp(-f, -row[14:], hg[14:]) for f in loads]  # the row falls from 70 mm on
     np.testing.assert_allclose(h, want, atol=1e-9)
     assert h[0] > 100.0
-    monkeypatch.setattr(solve, "force_at", fake_points(Status.NOT_CONVERGED))
+    monkeypatch.setattr(solve, "_force_and_state", fake_points(Status.NOT_CONVERGED))
     h, st = solve.height_at(design, loads, 6895.0, h_max_mm=120.0, n_heights=25)
     assert list(st) == [Status.NOT_CONVERGED, Status.NOT_CONVERGED] and np.isnan(h).all()
