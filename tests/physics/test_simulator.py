@@ -46,7 +46,9 @@ def test_shooting_agrees_with_finite_elements(design):
     "h, p",
     [
         (20.0, 5000.0),
-        pytest.param(5.0, 7000.0, marks=pytest.mark.slow),
+        # 6 kPa, not 7: at 7 kPa the ringless membrane pushes past p pi R^2 at 5 mm, a
+        # point OUTSIDE_MODEL (0f0ad62), where no shape is reported
+        pytest.param(5.0, 6000.0, marks=pytest.mark.slow),
         pytest.param(50.0, 4000.0, marks=pytest.mark.slow),
     ],
 )
