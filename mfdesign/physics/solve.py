@@ -436,23 +436,37 @@ def _force_and_state(
 def _solve_points(
     design: Membrane, hs: np.ndarray, ps_pa: np.ndarray, params: SimParams, path_steps: int
 ) -> PointSolution:
-    """``_points_kernel`` at sanitised points (NumPy), the batch padded to a power of two so
-    that few compiled sizes serve every caller."""
+    """``_points_kernel`` at sanitised points (NumPy) in batches of :data:`POINTS_BATCH`,
+    :func:`n_workers` batches at a time on threads.
+
+    One batch size serves every caller, so a plane's repair (eight nodes) and the lift
+    check (63 points) share one compiled program: padded to a power of two, the check
+    compiled a 64-lane program of its own (14 s of XLA in a cold quick demo on 2 cores,
+    session 33). Small batches also run faster: under ``vmap`` every lane iterates as long
+    as the slowest of its batch, and a single call ran on one core (63 points: 1.79 s as
+    one call, 0.80 s in batches of eight on two threads)."""
+    geom, params_ = sh.geometry_of(design), traced_params(params)
+    # as force_plane's path
+    n_steps = path_steps * (STIFF_RING_PATH_REFINE if fine_path(params) else 1)
+
+    def kernel(h, p):
+        return _points_kernel(geom, params_, jnp.asarray(h), jnp.asarray(p) * PA_TO_MPA, n_steps)
+
     n = hs.size
-    got = _points_kernel(
-        sh.geometry_of(design),
-        traced_params(params),
-        jnp.asarray(_pad(hs, n)),
-        jnp.asarray(_pad(ps_pa, n)) * PA_TO_MPA,
-        path_steps * (STIFF_RING_PATH_REFINE if fine_path(params) else 1),  # as force_plane's path
-    )
-    return jax.tree.map(lambda o: np.asarray(o)[:n], got)
+    # padded here: for fewer points than a batch in_batches would compile a smaller program
+    m = -(-n // POINTS_BATCH) * POINTS_BATCH
+    hs, ps_pa = (np.concatenate([a, np.repeat(a[-1:], m - n)]) for a in (hs, ps_pa))
+    out = in_batches(kernel, hs, ps_pa, size=POINTS_BATCH, lanes=n_workers())
+    return jax.tree.map(lambda o: o[:n], out)
 
 
 def traced_params(params: SimParams) -> SimParams:
     """``params`` with every field a float64 array: under ``eqx.filter_jit`` a Python float is
     static, so each new value of a constant would compile the kernels again (~10 s each)."""
     return jax.tree.map(lambda a: jnp.asarray(a, float), params)
+
+
+POINTS_BATCH = 8  # scattered points per compiled call (_solve_points)
 
 
 def _pad(values: np.ndarray, n: int) -> np.ndarray:

@@ -120,6 +120,29 @@ def test_height_at_inverts_force_at(design, p_pa):
     np.testing.assert_allclose(h, h_true, atol=1e-3)
 
 
+def test_points_are_solved_in_batches_of_one_size(monkeypatch):
+    """force_at hands the points kernel batches of POINTS_BATCH lanes only, whatever the
+    number of points (one compiled program for a plane's repair and the lift check: issue
+    40), and a point's answer does not depend on the points solved beside it."""
+    from mfdesign.physics import solve
+
+    lanes = []
+    kernel = solve._points_kernel
+
+    def spy(geom, params, h, p_mpa, n_steps):
+        lanes.append(h.shape)
+        return kernel(geom, params, h, p_mpa, n_steps)
+
+    monkeypatch.setattr(solve, "_points_kernel", spy)
+    h = np.array([10.0, 20.0, 40.0, 12.0, 25.0, 35.0, 15.0, 30.0, 45.0, 18.0, 22.0])
+    p = np.full(h.size, 4000.0)
+    many = force_at(RINGLESS, h, p)
+    one = force_at(RINGLESS, h[:1], p[:1])
+    assert set(lanes) == {(solve.POINTS_BATCH,)} and len(lanes) == 3, lanes  # 11 points: 2 batches; 1: 1
+    assert many.force_n.shape == (11,) and np.all(many.status == Status.OK)
+    np.testing.assert_allclose(one.force_n[0], many.force_n[0], rtol=1e-9)
+
+
 def test_statuses_of_edge_cases():
     r = force_at(RINGLESS, [20.0, 70.0, -1.0, np.nan, 0.0], [0.0, 500.0, 3000.0, 3000.0, 3000.0])
     assert r.status[0] == Status.NO_CONTACT and r.force_n[0] == 0.0  # no pressure
