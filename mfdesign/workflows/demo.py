@@ -80,12 +80,6 @@ class DemoSettings:
     optimise_starts: int = 300
     optimise_refine: int = 8
     optimise_steps: int = 20
-    # Membranes of the dataset the run uses (0: all). A smoke run's cost on exact physics is
-    # mostly simulator planes, and they scale with the membranes: the diagnosis' and the
-    # calibration's planes are per membrane (66 of a cold quick demo's 72 planes, ~210 s of
-    # its 626 s on 2 cores, session 33). ``--quick`` on exact physics keeps one membrane of
-    # each ring count (:func:`one_of_each_ring_count`).
-    membranes: int = 0
     force_model: str = "exact"  # where the model meets data: exact | emulator | standin (tests)
     search_model: str = "emulator"  # design searches (propose, optimise) over new membranes
     seed: int = 0
@@ -104,29 +98,9 @@ class DemoSettings:
             optimise_starts=128,
             optimise_refine=4,
             optimise_steps=10,
-            membranes=3 if force_model == "exact" else 0,
             force_model=force_model,
             search_model=search,
         )
-
-
-def one_of_each_ring_count(meas: "Measurements", n: int) -> "Measurements":
-    """The first ``n`` membranes of ``meas`` taken in turn from each ring count (0, 1, 2
-    rings, then again), each count's in order of first appearance: a smaller dataset that
-    still holds every kind of membrane. ``n <= 0`` or at least the table's count: all."""
-    keys = meas.design_keys
-    if n <= 0 or n >= len(keys):
-        return meas
-    by_rings: dict[int, list[str]] = {}
-    for k in keys:
-        by_rings.setdefault(Membrane.from_key(k).n_rings, []).append(k)
-    queues = [by_rings[r] for r in sorted(by_rings)]
-    chosen: list[str] = []
-    while len(chosen) < n:
-        for q in queues:
-            if q and len(chosen) < n:
-                chosen.append(q.pop(0))
-    return meas.subset(chosen)
 
 
 def _short(key: str) -> str:
@@ -1108,7 +1082,6 @@ def run_demo(
     # with the same ones: dropping them retraced the solver (~10 s of one core, cold).
     with log.stage("load data and force model", release=False):
         meas = read_parquet(data_path) if card is None or s.force_model != "standin" else _standin_world(card)
-        meas = one_of_each_ring_count(meas, s.membranes)
         if card is not None and s.force_model == "standin":
             summary["data"] = (
                 f"the bundled designs measured on the virtual rig over the stand-in ({Path(data_path).name}'s card)"
