@@ -15,9 +15,11 @@ resident set size"; ``getrusage(RUSAGE_CHILDREN)`` where that program is missing
 stage's wall / CPU seconds and peak RSS so far (the demo's ``summary.json``
 ``stage_resources``; ``timings_s`` alone for a demo that predates it) and the demo's
 result checks (``summary.json``): after / floor <= 1.2, both chains converged, the truth
-inside every 90 % interval.
+inside every 90 % interval. And ``speed_probe``: a fixed workload (Python, an XLA
+compilation and its run; none of mfdesign's code) timed just before the demo, so that runs
+on machines of different speed can be told apart (:data:`_PROBE`).
 
-Prints the stage table, then as its last two lines the stages against the previous line
+Prints the stage table, the probe against the previous run's, then as its last two lines the stages against the previous line
 of the JSONL run in the same mode (ratios now / then) and one summary line::
 
     bench_demo: cold wall 266.3 s (target 300 s), peak RSS 1.80 GB (target 2 GB), results ok
@@ -48,6 +50,57 @@ TARGET_WALL_S = {"cold": 300.0, "warm": 120.0, "quick": 120.0}
 TARGET_RSS_GB = 2.0
 AFTER_OVER_FLOOR_MAX = 1.2  # the demo's diagnosis must leave at most this many noise floors
 TIME_V = Path("/usr/bin/time")
+
+# A fixed workload, none of mfdesign's code, timed in a fresh process just before the demo:
+# the demo's time is Python (tracing), XLA compilation and XLA execution on the CPU, and
+# the same commit ran 2.0x slower on one day's machine than on another's (sessions 30 and
+# 32: the quick demo of unchanged code, 349.1 vs 707.4 s). A run's wall is read beside its
+# probe: two runs whose probes differ measured two machines. Best of three, each part.
+_PROBE = r"""
+import json, os, time
+os.environ["JAX_PLATFORMS"] = "cpu"
+import jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_enable_compilation_cache", False)
+py, comp, run = [], [], []
+for k in range(3):
+    t = time.perf_counter(); s = 0
+    for i in range(2_000_000):
+        s += i * i
+    py.append(time.perf_counter() - t)
+    def f(x, k=k):  # a new function each time: compiled anew
+        def body(i, y):
+            return jnp.tanh(y @ y.T / y.shape[0]) + jnp.sin(y + k) * jnp.exp(-y * y)
+        return jax.lax.fori_loop(0, 400, body, x).sum()
+    x = jnp.full((96, 96), 0.01)
+    t = time.perf_counter(); c = jax.jit(jax.grad(f)).lower(x).compile(); comp.append(time.perf_counter() - t)
+    t = time.perf_counter(); c(x).block_until_ready(); run.append(time.perf_counter() - t)
+print(json.dumps({"python_s": min(py), "xla_compile_s": min(comp), "xla_run_s": min(run)}))
+"""
+
+
+def speed_probe() -> dict | None:
+    """The machine's speed on :data:`_PROBE` (seconds of each part and their sum; None
+    where the probe fails: the benchmark runs without it)."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    try:
+        out = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, timeout=300)
+        probe = {k: round(float(v), 3) for k, v in json.loads(out.stdout.strip().splitlines()[-1]).items()}
+    except (subprocess.SubprocessError, OSError, ValueError, IndexError):
+        return None
+    probe["total_s"] = round(sum(probe.values()), 3)
+    return probe
+
+
+def probe_line(record: dict, prev: dict | None) -> str:
+    """The machine's probe now against the previous run's (the ratio > 1: a slower machine)."""
+    now, then = record.get("speed_probe"), (prev or {}).get("speed_probe")
+    if not now:
+        return "machine probe: failed"
+    parts = ", ".join(f"{k[:-2]} {v:.2f}" for k, v in now.items() if k != "total_s")
+    ratio = _ratio(now["total_s"], (then or {}).get("total_s")) if then else "no earlier probe"
+    return f"machine probe: {now['total_s']:.2f} s ({parts}) vs previous run: {ratio}"
+
 
 # ``/usr/bin/time -v`` lines this script reads (GNU time 1.7-1.9 spell them so).
 _TIME_FIELDS = {
@@ -272,6 +325,7 @@ def main() -> None:
 
     # the commit the demo runs: taken before it starts (the tree may move on meanwhile)
     commit, dirty = git_state()
+    probe = speed_probe()  # before the demo, on the machine it meets
     load_before = load()
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
@@ -314,6 +368,7 @@ def main() -> None:
         machine={"cpus": os.cpu_count(), "nproc": _nproc(), "platform": sys.platform},
         load_average_before=load_before,
         load_average_after=load_after,
+        speed_probe=probe,
         cache_dir=str(cache),
         demo_out=str(demo_out),
     )
@@ -322,6 +377,7 @@ def main() -> None:
     append_jsonl(path, record)
     print("\n".join(stage_table(record, prev)))
     print(f"load average before {load_before}, after {load_after}; nproc {_nproc()}; written {path}")
+    print(probe_line(record, prev))
     print(ratio_line(record, prev))
     print(summary_line(record))
     if proc.returncode != 0:

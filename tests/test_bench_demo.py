@@ -116,3 +116,17 @@ def test_summary_without_stage_resources(bench):
     r = bench.make_record(s, mode="warm", wall_s=1.0, cpu_s=None, peak_rss_kb=None, rss_source="none")
     assert "peak RSS unknown" in bench.summary_line(r) and "(target 120 s)" in bench.summary_line(r)
     assert bench.stage_table(r, None)[1].split()[2] == "-"
+
+
+def test_machine_probe_is_recorded_and_compared(bench):
+    """The fixed workload runs in a fresh process and gives positive seconds; the line
+    compares it with the previous run's probe, and says so where there was none."""
+    probe = bench.speed_probe()
+    assert probe is not None and set(probe) == {"python_s", "xla_compile_s", "xla_run_s", "total_s"}
+    assert all(v > 0 for v in probe.values())
+    assert abs(probe["total_s"] - sum(v for k, v in probe.items() if k != "total_s")) < 0.01
+    now = {"speed_probe": {"python_s": 0.6, "xla_compile_s": 0.8, "xla_run_s": 0.6, "total_s": 2.0}}
+    line = bench.probe_line(now, {"speed_probe": {"total_s": 1.0}})
+    assert line.startswith("machine probe: 2.00 s") and "x2.00" in line
+    assert "no earlier probe" in bench.probe_line(now, {"mode": "cold"})
+    assert bench.probe_line({"speed_probe": None}, None) == "machine probe: failed"
