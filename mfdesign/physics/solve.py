@@ -18,8 +18,10 @@ change of the shooting Jacobian's determinant along the path; points beyond it a
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, Sequence
 
@@ -88,6 +90,63 @@ class PointSolution(eqx.Module):
     rise_mm: Any
     profile_ok: Any
     state: Any
+
+
+class KeptPrograms:
+    """The plane solver's compiled programs, kept for the whole process.
+
+    A long job drops JAX's caches between its stages (:func:`mfdesign._memory.release_memory`:
+    the compiled programs of every stage held 4 GB), and each stage that solves planes or
+    points then traced the solver's kernels again: ~10 s for the plane kernel, ~4 s for
+    the points kernel, on 2 cores, in every stage that used them (41 s of a cold quick
+    demo's 89 s of tracing, session 33). Here each kernel is traced and compiled once per
+    argument signature (``jax.jit(...).lower(...).compile()``: ahead of time, so the
+    program is held here, not in JAX's caches, and survives ``jax.clear_caches()``), at
+    most ``size`` programs, the least recently used dropped. A first call from several
+    threads compiles once. On several devices the kernel is called as it is (its
+    arguments carry shardings a kept program would not match)."""
+
+    def __init__(self, size: int = 6) -> None:
+        self.size = size
+        self._programs: collections.OrderedDict = collections.OrderedDict()
+        self._lock = threading.Lock()
+        self._compiling: dict = {}
+
+    def __len__(self) -> int:
+        return len(self._programs)
+
+    def __call__(self, kernel: Callable, *args, static: tuple = ()):
+        """``kernel(*args, *static)``: ``args`` a pytree of arrays, ``static`` hashable."""
+        if len(jax.local_devices()) > 1:
+            return kernel(*args, *static)
+        leaves, tree = jax.tree.flatten(args)
+        leaves = [jnp.asarray(v) for v in leaves]
+        key = (kernel, static, tree, tuple((v.shape, v.dtype, v.weak_type) for v in leaves))
+        with self._lock:
+            program = self._programs.get(key)
+            if program is not None:
+                self._programs.move_to_end(key)
+            gate = self._compiling.setdefault(key, threading.Lock()) if program is None else None
+        if program is None:
+            with gate:  # one thread compiles, the others wait for its program
+                with self._lock:
+                    program = self._programs.get(key)
+                if program is None:
+
+                    def flat(*xs):
+                        return kernel(*jax.tree.unflatten(tree, xs), *static)
+
+                    flat.__name__ = getattr(kernel, "__name__", "kernel")  # the program's name in logs
+                    program = jax.jit(flat).lower(*leaves).compile()
+                    with self._lock:
+                        self._programs[key] = program
+                        while len(self._programs) > self.size:
+                            self._programs.popitem(last=False)
+                        self._compiling.pop(key, None)
+        return program(*leaves)
+
+
+KEPT = KeptPrograms()
 
 
 # --------------------------------------------------------------------------------------
@@ -450,7 +509,7 @@ def _solve_points(
     n_steps = path_steps * (STIFF_RING_PATH_REFINE if fine_path(params) else 1)
 
     def kernel(h, p):
-        return _points_kernel(geom, params_, jnp.asarray(h), jnp.asarray(p) * PA_TO_MPA, n_steps)
+        return KEPT(_points_kernel, geom, params_, jnp.asarray(h), jnp.asarray(p) * PA_TO_MPA, static=(n_steps,))
 
     n = hs.size
     # padded here: for fewer points than a batch in_batches would compile a smaller program
@@ -646,7 +705,7 @@ def force_plane(
     # plate is lowered at each pressure; they leave the main batch, whose heights then all
     # start from a usable first guess (module constants explain why).
     rows = np.concatenate([hs[~low], [LOW_HEIGHT_MM]]) if low.any() else hs
-    out = _in_parts(lambda r: _plane_kernel(geom, params, r, path_mpa, report), rows, parts=parts)
+    out = _in_parts(lambda r: KEPT(_plane_kernel, geom, params, r, path_mpa, report), rows, parts=parts)
     if low.any():
         x_start, start_ok, locking_start = _descent_starts(jax.tree.map(lambda o: o[-1], out))
         p_rep = np.asarray(path_mpa[report])
@@ -655,7 +714,12 @@ def force_plane(
         h_low = jnp.asarray(hs[order])
         # Pressures are independent lanes of the descent: split like the rows.
         down = _in_parts(
-            lambda *b: _descent_kernel(geom, params, h_low, *b), x_start, start_ok, p_rep, locking_start, parts=parts
+            lambda *b: KEPT(_descent_kernel, geom, params, h_low, *b),
+            x_start,
+            start_ok,
+            p_rep,
+            locking_start,
+            parts=parts,
         )
         down = jax.tree.map(lambda o: np.swapaxes(o, 0, 1), down)  # (pressure, height) -> (height, pressure)
         down = dataclasses.replace(down, passed=np.broadcast_to(out.passed[-1], down.converged.shape))  # the anchor's

@@ -122,7 +122,7 @@ def test_height_at_inverts_force_at(design, p_pa):
 
 def test_points_are_solved_in_batches_of_one_size(monkeypatch):
     """force_at hands the points kernel batches of POINTS_BATCH lanes only, whatever the
-    number of points (one compiled program for a plane's repair and the lift check: issue
+    number of points: one compiled program for a plane's repair and the lift check (issue
     40), and a point's answer does not depend on the points solved beside it."""
     from mfdesign.physics import solve
 
@@ -130,15 +130,16 @@ def test_points_are_solved_in_batches_of_one_size(monkeypatch):
     kernel = solve._points_kernel
 
     def spy(geom, params, h, p_mpa, n_steps):
-        lanes.append(h.shape)
+        lanes.append(h.shape)  # at tracing: once per compiled program
         return kernel(geom, params, h, p_mpa, n_steps)
 
     monkeypatch.setattr(solve, "_points_kernel", spy)
+    monkeypatch.setattr(solve, "KEPT", solve.KeptPrograms())
     h = np.array([10.0, 20.0, 40.0, 12.0, 25.0, 35.0, 15.0, 30.0, 45.0, 18.0, 22.0])
     p = np.full(h.size, 4000.0)
     many = force_at(RINGLESS, h, p)
     one = force_at(RINGLESS, h[:1], p[:1])
-    assert set(lanes) == {(solve.POINTS_BATCH,)} and len(lanes) == 3, lanes  # 11 points: 2 batches; 1: 1
+    assert lanes == [(solve.POINTS_BATCH,)] and len(solve.KEPT) == 1, lanes  # 11 points and 1: one program
     assert many.force_n.shape == (11,) and np.all(many.status == Status.OK)
     np.testing.assert_allclose(one.force_n[0], many.force_n[0], rtol=1e-9)
 
