@@ -109,8 +109,9 @@ class KeptPrograms:
     def __init__(self, size: int = 6) -> None:
         self.size = size
         self._programs: collections.OrderedDict = collections.OrderedDict()
+        # Held while a program compiles: the threads of one batched call all wait for the
+        # same program, so one lock is enough (and two kernels never compile side by side).
         self._lock = threading.Lock()
-        self._compiling: dict = {}
 
     def __len__(self) -> int:
         return len(self._programs)
@@ -124,25 +125,17 @@ class KeptPrograms:
         key = (kernel, static, tree, tuple((v.shape, v.dtype, v.weak_type) for v in leaves))
         with self._lock:
             program = self._programs.get(key)
-            if program is not None:
+            if program is None:
+
+                def flat(*xs):
+                    return kernel(*jax.tree.unflatten(tree, xs), *static)
+
+                flat.__name__ = getattr(kernel, "__name__", "kernel")  # the program's name in logs
+                program = self._programs[key] = jax.jit(flat).lower(*leaves).compile()
+                while len(self._programs) > self.size:
+                    self._programs.popitem(last=False)
+            else:
                 self._programs.move_to_end(key)
-            gate = self._compiling.setdefault(key, threading.Lock()) if program is None else None
-        if program is None:
-            with gate:  # one thread compiles, the others wait for its program
-                with self._lock:
-                    program = self._programs.get(key)
-                if program is None:
-
-                    def flat(*xs):
-                        return kernel(*jax.tree.unflatten(tree, xs), *static)
-
-                    flat.__name__ = getattr(kernel, "__name__", "kernel")  # the program's name in logs
-                    program = jax.jit(flat).lower(*leaves).compile()
-                    with self._lock:
-                        self._programs[key] = program
-                        while len(self._programs) > self.size:
-                            self._programs.popitem(last=False)
-                        self._compiling.pop(key, None)
         return program(*leaves)
 
 
