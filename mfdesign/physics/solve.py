@@ -116,13 +116,43 @@ class KeptPrograms:
     def __len__(self) -> int:
         return len(self._programs)
 
+    @staticmethod
+    def _signature(args) -> tuple:
+        leaves, tree = jax.tree.flatten(args)
+        leaves = [jnp.asarray(v) for v in leaves]
+        return leaves, tree, tuple((v.shape, v.dtype, v.weak_type) for v in leaves)
+
+    def holders(self, kernel: Callable, args: tuple, static: tuple = (), padded: tuple = ()) -> list[dict]:
+        """The kept programs of ``kernel`` (same ``static``) that could take ``args`` with the
+        arguments at the indices ``padded`` (arrays) padded: every other leaf of the same
+        shape and type, each padded argument of the same rank and type and nowhere smaller.
+        One ``{index: shape}`` of the padded arguments per program (the call's own shapes
+        among them when its program is kept)."""
+        owner = [i for i, a in enumerate(args) for _ in jax.tree.leaves(a)]
+        _, tree, sig = self._signature(args)
+        with self._lock:
+            keys = list(self._programs)
+        found = []
+        for k_kernel, k_static, k_tree, k_sig in keys:
+            if k_kernel is not kernel or k_static != static or k_tree != tree:
+                continue
+            shapes: dict = {}
+            for i, (s, *kind), (ks, *k_kind) in zip(owner, sig, k_sig):
+                fits = kind == k_kind and len(s) == len(ks) and all(a <= b for a, b in zip(s, ks))
+                if not fits or (i not in padded and s != ks):
+                    break
+                if i in padded:
+                    shapes[i] = ks
+            else:
+                found.append(shapes)
+        return found
+
     def __call__(self, kernel: Callable, *args, static: tuple = ()):
         """``kernel(*args, *static)``: ``args`` a pytree of arrays, ``static`` hashable."""
         if len(jax.local_devices()) > 1:
             return kernel(*args, *static)
-        leaves, tree = jax.tree.flatten(args)
-        leaves = [jnp.asarray(v) for v in leaves]
-        key = (kernel, static, tree, tuple((v.shape, v.dtype, v.weak_type) for v in leaves))
+        leaves, tree, sig = self._signature(args)
+        key = (kernel, static, tree, sig)
         with self._lock:
             program = self._programs.get(key)
             if program is None:
@@ -141,6 +171,47 @@ class KeptPrograms:
 
 KEPT = KeptPrograms()
 
+# A kept program with larger batch axes serves a call whose own program is not compiled,
+# its arguments padded, while its work (the product of the padded axes) is at most this
+# many times the call's: compiling the plane kernel and its descent costs ~21 s of XLA
+# and ~10 s of tracing on 2 cores, a made simulator plane on the data planes' program
+# a few seconds more computing (issue 40: the demo's made run on 15 heights x 17 pressures
+# compiled both again, beside the data planes' 31 x 83).
+PAD_WORK_LIMIT = 10.0
+
+
+def _edge(a, shape):
+    """``a`` padded to ``shape`` by repeating its last entries (real points: no new failures)."""
+    a = np.asarray(a)
+    return np.pad(a, [(0, n - m) for m, n in zip(a.shape, shape)], mode="edge")
+
+
+def _filled(value):
+    def pad(a, shape):
+        a = np.asarray(a)
+        return np.pad(a, [(0, n - m) for m, n in zip(a.shape, shape)], constant_values=value)
+
+    return pad
+
+
+def _kept_call(
+    kernel, args: tuple, pads: dict[int, Callable], work: Callable[[dict], float], lead: Callable[[dict], tuple]
+):
+    """``KEPT(kernel, *args)``, or a kept program of ``kernel`` with larger batch axes
+    (:meth:`KeptPrograms.holders`) fed ``args`` padded (``pads[i](arg, shape)`` for the
+    arguments that may grow), when its ``work(shapes)`` is at most :data:`PAD_WORK_LIMIT`
+    times the call's; every output is cut back to the call's leading axes (``lead(shapes)``
+    of the arguments' shapes). A padded lane never changes a real one: lanes are
+    independent, and padded path steps come after every reported one."""
+    own = {i: np.shape(args[i]) for i in pads}
+    fits = [s for s in KEPT.holders(kernel, args, padded=tuple(pads)) if work(s) <= PAD_WORK_LIMIT * work(own)]
+    best = min(fits, key=work, default=own)
+    if best == own:
+        return KEPT(kernel, *args)
+    out = KEPT(kernel, *(pads[i](a, best[i]) if i in pads else a for i, a in enumerate(args)))
+    cut = tuple(slice(0, n) for n in lead(own))
+    return jax.tree.map(lambda o: np.asarray(o)[cut], out)
+
 
 # --------------------------------------------------------------------------------------
 # jitted kernels (one design; vmapped over points)
@@ -155,14 +226,17 @@ def _step(carry, p_mpa, geom, params, h):
     sensitive, and a restart from the string model recovers). Corrector: one
     Levenberg-Marquardt solve; one solve per step, because under ``vmap`` both
     branches of a conditional would run. A sign change of the shooting Jacobian's
-    determinant marks a passed pressure limit point.
+    determinant marks a passed pressure limit point. A NaN pressure is a padded step
+    (:func:`_kept_call`): skipped, at the cost of one residual evaluation.
     """
     x1, p1, x2, p2, n_have, det0, passed, last_ok = carry
+    live = jnp.isfinite(p_mpa)
+    p_mpa = jnp.where(live, p_mpa, p1)
     slope = jnp.where(n_have >= 2, (x1 - x2) / jnp.where(p1 != p2, p1 - p2, 1.0), 0.0)
     predicted = x1 + slope * (p_mpa - p1)
     cold = sh.string_guess(geom, params, h, p_mpa)
     have = n_have > 0
-    x, conv, det = sh.solve_force(jnp.where(have & last_ok, predicted, cold), geom, params, h, p_mpa)
+    x, conv, det = sh.solve_force(jnp.where(have & last_ok, predicted, cold), geom, params, h, p_mpa, active=live)
     det0 = jnp.where(have, det0, det)
     fold = conv & have & (jnp.sign(det) != jnp.sign(det0))
     passed = passed | fold
@@ -698,7 +772,17 @@ def force_plane(
     # plate is lowered at each pressure; they leave the main batch, whose heights then all
     # start from a usable first guess (module constants explain why).
     rows = np.concatenate([hs[~low], [LOW_HEIGHT_MM]]) if low.any() else hs
-    out = _in_parts(lambda r: KEPT(_plane_kernel, geom, params, r, path_mpa, report), rows, parts=parts)
+    out = _in_parts(
+        lambda r: _kept_call(
+            _plane_kernel,
+            (geom, params, r, path_mpa, report),
+            {2: _edge, 3: _filled(np.nan), 4: _edge},
+            work=lambda s: s[2][0] * s[3][0],
+            lead=lambda s: (s[2][0], s[4][0]),
+        ),
+        rows,
+        parts=parts,
+    )
     if low.any():
         x_start, start_ok, locking_start = _descent_starts(jax.tree.map(lambda o: o[-1], out))
         p_rep = np.asarray(path_mpa[report])
@@ -707,7 +791,13 @@ def force_plane(
         h_low = jnp.asarray(hs[order])
         # Pressures are independent lanes of the descent: split like the rows.
         down = _in_parts(
-            lambda *b: KEPT(_descent_kernel, geom, params, h_low, *b),
+            lambda *b: _kept_call(
+                _descent_kernel,
+                (geom, params, h_low, *b),
+                {2: _edge, 3: _edge, 4: _filled(False), 5: _edge, 6: _edge},
+                work=lambda s: s[2][0] * s[3][0],
+                lead=lambda s: (s[3][0], s[2][0]),
+            ),
             x_start,
             start_ok,
             p_rep,

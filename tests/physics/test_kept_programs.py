@@ -67,3 +67,44 @@ def test_threads_calling_at_once_compile_once():
     assert len(traces) == 1
     for i in range(4):
         np.testing.assert_allclose(out[i]["y"], float(i))
+
+
+def test_holders_are_the_kept_programs_a_padded_call_fits():
+    kept = KeptPrograms()
+    kernel, _ = _counting_kernel()
+    one = jnp.asarray(1.0)
+    kept(kernel, jnp.arange(8.0), one, static=(1,))
+    assert kept.holders(kernel, (jnp.arange(5.0), one), static=(1,), padded=(0,)) == [{0: (8,)}]
+    assert kept.holders(kernel, (jnp.arange(9.0), one), static=(1,), padded=(0,)) == []  # larger than kept
+    assert kept.holders(kernel, (jnp.arange(5.0), one), static=(2,), padded=(0,)) == []  # another static
+    assert kept.holders(kernel, (jnp.arange(5.0), one), static=(1,)) == []  # may not be padded
+    assert kept.holders(kernel, (jnp.arange(5), one), static=(1,), padded=(0,)) == []  # another type
+
+
+def test_a_kept_call_pads_to_a_kept_program_and_cuts_its_outputs(monkeypatch):
+    """_kept_call: a smaller call runs on the kept program of a larger one (padded, its
+    outputs cut back), unless the padding would cost more than PAD_WORK_LIMIT x its work."""
+    from mfdesign.physics import solve
+
+    monkeypatch.setattr(solve, "KEPT", KeptPrograms())
+    traces = []
+
+    def kernel(rows, path):  # rows x path outputs; a NaN path entry is padding
+        traces.append((rows.shape, path.shape))
+        return {"y": rows[:, None] * jnp.where(jnp.isfinite(path), path, -1.0)[None, :]}
+
+    def call(rows, path):
+        return solve._kept_call(
+            kernel,
+            (np.asarray(rows, float), np.asarray(path, float)),
+            {0: solve._edge, 1: solve._filled(np.nan)},
+            work=lambda s: s[0][0] * s[1][0],
+            lead=lambda s: (s[0][0], s[1][0]),
+        )
+
+    big = call(np.arange(1.0, 9.0), np.arange(1.0, 11.0))  # 8 x 10: compiled
+    small = call([2.0, 3.0], [5.0, 6.0, 7.0])  # 2 x 3 = 6 lanes, 80 / 6 > the limit: its own program
+    mid = call([2.0, 3.0, 4.0, 5.0], [5.0, 6.0, 7.0])  # 12 lanes, 80 / 12 <= the limit: the 8 x 10 program
+    assert traces == [((8,), (10,)), ((2,), (3,))]
+    assert big["y"].shape == (8, 10) and small["y"].shape == (2, 3)
+    np.testing.assert_array_equal(mid["y"], np.outer([2.0, 3.0, 4.0, 5.0], [5.0, 6.0, 7.0]))

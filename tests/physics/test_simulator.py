@@ -144,6 +144,27 @@ def test_points_are_solved_in_batches_of_one_size(monkeypatch):
     np.testing.assert_allclose(one.force_n[0], many.force_n[0], rtol=1e-9)
 
 
+@pytest.mark.slow
+def test_a_smaller_plane_runs_on_the_kept_program_of_a_larger_one(monkeypatch):
+    """A plane whose own programs are not compiled runs on the kept plane and descent
+    programs of a larger one (its rows, path and pressures padded: issue 40, the demo's
+    made simulator run), with the statuses and forces it gets from programs of its own."""
+    from mfdesign.physics import solve
+    from mfdesign.physics.solve import force_plane
+
+    h_big, p_big = np.array([0.0, 2.5, 5.0, 10.0, 20.0, 30.0, 40.0, 50.0]), np.arange(0.0, 8001.0, 500.0)
+    h, p = np.array([0.0, 10.0, 20.0, 40.0]), np.arange(0.0, 6001.0, 1000.0)
+    monkeypatch.setattr(solve, "KEPT", solve.KeptPrograms())
+    force_plane(RINGLESS, h_big, p_big)
+    padded = force_plane(RINGLESS, h, p)
+    assert len(solve.KEPT) == 2  # the large plane's plane and descent programs, nothing new
+    monkeypatch.setattr(solve, "KEPT", solve.KeptPrograms())
+    own = force_plane(RINGLESS, h, p)
+    np.testing.assert_array_equal(padded.status, own.status)
+    assert np.sum(own.status == Status.OK) >= 12
+    np.testing.assert_allclose(padded.force_n, own.force_n, rtol=1e-9, atol=1e-9)
+
+
 def test_statuses_of_edge_cases():
     r = force_at(RINGLESS, [20.0, 70.0, -1.0, np.nan, 0.0], [0.0, 500.0, 3000.0, 3000.0, 3000.0])
     assert r.status[0] == Status.NO_CONTACT and r.force_n[0] == 0.0  # no pressure
