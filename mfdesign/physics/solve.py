@@ -34,6 +34,7 @@ import optimistix as optx
 from mfdesign._x64 import enable_x64
 from mfdesign.design import OUTER_RADIUS_MM, Membrane
 from mfdesign.errors import InputError
+from mfdesign.physics import _traces
 from mfdesign.physics import shooting as sh
 from mfdesign.physics.params import SimParams
 from mfdesign.physics.status import Status, force_bound_n
@@ -90,6 +91,24 @@ class PointSolution(eqx.Module):
     rise_mm: Any
     profile_ok: Any
     state: Any
+
+
+def _exportable(cls: type, n_fields: int) -> None:
+    """Let ``jax.export`` store and read kernels that return ``cls`` (:mod:`._traces`): an
+    equinox Module's node data carries no value here (every field is an array), so nothing
+    is written and the one it always has is read back."""
+    from jax import export
+
+    aux = jax.tree_util.tree_structure(cls(*range(n_fields))).node_data()[1]
+    export.register_pytree_node_serialization(
+        cls,
+        serialized_name=f"{cls.__module__}.{cls.__qualname__}",
+        serialize_auxdata=lambda _: b"",
+        deserialize_auxdata=lambda _: aux,
+    )
+
+
+_exportable(PointSolution, len(dataclasses.fields(PointSolution)))
 
 
 class KeptPrograms:
@@ -161,7 +180,7 @@ class KeptPrograms:
                     return kernel(*jax.tree.unflatten(tree, xs), *static)
 
                 flat.__name__ = getattr(kernel, "__name__", "kernel")  # the program's name in logs
-                program = self._programs[key] = jax.jit(flat).lower(*leaves).compile()
+                program = self._programs[key] = _traces.compiled(kernel, flat, leaves, static, tree, sig)
                 while len(self._programs) > self.size:
                     self._programs.popitem(last=False)
             else:

@@ -1,0 +1,89 @@
+"""mfdesign.physics._traces: the solver's kernels stored as jax.export modules, so that a
+new process compiles them without tracing them again (issue 40)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mfdesign.materials import first_invariant
+from mfdesign.physics import _traces
+
+
+def _flat(kernel):
+    def flat(*xs):
+        return kernel(*xs)
+
+    flat.__name__ = kernel.__name__
+    return flat
+
+
+def _compile(x, y):
+    leaves = [jnp.asarray(x), jnp.asarray(y)]
+    _, tree = jax.tree.flatten(tuple(leaves))
+    sig = tuple((v.shape, v.dtype, v.weak_type) for v in leaves)
+    return _traces.compiled(first_invariant, _flat(first_invariant), leaves, (), tree, sig), leaves
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    monkeypatch.setattr(_traces, "folder", lambda: tmp_path / "kernels")
+    return tmp_path / "kernels"
+
+
+def test_a_stored_kernel_is_compiled_without_tracing_it_again(store, monkeypatch):
+    exports = []
+    export = jax.export.export
+
+    def spy(*a, **k):
+        exports.append(1)  # an export traces the kernel
+        return export(*a, **k)
+
+    monkeypatch.setattr(jax.export, "export", spy)
+    l1, l2 = np.array([1.2, 1.5]), np.array([1.1, 0.9])
+    program, leaves = _compile(l1, l2)
+    assert len(exports) == 1 and len(list(store.glob("first_invariant-*" + _traces.SUFFIX))) == 1
+    np.testing.assert_allclose(program(*leaves), np.asarray(first_invariant(l1, l2)), rtol=1e-15)
+    again, leaves = _compile(l1 + 0.1, l2)  # as a new process would: read, not traced
+    assert len(exports) == 1
+    np.testing.assert_allclose(again(*leaves), np.asarray(first_invariant(l1 + 0.1, l2)), rtol=1e-15)
+    _compile(np.ones(3), np.ones(3))  # another signature: its own module
+    assert len(exports) == 2 and len(list(store.glob("*" + _traces.SUFFIX))) == 2
+
+
+def test_a_damaged_file_is_traced_again_and_replaced(store):
+    l1, l2 = np.array([1.2, 1.5]), np.array([1.1, 0.9])
+    _compile(l1, l2)
+    (path,) = store.glob("*" + _traces.SUFFIX)
+    path.write_bytes(b"not a module")
+    program, leaves = _compile(l1, l2)
+    np.testing.assert_allclose(program(*leaves), np.asarray(first_invariant(l1, l2)), rtol=1e-15)
+    assert path.read_bytes() != b"not a module"
+
+
+def test_nothing_is_stored_where_the_store_is_off_or_the_kernel_is_a_closure(tmp_path, monkeypatch):
+    monkeypatch.setattr(_traces, "folder", lambda: None)
+    _compile(np.ones(2), np.ones(2))
+
+    def local(x, y):  # a closure's captured values are not in the key: never stored
+        return x + y
+
+    monkeypatch.setattr(_traces, "folder", lambda: tmp_path / "kernels")
+    leaves = [jnp.ones(2), jnp.ones(2)]
+    _, tree = jax.tree.flatten(tuple(leaves))
+    program = _traces.compiled(local, _flat(local), leaves, (), tree, ())
+    np.testing.assert_allclose(program(*leaves), 2.0)
+    assert not (tmp_path / "kernels").exists()
+
+
+def test_the_store_is_on_only_with_the_compilation_cache_and_nan_checks(tmp_path, monkeypatch):
+    monkeypatch.setenv("MFDESIGN_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("EQX_ON_ERROR", "nan")
+    monkeypatch.setattr(_traces, "_compilation_cache_dir", lambda: None)
+    assert _traces.folder() is None
+    monkeypatch.setattr(_traces, "_compilation_cache_dir", lambda: str(tmp_path))
+    assert _traces.folder() == tmp_path / "kernels"
+    monkeypatch.setenv("EQX_ON_ERROR", "raise")  # host callbacks: no export
+    assert _traces.folder() is None
