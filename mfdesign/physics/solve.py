@@ -121,11 +121,13 @@ class KeptPrograms:
     demo's 89 s of tracing, session 33). Here each kernel is traced and compiled once per
     argument signature (``jax.jit(...).lower(...).compile()``: ahead of time, so the
     program is held here, not in JAX's caches, and survives ``jax.clear_caches()``), at
-    most ``size`` programs, the least recently used dropped. A first call from several
+    most ``size`` programs, the least recently used dropped; where the compilation cache
+    is on, the traced kernel is stored for the next process too (:mod:`._traces`). The
+    plane, descent, points and height kernels come through here. A first call from several
     threads compiles once. On several devices the kernel is called as it is (its
     arguments carry shardings a kept program would not match)."""
 
-    def __init__(self, size: int = 6) -> None:
+    def __init__(self, size: int = 8) -> None:
         self.size = size
         self._programs: collections.OrderedDict = collections.OrderedDict()
         # Held while a program compiles: the threads of one batched call all wait for the
@@ -1094,7 +1096,8 @@ def _refine_crossings(design, params, F, p, Fh, hg, lo_idx, refine, height, stat
     geom = sh.geometry_of(design)
     params = traced_params(params)
     m = idx.size
-    h_ref, conv = _height_kernel(
+    h_ref, conv = KEPT(
+        _height_kernel,
         geom,
         params,
         jnp.asarray(_pad(F[idx], m)),
