@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import importlib.metadata
+import json
 import logging
 import os
 from pathlib import Path
@@ -27,7 +28,7 @@ from typing import Callable
 
 import jax
 
-__all__ = ["compiled", "folder"]
+__all__ = ["compiled", "folder", "stored_shapes"]
 
 log = logging.getLogger(__name__)
 
@@ -76,18 +77,75 @@ def _storable(kernel: Callable) -> bool:
     return module.startswith("mfdesign.") and "<locals>" not in name
 
 
-def _key(kernel: Callable, static: tuple, tree, signature: tuple) -> str:
+def _family(kernel: Callable, static: tuple, tree, signature: tuple) -> str:
+    """The key of everything but the arguments' shapes (``signature``: ``(shape, dtype,
+    weak_type)`` per leaf): kernels of one family differ only in their batch sizes."""
     parts = (
         kernel.__module__,
         kernel.__qualname__,
         repr(static),
         str(tree),
-        repr(signature),
+        repr([kind for _, *kind in signature]),
         os.environ.get("EQX_ON_ERROR"),
         bool(getattr(jax.config, "jax_enable_x64", False)),
         _code(),
     )
-    return hashlib.sha256(repr(parts).encode()).hexdigest()[:32]
+    return hashlib.sha256(repr(parts).encode()).hexdigest()[:24]
+
+
+def _key(kernel: Callable, static: tuple, tree, signature: tuple) -> str:
+    shapes = repr([shape for shape, *_ in signature])
+    return _family(kernel, static, tree, signature) + hashlib.sha256(shapes.encode()).hexdigest()[:16]
+
+
+def _shapes_file(where: Path, kernel: Callable, static: tuple, tree, signature: tuple) -> Path:
+    return where / f"{kernel.__name__}-{_family(kernel, static, tree, signature)}.shapes.json"
+
+
+def stored_shapes(kernel: Callable, static: tuple, tree, signature: tuple) -> list[tuple]:
+    """The leaf shapes of the stored kernels of ``kernel``'s family (same code, static
+    arguments, tree and types): what a padded call may run on without tracing
+    (:meth:`~mfdesign.physics.solve.KeptPrograms.holders`). Empty where the store is off."""
+    where = folder()
+    if where is None or not _storable(kernel):
+        return []
+    try:
+        listed = json.loads(_shapes_file(where, kernel, static, tree, signature).read_text())
+    except (OSError, ValueError):
+        return []
+    found = []
+    for shapes in listed if isinstance(listed, list) else []:
+        try:
+            shapes = tuple(tuple(int(n) for n in leaf) for leaf in shapes)
+        except (TypeError, ValueError):
+            continue
+        sig = tuple((shape, *kind) for shape, (_, *kind) in zip(shapes, signature))
+        if (
+            len(shapes) == len(signature)
+            and (where / f"{kernel.__name__}-{_key(kernel, static, tree, sig)}{SUFFIX}").exists()
+        ):
+            found.append(shapes)
+    return found
+
+
+def _list_shapes(where: Path, kernel: Callable, static: tuple, tree, signature: tuple) -> None:
+    """Add a stored kernel's leaf shapes to its family's list (a lost race drops an entry:
+    that kernel is then only found by its own signature)."""
+    path = _shapes_file(where, kernel, static, tree, signature)
+    try:
+        listed = json.loads(path.read_text())
+        listed = listed if isinstance(listed, list) else []
+    except (OSError, ValueError):
+        listed = []
+    shapes = [list(shape) for shape, *_ in signature]
+    if shapes in listed:
+        return
+    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+    try:
+        tmp.write_text(json.dumps(listed + [shapes]))
+        os.replace(tmp, path)
+    except OSError as err:
+        log.debug("shapes of %s not listed: %s", path.name, err)
 
 
 def _read(path: Path):
@@ -102,15 +160,17 @@ def _read(path: Path):
         return None
 
 
-def _write(path: Path, exported) -> None:
+def _write(path: Path, exported) -> bool:
     try:
         blob = exported.serialize()
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
         tmp.write_bytes(blob)
         os.replace(tmp, path)  # readers see the whole file or none
+        return True
     except Exception as err:  # noqa: BLE001 -- no flatbuffers, a full disk: the run goes on
         log.debug("kernel %s not stored: %s", path.name, err)
+        return False
 
 
 def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree, signature: tuple):
@@ -131,7 +191,8 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
         except Exception as err:  # noqa: BLE001 -- e.g. a host callback: compile as before
             log.debug("kernel %s not exported (%s): compiled directly", kernel.__name__, err)
             return jax.jit(flat).lower(*leaves).compile()
-        _write(path, exported)
+        if _write(path, exported):
+            _list_shapes(where, kernel, static, tree, signature)
 
     def call(*xs):
         return exported.call(*xs)

@@ -144,19 +144,23 @@ class KeptPrograms:
         return leaves, tree, tuple((v.shape, v.dtype, v.weak_type) for v in leaves)
 
     def holders(self, kernel: Callable, args: tuple, static: tuple = (), padded: tuple = ()) -> list[dict]:
-        """The kept programs of ``kernel`` (same ``static``) that could take ``args`` with the
+        """The programs of ``kernel`` (same ``static``), kept here or stored on disk by an
+        earlier process (:func:`._traces.stored_shapes`), that could take ``args`` with the
         arguments at the indices ``padded`` (arrays) padded: every other leaf of the same
         shape and type, each padded argument of the same rank and type and nowhere smaller.
         One ``{index: shape}`` of the padded arguments per program (the call's own shapes
-        among them when its program is kept)."""
+        among them when its program is kept or stored)."""
         owner = [i for i, a in enumerate(args) for _ in jax.tree.leaves(a)]
         _, tree, sig = self._signature(args)
         with self._lock:
-            keys = list(self._programs)
-        found = []
-        for k_kernel, k_static, k_tree, k_sig in keys:
-            if k_kernel is not kernel or k_static != static or k_tree != tree:
-                continue
+            candidates = [k_sig for k, st, tr, k_sig in self._programs if k is kernel and st == static and tr == tree]
+        kinds = [kind for _, *kind in sig]
+        candidates += [
+            tuple((shape, *kind) for shape, kind in zip(shapes, kinds))
+            for shapes in _traces.stored_shapes(kernel, static, tree, sig)
+        ]
+        found: list[dict] = []
+        for k_sig in candidates:
             shapes: dict = {}
             for i, (s, *kind), (ks, *k_kind) in zip(owner, sig, k_sig):
                 fits = kind == k_kind and len(s) == len(ks) and all(a <= b for a, b in zip(s, ks))
@@ -165,7 +169,8 @@ class KeptPrograms:
                 if i in padded:
                     shapes[i] = ks
             else:
-                found.append(shapes)
+                if shapes not in found:
+                    found.append(shapes)
         return found
 
     def __call__(self, kernel: Callable, *args, static: tuple = ()):

@@ -87,3 +87,20 @@ def test_the_store_is_on_only_with_the_compilation_cache_and_nan_checks(tmp_path
     assert _traces.folder() == tmp_path / "kernels"
     monkeypatch.setenv("EQX_ON_ERROR", "raise")  # host callbacks: no export
     assert _traces.folder() is None
+
+
+def test_a_new_process_finds_the_stored_shapes_of_a_kernels_family(store):
+    """A padded call (solve._kept_call) may run on a kernel an earlier process stored:
+    KeptPrograms.holders lists it beside the programs kept in memory."""
+    from mfdesign.physics.solve import KeptPrograms
+
+    _compile(np.ones(4), np.ones(4))
+    small = (jnp.ones(2), jnp.ones(2))
+    _, tree = jax.tree.flatten(small)
+    sig = tuple((v.shape, v.dtype, v.weak_type) for v in small)
+    assert _traces.stored_shapes(first_invariant, (), tree, sig) == [((4,), (4,))]
+    assert KeptPrograms().holders(first_invariant, small, padded=(0, 1)) == [{0: (4,), 1: (4,)}]
+    assert KeptPrograms().holders(first_invariant, small, padded=(0,)) == []  # the second may not grow
+    for path in store.glob("*" + _traces.SUFFIX):
+        path.unlink()  # listed but gone: not offered
+    assert _traces.stored_shapes(first_invariant, (), tree, sig) == []
