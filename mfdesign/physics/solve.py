@@ -149,7 +149,10 @@ class KeptPrograms:
         arguments at the indices ``padded`` (arrays) padded: every other leaf of the same
         shape and type, each padded argument of the same rank and type and nowhere smaller.
         One ``{index: shape}`` of the padded arguments per program (the call's own shapes
-        among them when its program is kept or stored)."""
+        among them when its program is kept or stored). None on several devices, where
+        nothing is kept (:meth:`__call__`)."""
+        if len(jax.local_devices()) > 1:
+            return []
         owner = [i for i, a in enumerate(args) for _ in jax.tree.leaves(a)]
         _, tree, sig = self._signature(args)
         with self._lock:
