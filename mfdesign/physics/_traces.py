@@ -10,8 +10,7 @@ module (a hit in the compilation cache) without tracing the solver at all.
 The key holds the exact versions of jax, jaxlib and the solver libraries, a hash of every
 mfdesign source file, the argument signature and the settings that change a trace
 (``EQX_ON_ERROR``, float64), so a stored kernel is never used by code that would trace it
-differently. A program compiled from a stored module may differ from the directly traced
-one in the last bit (:data:`OFF`). Only module-level kernels of mfdesign are stored (a closure's captured values
+differently. Only module-level kernels of mfdesign are stored (a closure's captured values
 are not in the key). Any failure (no folder, a kernel export refuses, a damaged file) falls
 back to tracing as before: the store can only save time.
 """
@@ -39,11 +38,6 @@ log = logging.getLogger(__name__)
 UNGUARANTEED_CALLS = ("lapack_dormqr_ffi",)
 _VERSIONED = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "flatbuffers")
 SUFFIX = ".jaxexport"
-# Set to "1": no store in this process. A Dask worker sets it (mfdesign.physics.cluster):
-# XLA compiles an exported module and the directly traced kernel into programs that may
-# differ in the last bit (2 of 25 plane nodes by 7e-15 N), and a worker's planes equal,
-# bit for bit, those of a process that stores nothing (a library call, the tests).
-OFF = "MFDESIGN_NO_KERNEL_STORE"
 
 
 def folder() -> Path | None:
@@ -51,7 +45,7 @@ def folder() -> Path | None:
     persistent compilation cache is on (:func:`mfdesign._cache.enable_compilation_cache`:
     the CLI and the scripts) and equinox's runtime checks are NaN (a host callback cannot be
     exported); None otherwise (a library call, a test: nothing written)."""
-    if os.environ.get(OFF) == "1" or not _compilation_cache_dir() or os.environ.get("EQX_ON_ERROR") != "nan":
+    if not _compilation_cache_dir() or os.environ.get("EQX_ON_ERROR") != "nan":
         return None
     root = os.environ.get("MFDESIGN_CACHE_DIR")
     return (Path(root) if root else Path.home() / ".cache" / "mfdesign") / "kernels"

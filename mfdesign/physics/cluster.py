@@ -141,14 +141,10 @@ def prepare_worker() -> None:
     """What an mfdesign entry point sets, in a worker process: float64, JAX's persistent
     compilation cache in ``$MFDESIGN_CACHE_DIR`` and ``EQX_ON_ERROR=nan``
     (:func:`mfdesign._cache.enable_compilation_cache`; that one works only before equinox
-    is imported, i.e. from ``--preload``). Idempotent. No store of traced kernels
-    (:data:`mfdesign.physics._traces.OFF`): a worker compiles the solver's kernels as
-    traced, so its planes equal those of a process that stores none, bit for bit."""
+    is imported, i.e. from ``--preload``). Idempotent."""
     from mfdesign._cache import enable_compilation_cache
     from mfdesign._x64 import enable_x64
-    from mfdesign.physics._traces import OFF
 
-    os.environ[OFF] = "1"
     enable_compilation_cache()
     enable_x64()
 

@@ -104,18 +104,3 @@ def test_a_new_process_finds_the_stored_shapes_of_a_kernels_family(store):
     for path in store.glob("*" + _traces.SUFFIX):
         path.unlink()  # listed but gone: not offered
     assert _traces.stored_shapes(first_invariant, (), tree, sig) == []
-
-
-def test_a_dask_worker_stores_no_kernels(tmp_path, monkeypatch):
-    """mfdesign.physics.cluster.prepare_worker turns the store off: a worker's planes then
-    equal, bit for bit, those of a process that stores none (test_planes_dask)."""
-    from mfdesign.physics import cluster
-
-    monkeypatch.setenv("MFDESIGN_CACHE_DIR", str(tmp_path))
-    monkeypatch.setenv("EQX_ON_ERROR", "nan")
-    monkeypatch.setattr(_traces, "_compilation_cache_dir", lambda: str(tmp_path))
-    monkeypatch.delenv(_traces.OFF, raising=False)
-    assert _traces.folder() is not None
-    monkeypatch.setattr("mfdesign._cache.enable_compilation_cache", lambda: tmp_path)
-    cluster.prepare_worker()
-    assert _traces.folder() is None
