@@ -231,7 +231,10 @@ def _kept_call(
     arguments that may grow), when its ``work(shapes)`` is at most :data:`PAD_WORK_LIMIT`
     times the call's; every output is cut back to the call's leading axes (``lead(shapes)``
     of the arguments' shapes). A padded lane never changes a real one: lanes are
-    independent, and padded path steps come after every reported one."""
+    independent, and padded path steps come after every reported one. The results equal
+    the call's own program's to rounding only (XLA vectorises another batch size
+    otherwise: up to ~1e-12 N on a plane), so they may depend in the last bits on what
+    the process compiled before."""
     own = {i: np.shape(args[i]) for i in pads}
     fits = [s for s in KEPT.holders(kernel, args, padded=tuple(pads)) if work(s) <= PAD_WORK_LIMIT * work(own)]
     best = min(fits, key=work, default=own)
