@@ -28,6 +28,8 @@ from typing import Callable
 
 import jax
 
+from mfdesign import outputs
+
 __all__ = ["compiled", "folder", "stored_shapes"]
 
 log = logging.getLogger(__name__)
@@ -140,10 +142,8 @@ def _list_shapes(where: Path, kernel: Callable, static: tuple, tree, signature: 
     shapes = [list(shape) for shape, *_ in signature]
     if shapes in listed:
         return
-    tmp = path.with_suffix(f".{os.getpid()}.tmp")
     try:
-        tmp.write_text(json.dumps(listed + [shapes]))
-        os.replace(tmp, path)
+        outputs.write_json(path, listed + [shapes], indent=None)
     except OSError as err:
         log.debug("shapes of %s not listed: %s", path.name, err)
 
@@ -164,9 +164,7 @@ def _write(path: Path, exported) -> bool:
     try:
         blob = exported.serialize()
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_bytes(blob)
-        os.replace(tmp, path)  # readers see the whole file or none
+        outputs.write_bytes(path, blob)  # readers see the whole file or none
         return True
     except Exception as err:  # noqa: BLE001 -- no flatbuffers, a full disk: the run goes on
         log.debug("kernel %s not stored: %s", path.name, err)
