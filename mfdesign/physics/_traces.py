@@ -100,6 +100,10 @@ def _key(kernel: Callable, static: tuple, tree, signature: tuple) -> str:
     return _family(kernel, static, tree, signature) + hashlib.sha256(shapes.encode()).hexdigest()[:16]
 
 
+def _module_file(where: Path, kernel: Callable, static: tuple, tree, signature: tuple) -> Path:
+    return where / f"{kernel.__name__}-{_key(kernel, static, tree, signature)}{SUFFIX}"
+
+
 def _shapes_file(where: Path, kernel: Callable, static: tuple, tree, signature: tuple) -> Path:
     return where / f"{kernel.__name__}-{_family(kernel, static, tree, signature)}.shapes.json"
 
@@ -122,10 +126,7 @@ def stored_shapes(kernel: Callable, static: tuple, tree, signature: tuple) -> li
         except (TypeError, ValueError):
             continue
         sig = tuple((shape, *kind) for shape, (_, *kind) in zip(shapes, signature))
-        if (
-            len(shapes) == len(signature)
-            and (where / f"{kernel.__name__}-{_key(kernel, static, tree, sig)}{SUFFIX}").exists()
-        ):
+        if len(shapes) == len(signature) and _module_file(where, kernel, static, tree, sig).exists():
             found.append(shapes)
     return found
 
@@ -180,7 +181,7 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
         return jax.jit(flat).lower(*leaves).compile()
     from jax import export
 
-    path = where / f"{kernel.__name__}-{_key(kernel, static, tree, signature)}{SUFFIX}"
+    path = _module_file(where, kernel, static, tree, signature)
     exported = _read(path)
     if exported is None:
         try:
