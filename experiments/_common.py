@@ -96,6 +96,16 @@ def load() -> list[float]:
     return list(os.getloadavg())
 
 
+def accelerators() -> list[str]:
+    """The GPUs ``nvidia-smi -L`` lists ([] where there is none): a run's line says whether
+    the machine had one, whichever backend JAX was told to use (``JAX_PLATFORMS``)."""
+    try:
+        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return []
+    return [line.strip() for line in out.splitlines() if line.strip()]
+
+
 def machine() -> dict:
     import jax
 
@@ -105,13 +115,16 @@ def machine() -> dict:
         "jax": jax.__version__,
         "backend": jax.default_backend(),
         "devices": [str(d) for d in jax.devices()],
+        "accelerators": accelerators(),
         "load_average": load(),
     }
 
 
 def git_state() -> tuple[str, bool]:
-    """The repository's commit and whether tracked files differ from it ("", False outside
-    a git checkout): what a benchmark line records, taken before a run that takes minutes."""
+    """The repository's commit and whether tracked files differ from it: what a benchmark
+    line records, taken before a run that takes minutes. Outside a git checkout (a copy of
+    the tree sent to a GPU machine) the commit named by ``MFDESIGN_COMMIT``, else "", and
+    False."""
 
     def git(*args: str) -> str:
         root = Path(__file__).resolve().parents[1]
@@ -120,7 +133,10 @@ def git_state() -> tuple[str, bool]:
         except (OSError, subprocess.CalledProcessError):
             return ""
 
-    return git("rev-parse", "HEAD"), bool(git("status", "--porcelain", "--untracked-files=no"))
+    commit = git("rev-parse", "HEAD")
+    if not commit:
+        return os.environ.get("MFDESIGN_COMMIT", ""), False
+    return commit, bool(git("status", "--porcelain", "--untracked-files=no"))
 
 
 class Timing(dict):

@@ -42,7 +42,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import command, git_state, load, parser
+from _common import accelerators, command, git_state, load, parser
 
 JSONL = "bench_demo.jsonl"
 # Issue 40's targets on the 2-core CPU [s]; the warm quick run has none of its own.
@@ -365,7 +365,13 @@ def main() -> None:
         command=command(__file__, args),
         demo_command=" ".join(demo[2:]),
         nice=args.nice,
-        machine={"cpus": os.cpu_count(), "nproc": _nproc(), "platform": sys.platform},
+        machine={
+            "cpus": os.cpu_count(),
+            "nproc": _nproc(),
+            "platform": sys.platform,
+            "accelerators": accelerators(),
+            "jax_platforms": os.environ.get("JAX_PLATFORMS", ""),
+        },
         load_average_before=load_before,
         load_average_after=load_after,
         speed_probe=probe,
