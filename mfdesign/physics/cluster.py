@@ -141,10 +141,23 @@ def prepare_worker() -> None:
     """What an mfdesign entry point sets, in a worker process: float64, JAX's persistent
     compilation cache in ``$MFDESIGN_CACHE_DIR`` and ``EQX_ON_ERROR=nan``
     (:func:`mfdesign._cache.enable_compilation_cache`; that one works only before equinox
-    is imported, i.e. from ``--preload``). Idempotent."""
+    is imported, i.e. from ``--preload``), and the worker's own ``JAX_PLATFORMS``.
+    Idempotent.
+
+    Why ``JAX_PLATFORMS`` again: JAX reads it when it is imported, and a worker that a
+    script importing JAX at its top spawns (``LocalCluster(env={"JAX_PLATFORMS": "cpu"})``)
+    re-imports that script (multiprocessing's spawn) before Dask sets the worker's
+    environment. On a GPU machine every such worker then took the GPU the script already
+    held and failed for want of its memory (H200, session 35). Set while no backend is up,
+    it counts; afterwards it changes nothing."""
+    import jax
+
     from mfdesign._cache import enable_compilation_cache
     from mfdesign._x64 import enable_x64
 
+    platforms = os.environ.get("JAX_PLATFORMS", "")
+    if platforms and jax.config.jax_platforms != platforms:
+        jax.config.update("jax_platforms", platforms)
     enable_compilation_cache()
     enable_x64()
 

@@ -63,3 +63,18 @@ def test_cli_scheduler_without_dask_exits_2_with_one_line(no_dask, tmp_path, mon
     assert res.exit_code == 2, res.output
     lines = res.output.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and "Dask distributed is not installed" in lines[0]
+
+
+def test_prepare_worker_honours_the_workers_jax_platforms():
+    """A worker spawned by a script that imports JAX at its top has imported JAX before Dask
+    sets the worker's environment; prepare_worker (the preload) applies JAX_PLATFORMS then."""
+    import subprocess
+
+    code = (
+        "import os; os.environ.pop('JAX_PLATFORMS', None); import jax; "
+        "os.environ['JAX_PLATFORMS'] = 'cpu'; "  # what Dask's env= does, after the import
+        "from mfdesign.physics.cluster import prepare_worker; prepare_worker(); "
+        "print(jax.config.jax_platforms, jax.default_backend())"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
+    assert out.stdout.split() == ["cpu", "cpu"]
