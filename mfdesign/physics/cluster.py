@@ -156,7 +156,7 @@ def prepare_worker() -> None:
     from mfdesign._x64 import enable_x64
 
     platforms = os.environ.get("JAX_PLATFORMS", "")
-    if platforms and jax.config.jax_platforms != platforms:
+    if platforms and jax.config.jax_platforms != platforms:  # type: ignore[attr-defined]
         jax.config.update("jax_platforms", platforms)
     enable_compilation_cache()
     enable_x64()
