@@ -82,6 +82,7 @@ from mfdesign.models.predictor import (  # noqa: F401  (re-exported: acquisition
     Grid,
     SplitPredictor,
 )
+from mfdesign.physics._traces import stored_jit
 
 __all__ = [
     "FIDELITIES",
@@ -171,7 +172,7 @@ def _fidelity_arg(predictor: AbstractPredictor, fidelity: str):
     return fidelity
 
 
-@eqx.filter_jit
+@stored_jit
 def _grid_members(predictor, fidelity, design, grid):
     return predictor.grid_members(fidelity, design, grid)
 
@@ -247,7 +248,7 @@ def _masked(dev, mask):
     return dev if mask is None else jnp.where(mask, dev, 0.0)
 
 
-@eqx.filter_jit
+@stored_jit
 def _screen(acq: BatchUncertainty, u0, n_rings, space):
     """Forward pass only: ``u0 [A, R, q, 6]`` (unit cube) -> deviations ``[A, R, q, M]``
     of every random batch (``jax.lax.map`` over blocks of ``SCREEN_BLOCK`` restarts)."""
@@ -285,7 +286,7 @@ def initial_batches(acq: BatchUncertainty, u0, n_rings, space: DesignSpace, n_be
 LINESEARCH_STEPS = 4
 
 
-@eqx.filter_jit
+@stored_jit
 def _optimise(acq: BatchUncertainty, z0, n_rings, space, n_steps, mask=None):
     """``z0 [A, R, q, 6]``, ring counts ``n_rings [A]`` -> ``(u [A, R, q, 6], dev [A, R, q, M])``:
     every restart of every ring count runs ``n_steps`` L-BFGS iterations on ``-acq``

@@ -59,6 +59,7 @@ __all__ = [
 
 # the convergence rule's numbers live beside its sentence (posterior.convergence_rule)
 from mfdesign.calibration.posterior import ACCEPTANCE_RANGE, MIN_TAU_RATIO  # noqa: E402
+from mfdesign.physics._traces import stored_jit
 
 
 class ConvergenceWarning(UserWarning):
@@ -133,7 +134,7 @@ def _neg_log_post_per_row(u, args):
     return _neg_log_post(u, args) / jnp.maximum(jnp.sum(data.weight), 1.0)
 
 
-@eqx.filter_jit
+@stored_jit
 def _map_kernel(model: HierarchicalModel, inits, data: CalibrationData, max_steps: int):
     """BFGS from every start at once, and the Hessian at every end point (one compile)."""
     import optimistix as optx

@@ -47,6 +47,7 @@ from tqdm.auto import tqdm
 
 from mfdesign._x64 import enable_x64
 from mfdesign.models.predictor import EnsemblePredictor
+from mfdesign.physics._traces import stored_jit
 
 FORMAT_VERSION = 1
 MAX_RINGS = 2
@@ -424,7 +425,7 @@ def _by_rows(fn, *rows, chunk: int = ROW_CHUNK):
     return jax.tree.map(lambda o: jnp.moveaxis(o, 0, 1).reshape(o.shape[1], k * chunk, *o.shape[3:])[:, :n], out)
 
 
-@eqx.filter_jit
+@stored_jit
 def _predict(model: Ensemble, design, h_mm, p_pa):
     """All members at all points: vmap over points inside vmap over stacked members, in
     passes of :data:`ROW_CHUNK` rows."""

@@ -27,6 +27,7 @@ from mfdesign._padding import pad_last, padded_size
 from mfdesign._x64 import enable_x64
 from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
 from mfdesign.models.predictor import AbstractPredictor
+from mfdesign.physics._traces import stored_jit
 
 __all__ = ["MultiFidelity", "MultiFidelityPredictor", "coverage"]
 
@@ -206,14 +207,14 @@ class MultiFidelityPredictor(AbstractPredictor):
         ]
 
 
-@eqx.filter_jit
+@stored_jit
 def _delta_draws(delta, design, h_mm, p_pa, n_draws: int, key):
     # one compiled program: op by op, the ensemble's forward pass and the prior draws were
     # ~70 small compilations (23 s of a 37 s coverage figure, issue 40)
     return delta.draws(design, h_mm, p_pa, n_draws, key)
 
 
-@eqx.filter_jit
+@stored_jit
 def _sim_draws(model: HierarchicalModel, theta, data: CalibrationData, key):
     return model.sample_force(theta, data, key)
 

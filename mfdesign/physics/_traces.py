@@ -1,4 +1,6 @@
-"""The plane solver's traced kernels kept on disk (``jax.export``), for the next process.
+"""Traced programs kept on disk (``jax.export``), for the next process: the plane solver's
+kernels (:func:`compiled`) and the few large programs a run calls once or twice, a MAP
+search or an acquisition optimiser (:func:`stored_jit`).
 
 JAX's persistent compilation cache spares a new process XLA's compilation, not the tracing
 and lowering that come before it: a warm demo still spent ~23 s there on the solver's
@@ -17,20 +19,24 @@ back to tracing as before: the store can only save time.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import importlib.metadata
 import json
 import logging
 import os
+import pickle
 from pathlib import Path
 from typing import Callable
 
+import equinox as eqx
 import jax
+import jax.numpy as jnp
 
 from mfdesign import outputs
 
-__all__ = ["compiled", "folder", "stored_shapes"]
+__all__ = ["compiled", "folder", "stored_jit", "stored_shapes"]
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +44,7 @@ log = logging.getLogger(__name__)
 # custom call whose format JAX does not guarantee across versions. Stored kernels run only
 # on the jaxlib that wrote them (the key holds its version), so the guarantee is not needed.
 UNGUARANTEED_CALLS = ("lapack_dormqr_ffi",)
-_VERSIONED = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "flatbuffers")
+_VERSIONED = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax", "flatbuffers")
 SUFFIX = ".jaxexport"
 
 
@@ -198,3 +204,79 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
 
     call.__name__ = kernel.__name__  # the program's name in logs (profile_compile reads them)
     return jax.jit(call).lower(*leaves).compile()
+
+
+@dataclasses.dataclass(frozen=True)
+class _Aval:
+    """An array argument in :func:`stored_jit`'s key: its shape and type, not its values."""
+
+    shape: tuple
+    dtype: str
+    weak_type: bool
+
+
+_EXPORT_FAILED: set = set()  # stored_jit functions export refused in this process: plain filter_jit since
+_PROGRAMS: dict = {}  # stored_jit: key -> jax.jit(Exported.call), for this process
+
+
+def stored_jit(fn: Callable) -> Callable:
+    """``eqx.filter_jit(fn)``, its traced program also kept on disk for the next process.
+
+    For a module-level function of mfdesign that a run calls a few times with large
+    programs (a MAP search, an acquisition optimiser, a batch of least-squares fits): the
+    persistent compilation cache spares a warm run their compilation, not their tracing
+    and lowering (~16 s of a warm demo's ~28 s, issue 40; optimistix and optax trace slowly).
+    With the store on (:func:`folder`), a call exports ``fn`` on its arguments' signature
+    (``jax.export``), stores it, and a later process calls the stored module instead,
+    compiled from the compilation cache, without tracing ``fn``.
+
+    The key holds the library versions and mfdesign's sources (as :func:`compiled`), and
+    the pickled bytes of every argument with each array replaced by its shape and type:
+    equal bytes, equal static values (a float, a string, an eqx.Module's static fields,
+    a module-level function by its name). A call falls back to the plain filter_jit call
+    where the store is off, an argument does not pickle (a lambda, a closure: its captured
+    values would not be in the key), the call is under a trace (tracers), or export refuses
+    ``fn`` (a host callback). Not for a function called every MCMC step: pickling its
+    arguments each call would cost more than it saves."""
+    jitted = eqx.filter_jit(fn)
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        where = folder()
+        if where is None or fn in _EXPORT_FAILED or not _storable(fn):
+            return jitted(*args, **kwargs)
+        dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
+        leaves, tree = jax.tree.flatten(dynamic)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return jitted(*args, **kwargs)
+        leaves = [jnp.asarray(x) for x in leaves]
+        avals = [_Aval(tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False))) for x in leaves]
+        try:
+            blob = pickle.dumps(eqx.combine(jax.tree.unflatten(tree, avals), static), protocol=4)
+        except Exception:  # noqa: BLE001 -- a lambda, a closure, a lock: not keyable, traced as usual
+            return jitted(*args, **kwargs)
+        parts = (fn.__module__, fn.__qualname__, os.environ.get("EQX_ON_ERROR"), bool(jax.config.jax_enable_x64))
+        key = hashlib.sha256(repr(parts).encode() + blob + _code().encode()).hexdigest()[:40]
+        program = _PROGRAMS.get(key)
+        if program is None:
+            path = where / f"{fn.__name__}-{key}{SUFFIX}"
+            exported = _read(path)
+            if exported is None:
+                from jax import export
+
+                def flat(*xs):
+                    a, k = eqx.combine(jax.tree.unflatten(tree, xs), static)
+                    return fn(*a, **k)
+
+                try:
+                    checks = [export.DisabledSafetyCheck.custom_call(name) for name in UNGUARANTEED_CALLS]
+                    exported = export.export(jax.jit(flat), disabled_checks=checks)(*leaves)
+                except Exception as err:  # noqa: BLE001 -- e.g. a host callback: traced as usual from now on
+                    log.debug("%s not exported (%s): plain jit", fn.__qualname__, err)
+                    _EXPORT_FAILED.add(fn)
+                    return jitted(*args, **kwargs)
+                _write(path, exported)
+            program = _PROGRAMS[key] = jax.jit(exported.call)
+        return program(*leaves)
+
+    return call

@@ -3,6 +3,7 @@ new process compiles them without tracing them again (issue 40)."""
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -104,3 +105,71 @@ def test_a_new_process_finds_the_stored_shapes_of_a_kernels_family(store):
     for path in store.glob("*" + _traces.SUFFIX):
         path.unlink()  # listed but gone: not offered
     assert _traces.stored_shapes(first_invariant, (), tree, sig) == []
+
+
+class _Scale(eqx.Module):
+    w: jax.Array
+    factor: float = eqx.field(static=True)
+
+
+def _affine(m: _Scale, x, n: int):
+    return m.factor * m.w * x + n
+
+
+_stored_affine = _traces.stored_jit(_affine)
+
+
+@pytest.fixture
+def stored_jit_store(store, monkeypatch):
+    """The store on for this module's functions (stored_jit stores mfdesign's alone), and
+    this process's programs forgotten before and after (a new process)."""
+    monkeypatch.setattr(_traces, "_storable", lambda fn: True)
+    _traces._PROGRAMS.clear()
+    yield store
+    _traces._PROGRAMS.clear()
+
+
+def test_stored_jit_calls_the_stored_module_in_a_new_process(stored_jit_store, monkeypatch):
+    exports = []
+    export = jax.export.export
+
+    def spy(*a, **k):
+        exports.append(1)  # an export traces the function
+        return export(*a, **k)
+
+    monkeypatch.setattr(jax.export, "export", spy)
+    m, x = _Scale(jnp.array([1.0, 2.0]), 2.0), np.array([3.0, 4.0])
+    out = _stored_affine(m, x, 1)
+    np.testing.assert_array_equal(out, eqx.filter_jit(_affine)(m, x, 1))
+    assert len(exports) == 1 and len(list(stored_jit_store.glob("_affine-*" + _traces.SUFFIX))) == 1
+    _traces._PROGRAMS.clear()  # a new process: read from the store, not traced
+    m2 = _Scale(jnp.array([5.0, 6.0]), 2.0)
+    np.testing.assert_array_equal(_stored_affine(m2, x + 1, 1), eqx.filter_jit(_affine)(m2, x + 1, 1))
+    assert len(exports) == 1
+    # a static value is in the key: another factor, another n, another shape: each its own module
+    np.testing.assert_array_equal(_stored_affine(_Scale(m.w, 3.0), x, 1), 3.0 * m.w * x + 1)
+    np.testing.assert_array_equal(_stored_affine(m, x, 2), 2.0 * m.w * x + 2)
+    _stored_affine(_Scale(jnp.ones(3), 2.0), np.ones(3), 1)
+    assert len(exports) == 4 and len(list(stored_jit_store.glob("*" + _traces.SUFFIX))) == 4
+
+
+def test_stored_jit_traces_as_usual_what_it_cannot_key(stored_jit_store):
+    """A closure's captured values would not be in the key (it does not pickle), and a
+    call under a trace has no values to export: both are plain filter_jit calls."""
+    k = 3.0
+
+    class _Closure(eqx.Module):
+        fn: object = eqx.field(static=True)
+
+    def under(x):
+        return _stored_affine(_Scale(jnp.ones(2), 2.0), x, 1)
+
+    np.testing.assert_array_equal(jax.jit(under)(jnp.array([1.0, 2.0])), [3.0, 5.0])
+    m = _Closure(lambda v: v * k)
+    out = _traces.stored_jit(_apply)(m, jnp.array([1.0, 2.0]))
+    np.testing.assert_array_equal(out, [3.0, 6.0])
+    assert not list(stored_jit_store.glob("*" + _traces.SUFFIX))
+
+
+def _apply(m, x):
+    return m.fn(x)
