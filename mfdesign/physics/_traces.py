@@ -23,10 +23,12 @@ import dataclasses
 import functools
 import hashlib
 import importlib.metadata
+import io
 import json
 import logging
 import os
 import pickle
+import types
 from pathlib import Path
 from typing import Callable
 
@@ -44,7 +46,7 @@ log = logging.getLogger(__name__)
 # custom call whose format JAX does not guarantee across versions. Stored kernels run only
 # on the jaxlib that wrote them (the key holds its version), so the guarantee is not needed.
 UNGUARANTEED_CALLS = ("lapack_dormqr_ffi",)
-_VERSIONED = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax", "flatbuffers")
+_VERSIONED = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax", "numpy", "flatbuffers")
 SUFFIX = ".jaxexport"
 
 
@@ -215,6 +217,35 @@ class _Aval:
     weak_type: bool
 
 
+def _named(kind: str, module: str, qualname: str) -> None:
+    """What :class:`_KeyPickler` writes for a jitted function (never called: the bytes are
+    only compared)."""
+
+
+class _KeyPickler(pickle.Pickler):
+    """Pickles :func:`stored_jit`'s key material: a module-level function by its module and
+    name (as pickle does), a jitted one (``jnp.tanh`` is a ``PjitFunction``, which pickle
+    refuses) by the function it wraps; a closure or a local function refuses, as its
+    captured values would not be in the key."""
+
+    def reducer_override(self, obj):
+        inner = getattr(obj, "__wrapped__", None) if callable(obj) and not isinstance(obj, type) else None
+        if not isinstance(obj, types.FunctionType) and not isinstance(inner, types.FunctionType):
+            return NotImplemented
+        fn = obj if isinstance(obj, types.FunctionType) else inner
+        if "<locals>" in fn.__qualname__ or fn.__closure__:
+            raise pickle.PicklingError(f"{fn.__qualname__}: a closure or local function has no stable key")
+        if fn is obj:
+            return NotImplemented  # by reference, as pickle does
+        return _named, ("wrapped", fn.__module__, fn.__qualname__)
+
+
+def _key_bytes(obj) -> bytes:
+    buffer = io.BytesIO()
+    _KeyPickler(buffer, protocol=4).dump(obj)
+    return buffer.getvalue()
+
+
 _EXPORT_FAILED: set = set()  # stored_jit functions export refused in this process: plain filter_jit since
 _PROGRAMS: dict = {}  # stored_jit: key -> jax.jit(Exported.call), for this process
 
@@ -252,7 +283,7 @@ def stored_jit(fn: Callable) -> Callable:
         leaves = [jnp.asarray(x) for x in leaves]
         avals = [_Aval(tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False))) for x in leaves]
         try:
-            blob = pickle.dumps(eqx.combine(jax.tree.unflatten(tree, avals), static), protocol=4)
+            blob = _key_bytes(eqx.combine(jax.tree.unflatten(tree, avals), static))
         except Exception:  # noqa: BLE001 -- a lambda, a closure, a lock: not keyable, traced as usual
             return jitted(*args, **kwargs)
         parts = (fn.__module__, fn.__qualname__, os.environ.get("EQX_ON_ERROR"), bool(jax.config.jax_enable_x64))

@@ -3,6 +3,8 @@ new process compiles them without tracing them again (issue 40)."""
 
 from __future__ import annotations
 
+import pickle
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -173,3 +175,19 @@ def test_stored_jit_traces_as_usual_what_it_cannot_key(stored_jit_store):
 
 def _apply(m, x):
     return m.fn(x)
+
+
+def test_stored_jit_keys_a_jitted_function_by_name_and_refuses_a_closure():
+    """jnp.tanh (a jitted function, which pickle refuses) in an ensemble's static fields
+    still keys; a closure never does (its captured values are not in the bytes)."""
+    assert _traces._key_bytes((jnp.tanh, jax.nn.gelu)) == _traces._key_bytes((jnp.tanh, jax.nn.gelu))
+    assert _traces._key_bytes(jnp.tanh) != _traces._key_bytes(jnp.sinh)
+    k = 2.0
+
+    def local(x):
+        return k * x
+
+    with pytest.raises(pickle.PicklingError):
+        _traces._key_bytes(local)
+    with pytest.raises(pickle.PicklingError):
+        _traces._key_bytes(jax.jit(local))
