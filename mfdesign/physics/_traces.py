@@ -225,19 +225,25 @@ def _named(kind: str, module: str, qualname: str) -> None:
 class _KeyPickler(pickle.Pickler):
     """Pickles :func:`stored_jit`'s key material: a module-level function by its module and
     name (as pickle does), a jitted one (``jnp.tanh`` is a ``PjitFunction``, which pickle
-    refuses) by the function it wraps; a closure or a local function refuses, as its
-    captured values would not be in the key."""
+    refuses) by the function it wraps, a module-level lambda by its code and constants; a
+    closure or a local function refuses, as its captured values would not be in the key."""
 
     def reducer_override(self, obj):
         inner = getattr(obj, "__wrapped__", None) if callable(obj) and not isinstance(obj, type) else None
-        if not isinstance(obj, types.FunctionType) and not isinstance(inner, types.FunctionType):
+        if obj is _named or (not isinstance(obj, types.FunctionType) and not isinstance(inner, types.FunctionType)):
             return NotImplemented
         fn = obj if isinstance(obj, types.FunctionType) else inner
         if "<locals>" in fn.__qualname__ or fn.__closure__:
             raise pickle.PicklingError(f"{fn.__qualname__}: a closure or local function has no stable key")
-        if fn is obj:
-            return NotImplemented  # by reference, as pickle does
-        return _named, ("wrapped", fn.__module__, fn.__qualname__)
+        if fn.__name__ == "<lambda>":
+            # a module-level lambda (equinox's MLP keeps one as its default final
+            # activation) has no name to be found by: its code and constants are the key
+            code = fn.__code__
+            consts = tuple(c for c in code.co_consts if not isinstance(c, types.CodeType))
+            return _named, ("lambda", fn.__module__, code.co_code, consts, code.co_names, fn.__defaults__)
+        # by module and name, as pickle does, but also where that name now holds a wrapper
+        # of it (jax.nn.relu: the module's attribute is the jitted function)
+        return _named, ("function", fn.__module__, fn.__qualname__)
 
 
 def _key_bytes(obj) -> bytes:
@@ -266,15 +272,16 @@ def stored_jit(fn: Callable) -> Callable:
     equal bytes, equal static values (a float, a string, an eqx.Module's static fields,
     a module-level function by its name). A call falls back to the plain filter_jit call
     where the store is off, an argument does not pickle (a lambda, a closure: its captured
-    values would not be in the key), the call is under a trace (tracers), or export refuses
-    ``fn`` (a host callback). Not for a function called every MCMC step: pickling its
-    arguments each call would cost more than it saves."""
+    values would not be in the key), the call is under a trace (tracers), the process has
+    several devices, or export refuses ``fn`` (a host callback). Not for a function called
+    every MCMC step: pickling its arguments each call would cost more than it saves."""
     jitted = eqx.filter_jit(fn)
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
         where = folder()
-        if where is None or fn in _EXPORT_FAILED or not _storable(fn):
+        # several devices: arguments may carry shardings an exported module would not match
+        if where is None or fn in _EXPORT_FAILED or not _storable(fn) or len(jax.local_devices()) > 1:
             return jitted(*args, **kwargs)
         dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
         leaves, tree = jax.tree.flatten(dynamic)
@@ -284,7 +291,8 @@ def stored_jit(fn: Callable) -> Callable:
         avals = [_Aval(tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False))) for x in leaves]
         try:
             blob = _key_bytes(eqx.combine(jax.tree.unflatten(tree, avals), static))
-        except Exception:  # noqa: BLE001 -- a lambda, a closure, a lock: not keyable, traced as usual
+        except Exception as err:  # noqa: BLE001 -- a lambda, a closure, a lock: not keyable, traced as usual
+            log.debug("%s not stored: arguments have no key (%s)", fn.__qualname__, err)
             return jitted(*args, **kwargs)
         parts = (fn.__module__, fn.__qualname__, os.environ.get("EQX_ON_ERROR"), bool(jax.config.jax_enable_x64))
         key = hashlib.sha256(repr(parts).encode() + blob + _code().encode()).hexdigest()[:40]

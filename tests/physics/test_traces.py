@@ -191,3 +191,15 @@ def test_stored_jit_keys_a_jitted_function_by_name_and_refuses_a_closure():
         _traces._key_bytes(local)
     with pytest.raises(pickle.PicklingError):
         _traces._key_bytes(jax.jit(local))
+
+
+_IDENTITY = lambda x: x  # noqa: E731 -- as equinox's MLP keeps its default final activation
+_DOUBLE = lambda x: 2 * x  # noqa: E731
+
+
+def test_stored_jit_keys_a_module_level_lambda_by_its_code():
+    assert _traces._key_bytes(_IDENTITY) == _traces._key_bytes(_IDENTITY)
+    assert _traces._key_bytes(_IDENTITY) != _traces._key_bytes(_DOUBLE)
+    # an MLP as the ensemble builds them: its default final activation is equinox's lambda
+    mlp = eqx.nn.MLP(2, 2, 4, 1, activation=jnp.tanh, key=jax.random.key(0))
+    assert _traces._key_bytes(eqx.filter(mlp, eqx.is_array, inverse=True))
