@@ -371,6 +371,7 @@ def main() -> None:
             "platform": sys.platform,
             "accelerators": accelerators(),
             "jax_platforms": os.environ.get("JAX_PLATFORMS", ""),
+            "xla_flags": os.environ.get("XLA_FLAGS", ""),  # they change what XLA compiles, and how fast
         },
         load_average_before=load_before,
         load_average_after=load_after,
