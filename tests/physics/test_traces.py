@@ -36,15 +36,21 @@ def store(tmp_path, monkeypatch):
     return tmp_path / "kernels"
 
 
-def test_a_stored_kernel_is_compiled_without_tracing_it_again(store, monkeypatch):
-    exports = []
+@pytest.fixture
+def exports(monkeypatch):
+    """One entry per jax.export.export call: an export traces the function."""
+    calls: list = []
     export = jax.export.export
 
     def spy(*a, **k):
-        exports.append(1)  # an export traces the kernel
+        calls.append(1)
         return export(*a, **k)
 
     monkeypatch.setattr(jax.export, "export", spy)
+    return calls
+
+
+def test_a_stored_kernel_is_compiled_without_tracing_it_again(store, exports):
     l1, l2 = np.array([1.2, 1.5]), np.array([1.1, 0.9])
     program, leaves = _compile(l1, l2)
     assert len(exports) == 1 and len(list(store.glob("first_invariant-*" + _traces.SUFFIX))) == 1
@@ -131,15 +137,7 @@ def stored_jit_store(store, monkeypatch):
     _traces._PROGRAMS.clear()
 
 
-def test_stored_jit_calls_the_stored_module_in_a_new_process(stored_jit_store, monkeypatch):
-    exports = []
-    export = jax.export.export
-
-    def spy(*a, **k):
-        exports.append(1)  # an export traces the function
-        return export(*a, **k)
-
-    monkeypatch.setattr(jax.export, "export", spy)
+def test_stored_jit_calls_the_stored_module_in_a_new_process(stored_jit_store, exports):
     m, x = _Scale(jnp.array([1.0, 2.0]), 2.0), np.array([3.0, 4.0])
     out = _stored_affine(m, x, 1)
     np.testing.assert_array_equal(out, eqx.filter_jit(_affine)(m, x, 1))
