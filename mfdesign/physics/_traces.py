@@ -217,9 +217,9 @@ class _Aval:
     weak_type: bool
 
 
-def _named(kind: str, module: str, qualname: str) -> None:
-    """What :class:`_KeyPickler` writes for a jitted function (never called: the bytes are
-    only compared)."""
+def _named(*identity) -> None:
+    """What :class:`_KeyPickler` writes in a function's place, with the function's identity
+    as its arguments (never called: the key's bytes are only compared)."""
 
 
 class _KeyPickler(pickle.Pickler):
