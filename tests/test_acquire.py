@@ -457,9 +457,9 @@ def test_a_fidelity_as_data_shares_one_program_and_pads_the_smaller_count():
     twin = FunctionPredictor({"rig": toy_members, "sim": lambda d, h, p: 0.5 * toy_members(d, h, p)})
     data = _DataFidelity({"rig": toy_members, "sim": lambda d, h, p: 0.5 * toy_members(d, h, p)})
     kw = dict(budget={"rig": 2, "sim": 1}, n_rings=(0, 1), n_restarts=6, n_refine=3, grid=GRID, n_steps=4, key=2)
-    before = _optimise._cached._cache_size()
+    before = _optimise.jitted._cached._cache_size()
     got = propose(data, **kw)
-    assert _optimise._cached._cache_size() == before + 1  # one program for rig and sim
+    assert _optimise.jitted._cached._cache_size() == before + 1  # one program for rig and sim
     ref = propose(twin, **kw)
     assert got.fidelities == ref.fidelities
     for a, b in zip(got.designs, ref.designs):

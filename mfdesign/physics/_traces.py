@@ -318,4 +318,5 @@ def stored_jit(fn: Callable) -> Callable:
             program = _PROGRAMS[key] = jax.jit(exported.call)
         return program(*leaves)
 
+    call.jitted = jitted  # type: ignore[attr-defined]  # the plain program (tests count its compilations)
     return call
