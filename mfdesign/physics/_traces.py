@@ -157,6 +157,15 @@ def _list_shapes(where: Path, kernel: Callable, static: tuple, tree, signature: 
         log.debug("shapes of %s not listed: %s", path.name, err)
 
 
+def _export(flat: Callable, leaves: list):
+    """``flat`` traced on ``leaves`` and exported (the custom calls of
+    :data:`UNGUARANTEED_CALLS` allowed: the key pins the jaxlib that runs them)."""
+    from jax import export
+
+    checks = [export.DisabledSafetyCheck.custom_call(name) for name in UNGUARANTEED_CALLS]
+    return export.export(jax.jit(flat), disabled_checks=checks)(*leaves)
+
+
 def _read(path: Path):
     from jax import export
 
@@ -187,14 +196,12 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
     where = folder()
     if where is None or not _storable(kernel):
         return jax.jit(flat).lower(*leaves).compile()
-    from jax import export
 
     path = _module_file(where, kernel, static, tree, signature)
     exported = _read(path)
     if exported is None:
         try:
-            checks = [export.DisabledSafetyCheck.custom_call(name) for name in UNGUARANTEED_CALLS]
-            exported = export.export(jax.jit(flat), disabled_checks=checks)(*leaves)
+            exported = _export(flat, leaves)
         except Exception as err:  # noqa: BLE001 -- e.g. a host callback: compile as before
             log.debug("kernel %s not exported (%s): compiled directly", kernel.__name__, err)
             return jax.jit(flat).lower(*leaves).compile()
@@ -301,15 +308,13 @@ def stored_jit(fn: Callable) -> Callable:
             path = where / f"{fn.__name__}-{key}{SUFFIX}"
             exported = _read(path)
             if exported is None:
-                from jax import export
 
                 def flat(*xs):
                     a, k = eqx.combine(jax.tree.unflatten(tree, xs), static)
                     return fn(*a, **k)
 
                 try:
-                    checks = [export.DisabledSafetyCheck.custom_call(name) for name in UNGUARANTEED_CALLS]
-                    exported = export.export(jax.jit(flat), disabled_checks=checks)(*leaves)
+                    exported = _export(flat, leaves)
                 except Exception as err:  # noqa: BLE001 -- e.g. a host callback: traced as usual from now on
                     log.debug("%s not exported (%s): plain jit", fn.__qualname__, err)
                     _EXPORT_FAILED.add(fn)
