@@ -233,3 +233,25 @@ def test_lattice_contraction_is_the_axis_by_axis_cubic_and_falls_back_to_multili
         assert np.array_equal(
             np.asarray(model._contract_planes(mask, axes, cs, _touch)[0]), np.asarray(axis_by_axis(mask, pos, _touch))
         )
+
+
+def test_an_eager_call_is_one_program_per_padded_row_count_and_equals_the_op_by_op_forces(exact):
+    """Outside a trace the model runs as one compiled program per power-of-two row count
+    (issue 40: op by op, every new row count compiled ~20 small XLA programs); the padded
+    rows change no number of the real ones (per-row constants too), and a new value of a
+    constant is data, not a new program."""
+    from mfdesign.models import exact as ex
+
+    rng = np.random.default_rng(3)
+    before = ex._compiled_forces._cached._cache_size()
+    for n in (5, 7):  # both pad to 8
+        design, h, p = _rows(KEYS[1], n, rng)
+        params = SimParams(
+            mu_pa=31.7e3 * (1 + 0.01 * rng.standard_normal(n)), jm=39.6 * float(np.exp(rng.uniform(-0.05, 0.05)))
+        )
+        got = np.asarray(exact(design, h, p, params))
+        ref = np.asarray(exact._forces(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), params))
+        assert got.shape == (n,)
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12, equal_nan=True)
+        assert np.isfinite(got).sum() >= n - 1
+    assert ex._compiled_forces._cached._cache_size() - before == 1  # rows of 5 and 7: one program
