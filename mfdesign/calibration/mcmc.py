@@ -225,8 +225,14 @@ def _lattice_steps(model: HierarchicalModel, data: CalibrationData, res: MapResu
 
 def _params_at(model: HierarchicalModel, data: CalibrationData, u: np.ndarray):
     """SimParams (fields ``[K, N]``) of the rows at unconstrained points ``u`` [K, dim]."""
-    x = model.to_physical(jnp.asarray(np.atleast_2d(u), float))
-    return jax.vmap(lambda xx: model.sim_params(xx, data))(x)
+    return _params_program(model, data, np.asarray(np.atleast_2d(u), float))
+
+
+@eqx.filter_jit
+def _params_program(model: HierarchicalModel, data: CalibrationData, u):
+    # one program per point count: run eagerly, the vmapped transforms compiled ~40 small
+    # XLA programs in a cold demo (issue 40)
+    return jax.vmap(lambda xx: model.sim_params(xx, data))(model.to_physical(u))
 
 
 def fit_force_model(

@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -134,9 +135,16 @@ def _bic(sim: ForwardModel, meas, rows, target, effects, theta, resid) -> float:
         **{k: float(theta[k]) for k in fx.neutral_theta(effects)},
     }
     x = jnp.asarray([v[nm] for nm in model.names])
-    ll = float(model.log_lik(x, data))
+    ll = float(_log_lik(model, x, data))
     k = sum(len(fx.effect(e).parameters) for e in effects) + 1
     return k * math.log(n) - 2.0 * ll
+
+
+@eqx.filter_jit
+def _log_lik(model, x, data):
+    """The model's log likelihood as one program per row count (run eagerly, each BIC compiled
+    ~25 small XLA programs in a cold demo, issue 40)."""
+    return model.log_lik(x, data)
 
 
 def _layout(order, sets, theta0, starts=None):

@@ -250,7 +250,10 @@ class ExactForceModel(ForceModel):
     # -- interface ------------------------------------------------------------------------------
     def __call__(self, design, h_mm, p_pa, params: SimParams = SimParams()):
         if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((design, h_mm, p_pa, params))):
-            return self._forces(design, h_mm, p_pa, params)
+            # Under a transformation: inside a jit the program is inlined; under an eager
+            # vmap or grad it is one compiled program instead of op-by-op batched primitives
+            # (the diagnosis' BIC and refits vmapped the clipped model: 205 small XLA programs).
+            return _compiled_forces(self, design, h_mm, p_pa, params)
         return _eager_forces(self, design, h_mm, p_pa, params)
 
     def _forces(self, design, h_mm, p_pa, params: SimParams):
