@@ -37,3 +37,26 @@ def test_parse_sums_compile_tracing_and_lowering_per_stage_and_function(monkeypa
     assert out["traced_per_function"][0] == {"function": "_plane_kernel", "seconds": 11.5}
     assert {"function": "_fit_batch", "seconds": 3.0} in out["traced_per_function"]
     assert out["recompiled"] == [{"function": "jit(_fit_batch)", "seconds": 12.5, "compilations": 2}]
+
+
+def test_profile_callers_names_the_innermost_mfdesign_line_or_its_eager_caller(monkeypatch):
+    """experiments/profile_callers.py's attribution: the innermost mfdesign frame, past the
+    program store's wrapper; with ``outer``, past the force models and effects a caller ran
+    eagerly. A stack without mfdesign is "?"."""
+    import traceback
+
+    monkeypatch.syspath_prepend(str(ROOT / "experiments"))
+    spec = importlib.util.spec_from_file_location("profile_callers", ROOT / "experiments" / "profile_callers.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    fs = traceback.FrameSummary
+    stack = [
+        fs("/x/mfdesign/workflows/demo.py", 10, "run_demo", lookup_line=False),
+        fs("/x/mfdesign/diagnosis/refit.py", 137, "_bic", lookup_line=False),
+        fs("/x/mfdesign/models/exact.py", 103, "_contract", lookup_line=False),
+        fs("/x/mfdesign/physics/_traces.py", 50, "call", lookup_line=False),
+        fs("/x/site-packages/jax/_src/dispatch.py", 1, "apply_primitive", lookup_line=False),
+    ]
+    assert mod.site_of(stack) == "models/exact.py:103 _contract"
+    assert mod.site_of(stack, outer=True) == "diagnosis/refit.py:137 _bic"
+    assert mod.site_of(stack[-1:]) == "?"

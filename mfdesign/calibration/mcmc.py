@@ -42,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mfdesign._padding import pad_last
 from mfdesign._x64 import enable_x64
 from mfdesign.calibration.posterior import Posterior
 from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
@@ -85,6 +86,9 @@ def _batch_log_post(model: HierarchicalModel, u, data: CalibrationData):
     return jax.vmap(model.log_posterior_u, in_axes=(0, None))(u, data)
 
 
+WALKER_CHUNK = 16  # points per log-posterior call (half the default 32 walkers: emcee's red-blue halves)
+
+
 class LogPosterior:
     """``u [W, dim] -> log p(u | D) [W]`` (NumPy in, NumPy out) for emcee, jitted and vmapped.
 
@@ -100,7 +104,18 @@ class LogPosterior:
         return {"model": self.model, "data": self.data, "pool": None, "chunks": self.chunks}
 
     def batch(self, u: np.ndarray) -> np.ndarray:
-        return np.asarray(_batch_log_post(self.model, jnp.asarray(u, float), self.data))
+        # chunks of WALKER_CHUNK points, the last padded: one compiled program for every batch
+        # (emcee asks for the whole ensemble, its halves and smaller sets: three programs of
+        # ~1 s XLA each in a cold demo, issue 40)
+        u = np.atleast_2d(np.asarray(u, float))
+        n = len(u)
+        size = WALKER_CHUNK * max(1, -(-n // WALKER_CHUNK))
+        padded = pad_last(u, size) if n else u
+        out = [
+            np.asarray(_batch_log_post(self.model, jnp.asarray(padded[a : a + WALKER_CHUNK]), self.data))
+            for a in range(0, size, WALKER_CHUNK)
+        ]
+        return np.concatenate(out)[:n] if out else np.zeros(0)
 
     def __call__(self, u) -> np.ndarray:
         u = np.atleast_2d(np.asarray(u, float))

@@ -124,6 +124,27 @@ def test_pool_gives_same_log_posterior(setup):
     assert np.all(np.isfinite(plain))
 
 
+def test_log_posterior_batches_of_any_size_share_one_program(setup):
+    """emcee asks for the whole ensemble, its halves and smaller sets; every size runs as
+    chunks of WALKER_CHUNK points (issue 40: one compilation, not one per size), each point's
+    value that of the point alone."""
+    from mfdesign.calibration import mcmc
+
+    _, data, model = setup
+    rng = np.random.default_rng(1)
+    u = model.to_unconstrained(model.initial_physical()) + 0.01 * rng.standard_normal(
+        (2 * mcmc.WALKER_CHUNK + 3, model.dim)
+    )
+    lp = LogPosterior(model, data)
+    before = mcmc._batch_log_post._cached._cache_size()
+    whole = lp(u)
+    parts = np.concatenate([lp(u[:5]), lp(u[5 : 5 + mcmc.WALKER_CHUNK]), lp(u[5 + mcmc.WALKER_CHUNK :])])
+    assert mcmc._batch_log_post._cached._cache_size() - before <= 1
+    assert whole.shape == (len(u),) and np.all(np.isfinite(whole))
+    np.testing.assert_allclose(parts, whole, rtol=1e-12)
+    np.testing.assert_allclose(lp(u[7:8]), whole[7:8], rtol=1e-12)
+
+
 def test_evidence_prefers_the_hidden_effect(setup):
     """Laplace evidence / BIC: the data (150 Pa sensor offset) favour the model that has it."""
     _, data, model = setup
