@@ -96,6 +96,9 @@ def main(argv=None) -> dict:
         shutil.copytree(args.planes, cache / "planes")
     # before JAX is imported: an empty cache of its own, CPU
     os.environ |= {"MFDESIGN_CACHE_DIR": str(cache), "JAX_PLATFORMS": "cpu"}
+    from mfdesign._cache import enable_compilation_cache
+
+    enable_compilation_cache()  # as the CLI: the persistent cache and the program store on
     import jax
 
     jax.config.update("jax_log_compiles", True)
