@@ -236,7 +236,7 @@ def test_lattice_contraction_is_the_axis_by_axis_cubic_and_falls_back_to_multili
 
 
 def test_an_eager_call_is_one_program_per_padded_row_count_and_equals_the_op_by_op_forces(exact):
-    """Outside a trace the model runs as one compiled program per power-of-two row count
+    """Outside a trace the model runs as one compiled program per padded row count
     (issue 40: op by op, every new row count compiled ~20 small XLA programs); the padded
     rows change no number of the real ones (per-row constants too), and a new value of a
     constant is data, not a new program."""
