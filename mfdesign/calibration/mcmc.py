@@ -61,6 +61,7 @@ __all__ = [
 # the convergence rule's numbers live beside its sentence (posterior.convergence_rule)
 from mfdesign.calibration.posterior import ACCEPTANCE_RANGE, MIN_TAU_RATIO  # noqa: E402
 from mfdesign.physics._traces import stored_jit
+from mfdesign.physics.solve import in_batches
 
 
 class ConvergenceWarning(UserWarning):
@@ -109,13 +110,13 @@ class LogPosterior:
         # ~1 s XLA each in a cold demo, issue 40)
         u = np.atleast_2d(np.asarray(u, float))
         n = len(u)
-        size = WALKER_CHUNK * max(1, -(-n // WALKER_CHUNK))
-        padded = pad_last(u, size) if n else u
-        out = [
-            np.asarray(_batch_log_post(self.model, jnp.asarray(padded[a : a + WALKER_CHUNK]), self.data))
-            for a in range(0, size, WALKER_CHUNK)
-        ]
-        return np.concatenate(out)[:n] if out else np.zeros(0)
+        if not n:
+            return np.zeros(0)
+        padded = pad_last(u, WALKER_CHUNK * -(-n // WALKER_CHUNK))  # in_batches never meets a short batch
+        out = in_batches(
+            lambda b: _batch_log_post(self.model, jnp.asarray(b), self.data), padded, size=WALKER_CHUNK, lanes=1
+        )
+        return out[:n]
 
     def __call__(self, u) -> np.ndarray:
         u = np.atleast_2d(np.asarray(u, float))
