@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mfdesign._padding import pad_last, padded_size
+from mfdesign._padding import bucketed_size, pad_last, padded_size
 from mfdesign._x64 import enable_x64
 from mfdesign.design import Membrane
 from mfdesign.models.force import ForceModel
@@ -189,7 +189,7 @@ def _pad_ghosts(a: np.ndarray, axes: Sequence[int]) -> np.ndarray:
 
 def _eager_forces(model: "ExactForceModel", design, h_mm, p_pa, params: SimParams) -> jax.Array:
     """:meth:`ExactForceModel.__call__` outside a trace: one compiled program per padded row
-    count (rows repeated up to :func:`_rows_bucket`, the result sliced back; a repeated row
+    count (rows repeated up to :func:`~mfdesign._padding.bucketed_size`, the result sliced back; a repeated row
     changes no other row's number). Run op by op, each call compiled ~20 small XLA programs
     per new row count: 642 of a cold quick demo's 1,228 compilations (28.9 of its 190.9 s
     of XLA, issue 40; the figures, the diagnosis' residual tables, the prediction of each
@@ -200,7 +200,7 @@ def _eager_forces(model: "ExactForceModel", design, h_mm, p_pa, params: SimParam
     if h.ndim != 1:
         return _compiled_forces(model, design, h_mm, p_pa, params)
     n = h.shape[0]
-    size = _rows_bucket(n)
+    size = bucketed_size(n, minimum=8)
 
     def pad(a, rows_axis_ndim: int = 1):
         a = np.asarray(a, float)
@@ -208,14 +208,6 @@ def _eager_forces(model: "ExactForceModel", design, h_mm, p_pa, params: SimParam
 
     out = _compiled_forces(model, pad(design, 2), pad(h), pad(p_pa), jax.tree.map(pad, params))
     return out[:n] if n and out.ndim and out.shape[0] == size else out
-
-
-def _rows_bucket(n: int) -> int:
-    """Rows an eager call of ``n`` rows is padded to: eight sizes per power of two (at most
-    1/8 more rows; the next power of two padded the bundled data's 150,503 rows to 262,144,
-    and a demo's peak RSS rose by ~200 MB), at least 8."""
-    step = max(8, padded_size(n, minimum=8) // 8)
-    return -(-max(n, 1) // step) * step
 
 
 @eqx.filter_jit
