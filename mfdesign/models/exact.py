@@ -37,6 +37,8 @@ covers a box of coordinates (the planes it adds are solved and cached; the rest 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import itertools
 import logging
 import math
 from typing import Mapping, Sequence
@@ -116,27 +118,23 @@ class _Weights(eqx.Module):
 
     cubic: jax.Array  # Keys cubic weights on the 4^D stencil, 0 elsewhere
     linear: jax.Array  # multilinear weights on the 2^D middle nodes, 0 elsewhere
-    stencil: jax.Array  # 1 on the 4^D stencil
-    middle: jax.Array  # 1 on the 2^D middle nodes
-    nonzero: jax.Array  # 1 where a cubic weight is nonzero (the outside-model mask's rule)
 
 
 def _lattice_weights(pos, lengths) -> _Weights:
     """Weights over whole ghost-padded lattice axes of lengths ``lengths`` for the stencil
     cells ``pos`` (:func:`_position` per axis: start ``i``, fraction ``t``). Per axis the
-    same rule as :func:`_contract` / :func:`_touch`; over several axes a tensor product:
-    cubic where every node of the 4^D stencil is finite, else multilinear where the 2^D
-    middle nodes are (the two agree with :func:`_contract` applied axis by axis wherever
-    the stencil is complete; near an unconverged node this rule does not depend on the
-    order of the axes)."""
+    same rule as :func:`_contract`; over several axes a tensor product (cubic where every
+    node of the 4^D stencil is finite, else multilinear where the 2^D middle nodes are:
+    :meth:`ExactForceModel._contract_planes`; the two agree with :func:`_contract` applied
+    axis by axis wherever the stencil is complete; near an unconverged node this rule does
+    not depend on the order of the axes)."""
     vecs = []
     for (i, t, _), n in zip(pos, lengths):
         k = jnp.arange(n) - i  # stencil slot of each node
         inside = (k >= 0) & (k < 4)
         wc = jnp.where(inside, _keys_weights(t)[jnp.clip(k, 0, 3)], 0.0)
-        mid = (k == 1) | (k == 2)
         wl = jnp.where(k == 1, 1.0 - t, jnp.where(k == 2, t, 0.0))
-        vecs.append((wc, wl, inside.astype(float), mid.astype(float), (inside & (wc != 0)).astype(float)))
+        vecs.append((wc, wl))
 
     def outer(j):
         out = vecs[0][j]
@@ -144,7 +142,57 @@ def _lattice_weights(pos, lengths) -> _Weights:
             out = out[..., None] * v[j]
         return out
 
-    return _Weights(*(outer(j) for j in range(5)))
+    return _Weights(outer(0), outer(1))
+
+
+class _Tables(eqx.Module):
+    """A lattice array ``[M, L_1, ..., L_D, nh, np]`` (ghost-padded) laid out for contracting
+    whole planes at scalar lattice coordinates (:meth:`ExactForceModel._contract_planes`: a
+    sampler's walkers, vmapped): the values lattice-first (one matrix product per walker),
+    and summed-area tables (Crow 1984) of the unsolved nodes and of the nodes outside the
+    physical model, so that whether a walker's stencil holds one is 2^D lookups of a plane
+    each instead of a product over the whole lattice. Three such products, each after a
+    transpose of the whole array, took 5 of the ~8 ms a 16-walker log-posterior call spent
+    in the demo's planes (issue 40). Made once per lattice (:func:`_assemble`)."""
+
+    values: jax.Array  # [prod(L), M * nh * np]: unsolved nodes 0
+    unsolved: jax.Array  # [L_1 + 1, ..., L_D + 1, M * nh * np] int32: summed-area table
+    outside: jax.Array | None  # the same of the outside-model nodes; None: no node is outside
+    plane: tuple = eqx.field(static=True)  # (M, nh, np)
+
+
+def _summed_area(mask, D: int):
+    """Counts of set nodes of ``mask`` [L_1, ..., L_D, P] over every box [0, i_1) x ... x [0, i_D): [L_1 + 1, ..., P]."""
+    s = jnp.asarray(mask).astype(jnp.int32)
+    for k in range(D):
+        s = jnp.pad(jnp.cumsum(s, axis=k), [(1, 0) if i == k else (0, 0) for i in range(s.ndim)])
+    return s
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _tables(arr, out, D: int) -> _Tables:
+    """:class:`_Tables` of a lattice array ``arr`` and its outside-model mask ``out`` (or None)
+    (one program per lattice shape: op by op, each shape compiled a dozen small ones)."""
+    lat = jnp.moveaxis(jnp.asarray(arr), 0, D)  # [L_1, ..., L_D, M, nh, np]
+    plane = tuple(int(n) for n in lat.shape[D:])
+    flat = lat.reshape(lat.shape[:D] + (-1,))
+    fin = jnp.isfinite(flat)
+    return _Tables(
+        values=jnp.where(fin, flat, 0.0).reshape(-1, flat.shape[-1]),
+        unsolved=_summed_area(~fin, D),
+        outside=None if out is None else _summed_area(jnp.moveaxis(jnp.asarray(out), 0, D).reshape(flat.shape), D),
+        plane=plane,
+    )
+
+
+def _box_count(table, lo, hi):
+    """Set nodes in the box ``lo[k] <= i_k <= hi[k]`` (per lattice axis) of a summed-area
+    table (:func:`_summed_area`): inclusion-exclusion over the box's 2^D corners."""
+    total = 0
+    for corner in itertools.product((0, 1), repeat=len(lo)):
+        idx = tuple(b + 1 if c else a for c, a, b in zip(corner, lo, hi))
+        total = total + (-1) ** (len(lo) - sum(corner)) * table[idx]
+    return total
 
 
 def _outside_nodes(planes: np.ndarray, grid: pl.PlaneGrid, radii_mm: np.ndarray) -> np.ndarray:
@@ -245,7 +293,22 @@ class ExactForceModel(ForceModel):
     # rows outside the physical model read +inf (whatever ``outside`` says): the likelihood's
     # and diagnosis' marker, carried through the measurement effects (:meth:`marking`)
     mark_outside: bool = eqx.field(static=True, default=False)
+    # :class:`_Tables` of ``tensor`` and each ``additive`` array, made with them by
+    # :func:`_assemble`; () for a model made by hand (derived on each call instead)
+    tables: tuple = ()
     name = "exact"
+
+    def __check_init__(self):
+        # the tables are derived from the planes: they must be those planes' (a replaced
+        # tensor_out=None is fine: no outside check reads them then)
+        if self.tables:
+            arrays = (self.tensor, *self.additive)
+            lattice = lambda a, D: math.prod(a.shape[1 : 1 + D])  # noqa: E731
+            dims = (len(self.tensor_axes),) + (1,) * len(self.additive)
+            if len(self.tables) != len(arrays) or any(
+                t.values.shape != (lattice(a, D), a.size // lattice(a, D)) for t, a, D in zip(self.tables, arrays, dims)
+            ):
+                raise ValueError("ExactForceModel: tables do not match the planes (made by _assemble only)")
 
     # -- interface ------------------------------------------------------------------------------
     def __call__(self, design, h_mm, p_pa, params: SimParams = SimParams()):
@@ -292,18 +355,18 @@ class ExactForceModel(ForceModel):
         row_parts = jnp.zeros(n)
         c_t = coords(self.tensor_axes)
         if all(jnp.ndim(c) == 0 for c in c_t):
-            g, _ = self._contract_planes(self.tensor, self.tensor_axes, c_t)
+            g, _ = self._contract_planes(0, self.tensor_axes, c_t)
             grid_part = grid_part + g
             ok = ok & self._valid_scalar(self.tensor_axes, c_t, ringed)
         else:
             row_parts = row_parts + self._rows_lattice(self.tensor, self.tensor_axes, c_t, m, h, P)
             ok = ok & self._valid_rows(self.tensor_axes, c_t, ringed)
-        for a, arr in zip(self.additive_axes, self.additive):
+        for d, (a, arr) in enumerate(zip(self.additive_axes, self.additive)):
             c = coords((a,))[0]
             zero = jnp.zeros_like(c)
             if jnp.ndim(c) == 0:
-                g1, _ = self._contract_planes(arr, (a,), [c])
-                g0, _ = self._contract_planes(arr, (a,), [zero])
+                g1, _ = self._contract_planes(1 + d, (a,), [c])
+                g0, _ = self._contract_planes(1 + d, (a,), [zero])
                 grid_part = grid_part + (g1 - g0)
             else:
                 row_parts = row_parts + (
@@ -329,14 +392,14 @@ class ExactForceModel(ForceModel):
         row_out = jnp.zeros(n, bool)
         if self.tensor_out is not None:
             if all(jnp.ndim(c) == 0 for c in c_t):
-                grid_out = grid_out | self._contract_planes(self.tensor_out, self.tensor_axes, c_t, _touch)[0]
+                grid_out = grid_out | self._contract_planes(0, self.tensor_axes, c_t, touch=True)[0]
             else:
                 row_out = row_out | self._rows_lattice(self.tensor_out, self.tensor_axes, c_t, m, h, P, _touch)
-        for a, arr in zip(self.additive_axes, self.additive_out):
+        for d, (a, arr) in enumerate(zip(self.additive_axes, self.additive_out)):
             c = coords((a,))[0]
             for cc in (c, jnp.zeros_like(c)):
                 if jnp.ndim(cc) == 0:
-                    grid_out = grid_out | self._contract_planes(arr, (a,), [cc], _touch)[0]
+                    grid_out = grid_out | self._contract_planes(1 + d, (a,), [cc], touch=True)[0]
                 else:
                     row_out = row_out | self._rows_lattice(arr, (a,), [cc], m, h, P, _touch)
         return row_out | self._rows_plane(grid_out, m, h, P, _touch)
@@ -497,34 +560,54 @@ class ExactForceModel(ForceModel):
             ok = ok & (v | (~ringed if a.axis.ringed_only else False))
         return ok
 
-    def _contract_planes(self, arr, axes, cs, contract=_contract):
-        """Contract the lattice axes (1 .. D) of ``arr`` at scalar coordinates: [M, nh+2, np+2]
-        (``contract``: :func:`_contract`, or :func:`_touch` for a node mask).
+    def _contract_planes(self, k: int, axes, cs, touch: bool = False):
+        """Contract the lattice axes of lattice array ``k`` (0: :attr:`tensor`, ``1 + d``: the
+        additive axis ``d``) at scalar coordinates: [M, nh+2, np+2] forces, or with ``touch``
+        whether a node outside the physical model carries a nonzero weight (the mask rule of
+        :func:`_touch`).
 
         The tensor-product rule of :func:`_lattice_weights`: cubic where all ``4^D`` stencil
         nodes are finite, multilinear where the ``2^D`` middle ones are, NaN otherwise. As
-        dot products with full-axis weight vectors over the unbatched planes: a sampler's
-        walkers (vmapped) then cost one [walkers, lattice nodes] x [lattice nodes, plane
-        nodes] product each, where slicing a 4^D stencil block per walker and contracting
-        it axis by axis moved 24 MB a walker (issue 40: 773 MB a 32-walker log-posterior
-        call on the demo's 6 x 5 x 5 x 34 x 85 lattice, memory-bound at 111 ms)."""
+        one product with full-axis weight vectors over the unbatched planes
+        (:class:`_Tables`): a sampler's walkers (vmapped) then cost one [walkers, lattice
+        nodes] x [lattice nodes, plane nodes] product, where slicing a 4^D stencil block per
+        walker and contracting it axis by axis moved 24 MB a walker (issue 40: 773 MB a
+        32-walker log-posterior call on the demo's 6 x 5 x 5 x 34 x 85 lattice, memory-bound
+        at 111 ms). Which stencils hold an unsolved or outside node are box counts."""
         pos = [_position(c, a.lo, a.axis.step, a.n, self.outside == "clamp") for a, c in zip(axes, cs)]
         valid = jnp.asarray(True)
         for _, _, v in pos:
             valid = valid & v
+        arr = self.tensor if k == 0 else self.additive[k - 1]
         if not pos:
+            if touch:
+                return self.tensor_out if k == 0 else self.additive_out[k - 1], valid
             return arr, valid
         D = len(pos)
+        tab = self.tables[k] if self.tables else self._tables_of(k)
+        i = [p_[0] for p_ in pos]
+        if touch:
+            # the nodes whose Keys weight is nonzero form a run of stencil slots per axis
+            # (all four; one at a node; three or two where a weight rounds to 0 near one)
+            slot = jnp.arange(4)
+            nz = [_keys_weights(t) != 0 for _, t, _ in pos]
+            lo = [ii + jnp.min(jnp.where(z, slot, 4)) for ii, z in zip(i, nz)]
+            hi = [ii + jnp.max(jnp.where(z, slot, -1)) for ii, z in zip(i, nz)]
+            return (_box_count(tab.outside, lo, hi) > 0).reshape(tab.plane), valid
         w = _lattice_weights(pos, arr.shape[1 : 1 + D])
-        dot = lambda wt, a: jnp.tensordot(wt, a, axes=(tuple(range(D)), tuple(range(1, D + 1))))  # noqa: E731
-        if contract is _touch:
-            return dot(w.nonzero, arr.astype(float)) > 0.5, valid
-        fin = jnp.isfinite(arr)
-        z = jnp.where(fin, arr, 0.0)
-        f = fin.astype(float)
-        cubic = jnp.where(dot(w.stencil, f) > 4**D - 0.5, dot(w.cubic, z), jnp.nan)
-        linear = jnp.where(dot(w.middle, f) > 2**D - 0.5, dot(w.linear, z), jnp.nan)
-        return jnp.where(jnp.isnan(cubic), linear, cubic), valid
+        cubic, linear = jnp.stack([w.cubic.reshape(-1), w.linear.reshape(-1)]) @ tab.values
+        stencil_solved = _box_count(tab.unsolved, i, [ii + 3 for ii in i]) == 0
+        middle_solved = _box_count(tab.unsolved, [ii + 1 for ii in i], [ii + 2 for ii in i]) == 0
+        g = jnp.where(stencil_solved, cubic, jnp.where(middle_solved, linear, jnp.nan))
+        return g.reshape(tab.plane), valid
+
+    def _tables_of(self, k: int) -> _Tables:
+        """:class:`_Tables` of lattice array ``k`` (:func:`_assemble` makes them once; a model
+        made by hand has none, and they are derived on each call)."""
+        if k == 0:
+            return _tables(self.tensor, self.tensor_out, len(self.tensor_axes))
+        out = self.additive_out[k - 1] if self.additive_out else None
+        return _tables(self.additive[k - 1], out, 1)
 
     def _rows_plane(self, g, m, h, P, contract=_contract):
         """2-D cubic convolution of planes ``g`` [M, nh+2, np+2] at each row's (h, P)."""
@@ -643,6 +726,9 @@ def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progres
         a_out = tuple(jnp.asarray(_pad_edge(o, range(1, 4))) for o in outs[1:])
     else:
         t_out, a_out = None, ()
+    tables = (_tables(tensor, t_out, lat),) + tuple(
+        _tables(arr, a_out[d] if a_out else None, 1) for d, arr in enumerate(additive)
+    )
     return ExactForceModel(
         designs=jnp.asarray(np.stack([d.to_array() for d in designs])),
         ringed=jnp.asarray([d.n_rings > 0 for d in designs]),
@@ -658,6 +744,7 @@ def _assemble(design_keys, base, t_nodes, a_nodes, grid, outside, cache, progres
         grow=grow,
         tensor_out=t_out,
         additive_out=a_out,
+        tables=tables,
     )
 
 

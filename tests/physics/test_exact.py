@@ -193,46 +193,64 @@ def test_a_fit_at_one_edge_grows_that_axis_only(exact, monkeypatch):
 
 
 def test_lattice_contraction_is_the_axis_by_axis_cubic_and_falls_back_to_multilinear():
-    """The scalar-coordinate contraction (full-axis weights, one product per walker) equals
+    """The scalar-coordinate contraction (one product per walker over the lattice-first
+    values, box counts of the summed-area tables for unsolved and outside nodes) equals
     the Keys cubic applied axis by axis wherever the 4 x 4 stencil is complete, falls back
     to bilinear on the 4 middle nodes near an unsolved node (NaN without them), and marks
-    outside-model rows by the same nonzero-weight rule as the axis-by-axis mask."""
+    outside-model rows by the same nonzero-weight rule as the axis-by-axis mask: inside a
+    cell, at a node (one nonzero weight per axis) and at the top edge, with the tables
+    made once (``_assemble``) or derived per call (a model made by hand)."""
     import jax
 
-    from mfdesign.models.exact import ExactForceModel, LatticeAxis, _contract, _position, _touch
+    from mfdesign.models.exact import ExactForceModel, LatticeAxis, _contract, _position, _tables, _touch
 
     rng = np.random.default_rng(0)
     arr = rng.standard_normal((2, 6, 5, 7, 8))
     arr[0, 2, 3, 3, 4] = np.nan  # one unsolved node
     arr = jnp.asarray(arr)
+    mask = arr > 1.0
     axes = (LatticeAxis("jm", -2, 4), LatticeAxis("ring", -1, 3))
-    model = object.__new__(ExactForceModel)
-    object.__setattr__(model, "outside", "nan")
+
+    def model(tables):  # only the fields the contraction reads
+        m = object.__new__(ExactForceModel)
+        fields = dict(
+            outside="nan", tensor=arr, tensor_out=mask, tensor_axes=axes, additive=(), additive_out=(), tables=tables
+        )
+        for name, value in fields.items():
+            object.__setattr__(m, name, value)
+        return m
+
+    bare, made = model(()), model((_tables(arr, mask, 2),))
 
     def axis_by_axis(a, pos, contract):
         zero = jnp.zeros((), jnp.int32)
         block = jax.lax.dynamic_slice(a, (zero, pos[0][0], pos[1][0], zero, zero), (a.shape[0], 4, 4, *a.shape[-2:]))
         return contract(contract(block, pos[1][1], axis=2), pos[0][1], axis=1)
 
-    for _ in range(40):
-        cs = [rng.uniform(a.lo, a.hi) for a in axes]
+    points = [[rng.uniform(a.lo, a.hi) for a in axes] for _ in range(40)]
+    points += [
+        [axes[0].lo + 2 * axes[0].axis.step, 0.0],
+        [axes[0].hi, axes[1].hi],
+        [axes[0].lo, 0.5 * axes[1].axis.step],
+    ]
+    for cs in points:
         pos = [_position(c, a.lo, a.axis.step, a.n, False) for a, c in zip(axes, cs)]
-        got = np.asarray(model._contract_planes(arr, axes, cs)[0])
         want = np.asarray(axis_by_axis(arr, pos, _contract))
         i, j = int(pos[0][0]), int(pos[1][0])
         complete = np.isfinite(np.asarray(arr)[:, i : i + 4, j : j + 4]).all(axis=(1, 2))
-        np.testing.assert_allclose(got[complete], want[complete], rtol=0, atol=1e-12)
-        near = ~complete
-        if near.any():  # bilinear on the middle 2 x 2 nodes
-            t0, t1 = float(pos[0][1]), float(pos[1][1])
-            mid = np.asarray(arr)[:, i + 1 : i + 3, j + 1 : j + 3]
-            w = np.outer([1 - t0, t0], [1 - t1, t1])
-            bil = np.einsum("ab,mabhp->mhp", w, mid)
-            np.testing.assert_allclose(got[near], bil[near], rtol=0, atol=1e-12)
-        mask = arr > 1.0
-        assert np.array_equal(
-            np.asarray(model._contract_planes(mask, axes, cs, _touch)[0]), np.asarray(axis_by_axis(mask, pos, _touch))
-        )
+        for m in (bare, made):
+            got = np.asarray(m._contract_planes(0, axes, cs)[0])
+            np.testing.assert_allclose(got[complete], want[complete], rtol=0, atol=1e-12)
+            near = ~complete
+            if near.any():  # bilinear on the middle 2 x 2 nodes
+                t0, t1 = float(pos[0][1]), float(pos[1][1])
+                mid = np.asarray(arr)[:, i + 1 : i + 3, j + 1 : j + 3]
+                w = np.outer([1 - t0, t0], [1 - t1, t1])
+                bil = np.einsum("ab,mabhp->mhp", w, mid)
+                np.testing.assert_allclose(got[near], bil[near], rtol=0, atol=1e-12)
+            assert np.array_equal(
+                np.asarray(m._contract_planes(0, axes, cs, touch=True)[0]), np.asarray(axis_by_axis(mask, pos, _touch))
+            )
 
 
 def test_an_eager_call_is_one_program_per_padded_row_count_and_equals_the_op_by_op_forces(exact):
