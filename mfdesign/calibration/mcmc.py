@@ -12,7 +12,7 @@ Steps of :func:`calibrate`:
    ``ball * sqrt(diag H^-1)`` (Laplace widths; 1e-3 where H is not positive definite);
 4. emcee's ensemble sampler with a jitted,
    vectorised log posterior (``vectorize=True``: one JAX call per step for all walkers; a
-   ``pool`` splits that batch over its workers), ``emcee.backends.HDFBackend`` so that a
+   ``pool`` splits that batch over its workers), ``emcee.backends.HDFBackend`` (``ChainFile``) so that a
    killed run resumes at the stored iteration (same file, same model: the chain goes on).
    Default moves (:func:`default_moves`, :func:`adapted_moves`): adaptation rounds
    (``ADAPT_ROUNDS``, ``ADAPT_STEPS`` in all) of independence proposals, first from the
@@ -628,7 +628,9 @@ def calibrate(
         if not resume and chain_path.exists():
             chain_path.unlink()
         stored = _stored_map(chain_path, fp) if resume else None
-        backend = emcee.backends.HDFBackend(str(chain_path), name="mcmc")
+        from mfdesign.calibration.chain_file import ChainFile
+
+        backend = ChainFile(str(chain_path), name="mcmc")
     model = eqx.tree_at(lambda m: m.force_model, model, _strict(model.force_model, False))
     if stored is not None:
         res = MapResult(*(jnp.asarray(stored[k]) for k in ("u", "x", "log_post", "hessian", "converged")))
