@@ -21,7 +21,7 @@ from scipy.integrate import solve_bvp
 
 from hencky import hencky
 from mfdesign.design import Membrane
-from mfdesign.physics.fe import fe_force, fe_forces, fe_free_inflation
+from mfdesign.physics.fe import fe_force, fe_forces, fe_free_inflation, fe_rows
 from mfdesign.physics.params import SimParams
 
 RINGLESS = "[2.0, 25.4, nan, nan, nan, nan]"
@@ -184,6 +184,24 @@ def test_many_designs_in_one_call_match_one_at_a_time():
     assert abs(float(many[0].force_n) - float(many[2].force_n[1, 0])) > 1.0
     with pytest.raises(ValueError, match="2 jobs but 1 height"):
         fe_forces(jobs[:2], hs[:1], ps[:2], n_elements=100)
+
+
+def test_rows_walk_the_inflation_once_and_equal_the_points():
+    """``fe_rows`` (each height inflated through its pressures, one increment a node after
+    the first) reaches the equilibria ``fe_forces`` reaches from ``p = 0`` at each point:
+    the same quasi-static path, walked once; a bad pressure list is refused."""
+    ring = Membrane.from_key(TWO_RINGS)
+    hs, ps = np.array([20.0, 35.0, 50.0]), np.array([2000.0, 3000.0, 4500.0, 6000.0, 8000.0])
+    rows = fe_rows(ring, SimParams(), hs, ps, n_elements=100)
+    assert np.shape(rows.force_n) == (3, 5) and np.asarray(rows.converged).all()
+    H, P = np.meshgrid(hs, ps, indexing="ij")
+    points = fe_forces([(ring, SimParams())], [H], [P], n_elements=100)[0]
+    assert np.asarray(points.converged).all()
+    np.testing.assert_allclose(rows.force_n, points.force_n, rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(rows.Z_mm, points.Z_mm, rtol=1e-8, atol=1e-8)
+    assert float(np.ptp(np.asarray(rows.force_n))) > 10.0  # the grid's forces differ: no node copies another
+    with pytest.raises(ValueError, match="increasing pressures"):
+        fe_rows(ring, SimParams(), hs, ps[::-1], n_elements=100)
 
 
 @pytest.mark.slow
