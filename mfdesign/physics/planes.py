@@ -298,17 +298,16 @@ def _repair(design: Membrane, params: SimParams, grid: PlaneGrid, f: np.ndarray,
     # first pressure, then one a node) where a point path costs 8 increments a node: whole
     # rows near the membrane's reach fail at once (the bundled two-ring membrane with a wide
     # outer ring, h >= 70 mm: 1,645 nodes, 45 s of FE a 30-plane lattice, issue 40).
+    # Every walk covers the whole row (one compiled program per plane grid): worth it where
+    # the row's failed nodes cost more increments one by one.
     n_steps = 8
-    rows = [i for i in range(f.shape[0]) if failed[i].any()]
-    walked = [i for i in rows if n_steps + np.flatnonzero(failed[i]).max() < n_steps * failed[i].sum()]
+    walked = [i for i in range(f.shape[0]) if n_steps + f.shape[1] - 1 < n_steps * failed[i].sum()]
     try:
         if walked:
-            upto = max(int(np.flatnonzero(failed[i]).max()) for i in walked) + 1
-            fe = fe_rows(design, params, grid.h[walked], grid.p[1 : 1 + upto], n_elements=FE_ELEMENTS, n_steps=n_steps)
+            fe = fe_rows(design, params, grid.h[walked], grid.p[1:], n_elements=FE_ELEMENTS, n_steps=n_steps)
             got = np.where(np.asarray(fe.converged, bool), np.asarray(fe.force_n, float), np.nan)
             for k, i in enumerate(walked):
-                need = failed[i, :upto]
-                f[i, :upto][need] = got[k][need]
+                f[i, failed[i]] = got[k][failed[i]]
         idx = np.flatnonzero(~np.isfinite(f) & solver_failed)
         if idx.size:
             fe = fe_forces(
