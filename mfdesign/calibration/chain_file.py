@@ -11,9 +11,9 @@ class ChainFile(emcee.backends.HDFBackend):
     """:class:`emcee.backends.HDFBackend` (the same file and layout: every step is written
     as it is taken, the crash record a run resumes from) that remembers the ensemble's
     shape, whether it has blobs and the iteration instead of opening the file to read
-    them. emcee reads them five times a step (``save_step``'s checks, the sampler's and
-    our loop's iteration): 6 of the 8 s that 1,100 steps of a warm demo spent in the file
-    (cProfile, issue 40). One sampler writes a chain file at a time, so what it wrote is
+    them. emcee's backend opens the file seven times a step, six of them to read these
+    (``save_step``'s checks, the sampler's and our loop's iteration): 6 of the 8 s that
+    1,100 steps of a warm demo spent in the file (cProfile, issue 40). One sampler writes a chain file at a time, so what it wrote is
     what it remembers; :meth:`reset` and :meth:`grow` read them again."""
 
     def __init__(self, *args, **kwargs):

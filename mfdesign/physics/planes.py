@@ -294,12 +294,11 @@ def _repair(design: Membrane, params: SimParams, grid: PlaneGrid, f: np.ndarray,
         return
     from mfdesign.physics.fe import fe_forces, fe_rows
 
-    # A height with many failed nodes walks its inflation once (fe_rows: 8 increments to its
-    # first pressure, then one a node) where a point path costs 8 increments a node: whole
-    # rows near the membrane's reach fail at once (the bundled two-ring membrane with a wide
-    # outer ring, h >= 70 mm: 1,645 nodes, 45 s of FE a 30-plane lattice, issue 40).
-    # Every walk covers the whole row (one compiled program per plane grid): worth it where
-    # the row's failed nodes cost more increments one by one.
+    # A height whose failed nodes cost more increments one by one (8 a node) than a walk of
+    # its whole row (fe_rows: 8 to the first pressure, then one a node; one compiled program
+    # per plane grid) is walked: whole rows near the membrane's reach fail at once (the
+    # bundled two-ring membrane with a wide outer ring, h >= 70 mm: 1,645 nodes, 45 s of FE
+    # in a 30-plane lattice, issue 40).
     n_steps = 8
     walked = [i for i in range(f.shape[0]) if n_steps + f.shape[1] - 1 < n_steps * failed[i].sum()]
     try:
