@@ -41,7 +41,6 @@ class ChainFile(emcee.backends.HDFBackend):
         super().reset(nwalkers, ndim)
 
     def grow(self, ngrow, blobs):
-        self._known.clear()
         super().grow(ngrow, blobs)
         self._known.clear()  # grow may set has_blobs
 

@@ -300,13 +300,12 @@ def _repair(design: Membrane, params: SimParams, grid: PlaneGrid, f: np.ndarray,
     # bundled two-ring membrane with a wide outer ring, h >= 70 mm: 1,645 nodes, 45 s of FE
     # in a 30-plane lattice, issue 40).
     n_steps = 8
-    walked = [i for i in range(f.shape[0]) if n_steps + f.shape[1] - 1 < n_steps * failed[i].sum()]
+    walked = np.flatnonzero(n_steps + f.shape[1] - 1 < n_steps * failed.sum(axis=1))
     try:
-        if walked:
+        if walked.size:
             fe = fe_rows(design, params, grid.h[walked], grid.p[1:], n_elements=FE_ELEMENTS, n_steps=n_steps)
             got = np.where(np.asarray(fe.converged, bool), np.asarray(fe.force_n, float), np.nan)
-            for k, i in enumerate(walked):
-                f[i, failed[i]] = got[k][failed[i]]
+            f[walked] = np.where(failed[walked], got, f[walked])
         idx = np.flatnonzero(~np.isfinite(f) & solver_failed)
         if idx.size:
             fe = fe_forces(
