@@ -1,5 +1,5 @@
 """A non-editable install works from another folder: the package data (the demo's dataset,
-the emulator, the reports' HTML templates) travel inside the wheel and are found with importlib.resources."""
+its planes, the emulator, the reports' HTML templates) travel inside the wheel and are found with importlib.resources."""
 
 from __future__ import annotations
 
@@ -30,6 +30,8 @@ def test_wheel_install_finds_its_data_from_another_folder(tmp_path):
         "from mfdesign.models.emulator import load_default\n"
         f"assert mfdesign.cli.__file__.startswith({str(site)!r}), mfdesign.cli.__file__\n"
         "assert s.bundled_path().is_file() and s.bundled_card_path().is_file()\n"
+        "from mfdesign.physics.planes import _shipped_pack\n"
+        "assert _shipped_pack(), 'no shipped planes'\n"  # the demo's planes travel too
         "from mfdesign.report.render import environment\n"
         "assert 'base.html.j2' in environment().list_templates()\n"  # the reports' templates travel too
         "print(len(load_sources('bundled')), type(load_default()).__name__)\n"

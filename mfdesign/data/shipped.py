@@ -4,7 +4,10 @@ installed wheel finds them as well as a source checkout does).
 * ``bundled_virtual.parquet``: the demo's dataset, six membranes measured on the virtual
   rig with one hidden effect (``experiments/make_bundled_dataset.py`` regenerates it);
   ``bundled_card.json`` says what is hidden;
-* ``emulator/``: the trained simulator emulator (``experiments/train_emulator.py``).
+* ``emulator/``: the trained simulator emulator (``experiments/train_emulator.py``);
+* ``planes.npz``: the simulator planes the demo asks of the bundled membranes, read by
+  :func:`mfdesign.physics.planes.solve_planes` before it solves one
+  (``python -m tools.ship_planes`` regenerates it).
 """
 
 from __future__ import annotations

@@ -47,7 +47,17 @@ from mfdesign.design import Membrane
 from mfdesign.physics.params import SimParams
 from mfdesign.materials import ECOFLEX_JM
 
-__all__ = ["AXES", "Axis", "H_STEP_MM", "P_STEP_PA", "PlaneGrid", "cache_dir", "lattice_jobs", "solve_planes"]
+__all__ = [
+    "AXES",
+    "Axis",
+    "H_STEP_MM",
+    "P_STEP_PA",
+    "PlaneGrid",
+    "cache_dir",
+    "lattice_jobs",
+    "shipped_plane",
+    "solve_planes",
+]
 
 log = logging.getLogger(__name__)
 
@@ -205,6 +215,36 @@ def _params_tuple(params: SimParams) -> tuple[float, ...]:
     return tuple(v for name, v in values if name not in _KEYED_WHEN_SET or v != _KEYED_WHEN_SET[name])
 
 
+# The planes the demo asks of the bundled dataset's six membranes (full and --quick), solved
+# once by ``python -m tools.ship_planes`` and shipped in the package: a lab's first demo
+# reads them where it solved 72 planes (~190 s of a cold demo on 2 cores, issue 40). Keyed
+# like the cache (schema, design, constants, grid), so a request that changed is solved,
+# and read only where the disk cache is (``cache`` not False). "0" here solves them.
+SHIPPED_ENV = "MFDESIGN_SHIPPED_PLANES"
+SHIPPED_NAME = "planes.npz"
+
+
+@functools.cache
+def _shipped_pack() -> Mapping[str, np.ndarray]:
+    """The shipped planes (key -> signed plane), read whole once (~1.7 MB); empty where the
+    file is missing or unreadable (then every plane is solved, as before they shipped)."""
+    from mfdesign.data.shipped import shipped_path
+
+    try:
+        with np.load(shipped_path(SHIPPED_NAME), allow_pickle=False) as pack:
+            return {k: np.asarray(pack[k], float) for k in pack.files}
+    except (OSError, ValueError) as err:
+        log.warning("shipped planes unreadable (%s): every plane is solved", err)
+        return {}
+
+
+def shipped_plane(key: str) -> np.ndarray | None:
+    """The shipped plane of cache key ``key``, or None (not shipped, or ``$MFDESIGN_SHIPPED_PLANES=0``)."""
+    if os.environ.get(SHIPPED_ENV, "1").strip() == "0":
+        return None
+    return _shipped_pack().get(key)
+
+
 def _job_key(design: Membrane, params: SimParams, grid: PlaneGrid) -> str:
     from mfdesign.physics.solve import fine_path
 
@@ -356,6 +396,7 @@ def solve_planes(
     folder = None if cache is False else Path(cache) if cache else cache_dir()
     keys = [_job_key(d, prm, grid) for d, prm in jobs]
     todo: dict[str, tuple[Membrane, SimParams]] = {}
+    shipped = 0
     for k, job in zip(keys, jobs):
         if k in _MEMO or k in todo:
             continue
@@ -368,7 +409,18 @@ def solve_planes(
                     continue
             except (OSError, ValueError):
                 pass  # a torn or foreign file: solve again and overwrite it
+        arr = shipped_plane(k) if folder is not None else None
+        if arr is not None and arr.shape == (grid.h.size, grid.p.size):
+            _MEMO[k] = _fill_above_no_contact(arr)
+            shipped += 1
+            continue
         todo[k] = job
+    if shipped:
+        log.info(
+            "exact planes: %d read from the planes shipped with mfdesign (the bundled membranes; %s=0 solves them)",
+            shipped,
+            SHIPPED_ENV,
+        )
     if todo:
         finish = functools.partial(_finish_plane, grid, folder)
         where = cluster.scheduler_from(scheduler)
