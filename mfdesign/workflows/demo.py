@@ -21,8 +21,6 @@ targets < 10 minutes on a 2-core CPU.
 from __future__ import annotations
 
 import json
-import logging
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -103,35 +101,6 @@ class DemoSettings:
             force_model=force_model,
             search_model=search,
         )
-
-
-def _warm_simulator(design_keys) -> threading.Thread:
-    """Trace and compile, on a thread beside the calibration, the simulator programs the
-    later stages call: the made runs' planes (two membranes on the runs' grid, as
-    :func:`mfdesign.sim_runs.make` solves its batch: a plane a lane) and the optimum's
-    check (:func:`mfdesign.optimization.check_with_simulator`). With the bundled
-    membranes' planes shipped, nothing before those stages solves a point, and their
-    first calls spent ~60 s tracing and compiling on the cold demo's critical path (issue
-    40); the calibration leaves ~0.6 of 2 cores idle, and XLA compiles without the GIL.
-    The programs reach the later stages through the kernel store and the persistent
-    compilation cache (a stage's end drops the in-memory ones). A failure here costs only
-    the time it would have saved: the later stage compiles as before."""
-    from mfdesign import sim_runs
-    from mfdesign.optimization import check_with_simulator
-    from mfdesign.physics.params import SimParams
-
-    designs = [Membrane.from_key(k) for k in list(design_keys)[:2]]
-
-    def work() -> None:
-        try:
-            sim_runs.simulate_planes(designs, sim_runs.PlaneSpec(), SimParams())
-            check_with_simulator(designs[0], [10.0, 20.0, 30.0], [4000.0, 6000.0, 8000.0], [0.0, 0.0, 0.0])
-        except Exception as err:  # only time is at stake: the stages compile as before
-            logging.getLogger(__name__).debug("simulator warm-up failed: %s", err)
-
-    thread = threading.Thread(target=work, name="warm-simulator", daemon=True)
-    thread.start()
-    return thread
 
 
 def _short(key: str) -> str:
@@ -1136,11 +1105,8 @@ def run_demo(
         diag, summary["diagnosis"] = _diagnose_stage(run)
     found = list(diag.found)
     with log.stage(f"calibrate mu, J_m{''.join(', ' + f for f in found)} (emcee) and fit the discrepancy"):
-        warm = _warm_simulator(meas.design_keys) if s.force_model != "standin" else None
         fits["with_effects"] = run.fit(found, "with_effects", s.max_rows)
         summary["posterior_with_effects"] = run.write_posterior(fits["with_effects"], "with_effects", s.max_rows)
-        if warm is not None:
-            warm.join()  # before the stage's end drops the compiled programs
     fit1 = fits["with_effects"]
     summary["convergence"] = _convergence(fits)
     summary["discrepancy_gate"] = fit1.delta.describe()
