@@ -226,7 +226,7 @@ SHIPPED_NAME = "planes.npz"
 
 @functools.cache
 def _shipped_pack() -> Mapping[str, np.ndarray]:
-    """The shipped planes (key -> signed plane), read whole once (~1.7 MB); empty where the
+    """The shipped planes (key -> signed plane), read whole once (1.7 MB in memory); empty where the
     file is missing or unreadable (then every plane is solved, as before they shipped)."""
     from mfdesign.data.shipped import shipped_path
 
@@ -387,7 +387,8 @@ def solve_planes(
 ) -> list[np.ndarray]:
     """Signed force planes ``[len(grid.h), len(grid.p)]`` [N] of ``(design, params)`` jobs,
     from memory, the disk cache (``cache``: a folder, ``None`` for :func:`cache_dir`, ``False``
-    for none) or the simulator (all missing ones in one :func:`force_planes` call, on this
+    for none), the planes shipped with the package (the bundled membranes': :func:`shipped_plane`;
+    not where ``cache`` is False) or the simulator (all missing ones in one :func:`force_planes` call, on this
     machine or on the Dask ``scheduler``: None means the CLI's ``--scheduler``, else
     ``$MFDESIGN_SCHEDULER``, else this machine; :mod:`mfdesign.physics.cluster`)."""
     from mfdesign.physics import cluster

@@ -74,3 +74,19 @@ def test_a_shipped_plane_is_what_the_simulator_solves_today(empty_cache, monkeyp
     assert shipped is not None and shipped.shape == fresh.shape
     np.testing.assert_array_equal(np.isfinite(shipped), np.isfinite(fresh))
     np.testing.assert_allclose(shipped, fresh, rtol=1e-6, atol=1e-6, equal_nan=True)
+
+
+def test_ship_planes_packs_a_cache_folder_as_the_solver_reads_it(tmp_path):
+    from tools.ship_planes import pack
+
+    planes = tmp_path / "cache" / "planes"
+    planes.mkdir(parents=True)
+    want = {"a" * 24: np.arange(6.0).reshape(2, 3), "b" * 24: np.full((2, 3), np.nan)}
+    for k, v in want.items():
+        np.save(planes / f"{k}.npy", v)
+    np.save(planes / ".torn.123.npy", np.zeros(1))  # a plane being written: left out
+    assert pack([tmp_path / "cache"], dest=tmp_path / "planes.npz") == 2
+    with np.load(tmp_path / "planes.npz", allow_pickle=False) as got:
+        assert sorted(got.files) == sorted(want)
+        for k, v in want.items():
+            np.testing.assert_array_equal(got[k], v)
