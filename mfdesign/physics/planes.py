@@ -401,21 +401,12 @@ def solve_planes(
     for k, job in zip(keys, jobs):
         if k in _MEMO or k in todo:
             continue
-        path = folder / f"{k}.npy" if folder is not None else None
-        if path is not None and path.is_file():
-            try:
-                arr = np.load(path, allow_pickle=False)
-                if arr.shape == (grid.h.size, grid.p.size):
-                    _MEMO[k] = _fill_above_no_contact(arr)
-                    continue
-            except (OSError, ValueError):
-                pass  # a torn or foreign file: solve again and overwrite it
-        arr = shipped_plane(k) if folder is not None else None
-        if arr is not None and arr.shape == (grid.h.size, grid.p.size):
-            _MEMO[k] = _fill_above_no_contact(arr)
-            shipped += 1
+        arr, where_from = _stored_plane(folder, k, (grid.h.size, grid.p.size))
+        if arr is None:
+            todo[k] = job
             continue
-        todo[k] = job
+        _MEMO[k] = _fill_above_no_contact(arr)
+        shipped += where_from == "shipped"
     if shipped:
         log.info(
             "exact planes: %d read from the planes shipped with mfdesign (the bundled membranes; %s=0 solves them)",
@@ -439,6 +430,25 @@ def solve_planes(
         for k, f in zip(todo, results):
             _MEMO[k] = _fill_above_no_contact(f)
     return [_MEMO[k] for k in keys]
+
+
+def _stored_plane(folder: Path | None, key: str, shape: tuple[int, int]) -> tuple[np.ndarray | None, str]:
+    """A plane already solved: from the disk cache ``folder`` (``"cache"``), else the
+    shipped planes (``"shipped"``; only where there is a disk cache), else ``(None, "")``.
+    A stored array of another shape, or a torn or foreign file, counts as missing (then
+    solved again and overwritten)."""
+    if folder is None:
+        return None, ""
+    path = folder / f"{key}.npy"
+    if path.is_file():
+        try:
+            arr = np.load(path, allow_pickle=False)
+            if arr.shape == shape:
+                return arr, "cache"
+        except (OSError, ValueError):
+            pass
+    arr = shipped_plane(key)
+    return (arr, "shipped") if arr is not None and arr.shape == shape else (None, "")
 
 
 def _store_missing(folder: Path, planes: Mapping[str, np.ndarray]) -> None:
