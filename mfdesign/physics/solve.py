@@ -780,11 +780,20 @@ def force_plane(
     p_grid = _checked_grid(p_grid_pa, "p_grid_pa", "gauge pressures [Pa], strictly increasing")
     if p_grid.size and np.any(np.diff(p_grid) <= 0):
         raise InputError("force_plane needs strictly increasing pressures; allowed: p_grid_pa sorted, no repeats")
+    path, report = _plane_path(p_grid, substeps, params)
+    out = _solve_plane(design, h_grid, path, report, params, parts)
+    H, P = np.meshgrid(h_grid, p_grid, indexing="ij")
+    return _classify(H, P, out, signed=signed, outer_radius_mm=design.outer_radius_mm)
+
+
+def _plane_path(p_grid: np.ndarray, substeps: int, params: SimParams) -> tuple[list, list]:
+    """:func:`force_plane`'s continuation path [Pa] and the indices on it of the grid's
+    pressures: from the first positive pressure / 4 up through every grid pressure with
+    ``substeps`` in between, at least enough that no step exceeds :data:`MAX_PATH_STEP_PA`
+    (the continuation is a property of the physics, not of how coarse a grid the caller
+    asked for). Part of every cached plane's values: a change here changes the planes."""
     p_pos = np.where(p_grid > 0, p_grid, np.nan)
     first = np.nanmin(p_pos) if np.any(p_grid > 0) else 1000.0
-    # Path: from first/4 up through every grid pressure with substeps in between; at least
-    # enough that no step exceeds MAX_PATH_STEP_PA (the continuation is a property of the
-    # physics, not of how coarse a grid the caller asked for).
     knots = np.concatenate([[first / 4.0], np.where(p_grid > 0, p_grid, first / 4.0)])
     knots = np.maximum.accumulate(knots)
     widest = float(np.max(np.diff(knots))) if knots.size > 1 else 0.0
@@ -795,10 +804,17 @@ def force_plane(
         for s in range(1, substeps + 1):
             path.append(knots[k - 1] + (knots[k] - knots[k - 1]) * s / substeps)
         report.append(len(path) - 1)
+    return path, report
+
+
+def _solve_plane(design: Membrane, h_grid: np.ndarray, path_pa, report, params: SimParams, parts) -> PointSolution:
+    """The plane kernel (and the descent below :data:`LOW_HEIGHT_MM`) on the heights
+    ``h_grid`` [mm] along the pressure path ``path_pa`` [Pa], reported at the path's indices
+    ``report``: a :class:`PointSolution` of shape ``(len(h_grid), len(report))``."""
     hs, _ = _sanitize(h_grid, np.ones_like(h_grid))
     geom = sh.geometry_of(design)
     params = traced_params(params)
-    path_mpa, report = jnp.asarray(path) * PA_TO_MPA, jnp.asarray(report)
+    path_mpa, report = jnp.asarray(path_pa, float) * PA_TO_MPA, jnp.asarray(report)
     low = hs < LOW_HEIGHT_MM
     # Rows below LOW_HEIGHT_MM: inflation at LOW_HEIGHT_MM (an extra anchor row), then the
     # plate is lowered at each pressure; they leave the main batch, whose heights then all
@@ -845,8 +861,7 @@ def force_plane(
             return arr
 
         out = jax.tree.map(merge, out, down)
-    H, P = np.meshgrid(h_grid, p_grid, indexing="ij")
-    return _classify(H, P, out, signed=signed, outer_radius_mm=design.outer_radius_mm)
+    return out
 
 
 def force_planes(
@@ -963,11 +978,20 @@ def _height_residual(a, args):
     return jnp.where(ok & ok_sin & jnp.isfinite(res), res, sh.FAILED_RESIDUAL), -y[3]
 
 
+def _height_only(a, args):
+    return _height_residual(a, args)[0]
+
+
+# The fixed-force residual as the root finder sees it: its derivative materialised once
+# per iteration (sh.with_materialised_jacobian says why).
+_HEIGHT_SHOOTING = sh.with_materialised_jacobian(_height_only)
+
+
 @eqx.filter_jit
 def _height_kernel(geom, params, F, p_mpa, a0):
     def one(ff, pp, aa):
         sol = optx.root_find(
-            lambda a, args: _height_residual(a, args)[0],
+            _HEIGHT_SHOOTING,
             sh.SHOOTING_SOLVER,
             aa,
             (geom, params, ff, pp),
@@ -1047,8 +1071,8 @@ def height_at(
 
     The branch reached by quasi-static inflation from ``h = 0``: at pressure ``p`` the
     plate rises until the membrane's force at fixed height falls to the load, i.e. the
-    first height where ``F(h, p)`` crosses the load from above (found on a height grid
-    from :func:`force_at`, then refined by shooting at fixed force). Folds along a pressure
+    first height where ``F(h, p)`` crosses the load from above (found on a height grid,
+    one plane at the loads' pressures, then refined by shooting at fixed force). Folds along a pressure
     sweep are reported by :func:`lift_curve`.
 
     **Arguments:**
@@ -1071,13 +1095,62 @@ def height_at(
     shape_ = F.shape
     F, p = F.ravel(), p.ravel()
     hg = np.linspace(0.0, h_max_mm, n_heights)
-    Hq = np.broadcast_to(hg[None, :], (F.size, n_heights))
-    Pq = np.broadcast_to(p[:, None], (F.size, n_heights))
-    res, a_grid = _force_and_state(design, Hq, Pq, params)
-    Fh = _lift_forces(res, Pq, design.outer_radius_mm)
+    Fh, a_grid = _lift_grid(design, hg, p, params)
     height, status, lo_idx, for_refine = _first_crossing(F, p, Fh)
     _refine_crossings(design, params, F, p, Fh, hg, lo_idx, for_refine, height, status, a_grid)
     return height.reshape(shape_), status.reshape(shape_)
+
+
+# Statuses of a node that has a solution the continuation missed (re-solved point by point).
+_UNSOLVED = (Status.NOT_CONVERGED, Status.ODE_FAILURE)
+
+
+def _lift_path(p_pa: np.ndarray, params: SimParams) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`height_at`'s continuation path [Pa] through the pressures ``p_pa`` (positive,
+    sorted, unique) and their indices on it: equal steps of at most
+    :data:`MAX_PATH_STEP_PA` (a quarter of it for stiff rings, :func:`fine_path`) and at
+    most ``p_max / PATH_STEPS``, the pressures merged in. Unlike :func:`_plane_path` the
+    step does not grow with the gap below the first pressure: one load pressure of
+    6.9 kPa made 22 steps that way, 28 here, which fit the demo's made plane's program
+    (35 steps) while the three pressures of a waypoint task would not have."""
+    top = float(p_pa[-1])
+    step = min(MAX_PATH_STEP_PA / (STIFF_RING_PATH_REFINE if fine_path(params) else 1), top / PATH_STEPS)
+    n = int(np.ceil(top / step - 1e-9))
+    path = np.union1d(top * np.arange(1, n + 1) / n, p_pa)
+    return path, np.searchsorted(path, p_pa)
+
+
+def _lift_grid(design: Membrane, hg: np.ndarray, p: np.ndarray, params: SimParams) -> tuple[np.ndarray, np.ndarray]:
+    """Forces [N] for a mass lift (:func:`_lift_forces`) and first shooting unknowns
+    ``a = log(lambda1 - 1)`` (NaN where none) of every query pressure ``p`` [Pa] at every
+    height ``hg`` [mm], each ``(p.size, hg.size)``.
+
+    The heights are one plane at the distinct pressures (:func:`_solve_plane`, one
+    continuation per height), not a path per (load, height) point: the lift check then
+    runs on the plane kernels a made simulator plane compiled, padded (:func:`_kept_call`),
+    instead of compiling the points kernel (~28 s of tracing and XLA on 2 cores, the
+    demo's optimum check, issue 40). Nodes the continuation did not converge on are solved
+    again point by point (:func:`force_at`'s paths), as a plane's repair does. A
+    pressure of 0 is no force (``NO_CONTACT``); a negative or non-finite one NaN."""
+    Fh = np.where((p == 0)[:, None] & (hg >= 0)[None, :], 0.0, np.nan)
+    a_grid = np.full(Fh.shape, np.nan)
+    live = np.isfinite(p) & (p > 0)
+    if not live.any():
+        return Fh, a_grid
+    pu, col = np.unique(p[live], return_inverse=True)
+    path, report = _lift_path(pu, params)
+    sol = _solve_plane(design, hg, path, report, params, None)
+    H, P = np.meshgrid(hg, pu, indexing="ij")
+    res = _classify(H, P, sol, outer_radius_mm=design.outer_radius_mm)
+    force = _lift_forces(res, P, design.outer_radius_mm)
+    a = np.asarray(sol.state, float)[..., 0]
+    again = np.isin(res.status, _UNSOLVED)
+    if again.any():
+        res_pt, a_pt = _force_and_state(design, H[again], P[again], params)
+        force[again] = _lift_forces(res_pt, P[again], design.outer_radius_mm)
+        a[again] = a_pt
+    Fh[live], a_grid[live] = force.T[col], np.where(np.isfinite(a), a, np.nan).T[col]
+    return Fh, a_grid
 
 
 def _refine_crossings(design, params, F, p, Fh, hg, lo_idx, refine, height, status, a_grid=None):

@@ -99,7 +99,7 @@ def test_lift_curve_flags_a_jump_over_a_dip(monkeypatch):
 @pytest.mark.slow
 def test_lift_curve_agrees_with_height_at_on_the_simulator(monkeypatch):
     """lift_curve starts each fixed-force solve from a path solved at the guessed height;
-    height_at from the grid states force_at solved (no path again, no program of its own)."""
+    height_at from the states its plane solved (no path again, no program of its own)."""
     from mfdesign.design import Membrane
     from mfdesign.physics import solve
     from mfdesign.physics.solve import force_at, height_at, lift_curve
@@ -136,23 +136,35 @@ def test_height_at_reads_outside_model_nodes_as_above_the_load(monkeypatch):
     row = np.where(hg >= 70.0, 100.0 - 0.9 * np.clip(hg - 70.0, 0.0, None) ** 1.2, np.nan)
     row[0] = 99.0
 
-    def fake_points(status_between):
-        def force_and_state(design, H, P, params):
-            F = np.broadcast_to(row, H.shape).copy()
-            st = np.where(np.isnan(F), status_between, Status.OK).astype(np.int8)
-            return SimpleNamespace(force_n=F, status=st), np.zeros(H.shape)
+    def fake_plane(status_between):
+        """The plane's nodes: ``row`` at every pressure, NaN nodes of ``status_between``;
+        a node solved again point by point stays unsolved."""
 
-        return force_and_state
+        def classify(H, P, sol, signed=False, outer_radius_mm=70.0):
+            F = np.broadcast_to(row[:, None], H.shape).copy()
+            st = np.where(np.isnan(F), status_between, Status.OK).astype(np.int8)
+            return SimpleNamespace(force_n=F, status=st)
+
+        def points(design, H, P, params):
+            return SimpleNamespace(force_n=np.full(H.shape, np.nan), status=np.full(H.shape, status_between)), H * 0
+
+        monkeypatch.setattr(
+            solve,
+            "_solve_plane",
+            lambda d, hg, path, rep, prm, parts: SimpleNamespace(state=np.zeros((hg.size, len(rep), 2))),
+        )
+        monkeypatch.setattr(solve, "_classify", classify)
+        monkeypatch.setattr(solve, "_force_and_state", points)
 
     monkeypatch.setattr(solve, "_refine_crossings", _interpolate_only)
     design = Membrane.from_key("[1.2, 37.5, nan, nan, nan, nan]")
     loads = np.array([14.7, 39.2])
-    monkeypatch.setattr(solve, "_force_and_state", fake_points(Status.OUTSIDE_MODEL))
+    fake_plane(Status.OUTSIDE_MODEL)
     h, st = solve.height_at(design, loads, 6895.0, h_max_mm=120.0, n_heights=25)
     assert list(st) == [Status.OK, Status.OK]
     want = [np.interp(-f, -row[14:], hg[14:]) for f in loads]  # the row falls from 70 mm on
     np.testing.assert_allclose(h, want, atol=1e-9)
     assert h[0] > 100.0
-    monkeypatch.setattr(solve, "_force_and_state", fake_points(Status.NOT_CONVERGED))
+    fake_plane(Status.NOT_CONVERGED)
     h, st = solve.height_at(design, loads, 6895.0, h_max_mm=120.0, n_heights=25)
     assert list(st) == [Status.NOT_CONVERGED, Status.NOT_CONVERGED] and np.isnan(h).all()

@@ -120,6 +120,28 @@ def test_height_at_inverts_force_at(design, p_pa):
     np.testing.assert_allclose(h, h_true, atol=1e-3)
 
 
+@pytest.mark.slow
+def test_the_lift_check_runs_on_a_made_planes_programs(monkeypatch):
+    """height_at solves its height grid as one plane at the loads' pressures, on the kept
+    plane and descent programs of a made simulator run (``sim_runs.PlaneSpec``: 15 x 17),
+    and compiles only its fixed-force height kernel beside them (issue 40: the points
+    kernel it compiled before cost the demo's optimum check ~10 s on 2 cores). Its heights
+    are where force_at (a path per point, the other route) finds the load."""
+    from mfdesign.physics import solve
+    from mfdesign.physics.solve import force_plane
+    from mfdesign.sim_runs import PlaneSpec
+
+    monkeypatch.setattr(solve, "KEPT", solve.KeptPrograms())
+    spec = PlaneSpec()
+    force_plane(TWO_RINGS, spec.h_mm, spec.p_pa)
+    loads, p = np.array([10.0, 20.0, 30.0, 20.0]), np.array([4000.0, 6000.0, 8000.0, 6895.0])
+    h, status = height_at(TWO_RINGS, loads, p, h_max_mm=120.0, n_heights=21)
+    names = sorted(getattr(key[0], "__name__", "?") for key in solve.KEPT._programs)
+    assert names == ["_descent_kernel", "_height_kernel", "_plane_kernel"], names
+    assert np.all(status == Status.OK), status
+    np.testing.assert_allclose(force_at(TWO_RINGS, h, p).force_n, loads, rtol=1e-6)
+
+
 def test_points_are_solved_in_batches_of_one_size(monkeypatch):
     """force_at hands the points kernel batches of POINTS_BATCH lanes only, whatever the
     number of points: one compiled program for a plane's repair and the lift check (issue
