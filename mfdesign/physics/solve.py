@@ -116,15 +116,15 @@ class KeptPrograms:
 
     A long job drops JAX's caches between its stages (:func:`mfdesign._memory.release_memory`:
     the compiled programs of every stage held 4 GB), and each stage that solves planes or
-    points then traced the solver's kernels again: ~10 s for the plane kernel, ~4 s for
-    the points kernel, on 2 cores, in every stage that used them (41 s of a cold quick
+    points then traced the solver's kernels again: ~10 s for the plane kernel (now the
+    walk kernel), ~4 s for the points kernel, on 2 cores, in every stage that used them (41 s of a cold quick
     demo's 89 s of tracing, session 33). Here each kernel is traced and compiled once per
     argument signature (``jax.jit(...).lower(...).compile()``: ahead of time, so the
     program is held here, not in JAX's caches, and survives ``jax.clear_caches()``), at
     most ``size`` programs, the least recently used dropped; where the compilation cache
     is on, the traced kernel is stored for the next process too (:mod:`._traces`). The
-    plane, descent, points and height kernels come through here. A first call from several
-    threads compiles once. On several devices the kernel is called as it is (its
+    walk (a plane's rows and its descent), points and height kernels come through here. A
+    first call from several threads compiles once. On several devices the kernel is called as it is (its
     arguments carry shardings a kept program would not match)."""
 
     def __init__(self, size: int = 8) -> None:
@@ -202,11 +202,14 @@ KEPT = KeptPrograms()
 
 # A kept program with larger batch axes serves a call whose own program is not compiled,
 # its arguments padded, while its work (the product of the padded axes) is at most this
-# many times the call's: compiling the plane kernel and its descent costs ~21 s of XLA
-# and ~10 s of tracing on 2 cores, a made simulator plane on the data planes' program
-# a few seconds more computing (issue 40: the demo's made run on 15 heights x 17 pressures
+# many times the call's: compiling the walk kernel costs ~20 s of XLA and tracing on 2
+# cores, a made simulator plane on the data planes' program a few seconds more computing (issue 40: the demo's made run on 15 heights x 17 pressures
 # compiled both again, beside the data planes' 31 x 83).
 PAD_WORK_LIMIT = 10.0
+# ... or while that work is at most this (lanes x (steps + reported points)): a plane's
+# descent (17 pressures x one low height) runs on its rows' program (15 x 35 x 17) for
+# a fraction of a second, where a program of its own took ~20 s to compile on 2 cores.
+PAD_WORK_FLOOR = 1024
 
 
 def _edge(a, shape):
@@ -236,7 +239,11 @@ def _kept_call(
     otherwise: up to ~1e-12 N on a plane), so they may depend in the last bits on what
     the process compiled before."""
     own = {i: np.shape(args[i]) for i in pads}
-    fits = [s for s in KEPT.holders(kernel, args, padded=tuple(pads)) if work(s) <= PAD_WORK_LIMIT * work(own)]
+    fits = [
+        s
+        for s in KEPT.holders(kernel, args, padded=tuple(pads))
+        if work(s) <= max(PAD_WORK_LIMIT * work(own), PAD_WORK_FLOOR)
+    ]
     best = min(fits, key=work, default=own)
     if best == own:
         return KEPT(kernel, *args)
@@ -249,56 +256,76 @@ def _kept_call(
 # jitted kernels (one design; vmapped over points)
 
 
-def _step(carry, p_mpa, geom, params, h):
-    """One continuation step at fixed ``h``.
+class _Walk(eqx.Module):
+    """A continuation's state between steps (:func:`_step`): the last two converged states
+    ``x1``, ``x2`` [unknowns] and their pressures ``p1``, ``p2`` [MPa], how many converged
+    (``n_have``), the shooting Jacobian's determinant at the first (``det0``), whether a
+    limit point was passed, whether the last step converged, and whether the walk goes on
+    (``alive``: a walk without restarts stops at its first failure)."""
 
-    Predictor: secant extrapolation from the last two solutions (the last one alone
-    after the first success); the string model when the path has no solution yet or
-    the previous step failed (across a stiff ring at low tension the shooting is very
-    sensitive, and a restart from the string model recovers). Corrector: one
-    Levenberg-Marquardt solve; one solve per step, because under ``vmap`` both
-    branches of a conditional would run. A sign change of the shooting Jacobian's
-    determinant marks a passed pressure limit point. A NaN pressure is a padded step
-    (:func:`_kept_call`): skipped, at the cost of one residual evaluation.
+    x1: Any
+    p1: Any
+    x2: Any
+    p2: Any
+    n_have: Any
+    det0: Any
+    passed: Any
+    last_ok: Any
+    alive: Any
+
+
+def _start(x0, p0, have, alive=True) -> _Walk:
+    """A walk from the state ``x0`` (solved at pressure ``p0`` [MPa]) where ``have``, else
+    from nothing (its first step starts from the string model); none at all where not
+    ``alive``."""
+    have = jnp.asarray(have)
+    return _Walk(x0, p0, x0, p0, have.astype(int), jnp.asarray(1.0), jnp.asarray(False), have, jnp.asarray(alive))
+
+
+def _step(walk: _Walk, hp, geom, params, secant=True, restart=True):
+    """One continuation step to the point ``hp = (h [mm], p [MPa])``.
+
+    Predictor: with ``secant``, extrapolation in pressure from the last two solutions (the
+    last one alone after the first success; without, the last solution: a plate lowered at
+    fixed pressure); the string model when the walk has no solution yet or the previous
+    step failed (across a stiff ring at low tension the shooting is very sensitive, and a
+    restart from the string model recovers). Without ``restart`` a failed step ends the
+    walk instead (a lowered plate is not picked up again). Corrector: one
+    Levenberg-Marquardt solve; one solve per step, because under ``vmap`` both branches of
+    a conditional would run. A sign change of the shooting Jacobian's determinant marks a
+    passed pressure limit point. A NaN pressure is a padded step (:func:`_kept_call`):
+    skipped, at the cost of one residual evaluation.
     """
-    x1, p1, x2, p2, n_have, det0, passed, last_ok = carry
-    live = jnp.isfinite(p_mpa)
-    p_mpa = jnp.where(live, p_mpa, p1)
-    slope = jnp.where(n_have >= 2, (x1 - x2) / jnp.where(p1 != p2, p1 - p2, 1.0), 0.0)
-    predicted = x1 + slope * (p_mpa - p1)
+    h, p_mpa = hp
+    w = walk
+    live = jnp.isfinite(p_mpa) & w.alive
+    p_mpa = jnp.where(live, p_mpa, w.p1)
+    slope = jnp.where(secant & (w.n_have >= 2), (w.x1 - w.x2) / jnp.where(w.p1 != w.p2, w.p1 - w.p2, 1.0), 0.0)
+    predicted = w.x1 + slope * (p_mpa - w.p1)
     cold = sh.string_guess(geom, params, h, p_mpa)
-    have = n_have > 0
-    x, conv, det = sh.solve_force(jnp.where(have & last_ok, predicted, cold), geom, params, h, p_mpa, active=live)
-    det0 = jnp.where(have, det0, det)
-    fold = conv & have & (jnp.sign(det) != jnp.sign(det0))
-    passed = passed | fold
-    carry = (
-        jnp.where(conv, x, x1),
-        jnp.where(conv, p_mpa, p1),
-        jnp.where(conv, x1, x2),
-        jnp.where(conv, p1, p2),
-        n_have + conv.astype(int),
+    have = w.n_have > 0
+    x, conv, det = sh.solve_force(jnp.where(have & w.last_ok, predicted, cold), geom, params, h, p_mpa, active=live)
+    det0 = jnp.where(have, w.det0, det)
+    passed = w.passed | (conv & have & (jnp.sign(det) != jnp.sign(det0)))
+    walk = _Walk(
+        jnp.where(conv, x, w.x1),
+        jnp.where(conv, p_mpa, w.p1),
+        jnp.where(conv, w.x1, w.x2),
+        jnp.where(conv, w.p1, w.p2),
+        w.n_have + conv.astype(int),
         det0,
         passed,
         conv,
+        w.alive & (restart | conv),
     )
-    return carry, (x, conv, passed)
+    return walk, (x, conv, passed)
 
 
 def _path(geom, params, h, p_path_mpa):
     """Continuation along an increasing pressure path at fixed height."""
-    z = jnp.zeros(2)
-    init = (
-        z,
-        jnp.asarray(0.0),
-        z,
-        jnp.asarray(0.0),
-        jnp.asarray(0),
-        jnp.asarray(1.0),
-        jnp.asarray(False),
-        jnp.asarray(False),
-    )
-    _, (xs, conv, passed) = jax.lax.scan(lambda c, p: _step(c, p, geom, params, h), init, p_path_mpa)
+    hs = jnp.broadcast_to(h, p_path_mpa.shape)
+    init = _start(jnp.zeros(2), jnp.asarray(0.0), False)
+    _, (xs, conv, passed) = jax.lax.scan(lambda w, hp: _step(w, hp, geom, params), init, (hs, p_path_mpa))
     return xs, conv, passed
 
 
@@ -427,25 +454,68 @@ def point_force(design, h_mm, p_pa, params: SimParams, path_steps: int = PATH_ST
 
 
 @eqx.filter_jit
-def _plane_kernel(geom, params, h_grid, p_path_mpa, report_idx):
-    """Grid: vmap over heights, continuation over the (refined) pressure path."""
+def _walk_kernel(geom, params, h_mm, p_mpa, x_start, start_ok, restart, secant, report_idx):
+    """Continuation walks (:func:`_step`), one per lane (vmapped), through the points
+    ``(h_mm, p_mpa)`` ``[lane, step]``, each from ``x_start`` where ``start_ok`` (else from
+    the string model), with per-lane ``restart`` and ``secant`` (:func:`_step`); outputs
+    at the steps ``report_idx`` ``[lane, report]``.
 
-    def one_h(hh):
-        xs, conv, passed = _path(geom, params, hh, p_path_mpa)
-        # Failed points are checked at the last converged state before them.
+    One program for a plane's rows (a pressure path at fixed height, restarts and secant
+    on) and for its low rows' descent (the plate lowered at fixed pressure from the anchor
+    row's states, neither): two kernels compiled ~20 s each on 2 cores in every process
+    that solved a plane (issue 40). A failed point is checked at the last converged state
+    before it (at that state's height and pressure); where none converged its locking is
+    NaN (unknown)."""
+
+    def one(hs, ps, x0, ok0, rs, sc):
+        # a descent from no state (its anchor failed) takes no step
+        init = _start(x0, jnp.where(ok0, ps[0], 0.0), ok0, ok0 | rs)
+        _, (xs, conv, passed) = jax.lax.scan(lambda w, hp: _step(w, hp, geom, params, sc, rs), init, (hs, ps))
         idx = jnp.arange(conv.shape[0])
-        last = jax.lax.cummax(jnp.where(conv, idx, 0))
-        x_chk, p_chk = xs[last][report_idx], p_path_mpa[last][report_idx]
+        last = jax.lax.cummax(jnp.where(conv, idx, 0))[report_idx]
         seen = jax.lax.cummax(conv.astype(int))[report_idx] > 0
-        conv, passed = conv[report_idx], passed[report_idx]
-        p_rep = p_path_mpa[report_idx]
         force, wrinkled, locking, rise, ok_prof = jax.vmap(
-            lambda x, pa, pp: _point_outputs(x, geom, params, hh, pa, pp)
-        )(x_chk, p_chk, p_rep)
-        locking = jnp.where(seen, locking, jnp.nan)  # nothing converged yet: unknown
-        return PointSolution(conv, passed, force, wrinkled, locking, rise, ok_prof, x_chk)
+            lambda x, hh, pa, pp: _point_outputs(x, geom, params, hh, pa, pp)
+        )(xs[last], hs[last], ps[last], ps[report_idx])
+        locking = jnp.where(seen, locking, jnp.nan)
+        return PointSolution(conv[report_idx], passed[report_idx], force, wrinkled, locking, rise, ok_prof, xs[last])
 
-    return jax.vmap(one_h)(h_grid)
+    return jax.vmap(one)(h_mm, p_mpa, x_start, start_ok, restart, secant)
+
+
+def _lanes_then(value):
+    """Pad ``[lane, step]`` arrays: lanes by repeating the last (real points: no new
+    failures), steps with ``value`` (NaN pressure: a skipped step)."""
+
+    def pad(a, shape):
+        a = np.asarray(a)
+        a = np.pad(a, [(0, shape[0] - a.shape[0]), (0, 0)], mode="edge")
+        return np.pad(a, [(0, 0), (0, shape[1] - a.shape[1])], constant_values=value)
+
+    return pad
+
+
+def _walks(geom, params, h_mm, p_mpa, x_start, start_ok, restart: bool, secant: bool, report, parts):
+    """:func:`_walk_kernel` on ``[lane, step]`` points, the lanes split like a plane's rows
+    (:func:`_in_parts`) and each part run on a kept program where one fits
+    (:func:`_kept_call`); outputs ``[lane, report]``."""
+    n = h_mm.shape[0]
+    flags = np.full(n, restart), np.full(n, secant)
+    return _in_parts(
+        lambda *lanes: _kept_call(
+            _walk_kernel,
+            (geom, params, *lanes, report),
+            {2: _lanes_then(np.nan), 3: _lanes_then(np.nan), 4: _edge, 5: _edge, 6: _edge, 7: _edge, 8: _edge},
+            work=lambda s: s[2][0] * (s[2][1] + s[8][0]),
+            lead=lambda s: (s[2][0], s[8][0]),
+        ),
+        h_mm,
+        p_mpa,
+        x_start,
+        start_ok,
+        *flags,
+        parts=parts,
+    )
 
 
 def _descent_starts(anchor):
@@ -457,30 +527,6 @@ def _descent_starts(anchor):
     idx = np.where(conv_a, np.arange(n_p), n_p)
     nxt = np.flip(np.minimum.accumulate(np.flip(idx)))
     return x_a[np.minimum(nxt, n_p - 1)], nxt < n_p, locking_a
-
-
-@eqx.filter_jit
-def _descent_kernel(geom, params, h_low, x_start, start_ok, p_rep_mpa, locking_start):
-    """Low rows of a plane: from the start states (``_descent_starts``) the plate is
-    lowered through the heights ``h_low`` (decreasing) at every grid pressure; vmapped over
-    pressures (leading axis of every output), one continuation through all low heights per
-    pressure. ``passed`` is left False: the caller takes the anchor row's."""
-    h_prev = jnp.concatenate([jnp.array([LOW_HEIGHT_MM]), h_low[:-1]])
-
-    def one_p(x0, ok0, pp, lock0):
-        def leg(carry, hs):
-            x, ok = carry
-            h_from, h_to = hs
-            x, conv = _descend(x, geom, params, h_from, h_to, pp, 1, active=ok)
-            force, wrinkled, locking, rise, ok_prof = _point_outputs(x, geom, params, h_to, pp, pp)
-            # Unsolved: the anchor's state says whether the Gent limit was near.
-            locking = jnp.where(conv, locking, lock0)
-            return (x, conv), PointSolution(conv, jnp.zeros_like(conv), force, wrinkled, locking, rise, ok_prof, x)
-
-        _, outs = jax.lax.scan(leg, (x0, ok0), (h_prev, h_low))
-        return outs
-
-    return jax.vmap(one_p)(x_start, start_ok, p_rep_mpa, locking_start)
 
 
 # Relative slack of the force bound p pi R^2 (status.force_bound_n): rounding only.
@@ -808,7 +854,7 @@ def _plane_path(p_grid: np.ndarray, substeps: int, params: SimParams) -> tuple[l
 
 
 def _solve_plane(design: Membrane, h_grid: np.ndarray, path_pa, report, params: SimParams, parts) -> PointSolution:
-    """The plane kernel (and the descent below :data:`LOW_HEIGHT_MM`) on the heights
+    """The walk kernel's plane rows (and descent below :data:`LOW_HEIGHT_MM`) on the heights
     ``h_grid`` [mm] along the pressure path ``path_pa`` [Pa], reported at the path's indices
     ``report``: a :class:`PointSolution` of shape ``(len(h_grid), len(report))``."""
     hs, _ = _sanitize(h_grid, np.ones_like(h_grid))
@@ -820,38 +866,42 @@ def _solve_plane(design: Membrane, h_grid: np.ndarray, path_pa, report, params: 
     # plate is lowered at each pressure; they leave the main batch, whose heights then all
     # start from a usable first guess (module constants explain why).
     rows = np.concatenate([hs[~low], [LOW_HEIGHT_MM]]) if low.any() else hs
-    out = _in_parts(
-        lambda r: _kept_call(
-            _plane_kernel,
-            (geom, params, r, path_mpa, report),
-            {2: _edge, 3: _filled(np.nan), 4: _edge},
-            work=lambda s: s[2][0] * s[3][0],
-            lead=lambda s: (s[2][0], s[4][0]),
-        ),
-        rows,
-        parts=parts,
+    n_path = path_mpa.shape[0]
+    out = _walks(
+        geom,
+        params,
+        np.repeat(rows[:, None], n_path, axis=1),
+        np.broadcast_to(np.asarray(path_mpa), (rows.size, n_path)),
+        np.zeros((rows.size, 2)),
+        np.zeros(rows.size, bool),
+        True,
+        True,
+        report,
+        parts,
     )
     if low.any():
         x_start, start_ok, locking_start = _descent_starts(jax.tree.map(lambda o: o[-1], out))
         p_rep = np.asarray(path_mpa[report])
         low_idx = np.nonzero(low)[0]
         order = low_idx[np.argsort(-hs[low_idx], kind="stable")]  # the plate goes down
-        h_low = jnp.asarray(hs[order])
-        # Pressures are independent lanes of the descent: split like the rows.
-        down = _in_parts(
-            lambda *b: _kept_call(
-                _descent_kernel,
-                (geom, params, h_low, *b),
-                {2: _edge, 3: _edge, 4: _filled(False), 5: _edge, 6: _edge},
-                work=lambda s: s[2][0] * s[3][0],
-                lead=lambda s: (s[3][0], s[2][0]),
-            ),
+        n_low = order.size
+        # One lane per pressure (independent: split like the rows), the plate lowered
+        # through the low heights from the anchor's state.
+        down = _walks(
+            geom,
+            params,
+            np.broadcast_to(hs[order], (p_rep.size, n_low)),
+            np.repeat(p_rep[:, None], n_low, axis=1),
             x_start,
             start_ok,
-            p_rep,
-            locking_start,
-            parts=parts,
+            False,
+            False,
+            jnp.arange(n_low),
+            parts,
         )
+        # Unsolved: the anchor's state says whether the Gent limit was near.
+        locking = np.where(np.asarray(down.converged), np.asarray(down.locking), locking_start[:, None])
+        down = dataclasses.replace(down, locking=locking)
         down = jax.tree.map(lambda o: np.swapaxes(o, 0, 1), down)  # (pressure, height) -> (height, pressure)
         down = dataclasses.replace(down, passed=np.broadcast_to(out.passed[-1], down.converged.shape))  # the anchor's
 
@@ -1127,8 +1177,8 @@ def _lift_grid(design: Membrane, hg: np.ndarray, p: np.ndarray, params: SimParam
 
     The heights are one plane at the distinct pressures (:func:`_solve_plane`, one
     continuation per height), not a path per (load, height) point: the lift check then
-    runs on the plane kernels a made simulator plane compiled, padded (:func:`_kept_call`),
-    instead of compiling the points kernel (~28 s of tracing and XLA on 2 cores, the
+    runs on the walk program a made simulator plane compiled, padded (:func:`_kept_call`),
+    instead of compiling the points kernel (~10 s of tracing and XLA on 2 cores in the
     demo's optimum check, issue 40). Nodes the continuation did not converge on are solved
     again point by point (:func:`force_at`'s paths), as a plane's repair does. A
     pressure of 0 is no force (``NO_CONTACT``); a negative or non-finite one NaN."""

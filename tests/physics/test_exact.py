@@ -34,9 +34,10 @@ def _rows(key, n, rng):
 @pytest.mark.slow  # minutes of plane solves on 2 cores (the default suite stays near 15 minutes)
 def test_exact_model_matches_direct_simulator_calls_at_random_rows_and_parameters(exact, caplog):
     """The accuracy bound of issue 17: 0.05 N RMS, 0.15 N max, at random rows and at random
-    constants (mu, J_m, thickness factor and a mechanical effect) inside the lattice it grew."""
+    constants (mu, J_m, thickness factor and a mechanical effect) inside the lattice it grew,
+    on every row the simulator solves and the model does not mark outside the physical model."""
     rng = np.random.default_rng(7)
-    errors = []
+    errors, outside = [], 0
     fm = exact
     for trial in range(4):
         key = KEYS[trial % 2]
@@ -55,13 +56,19 @@ def test_exact_model_matches_direct_simulator_calls_at_random_rows_and_parameter
         design, h, p = _rows(key, 12, rng)
         ref = force_at(Membrane.from_key(key), h, p, params).force_n
         got = np.asarray(fm(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), params))
-        ok = np.isfinite(ref)
+        # By contract (module doc, issue 44) a row whose interpolation stencil holds a node
+        # above p pi R^2 is NaN, though the simulator may have a number at the row itself
+        # (2 of trial 0's 12 rows, at ~6 kPa): that is the model's rule, not an accuracy miss.
+        out = np.asarray(fm.outside_model(jnp.asarray(design), jnp.asarray(h), jnp.asarray(p), params))
+        assert np.all(np.isnan(got[out]))
+        outside += int(out.sum())
+        ok = np.isfinite(ref) & ~out
         assert np.all(np.isfinite(got[ok])), "the exact model returned NaN where the simulator has a number"
         errors.append(got[ok] - ref[ok])
     # each growth is said (a calibration can solve planes for an hour): the new inset axis too
     assert any("lattice grows to" in r.getMessage() and "inset " in r.getMessage() for r in caplog.records)
     e = np.concatenate(errors)
-    assert e.size >= 40
+    assert e.size >= 40 and outside <= 8, (e.size, outside)
     assert np.sqrt(np.mean(e**2)) <= 0.05
     assert np.max(np.abs(e)) <= 0.15
 

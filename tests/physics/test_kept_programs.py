@@ -87,6 +87,7 @@ def test_a_kept_call_pads_to_a_kept_program_and_cuts_its_outputs(monkeypatch):
     from mfdesign.physics import solve
 
     monkeypatch.setattr(solve, "KEPT", KeptPrograms())
+    monkeypatch.setattr(solve, "PAD_WORK_FLOOR", 0)  # the ratio rule alone (the floor: below)
     traces = []
 
     def kernel(rows, path):  # rows x path outputs; a NaN path entry is padding
@@ -108,3 +109,8 @@ def test_a_kept_call_pads_to_a_kept_program_and_cuts_its_outputs(monkeypatch):
     assert traces == [((8,), (10,)), ((2,), (3,))]
     assert big["y"].shape == (8, 10) and small["y"].shape == (2, 3)
     np.testing.assert_array_equal(mid["y"], np.outer([2.0, 3.0, 4.0, 5.0], [5.0, 6.0, 7.0]))
+    # Under PAD_WORK_FLOOR any padding goes (a program of its own costs more to compile).
+    monkeypatch.setattr(solve, "PAD_WORK_FLOOR", 80)
+    tiny = call([2.0], [5.0, 6.0])
+    assert len(traces) == 2
+    np.testing.assert_array_equal(tiny["y"], [[10.0, 12.0]])

@@ -3,7 +3,7 @@ processes (one thread each, started as the docs say: ``--preload mfdesign.physic
 solves the same planes as this process, bit for bit, and its workers write them into the
 plane cache. Skipped without Dask (``pip install -e ".[dask]"``).
 
-Cost: each worker process compiles the plane kernels once (tens of seconds on a CPU), so
+Cost: each worker process compiles the walk kernel once (tens of seconds on a CPU), so
 the grid is small (heights 0-10 mm, pressures 0-1 kPa: the low-row descent, the
 continuation and the repair of unconverged nodes all run) and the first plane goes alone:
 its worker stores the compiled kernels in the shared compilation cache
@@ -61,7 +61,7 @@ def test_planes_on_a_local_cluster_equal_the_local_ones(cluster, shared, tmp_pat
     caplog.set_level("WARNING", logger="mfdesign.physics.planes")
     folder = tmp_path / "cluster"
     first = pl.solve_planes(jobs[:1], GRID, cache=folder)  # one worker compiles, and stores the programs
-    assert any(shared.glob("jit__plane_kernel*"))  # in the compilation cache the other worker reads
+    assert any(shared.glob("jit__walk_kernel*"))  # in the compilation cache the other worker reads
     there = pl.solve_planes(jobs, GRID, cache=folder, progress=True)  # the bar follows the tasks
 
     np.testing.assert_array_equal(first[0], here[0])

@@ -123,7 +123,7 @@ def test_height_at_inverts_force_at(design, p_pa):
 @pytest.mark.slow
 def test_the_lift_check_runs_on_a_made_planes_programs(monkeypatch):
     """height_at solves its height grid as one plane at the loads' pressures, on the kept
-    plane and descent programs of a made simulator run (``sim_runs.PlaneSpec``: 15 x 17),
+    walk program of a made simulator run (``sim_runs.PlaneSpec``: 15 x 17),
     and compiles only its fixed-force height kernel beside them (issue 40: the points
     kernel it compiled before cost the demo's optimum check ~10 s on 2 cores). Its heights
     are where force_at (a path per point, the other route) finds the load."""
@@ -137,7 +137,7 @@ def test_the_lift_check_runs_on_a_made_planes_programs(monkeypatch):
     loads, p = np.array([10.0, 20.0, 30.0, 20.0]), np.array([4000.0, 6000.0, 8000.0, 6895.0])
     h, status = height_at(TWO_RINGS, loads, p, h_max_mm=120.0, n_heights=21)
     names = sorted(getattr(key[0], "__name__", "?") for key in solve.KEPT._programs)
-    assert names == ["_descent_kernel", "_height_kernel", "_plane_kernel"], names
+    assert names == ["_height_kernel", "_walk_kernel"], names
     assert np.all(status == Status.OK), status
     np.testing.assert_allclose(force_at(TWO_RINGS, h, p).force_n, loads, rtol=1e-6)
 
@@ -168,8 +168,8 @@ def test_points_are_solved_in_batches_of_one_size(monkeypatch):
 
 @pytest.mark.slow
 def test_a_smaller_plane_runs_on_the_kept_program_of_a_larger_one(monkeypatch):
-    """A plane whose own programs are not compiled runs on the kept plane and descent
-    programs of a larger one (its rows, path and pressures padded: issue 40, the demo's
+    """A plane whose own programs are not compiled runs on the kept walk program of a
+    larger one, its descent too (rows, path and pressures padded: issue 40, the demo's
     made simulator run), with the statuses and forces it gets from programs of its own."""
     from mfdesign.physics import solve
     from mfdesign.physics.solve import force_plane
@@ -178,8 +178,10 @@ def test_a_smaller_plane_runs_on_the_kept_program_of_a_larger_one(monkeypatch):
     h, p = np.array([0.0, 10.0, 20.0, 40.0]), np.arange(0.0, 6001.0, 1000.0)
     monkeypatch.setattr(solve, "KEPT", solve.KeptPrograms())
     force_plane(RINGLESS, h_big, p_big)
+    # its rows' walk program, and one for its descent (17 pressure lanes > its 7 rows)
+    assert len(solve.KEPT) == 2
     padded = force_plane(RINGLESS, h, p)
-    assert len(solve.KEPT) == 2  # the large plane's plane and descent programs, nothing new
+    assert len(solve.KEPT) == 2  # nothing new
     monkeypatch.setattr(solve, "KEPT", solve.KeptPrograms())
     own = force_plane(RINGLESS, h, p)
     np.testing.assert_array_equal(padded.status, own.status)
