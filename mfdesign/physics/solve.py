@@ -495,10 +495,10 @@ def _lanes_then(value):
     return pad
 
 
-def _walks(geom, params, h_mm, p_mpa, x_start, start_ok, restart: bool, secant: bool, report, parts):
+def _walks(geom, params, h_mm, p_mpa, x_start, start_ok, restart: bool, secant: bool, report, parts, most=None):
     """:func:`_walk_kernel` on ``[lane, step]`` points, the lanes split like a plane's rows
-    (:func:`_in_parts`) and each part run on a kept program where one fits
-    (:func:`_kept_call`); outputs ``[lane, report]``."""
+    (:func:`_in_parts`, at most ``most`` lanes a call) and each part run on a kept program
+    where one fits (:func:`_kept_call`); outputs ``[lane, report]``."""
     n = h_mm.shape[0]
     flags = np.full(n, restart), np.full(n, secant)
     return _in_parts(
@@ -515,6 +515,7 @@ def _walks(geom, params, h_mm, p_mpa, x_start, start_ok, restart: bool, secant: 
         start_ok,
         *flags,
         parts=parts,
+        most=most,
     )
 
 
@@ -728,24 +729,33 @@ def _shard_rows(a: np.ndarray):
     return jax.device_put(a, NamedSharding(mesh, PartitionSpec("rows")))
 
 
-def _in_parts(kernel, *batch: np.ndarray, parts: int | None = None) -> list[np.ndarray]:
+def _part_size(n: int, parts: int | None = None) -> int:
+    """Lanes of each call :func:`_in_parts` makes for a batch of ``n`` on one CPU device
+    (``parts`` slices, default :func:`n_workers`, none below :data:`PARALLEL_MIN_ROWS`)."""
+    parts = n_workers() if parts is None else max(1, int(parts))
+    parts = min(parts, max(1, n // (PARALLEL_MIN_ROWS // 2)))
+    return n if n < PARALLEL_MIN_ROWS or parts < 2 else -(-n // parts)
+
+
+def _in_parts(kernel, *batch: np.ndarray, parts: int | None = None, most: int | None = None) -> list[np.ndarray]:
     """``kernel(*batch)`` with the batch (leading axis) split over the local devices.
 
     Several devices: one call, the batch sharded across them (:func:`_shard_rows`). One
-    CPU device: ``parts`` slices (default :func:`n_workers`) on as many threads. Every output
-    has the batch's leading axis, and the result equals one call on the whole batch. The
-    slices are padded to one length (one compilation)."""
+    CPU device: ``parts`` slices (default :func:`n_workers`) on as many threads, each of
+    at most ``most`` lanes where given (more slices then: a plane's descent runs on its
+    rows' program). Every output has the batch's leading axis, and the result equals one
+    call on the whole batch. The slices are padded to one length (one compilation)."""
     n = batch[0].shape[0]
     devices = jax.local_devices()
-    parts = n_workers() if parts is None else max(1, int(parts))
     if len(devices) > 1:
         size = -(-n // len(devices)) * len(devices)
         padded = [np.concatenate([a, np.repeat(a[-1:], size - n, axis=0)]) for a in batch]
         return jax.tree.map(lambda o: np.asarray(o)[:n], kernel(*(_shard_rows(a) for a in padded)))
-    parts = min(parts, max(1, n // (PARALLEL_MIN_ROWS // 2)))
-    if n < PARALLEL_MIN_ROWS or parts < 2:
+    size = min(_part_size(n, parts), most or n)
+    if size >= n:
         return jax.tree.map(np.asarray, kernel(*batch))
-    return in_batches(kernel, *batch, size=-(-n // parts), lanes=parts)
+    lanes = n_workers() if parts is None else max(1, int(parts))
+    return in_batches(kernel, *batch, size=size, lanes=min(lanes, -(-n // size)))
 
 
 def in_batches(kernel, *batch: np.ndarray, size: int, lanes: int, bar=None):
@@ -885,8 +895,9 @@ def _solve_plane(design: Membrane, h_grid: np.ndarray, path_pa, report, params: 
         low_idx = np.nonzero(low)[0]
         order = low_idx[np.argsort(-hs[low_idx], kind="stable")]  # the plate goes down
         n_low = order.size
-        # One lane per pressure (independent: split like the rows), the plate lowered
-        # through the low heights from the anchor's state.
+        # One lane per pressure (independent: split like the rows, no more lanes a call
+        # than the rows' program has), the plate lowered through the low heights from the
+        # anchor's state.
         down = _walks(
             geom,
             params,
@@ -898,6 +909,7 @@ def _solve_plane(design: Membrane, h_grid: np.ndarray, path_pa, report, params: 
             False,
             jnp.arange(n_low),
             parts,
+            most=_part_size(rows.size, parts),
         )
         # Unsolved: the anchor's state says whether the Gent limit was near.
         locking = np.where(np.asarray(down.converged), np.asarray(down.locking), locking_start[:, None])
