@@ -447,7 +447,7 @@ def _pointwise_groups(
     import jax
     import jax.numpy as jnp
 
-    from mfdesign.models.hierarchical import CalibrationData, pointwise_log_lik_draws
+    from mfdesign.models.hierarchical import CalibrationData
 
     if not isinstance(data, CalibrationData):
         data = CalibrationData.from_measurements(
@@ -456,7 +456,7 @@ def _pointwise_groups(
     w = np.asarray(data.weight, float)
     keep = np.flatnonzero(w > 0)
     xs = jnp.asarray(x_flat)
-    ll = np.asarray(pointwise_log_lik_draws(model, xs, data))
+    ll = np.asarray(jax.lax.map(lambda xi: model.pointwise_log_lik(xi, data), xs, batch_size=16))
     mean_force = np.asarray(model.sample_force(xs, data, jax.random.PRNGKey(seed)))
     rng = np.random.default_rng(seed)
     sigma = np.asarray(xs[:, model.names.index("noise_n")])[:, None]

@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -35,7 +36,6 @@ from mfdesign.diagnosis.forward import ForwardModel, effect_order, parameter_nam
 from mfdesign.diagnosis.residuals import Residuals, noise_floor, subsample
 from mfdesign.diagnosis.screen import lag1_autocorrelation, parameter_scale, parameter_step
 from mfdesign.physics import effects as fx
-from mfdesign.physics._traces import stored_jit
 
 __all__ = ["CheckResult", "calibrate_effects", "full_check"]
 
@@ -140,11 +140,10 @@ def _bic(sim: ForwardModel, meas, rows, target, effects, theta, resid) -> float:
     return k * math.log(n) - 2.0 * ll
 
 
-@stored_jit
+@eqx.filter_jit
 def _log_lik(model, x, data):
     """The model's log likelihood as one program per row count (run eagerly, each BIC compiled
-    ~25 small XLA programs in a cold demo, issue 40), its trace stored for the next process
-    (traced in every run, ~2 s of a warm demo)."""
+    ~25 small XLA programs in a cold demo, issue 40)."""
     return model.log_lik(x, data)
 
 

@@ -61,7 +61,6 @@ from mfdesign.physics import effects as fx
 from mfdesign.physics.effects import LogNormal, Normal, Rows
 from mfdesign.physics.params import SimParams
 from mfdesign.models.force import recorded_force, row_sim_params
-from mfdesign.physics._traces import stored_jit
 from mfdesign.materials import ECOFLEX_JM, ECOFLEX_MU_PA
 
 __all__ = [
@@ -581,11 +580,3 @@ def fit_discrepancy(
         key=key,
         progress=progress,
     )
-
-
-@stored_jit
-def pointwise_log_lik_draws(model: HierarchicalModel, xs, data: CalibrationData) -> jax.Array:
-    """:meth:`HierarchicalModel.pointwise_log_lik` [S, N] of physical draws ``xs`` [S, dim],
-    16 at a time: one program, its trace stored for the next process (``stored_jit``:
-    traced in every run, it cost a warm demo ~3.4 s, py-spy, issue 40)."""
-    return jax.lax.map(lambda xi: model.pointwise_log_lik(xi, data), xs, batch_size=16)
