@@ -117,8 +117,8 @@ class KeptPrograms:
     A long job drops JAX's caches between its stages (:func:`mfdesign._memory.release_memory`:
     the compiled programs of every stage held 4 GB), and each stage that solves planes or
     points then traced the solver's kernels again: ~10 s for the plane kernel (now the
-    walk kernel), ~4 s for the points kernel, on 2 cores, in every stage that used them (41 s of a cold quick
-    demo's 89 s of tracing, session 33). Here each kernel is traced and compiled once per
+    walk kernel), ~4 s for the points kernel, on 2 cores, in every stage that used them
+    (41 s of a cold quick demo's 89 s of tracing, session 33). Here each kernel is traced and compiled once per
     argument signature (``jax.jit(...).lower(...).compile()``: ahead of time, so the
     program is held here, not in JAX's caches, and survives ``jax.clear_caches()``), at
     most ``size`` programs, the least recently used dropped; where the compilation cache
@@ -203,8 +203,9 @@ KEPT = KeptPrograms()
 # A kept program with larger batch axes serves a call whose own program is not compiled,
 # its arguments padded, while its work (the product of the padded axes) is at most this
 # many times the call's: compiling the walk kernel costs ~20 s of XLA and tracing on 2
-# cores, a made simulator plane on the data planes' program a few seconds more computing (issue 40: the demo's made run on 15 heights x 17 pressures
-# compiled both again, beside the data planes' 31 x 83).
+# cores, a made simulator plane on the data planes' program a few seconds more computing
+# (issue 40: the demo's made run on 15 heights x 17 pressures compiled its programs
+# again, beside the data planes' 31 x 83).
 PAD_WORK_LIMIT = 10.0
 # ... or while that work is at most this (lanes x (steps + reported points)): a plane's
 # descent (17 pressures x one low height) runs on its rows' program (15 x 35 x 17) for
