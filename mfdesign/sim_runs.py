@@ -36,13 +36,12 @@ import pandas as pd
 from mfdesign._x64 import enable_x64
 from mfdesign.design import Membrane
 from mfdesign.physics.params import SimParams
-from mfdesign.physics.status import Status, is_valid, summarize
+from mfdesign.physics.status import SOLVER_FAILED, Status, is_valid, summarize
 
 __all__ = ["PlaneSpec", "GridSpec", "MadeRun", "make", "compare", "as_measurements", "simulate_planes"]
 
-# Statuses where the simulator failed at a point that has a solution; the others that are
-# not usable (EXTENSION_LIMIT, LIMIT_POINT) are the physics saying "no such state".
-FAILED = (Status.NOT_CONVERGED, Status.ODE_FAILURE)
+# Statuses where the simulator failed at a point that has a solution (physics.status).
+FAILED = SOLVER_FAILED
 
 
 @dataclasses.dataclass(frozen=True)

@@ -37,7 +37,7 @@ from mfdesign.errors import InputError
 from mfdesign.physics import _traces
 from mfdesign.physics import shooting as sh
 from mfdesign.physics.params import SimParams
-from mfdesign.physics.status import Status, force_bound_n
+from mfdesign.physics.status import SOLVER_FAILED, Status, force_bound_n
 from mfdesign.units import PA_TO_MPA
 
 WRINKLE_TOL = 1e-9  # MPa: a principal stress more negative than this is compression
@@ -1164,10 +1164,6 @@ def height_at(
     return height.reshape(shape_), status.reshape(shape_)
 
 
-# Statuses of a node that has a solution the continuation missed (re-solved point by point).
-_UNSOLVED = (Status.NOT_CONVERGED, Status.ODE_FAILURE)
-
-
 def _lift_path(p_pa: np.ndarray, params: SimParams) -> tuple[np.ndarray, np.ndarray]:
     """:func:`height_at`'s continuation path [Pa] through the pressures ``p_pa`` (positive,
     sorted, unique) and their indices on it: equal steps of at most
@@ -1207,7 +1203,7 @@ def _lift_grid(design: Membrane, hg: np.ndarray, p: np.ndarray, params: SimParam
     res = _classify(H, P, sol, outer_radius_mm=design.outer_radius_mm)
     force = _lift_forces(res, P, design.outer_radius_mm)
     a = np.asarray(sol.state, float)[..., 0]
-    again = np.isin(res.status, _UNSOLVED)
+    again = np.isin(res.status, SOLVER_FAILED)
     if again.any():
         res_pt, a_pt = _force_and_state(design, H[again], P[again], params)
         force[again] = _lift_forces(res_pt, P[again], design.outer_radius_mm)

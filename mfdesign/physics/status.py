@@ -29,6 +29,11 @@ class Status(enum.IntEnum):
         return _REASONS[self]
 
 
+# The simulator failed at a point that has a solution (the others that are not usable,
+# EXTENSION_LIMIT and LIMIT_POINT, are the physics saying "no such state"): what a
+# caller may solve again another way.
+SOLVER_FAILED = (Status.NOT_CONVERGED, Status.ODE_FAILURE)
+
 _REASONS = {
     Status.OK: "converged",
     Status.NO_CONTACT: "membrane below the plate: no contact, force 0",
