@@ -297,9 +297,13 @@ def _optimise(acq: BatchUncertainty, z0, n_rings, space, n_steps, mask=None):
     ``mask`` [q]: the batch's slots; False marks padding (:func:`_masked`: no score, no
     gradient, so its coordinates stay where they start and the others' L-BFGS steps are
     those of the unpadded batch)."""
-    opt = optax.lbfgs(
-        linesearch=optax.scale_by_backtracking_linesearch(max_backtracking_steps=LINESEARCH_STEPS, store_grad=True)
-    )
+    # The line search evaluates the utility only (no stored gradient): each step takes one
+    # value-and-gradient at its start and forward passes at the line search's candidates.
+    # optax's stored-gradient route (``store_grad=True`` + ``value_and_grad_from_state``)
+    # traced the gradient twice, and under ``vmap`` its ``lax.cond`` runs both branches, so
+    # every step paid a gradient at the start anyway (issue 40: XLA 13.3 s + tracing 6.9 s,
+    # the cold demo's largest optimiser program).
+    opt = optax.lbfgs(linesearch=optax.scale_by_backtracking_linesearch(max_backtracking_steps=LINESEARCH_STEPS))
 
     def one(z, n):
         def dev_of(z):
@@ -312,11 +316,11 @@ def _optimise(acq: BatchUncertainty, z0, n_rings, space, n_steps, mask=None):
         def loss(z):
             return -batch_utility(_masked(dev_of(z), mask), acq.pending)
 
-        value_and_grad = optax.value_and_grad_from_state(loss)
+        value_and_grad = jax.value_and_grad(loss)
 
         def step(carry, _):
             z, state = carry
-            value, grad = value_and_grad(z, state=state)
+            value, grad = value_and_grad(z)
             updates, state = opt.update(grad, state, z, value=value, grad=grad, value_fn=loss)
             return (optax.apply_updates(z, updates), state), None
 
