@@ -9,7 +9,12 @@ Runs ``mfdesign demo --out DIR`` in a fresh process, wrapped in ``/usr/bin/time 
 * ``--quick``: ``mfdesign demo --quick`` (the install test's and browser test's smoke run);
 * ``--solve-planes``: ``MFDESIGN_SHIPPED_PLANES=0``, so the demo solves the bundled
   membranes' planes instead of reading those shipped in the package (what every cold run
-  did before session 38; ``shipped_planes`` in the record says which).
+  did before session 38; ``shipped_planes`` in the record says which);
+* ``--trace-kernels``: ``MFDESIGN_SHIPPED_KERNELS=0``, so the demo traces every kernel
+  instead of reading those shipped in the package (what every cold run did before session
+  40; ``shipped_kernels`` says which, and ``kernels`` how many the run read from the pack,
+  from the user's store, or traced: in a cold run with the pack on, "traced" counts what a
+  stale pack no longer holds, ``python -m tools.ship_kernels``).
 
 Records, one JSON line per run appended to ``experiments/out/bench_demo.jsonl`` (the
 trajectory over commits): the commit, the machine (CPUs, ``nproc``, load average before
@@ -312,6 +317,11 @@ def main() -> None:
         action="store_true",
         help="solve the bundled membranes' planes too (MFDESIGN_SHIPPED_PLANES=0): the cold demo before they shipped",
     )
+    ap.add_argument(
+        "--trace-kernels",
+        action="store_true",
+        help="trace every kernel (MFDESIGN_SHIPPED_KERNELS=0): the cold demo before the kernels shipped",
+    )
     args = ap.parse_args()
     if args.warm is not None and not args.warm.is_dir():
         ap.error(f"--warm {args.warm}: no such cache folder")
@@ -328,6 +338,9 @@ def main() -> None:
     if args.solve_planes:
         env["MFDESIGN_SHIPPED_PLANES"] = "0"
     shipped = env.get("MFDESIGN_SHIPPED_PLANES", "1").strip() != "0"
+    if args.trace_kernels:
+        env["MFDESIGN_SHIPPED_KERNELS"] = "0"
+    kernels_shipped = env.get("MFDESIGN_SHIPPED_KERNELS", "1").strip() != "0"
     demo = [sys.executable, "-m", "mfdesign.cli", "demo", "--out", str(demo_out)] + (["--quick"] if args.quick else [])
     time_v = _time_v()
     cmd = ([str(time_v), "-v", "-o", str(time_file)] if time_v else []) + demo
@@ -342,6 +355,7 @@ def main() -> None:
     t0 = time.perf_counter()
     log_path = tmp / "demo.log"
     planes = "shipped planes read" if shipped else "shipped planes off: every plane solved"
+    planes += ", shipped kernels read" if kernels_shipped else ", shipped kernels off: every kernel traced"
     print(f"bench_demo: {mode} run ({planes}), cache {cache}, log {log_path}", flush=True)
     with open(log_path, "w") as log_file:
         proc = subprocess.run(cmd, env=env, stdout=log_file, stderr=subprocess.STDOUT)
@@ -380,6 +394,10 @@ def main() -> None:
         # the bundled membranes' planes read from the package (mfdesign/data/files/planes.npz,
         # since session 38) rather than solved; records before it solved them (absent: False)
         shipped_planes=shipped,
+        # the kernels' traces read from the package (mfdesign/data/files/kernels.npz, since
+        # session 40); "kernels": the demo's count of kernels by origin
+        shipped_kernels=kernels_shipped,
+        kernels=summary.get("kernels"),
         machine={
             "cpus": os.cpu_count(),
             "nproc": _nproc(),
@@ -399,6 +417,8 @@ def main() -> None:
     append_jsonl(path, record)
     print("\n".join(stage_table(record, prev)))
     print(f"load average before {load_before}, after {load_after}; nproc {_nproc()}; written {path}")
+    if record.get("kernels"):
+        print("kernels: " + ", ".join(f"{n} {origin}" for origin, n in record["kernels"].items()))
     print(probe_line(record, prev))
     print(ratio_line(record, prev))
     print(summary_line(record))

@@ -32,6 +32,8 @@ def test_wheel_install_finds_its_data_from_another_folder(tmp_path):
         "assert s.bundled_path().is_file() and s.bundled_card_path().is_file()\n"
         "from mfdesign.physics.planes import _shipped_pack\n"
         "assert _shipped_pack(), 'no shipped planes'\n"  # the demo's planes travel too
+        "from mfdesign.physics._traces import _shipped_pack as kernels\n"
+        "assert kernels(), 'no shipped kernels'\n"  # and its traced kernels
         "from mfdesign.report.render import environment\n"
         "assert 'base.html.j2' in environment().list_templates()\n"  # the reports' templates travel too
         "print(len(load_sources('bundled')), type(load_default()).__name__)\n"

@@ -19,6 +19,7 @@ back to tracing as before: the store can only save time.
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import functools
 import hashlib
@@ -35,10 +36,11 @@ from typing import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from mfdesign import outputs
 
-__all__ = ["compiled", "folder", "stored_jit", "stored_shapes"]
+__all__ = ["COUNTS", "compiled", "folder", "stored_jit", "stored_shapes"]
 
 log = logging.getLogger(__name__)
 
@@ -65,19 +67,72 @@ def _compilation_cache_dir() -> str | None:
     return getattr(jax.config, "jax_compilation_cache_dir", None)
 
 
+_PACKAGE = Path(__file__).resolve().parents[1]  # the mfdesign package folder
+
+
+def _source(module: str) -> Path | None:
+    """The source file of mfdesign module ``module`` (``a.b`` -> ``a/b.py`` or ``a/b/__init__.py``), or None."""
+    parts = module.split(".")
+    if parts[0] != "mfdesign":
+        return None
+    base = _PACKAGE.joinpath(*parts[1:])
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
 @functools.cache
-def _code() -> str:
-    """What every stored kernel depends on beyond its arguments: library versions and the
-    bytes of every mfdesign source file."""
+def _imports(module: str) -> frozenset[str]:
+    """The mfdesign modules that ``module``'s source imports anywhere (function-level and
+    ``TYPE_CHECKING`` imports too: more than it runs, never less), read from its syntax."""
+    path = _source(module)
+    if path is None or module == "mfdesign":
+        # the package's __init__ is a lazy facade (names imported on first use): what its
+        # functions import runs only where they are called, never inside a kernel
+        return frozenset()
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_bytes())):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative: from the package, up level - 1 packages
+                up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(up + ([base] if base else []))
+            found.add(base)  # its __init__ runs
+            found.update(f"{base}.{alias.name}" for alias in node.names)  # a submodule, where one is named
+    return frozenset(name for name in found if _source(name) is not None)
+
+
+def _closure(roots) -> list[Path]:
+    """Source files of the mfdesign modules ``roots`` and of everything they import, transitively."""
+    seen: set[str] = set()
+    todo = [m for m in roots if _source(m) is not None]
+    while todo:
+        module = todo.pop()
+        if module not in seen:
+            seen.add(module)
+            todo.extend(_imports(module) - seen)
+    return sorted({p for p in map(_source, seen) if p is not None})
+
+
+@functools.cache
+def _code(roots: frozenset[str]) -> str:
+    """What a stored kernel depends on beyond its arguments: library versions and the bytes
+    of the mfdesign sources its module and its arguments' classes import, transitively.
+    Imports flow downstream (design -> physics -> models -> ...), so an edit of the CLI, the
+    report or a workflow keeps the solver's kernels (and the shipped ones) valid, and an
+    edit of anything a kernel could run retraces it."""
     h = hashlib.sha256()
     for name in _VERSIONED:
         try:
             h.update(f"{name}={importlib.metadata.version(name)};".encode())
         except importlib.metadata.PackageNotFoundError:
             h.update(f"{name}=none;".encode())
-    package = Path(__file__).resolve().parents[1]
-    for path in sorted(package.rglob("*.py")):
-        h.update(str(path.relative_to(package)).encode())
+    for path in _closure(roots):
+        h.update(str(path.relative_to(_PACKAGE)).encode())
         h.update(path.read_bytes())
     return h.hexdigest()
 
@@ -87,9 +142,23 @@ def _storable(kernel: Callable) -> bool:
     return module.startswith("mfdesign.") and "<locals>" not in name
 
 
+def _roots(kernel: Callable, *material) -> frozenset[str]:
+    """The modules whose sources (and their imports) key ``kernel`` called on ``material``:
+    its own module and those of the classes and functions in it; every mfdesign module where
+    the material does not pickle (nothing left out of the key)."""
+    try:
+        return _key_bytes(material)[1] | {kernel.__module__}
+    except Exception:  # noqa: BLE001 -- e.g. a closure among the static arguments
+        return frozenset(
+            "mfdesign." + ".".join(p.relative_to(_PACKAGE).with_suffix("").parts).removesuffix(".__init__")
+            for p in _PACKAGE.rglob("*.py")
+        )
+
+
 def _family(kernel: Callable, static: tuple, tree, signature: tuple) -> str:
     """The key of everything but the arguments' shapes (``signature``: ``(shape, dtype,
     weak_type)`` per leaf): kernels of one family differ only in their batch sizes."""
+    avals = [_Aval(tuple(shape), str(dtype), bool(weak)) for shape, dtype, weak in signature]
     parts = (
         kernel.__module__,
         kernel.__qualname__,
@@ -98,7 +167,8 @@ def _family(kernel: Callable, static: tuple, tree, signature: tuple) -> str:
         repr([kind for _, *kind in signature]),
         os.environ.get("EQX_ON_ERROR"),
         bool(getattr(jax.config, "jax_enable_x64", False)),
-        _code(),
+        jax.default_backend(),  # an export runs only on the platform it was lowered for
+        _code(_roots(kernel, static, jax.tree.unflatten(tree, avals))),
     )
     return hashlib.sha256(repr(parts).encode()).hexdigest()[:24]
 
@@ -123,20 +193,33 @@ def stored_shapes(kernel: Callable, static: tuple, tree, signature: tuple) -> li
     where = folder()
     if where is None or not _storable(kernel):
         return []
-    try:
-        listed = json.loads(_shapes_file(where, kernel, static, tree, signature).read_text())
-    except (OSError, ValueError):
-        return []
+    path = _shapes_file(where, kernel, static, tree, signature)
+    listed = []
+    for text in (_text(path), _shipped(path.name)):
+        try:
+            more = json.loads(text) if text else []
+        except ValueError:
+            continue
+        listed += [shapes for shapes in more if shapes not in listed] if isinstance(more, list) else []
     found = []
-    for shapes in listed if isinstance(listed, list) else []:
+    for shapes in listed:
         try:
             shapes = tuple(tuple(int(n) for n in leaf) for leaf in shapes)
         except (TypeError, ValueError):
             continue
         sig = tuple((shape, *kind) for shape, (_, *kind) in zip(shapes, signature))
-        if len(shapes) == len(signature) and _module_file(where, kernel, static, tree, sig).exists():
-            found.append(shapes)
+        if len(shapes) == len(signature):
+            module = _module_file(where, kernel, static, tree, sig)
+            if module.exists() or _shipped(module.name) is not None:
+                found.append(shapes)
     return found
+
+
+def _text(path: Path) -> str | None:
+    try:
+        return path.read_text()
+    except OSError:
+        return None
 
 
 def _list_shapes(where: Path, kernel: Callable, static: tuple, tree, signature: tuple) -> None:
@@ -163,16 +246,63 @@ def _export(flat: Callable, leaves: list):
     from jax import export
 
     checks = [export.DisabledSafetyCheck.custom_call(name) for name in UNGUARANTEED_CALLS]
-    return export.export(jax.jit(flat), disabled_checks=checks)(*leaves)
+    exported = export.export(jax.jit(flat), disabled_checks=checks)(*leaves)
+    COUNTS["traced"] += 1
+    return exported
+
+
+# The kernels a cold demo (full and --quick) stores, shipped in the package as they were
+# exported (``python -m tools.ship_kernels``): a lab's first demo then traces none of them,
+# ~35 s of its tracing on 2 cores (issue 40); XLA still compiles each once. Keyed like the
+# store (the file names), so a kernel whose code, arguments or libraries changed is traced
+# as before: a stale pack costs time, never a wrong program. Read where the store is on and
+# the user's folder lacks the file; "0" here turns it off.
+SHIPPED_ENV = "MFDESIGN_SHIPPED_KERNELS"
+SHIPPED_NAME = "kernels.npz"
+
+
+@functools.cache
+def _shipped_pack() -> dict[str, bytes]:
+    """The shipped kernels (file name -> bytes), read whole once; empty where missing or unreadable."""
+    from mfdesign.data.shipped import shipped_path
+
+    try:
+        with np.load(shipped_path(SHIPPED_NAME), allow_pickle=False) as pack:
+            return {name: pack[name].tobytes() for name in pack.files}
+    except (OSError, ValueError) as err:
+        log.debug("shipped kernels unreadable (%s): every kernel is traced", err)
+        return {}
+
+
+def _shipped(name: str) -> bytes | None:
+    """The shipped file ``name`` (a kernel or a family's shapes), or None (not shipped, or
+    ``$MFDESIGN_SHIPPED_KERNELS=0``)."""
+    if os.environ.get(SHIPPED_ENV, "1").strip() == "0":
+        return None
+    return _shipped_pack().get(name)
+
+
+# This process's kernels by where they came from: "stored" (the user's store), "shipped"
+# (the package's pack), "traced" (exported anew). The demo's summary.json holds them, so a
+# stale pack shows as kernels traced in a cold run (bench_demo.py prints them).
+COUNTS = {"stored": 0, "shipped": 0, "traced": 0}
 
 
 def _read(path: Path):
     from jax import export
 
+    origin = "stored"
+    blob: bytes | None
     try:
-        return export.deserialize(bytearray(path.read_bytes()))
+        blob = path.read_bytes()
     except FileNotFoundError:
-        return None
+        blob, origin = _shipped(path.name), "shipped"
+        if blob is None:
+            return None
+    try:
+        exported = export.deserialize(bytearray(blob))
+        COUNTS[origin] += 1
+        return exported
     except Exception as err:  # noqa: BLE001 -- a damaged or foreign file: trace again, write it anew
         log.debug("stored kernel %s unreadable (%s): traced again", path.name, err)
         return None
@@ -235,7 +365,16 @@ class _KeyPickler(pickle.Pickler):
     refuses) by the function it wraps, a module-level lambda by its code and constants; a
     closure or a local function refuses, as its captured values would not be in the key."""
 
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.modules: set[str] = set()  # of every class and function met (the key's sources: _code)
+
     def reducer_override(self, obj):
+        owner = obj if isinstance(obj, (type, types.FunctionType)) else type(obj)
+        self.modules.add(getattr(owner, "__module__", None) or "")
+        wrapped = getattr(obj, "__wrapped__", None)
+        if isinstance(wrapped, types.FunctionType):
+            self.modules.add(wrapped.__module__ or "")
         inner = getattr(obj, "__wrapped__", None) if callable(obj) and not isinstance(obj, type) else None
         if obj is _named or (not isinstance(obj, types.FunctionType) and not isinstance(inner, types.FunctionType)):
             return NotImplemented
@@ -253,10 +392,12 @@ class _KeyPickler(pickle.Pickler):
         return _named, ("function", fn.__module__, fn.__qualname__)
 
 
-def _key_bytes(obj) -> bytes:
+def _key_bytes(obj) -> tuple[bytes, frozenset[str]]:
+    """``obj`` pickled as key material, and the modules of its classes and functions."""
     buffer = io.BytesIO()
-    _KeyPickler(buffer, protocol=4).dump(obj)
-    return buffer.getvalue()
+    pickler = _KeyPickler(buffer, protocol=4)
+    pickler.dump(obj)
+    return buffer.getvalue(), frozenset(pickler.modules)
 
 
 _EXPORT_FAILED: set = set()  # stored_jit functions export refused in this process: plain filter_jit since
@@ -297,12 +438,19 @@ def stored_jit(fn: Callable) -> Callable:
         leaves = [jnp.asarray(x) for x in leaves]
         avals = [_Aval(tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False))) for x in leaves]
         try:
-            blob = _key_bytes(eqx.combine(jax.tree.unflatten(tree, avals), static))
+            blob, modules = _key_bytes(eqx.combine(jax.tree.unflatten(tree, avals), static))
         except Exception as err:  # noqa: BLE001 -- a lambda, a closure, a lock: not keyable, traced as usual
             log.debug("%s not stored: arguments have no key (%s)", fn.__qualname__, err)
             return jitted(*args, **kwargs)
-        parts = (fn.__module__, fn.__qualname__, os.environ.get("EQX_ON_ERROR"), bool(jax.config.jax_enable_x64))
-        key = hashlib.sha256(repr(parts).encode() + blob + _code().encode()).hexdigest()[:40]
+        parts = (
+            fn.__module__,
+            fn.__qualname__,
+            os.environ.get("EQX_ON_ERROR"),
+            bool(jax.config.jax_enable_x64),
+            jax.default_backend(),  # an export runs only on the platform it was lowered for
+        )
+        code = _code(modules | {fn.__module__})
+        key = hashlib.sha256(repr(parts).encode() + blob + code.encode()).hexdigest()[:40]
         program = _PROGRAMS.get(key)
         if program is None:
             path = where / f"{fn.__name__}-{key}{SUFFIX}"

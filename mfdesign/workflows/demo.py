@@ -1133,6 +1133,8 @@ def run_demo(
         rep = _report_stage(run, summary, fits, diag, card)
         rep.meta = {"timings_s": log.times}
         paths = rep.write(out)
+    from mfdesign.physics import _traces
+
     summary.update(
         report=str(paths["html"]),
         json=str(paths["json"]),
@@ -1141,6 +1143,9 @@ def run_demo(
         total_s=round(time.perf_counter() - log.t0, 1),
         total_cpu_s=round(time.process_time() - log.cpu0, 1),
         peak_rss_mb=_peak_rss_mb(),
+        # traced programs by origin (physics._traces.COUNTS): in a cold run, "traced" counts
+        # the kernels the shipped pack did not hold (stale after a code change: tools.ship_kernels)
+        kernels=dict(_traces.COUNTS),
     )
     from mfdesign.provenance import call_line, input_hashes, provenance
 

@@ -115,6 +115,49 @@ def test_a_new_process_finds_the_stored_shapes_of_a_kernels_family(store):
     assert _traces.stored_shapes(first_invariant, (), tree, sig) == []
 
 
+def test_a_kernels_key_reads_the_sources_it_imports_and_not_the_others():
+    """Imports flow downstream, so the solver's key holds the physics and what it imports,
+    not the CLI or a workflow: an edit there keeps every stored (and shipped) kernel."""
+    names = {str(p.relative_to(_traces._PACKAGE)) for p in _traces._closure({"mfdesign.physics.solve"})}
+    assert {"physics/solve.py", "physics/shooting.py", "design.py", "materials.py"} <= names
+    assert not any(n.startswith(("cli/", "workflows/", "report/", "models/")) or n == "acquire.py" for n in names)
+    acquire = {str(p.relative_to(_traces._PACKAGE)) for p in _traces._closure({"mfdesign.acquire"})}
+    assert {"acquire.py", "physics/solve.py"} <= acquire | names and "acquire.py" not in names
+    # the classes in a kernel's arguments bring their modules' sources into the key
+    _, modules = _traces._key_bytes((_Scale(jnp.ones(1), 1.0), first_invariant))
+    assert {__name__, "mfdesign.materials"} <= modules
+
+
+def test_a_shipped_kernel_is_read_where_the_store_lacks_it(tmp_path, monkeypatch, exports):
+    """tools.ship_kernels packs a store; a store without the file reads the pack's copy
+    (compiled without tracing, its family's shapes listed); MFDESIGN_SHIPPED_KERNELS=0 traces."""
+    from mfdesign.data import shipped
+    from tools.ship_kernels import pack
+
+    monkeypatch.setattr(_traces, "folder", lambda: tmp_path / "made" / "kernels")
+    l1, l2 = np.array([1.2, 1.5]), np.array([1.1, 0.9])
+    _compile(l1, l2)
+    assert pack([tmp_path / "made"], tmp_path / "kernels.npz") == 1 and len(exports) == 1
+    monkeypatch.setattr(shipped, "shipped_path", lambda name: tmp_path / name)
+    monkeypatch.setattr(_traces, "folder", lambda: tmp_path / "fresh" / "kernels")
+    _traces._shipped_pack.cache_clear()
+    try:
+        program, leaves = _compile(l1 + 0.1, l2)
+        assert len(exports) == 1  # read from the pack, not traced
+        np.testing.assert_allclose(program(*leaves), np.asarray(first_invariant(l1 + 0.1, l2)), rtol=1e-15)
+        small = (jnp.ones(2), jnp.ones(2))
+        _, tree = jax.tree.flatten(small)
+        sig = tuple((v.shape, v.dtype, v.weak_type) for v in small)
+        assert _traces.stored_shapes(first_invariant, (), tree, sig) == [((2,), (2,))]
+        monkeypatch.setenv(_traces.SHIPPED_ENV, "0")
+        assert _traces.stored_shapes(first_invariant, (), tree, sig) == []
+        monkeypatch.setattr(_traces, "folder", lambda: tmp_path / "off" / "kernels")
+        _compile(l1, l2)
+        assert len(exports) == 2  # off: traced as before the pack
+    finally:
+        _traces._shipped_pack.cache_clear()
+
+
 class _Scale(eqx.Module):
     w: jax.Array
     factor: float = eqx.field(static=True)
@@ -178,8 +221,8 @@ def _apply(m, x):
 def test_stored_jit_keys_a_jitted_function_by_name_and_refuses_a_closure():
     """jnp.tanh (a jitted function, which pickle refuses) in an ensemble's static fields
     still keys; a closure never does (its captured values are not in the bytes)."""
-    assert _traces._key_bytes((jnp.tanh, jax.nn.gelu)) == _traces._key_bytes((jnp.tanh, jax.nn.gelu))
-    assert _traces._key_bytes(jnp.tanh) != _traces._key_bytes(jnp.sinh)
+    assert _traces._key_bytes((jnp.tanh, jax.nn.gelu))[0] == _traces._key_bytes((jnp.tanh, jax.nn.gelu))[0]
+    assert _traces._key_bytes(jnp.tanh)[0] != _traces._key_bytes(jnp.sinh)[0]
     k = 2.0
 
     def local(x):
@@ -196,8 +239,8 @@ _DOUBLE = lambda x: 2 * x  # noqa: E731
 
 
 def test_stored_jit_keys_a_module_level_lambda_by_its_code():
-    assert _traces._key_bytes(_IDENTITY) == _traces._key_bytes(_IDENTITY)
-    assert _traces._key_bytes(_IDENTITY) != _traces._key_bytes(_DOUBLE)
+    assert _traces._key_bytes(_IDENTITY)[0] == _traces._key_bytes(_IDENTITY)[0]
+    assert _traces._key_bytes(_IDENTITY)[0] != _traces._key_bytes(_DOUBLE)[0]
     # an MLP as the ensemble builds them: its default final activation is equinox's lambda
     mlp = eqx.nn.MLP(2, 2, 4, 1, activation=jnp.tanh, key=jax.random.key(0))
     assert _traces._key_bytes(eqx.filter(mlp, eqx.is_array, inverse=True))

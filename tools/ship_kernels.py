@@ -1,0 +1,83 @@
+"""Pack the traced kernels a cold demo stores into the package.
+
+    python -m tools.ship_kernels                       # run demo and demo --quick on an empty cache, then pack
+    python -m tools.ship_kernels --from DIR [DIR ...]  # pack the kernels/ of cache folders such runs filled
+
+Writes ``mfdesign/data/files/kernels.npz`` (file name -> bytes of
+``$MFDESIGN_CACHE_DIR/kernels/NAME``: each kernel's ``jax.export`` module and each family's
+``.shapes.json``), which :mod:`mfdesign.physics._traces` reads where the user's kernel store
+lacks a file: a lab's first demo then traces none of these kernels (issue 40: ~35 s of a
+cold demo's tracing on 2 cores). A kernel's file name is its key (library versions, the
+sources its module and arguments import, its arguments' structure and shapes), so a kernel
+whose code changed is traced as before and the pack's copy is never read: rerun this after
+a change to the physics, the models, the acquisition or the optimiser, or the cold demo
+slows by what it traces again (``bench_demo.py`` records ``shipped_kernels``, the pack's
+files the run read).
+
+The runs set ``MFDESIGN_SHIPPED_KERNELS=0`` (nothing read from an older pack) and a fresh
+``MFDESIGN_CACHE_DIR``; together ~10 minutes on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+PACK = Path(__file__).resolve().parents[1] / "mfdesign" / "data" / "files" / "kernels.npz"
+
+
+def _run(cache: Path) -> None:
+    env = dict(os.environ, MFDESIGN_CACHE_DIR=str(cache), MFDESIGN_SHIPPED_KERNELS="0", JAX_PLATFORMS="cpu")
+    for extra in ([], ["--quick"]):
+        with tempfile.TemporaryDirectory() as out:
+            cmd = [sys.executable, "-m", "mfdesign.cli", "demo", "--out", out, *extra]
+            print("running:", " ".join(cmd), flush=True)
+            subprocess.run(cmd, env=env, check=True)
+
+
+def pack(folders: list[Path], dest: Path = PACK) -> int:
+    """Every kernel and shapes list under ``folder/kernels`` (or ``folder`` itself) into
+    ``dest`` (a family's shapes lists merged); returns the number of kernels."""
+    blobs: dict[str, bytes] = {}
+    shapes: dict[str, list] = {}
+    for folder in folders:
+        root = folder / "kernels" if (folder / "kernels").is_dir() else folder
+        for path in sorted(root.glob("*.jaxexport")):
+            if not path.name.startswith("."):  # "." marks a file being written (mfdesign.outputs)
+                blobs.setdefault(path.name, path.read_bytes())
+        for path in sorted(root.glob("*.shapes.json")):
+            if not path.name.startswith("."):
+                listed = shapes.setdefault(path.name, [])
+                listed += [s for s in json.loads(path.read_text()) if s not in listed]
+    if not blobs:
+        raise SystemExit(f"no kernels found in {', '.join(map(str, folders))}")
+    arrays = {name: np.frombuffer(blob, np.uint8) for name, blob in blobs.items()}
+    arrays |= {name: np.frombuffer(json.dumps(listed).encode(), np.uint8) for name, listed in shapes.items()}
+    tmp = dest.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, dest)
+    return len(blobs)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--from", dest="folders", nargs="+", type=Path, help="cache folders to pack (no runs)")
+    args = ap.parse_args()
+    if args.folders:
+        n = pack(args.folders)
+    else:
+        with tempfile.TemporaryDirectory() as cache:
+            _run(Path(cache))
+            n = pack([Path(cache)])
+    print(f"{n} kernels -> {PACK} ({PACK.stat().st_size / 1e6:.2f} MB)")
+
+
+if __name__ == "__main__":
+    main()
