@@ -52,6 +52,9 @@ def pack(folders: list[Path], dest: Path = PACK) -> int:
         for path in sorted(root.glob("*.jaxexport")):
             if not path.name.startswith("."):  # "." marks a file being written (mfdesign.outputs)
                 blobs.setdefault(path.name, path.read_bytes())
+        for path in sorted(root.glob("*.roots.json")):  # each kernel's sources and their hash
+            if not path.name.startswith("."):
+                blobs.setdefault(path.name, path.read_bytes())
         for path in sorted(root.glob("*.shapes.json")):
             if not path.name.startswith("."):
                 listed = shapes.setdefault(path.name, [])
@@ -63,7 +66,7 @@ def pack(folders: list[Path], dest: Path = PACK) -> int:
     tmp = dest.with_suffix(".tmp.npz")
     np.savez_compressed(tmp, **arrays)
     os.replace(tmp, dest)
-    return len(blobs)
+    return sum(name.endswith(".jaxexport") for name in blobs)
 
 
 def main() -> None:

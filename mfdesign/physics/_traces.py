@@ -40,7 +40,7 @@ import numpy as np
 
 from mfdesign import outputs
 
-__all__ = ["COUNTS", "compiled", "folder", "stored_jit", "stored_shapes"]
+__all__ = ["COUNTS", "compiled", "folder", "stale_shipped", "stored_jit", "stored_shapes"]
 
 log = logging.getLogger(__name__)
 
@@ -288,6 +288,23 @@ def _shipped(name: str) -> bytes | None:
 COUNTS = {"stored": 0, "shipped": 0, "traced": 0}
 
 
+def stale_shipped() -> list[str]:
+    """The shipped kernels whose sources changed since they were packed (their
+    ``.roots.json`` hash differs from today's, or is missing): each is traced again in a
+    cold run until ``python -m tools.ship_kernels`` packs it anew."""
+    pack = _shipped_pack()
+    stale = []
+    for name in sorted(n for n in pack if n.endswith(SUFFIX)):
+        try:
+            meta = json.loads(pack[name.removesuffix(SUFFIX) + ROOTS_SUFFIX])
+            current = meta["code"] == _code(frozenset(meta["roots"]))
+        except (KeyError, ValueError, TypeError):
+            current = False
+        if not current:
+            stale.append(name)
+    return stale
+
+
 def _read(path: Path):
     from jax import export
 
@@ -308,11 +325,21 @@ def _read(path: Path):
         return None
 
 
-def _write(path: Path, exported) -> bool:
+ROOTS_SUFFIX = ".roots.json"
+
+
+def _roots_file(path: Path) -> Path:
+    return path.with_name(path.name.removesuffix(SUFFIX) + ROOTS_SUFFIX)
+
+
+def _write(path: Path, exported, roots: frozenset[str]) -> bool:
+    """Store ``exported`` at ``path``, and beside it the modules whose sources key it and
+    their hash (``.roots.json``: what :func:`stale_shipped` checks a shipped kernel by)."""
     try:
         blob = exported.serialize()
         path.parent.mkdir(parents=True, exist_ok=True)
         outputs.write_bytes(path, blob)  # readers see the whole file or none
+        outputs.write_json(_roots_file(path), {"roots": sorted(roots), "code": _code(roots)}, indent=None)
         return True
     except Exception as err:  # noqa: BLE001 -- no flatbuffers, a full disk: the run goes on
         log.debug("kernel %s not stored: %s", path.name, err)
@@ -335,7 +362,8 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
         except Exception as err:  # noqa: BLE001 -- e.g. a host callback: compile as before
             log.debug("kernel %s not exported (%s): compiled directly", kernel.__name__, err)
             return jax.jit(flat).lower(*leaves).compile()
-        if _write(path, exported):
+        avals = [_Aval(tuple(shape), str(dtype), bool(weak)) for shape, dtype, weak in signature]
+        if _write(path, exported, _roots(kernel, static, jax.tree.unflatten(tree, avals))):
             _list_shapes(where, kernel, static, tree, signature)
 
     def call(*xs):
@@ -449,7 +477,8 @@ def stored_jit(fn: Callable) -> Callable:
             bool(jax.config.jax_enable_x64),
             jax.default_backend(),  # an export runs only on the platform it was lowered for
         )
-        code = _code(modules | {fn.__module__})
+        roots = modules | {fn.__module__}
+        code = _code(roots)
         key = hashlib.sha256(repr(parts).encode() + blob + code.encode()).hexdigest()[:40]
         program = _PROGRAMS.get(key)
         if program is None:
@@ -467,7 +496,7 @@ def stored_jit(fn: Callable) -> Callable:
                     log.debug("%s not exported (%s): plain jit", fn.__qualname__, err)
                     _EXPORT_FAILED.add(fn)
                     return jitted(*args, **kwargs)
-                _write(path, exported)
+                _write(path, exported, roots)
             program = _PROGRAMS[key] = jax.jit(exported.call)
         return program(*leaves)
 

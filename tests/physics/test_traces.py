@@ -149,6 +149,11 @@ def test_a_shipped_kernel_is_read_where_the_store_lacks_it(tmp_path, monkeypatch
         _, tree = jax.tree.flatten(small)
         sig = tuple((v.shape, v.dtype, v.weak_type) for v in small)
         assert _traces.stored_shapes(first_invariant, (), tree, sig) == [((2,), (2,))]
+        assert _traces.stale_shipped() == []
+        code = _traces._code
+        monkeypatch.setattr(_traces, "_code", lambda roots: "edited since")  # a source changed
+        assert _traces.stale_shipped() == [p.name for p in (tmp_path / "made" / "kernels").glob("*.jaxexport")]
+        monkeypatch.setattr(_traces, "_code", code)
         monkeypatch.setenv(_traces.SHIPPED_ENV, "0")
         assert _traces.stored_shapes(first_invariant, (), tree, sig) == []
         monkeypatch.setattr(_traces, "folder", lambda: tmp_path / "off" / "kernels")
@@ -156,6 +161,16 @@ def test_a_shipped_kernel_is_read_where_the_store_lacks_it(tmp_path, monkeypatch
         assert len(exports) == 2  # off: traced as before the pack
     finally:
         _traces._shipped_pack.cache_clear()
+
+
+def test_the_shipped_kernels_are_those_of_todays_sources():
+    """Every kernel in mfdesign/data/files/kernels.npz was packed from the sources it runs
+    today: a stale one is traced again by every lab's first demo (~70 s of a cold demo
+    when all are, issue 40). After a change to the physics, the models, the acquisition or
+    the optimiser: ``python -m tools.ship_kernels`` (~10 minutes on 2 cores)."""
+    _traces._shipped_pack.cache_clear()
+    stale = _traces.stale_shipped()
+    assert not stale, f"{len(stale)} shipped kernel(s) stale, e.g. {stale[:3]}: run python -m tools.ship_kernels"
 
 
 class _Scale(eqx.Module):
