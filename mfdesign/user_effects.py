@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -60,9 +61,13 @@ def load_effects_module(path: str | Path, what: str = "--effects-module") -> tup
         raise InputError(f"{what} {path}: not a Python file (allowed: an existing .py file that registers effects)")
     module = importlib.util.module_from_spec(spec)
     before = dict(EFFECTS)
+    # registered, as importlib's recipe does: its classes are then found by name (pickle, and
+    # the kernel store, which keys a kernel by the code of the modules its arguments come from)
+    sys.modules[spec.name] = module
     try:
         spec.loader.exec_module(module)
     except Exception as err:  # noqa: BLE001 -- report any failure of the user's file in one line
+        sys.modules.pop(spec.name, None)
         raise InputError(f"{what} {path} failed to import: {type(err).__name__}: {err}") from None
     return tuple(name for name, cls in EFFECTS.items() if before.get(name) is not cls)
 

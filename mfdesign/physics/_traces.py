@@ -9,11 +9,14 @@ or a point. :func:`compiled` stores each kernel's exported StableHLO (``Exported
 under a key of everything that shapes it, and a later process compiles from the stored
 module (a hit in the compilation cache) without tracing the solver at all.
 
-The key holds the exact versions of jax, jaxlib and the solver libraries, a hash of every
-mfdesign source file, the argument signature and the settings that change a trace
-(``EQX_ON_ERROR``, float64), so a stored kernel is never used by code that would trace it
-differently. Only module-level kernels of mfdesign are stored (a closure's captured values
-are not in the key). Any failure (no folder, a kernel export refuses, a damaged file) falls
+The key holds the exact versions of jax, jaxlib and the solver libraries, the platform, a
+hash of the code of the mfdesign sources the kernel's module and its arguments' classes
+import (transitively; comments and docstrings aside: :func:`_code`), the argument signature
+and the settings that change a trace (``EQX_ON_ERROR``, float64), so a stored kernel is
+never used by code that would trace it differently (a lab's own effect file,
+:mod:`mfdesign.user_effects`, is keyed by its code too). Only module-level kernels of
+mfdesign are stored (a closure's captured values are not in the key). The demo's kernels
+also ship in the package (:data:`SHIPPED_NAME`). Any failure (no folder, a kernel export refuses, a damaged file) falls
 back to tracing as before: the store can only save time.
 """
 
@@ -29,6 +32,8 @@ import json
 import logging
 import os
 import pickle
+import sys
+import threading
 import types
 from pathlib import Path
 from typing import Callable
@@ -93,7 +98,9 @@ def _imports(module: str) -> frozenset[str]:
         return frozenset()
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
     found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_bytes())):
+    with _PARSE:
+        tree = ast.parse(path.read_bytes())
+    for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -118,6 +125,12 @@ def _closure(roots) -> list[Path]:
     return sorted({p for p in map(_source, seen) if p is not None})
 
 
+# CPython 3.11's ast.parse is not thread-safe ("AST constructor recursion depth mismatch"
+# when two threads parse at once: seen with the plane solves' threads keying the solver's
+# kernels together, bench_round22 in session 40). Every parse here runs under this lock.
+_PARSE = threading.Lock()
+
+
 @functools.cache
 def _code(roots: frozenset[str]) -> str:
     """What a stored kernel depends on beyond its arguments: library versions and the bytes
@@ -131,10 +144,40 @@ def _code(roots: frozenset[str]) -> str:
             h.update(f"{name}={importlib.metadata.version(name)};".encode())
         except importlib.metadata.PackageNotFoundError:
             h.update(f"{name}=none;".encode())
+    h.update(f"python={sys.version_info[0]}.{sys.version_info[1]};".encode())  # its syntax tree's layout
     for path in _closure(roots):
         h.update(str(path.relative_to(_PACKAGE)).encode())
-        h.update(path.read_bytes())
+        h.update(_digest(path))
+    for name in sorted(r for r in roots if r.startswith(USER_MODULES)):  # a lab's own effect file
+        file = getattr(sys.modules.get(name), "__file__", None)
+        h.update(name.encode() + (_digest(Path(file)) if file and Path(file).is_file() else b"?"))
     return h.hexdigest()
+
+
+# What mfdesign.user_effects names the modules it loads from a lab's files: their code keys
+# the kernels their effects run in, as mfdesign's own sources do.
+USER_MODULES = "mfdesign_user_effects_"
+
+
+@functools.cache
+def _digest(path: Path) -> bytes:
+    """A source file's code without its comments and docstrings (its syntax tree, dumped):
+    an edit of either traces nothing anew, and leaves the shipped kernels valid."""
+    with _PARSE:
+        tree = ast.parse(path.read_bytes())
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (
+            isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+            and body
+            and isinstance(body[0], ast.Expr)
+            and isinstance(body[0].value, ast.Constant)
+            and isinstance(body[0].value.value, str)
+        ):
+            node.body = body[1:] or [ast.Pass()]
+    with _PARSE:
+        dumped = ast.dump(tree)
+    return hashlib.sha256(dumped.encode()).digest()
 
 
 def _storable(kernel: Callable) -> bool:
@@ -193,7 +236,11 @@ def stored_shapes(kernel: Callable, static: tuple, tree, signature: tuple) -> li
     where = folder()
     if where is None or not _storable(kernel):
         return []
-    path = _shapes_file(where, kernel, static, tree, signature)
+    try:
+        path = _shapes_file(where, kernel, static, tree, signature)
+    except Exception as err:  # noqa: BLE001 -- no key (a source unreadable): nothing stored to offer
+        log.debug("kernel %s has no key (%s)", kernel.__name__, err)
+        return []
     listed = []
     for text in (_text(path), _shipped(path.name)):
         try:
@@ -252,8 +299,9 @@ def _export(flat: Callable, leaves: list):
 
 
 # The kernels a cold demo (full and --quick) stores, shipped in the package as they were
-# exported (``python -m tools.ship_kernels``): a lab's first demo then traces none of them,
-# ~35 s of its tracing on 2 cores (issue 40); XLA still compiles each once. Keyed like the
+# exported (``python -m tools.ship_kernels``): a lab's first demo then traces none of them
+# (their tracing was ~38 s of a cold demo on 2 cores, experiments/profile_callers.py --full
+# on 6b24fdf, issue 40); XLA still compiles each once. Keyed like the
 # store (the file names), so a kernel whose code, arguments or libraries changed is traced
 # as before: a stale pack costs time, never a wrong program. Read where the store is on and
 # the user's folder lacks the file; "0" here turns it off.
@@ -354,7 +402,11 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
     if where is None or not _storable(kernel):
         return jax.jit(flat).lower(*leaves).compile()
 
-    path = _module_file(where, kernel, static, tree, signature)
+    try:
+        path = _module_file(where, kernel, static, tree, signature)
+    except Exception as err:  # noqa: BLE001 -- no key (a source unreadable): compile as before
+        log.debug("kernel %s has no key (%s): compiled directly", kernel.__name__, err)
+        return jax.jit(flat).lower(*leaves).compile()
     exported = _read(path)
     if exported is None:
         try:
@@ -443,7 +495,7 @@ def stored_jit(fn: Callable) -> Callable:
     (``jax.export``), stores it, and a later process calls the stored module instead,
     compiled from the compilation cache, without tracing ``fn``.
 
-    The key holds the library versions and mfdesign's sources (as :func:`compiled`), and
+    The key holds the library versions and the code of the sources it imports (as :func:`compiled`), and
     the pickled bytes of every argument with each array replaced by its shape and type:
     equal bytes, equal static values (a float, a string, an eqx.Module's static fields,
     a module-level function by its name). A call falls back to the plain filter_jit call
@@ -467,6 +519,8 @@ def stored_jit(fn: Callable) -> Callable:
         avals = [_Aval(tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False))) for x in leaves]
         try:
             blob, modules = _key_bytes(eqx.combine(jax.tree.unflatten(tree, avals), static))
+            roots = modules | {fn.__module__}
+            code = _code(roots)
         except Exception as err:  # noqa: BLE001 -- a lambda, a closure, a lock: not keyable, traced as usual
             log.debug("%s not stored: arguments have no key (%s)", fn.__qualname__, err)
             return jitted(*args, **kwargs)
@@ -477,8 +531,6 @@ def stored_jit(fn: Callable) -> Callable:
             bool(jax.config.jax_enable_x64),
             jax.default_backend(),  # an export runs only on the platform it was lowered for
         )
-        roots = modules | {fn.__module__}
-        code = _code(roots)
         key = hashlib.sha256(repr(parts).encode() + blob + code.encode()).hexdigest()[:40]
         program = _PROGRAMS.get(key)
         if program is None:

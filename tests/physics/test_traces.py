@@ -128,6 +128,47 @@ def test_a_kernels_key_reads_the_sources_it_imports_and_not_the_others():
     assert {__name__, "mfdesign.materials"} <= modules
 
 
+def test_a_comment_or_a_docstring_is_not_part_of_a_kernels_key(tmp_path):
+    a, b, c = (tmp_path / f"{n}.py" for n in "abc")
+    a.write_text('"""Doc."""\n\n\ndef f(x):\n    """Twice."""\n    return 2 * x  # why\n')
+    b.write_text('"""Other doc."""\n\n\ndef f(x):\n    # a new comment\n    return 2 * x\n')
+    c.write_text('"""Doc."""\n\n\ndef f(x):\n    """Twice."""\n    return 3 * x  # why\n')
+    assert _traces._digest(a) == _traces._digest(b) != _traces._digest(c)
+
+
+def test_kernels_are_keyed_from_many_threads_at_once():
+    """The plane solves' threads key the solver's kernels together: CPython 3.11's ast.parse
+    is not thread-safe (bench_round22 crashed with "AST constructor recursion depth
+    mismatch" in session 40); the key's parses run under a lock."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    roots = ["mfdesign.physics.solve", "mfdesign.acquire", "mfdesign.calibration.mcmc", "mfdesign.optimization"]
+    for _ in range(3):
+        for cached in (_traces._imports, _traces._digest, _traces._code):
+            cached.cache_clear()
+        with ThreadPoolExecutor(8) as pool:
+            codes = list(pool.map(lambda r: _traces._code(frozenset({r})), roots * 4))
+        assert codes == [_traces._code(frozenset({r})) for r in roots * 4]
+
+
+def test_a_labs_own_effect_file_keys_the_kernels_it_runs_in(tmp_path, monkeypatch):
+    """mfdesign.user_effects registers the module it loads; its code is in the key of any
+    kernel whose arguments hold one of its classes, as mfdesign's own sources are."""
+    import types
+
+    name = _traces.USER_MODULES + "mine"
+    keys = []
+    for i, text in enumerate(["GAIN = 1.0\n", "GAIN = 1.0  # a comment\n", "GAIN = 2.0\n"]):
+        (tmp_path / f"v{i}.py").write_text(text)
+        module = types.ModuleType(name)
+        module.__file__ = str(tmp_path / f"v{i}.py")
+        monkeypatch.setitem(__import__("sys").modules, name, module)
+        _traces._code.cache_clear()
+        keys.append(_traces._code(frozenset({name, "mfdesign.materials"})))
+    _traces._code.cache_clear()
+    assert keys[0] == keys[1] != keys[2]
+
+
 def test_a_shipped_kernel_is_read_where_the_store_lacks_it(tmp_path, monkeypatch, exports):
     """tools.ship_kernels packs a store; a store without the file reads the pack's copy
     (compiled without tracing, its family's shapes listed); MFDESIGN_SHIPPED_KERNELS=0 traces."""
@@ -165,8 +206,8 @@ def test_a_shipped_kernel_is_read_where_the_store_lacks_it(tmp_path, monkeypatch
 
 def test_the_shipped_kernels_are_those_of_todays_sources():
     """Every kernel in mfdesign/data/files/kernels.npz was packed from the sources it runs
-    today: a stale one is traced again by every lab's first demo (~70 s of a cold demo
-    when all are, issue 40). After a change to the physics, the models, the acquisition or
+    today: a stale one is traced again by every lab's first demo (their tracing: ~38 s of
+    a cold demo on 2 cores, issue 40). After a change to the physics, the models, the acquisition or
     the optimiser: ``python -m tools.ship_kernels`` (~10 minutes on 2 cores)."""
     _traces._shipped_pack.cache_clear()
     stale = _traces.stale_shipped()
