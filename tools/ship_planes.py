@@ -16,25 +16,14 @@ fresh ``MFDESIGN_CACHE_DIR``; each takes ~10 minutes on 2 cores.
 
 from __future__ import annotations
 
-import argparse
 import os
-import subprocess
-import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-PACK = Path(__file__).resolve().parents[1] / "mfdesign" / "data" / "files" / "planes.npz"
+from tools import _ship
 
-
-def _solve(cache: Path) -> None:
-    env = dict(os.environ, MFDESIGN_CACHE_DIR=str(cache), MFDESIGN_SHIPPED_PLANES="0", JAX_PLATFORMS="cpu")
-    for extra in ([], ["--quick"]):
-        with tempfile.TemporaryDirectory() as out:
-            cmd = [sys.executable, "-m", "mfdesign.cli", "demo", "--out", out, *extra]
-            print("running:", " ".join(cmd), flush=True)
-            subprocess.run(cmd, env=env, check=True)
+PACK = _ship.FILES / "planes.npz"
 
 
 def pack(folders: list[Path], dest: Path = PACK) -> int:
@@ -55,16 +44,7 @@ def pack(folders: list[Path], dest: Path = PACK) -> int:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--from", dest="folders", nargs="+", type=Path, help="cache folders to pack (no solving)")
-    args = ap.parse_args()
-    if args.folders:
-        n = pack(args.folders)
-    else:
-        with tempfile.TemporaryDirectory() as cache:
-            _solve(Path(cache))
-            n = pack([Path(cache)])
-    print(f"{n} planes -> {PACK} ({PACK.stat().st_size / 1e6:.2f} MB)")
+    _ship.main(__doc__, pack, PACK, "MFDESIGN_SHIPPED_PLANES", "planes")
 
 
 if __name__ == "__main__":
