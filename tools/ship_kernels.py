@@ -20,8 +20,10 @@ The runs set ``MFDESIGN_SHIPPED_KERNELS=0`` (nothing read from an older pack) an
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +31,22 @@ import numpy as np
 from tools import _ship
 
 PACK = _ship.FILES / "kernels.npz"
+# The environment the pack was made in (library versions, Python): every kernel's key holds
+# it, so in another the pack is never read, and its kernels cannot be checked there.
+VERSIONS = "versions.json"
+
+
+def environment() -> dict[str, str]:
+    """What a kernel's key holds besides mfdesign's code: the libraries' versions and Python's."""
+    from mfdesign.physics._traces import _VERSIONED
+
+    out = {}
+    for name in _VERSIONED:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            out[name] = "none"
+    return out | {"python": f"{sys.version_info[0]}.{sys.version_info[1]}"}
 
 
 def pack(folders: list[Path], dest: Path = PACK) -> int:
@@ -52,6 +70,7 @@ def pack(folders: list[Path], dest: Path = PACK) -> int:
         raise SystemExit(f"no kernels found in {', '.join(map(str, folders))}")
     arrays = {name: np.frombuffer(blob, np.uint8) for name, blob in blobs.items()}
     arrays |= {name: np.frombuffer(json.dumps(listed).encode(), np.uint8) for name, listed in shapes.items()}
+    arrays[VERSIONS] = np.frombuffer(json.dumps(environment()).encode(), np.uint8)
     tmp = dest.with_suffix(".tmp.npz")
     np.savez_compressed(tmp, **arrays)
     os.replace(tmp, dest)
