@@ -6,8 +6,8 @@
 Writes ``mfdesign/data/files/kernels.npz`` (file name -> bytes of
 ``$MFDESIGN_CACHE_DIR/kernels/NAME``: each kernel's ``jax.export`` module and each family's
 ``.shapes.json``), which :mod:`mfdesign.physics._traces` reads where the user's kernel store
-lacks a file: a lab's first demo then traces none of these kernels (issue 40: ~35 s of a
-cold demo's tracing on 2 cores). A kernel's file name is its key (library versions, the
+lacks a file: a lab's first demo then traces none of these kernels (issue 40: their tracing was
+~38 s of a cold demo on 2 cores, profile_callers.py on 6b24fdf). A kernel's file name is its key (library versions, the
 sources its module and arguments import, its arguments' structure and shapes), so a kernel
 whose code changed is traced as before and the pack's copy is never read: rerun this after
 a change to the physics, the models, the acquisition or the optimiser, or the cold demo
