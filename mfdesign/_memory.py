@@ -17,10 +17,10 @@ import ctypes.util
 import gc
 import sys
 
-__all__ = ["release_memory"]
+__all__ = ["malloc_trim", "release_memory"]
 
 
-def _malloc_trim() -> None:
+def malloc_trim() -> None:
     """glibc's ``malloc_trim(0)``: hand the arenas' free pages back (Linux; a no-op elsewhere)."""
     if not sys.platform.startswith("linux"):
         return
@@ -37,4 +37,4 @@ def release_memory() -> None:
     if "jax" in sys.modules:  # never import jax only to clear it
         sys.modules["jax"].clear_caches()
     gc.collect()
-    _malloc_trim()
+    malloc_trim()

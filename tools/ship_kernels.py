@@ -20,33 +20,19 @@ The runs set ``MFDESIGN_SHIPPED_KERNELS=0`` (nothing read from an older pack) an
 
 from __future__ import annotations
 
-import importlib.metadata
 import json
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
 
+from mfdesign.physics._traces import environment
 from tools import _ship
 
 PACK = _ship.FILES / "kernels.npz"
 # The environment the pack was made in (library versions, Python): every kernel's key holds
 # it, so in another the pack is never read, and its kernels cannot be checked there.
 VERSIONS = "versions.json"
-
-
-def environment() -> dict[str, str]:
-    """What a kernel's key holds besides mfdesign's code: the libraries' versions and Python's."""
-    from mfdesign.physics._traces import _VERSIONED
-
-    out = {}
-    for name in _VERSIONED:
-        try:
-            out[name] = importlib.metadata.version(name)
-        except importlib.metadata.PackageNotFoundError:
-            out[name] = "none"
-    return out | {"python": f"{sys.version_info[0]}.{sys.version_info[1]}"}
 
 
 def pack(folders: list[Path], dest: Path = PACK) -> int:
@@ -58,6 +44,9 @@ def pack(folders: list[Path], dest: Path = PACK) -> int:
         root = folder / "kernels" if (folder / "kernels").is_dir() else folder
         for path in sorted(root.glob("*.jaxexport")):
             if not path.name.startswith("."):  # "." marks a file being written (mfdesign.outputs)
+                blobs.setdefault(path.name, path.read_bytes())
+        for path in sorted(root.glob("*.plan.json")):  # the order a default demo calls them in
+            if not path.name.startswith("."):
                 blobs.setdefault(path.name, path.read_bytes())
         for path in sorted(root.glob("*.roots.json")):  # each kernel's sources and their hash
             if not path.name.startswith("."):

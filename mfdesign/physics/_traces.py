@@ -23,6 +23,7 @@ back to tracing as before: the store can only save time.
 from __future__ import annotations
 
 import ast
+import concurrent.futures
 import dataclasses
 import functools
 import hashlib
@@ -45,7 +46,18 @@ import numpy as np
 
 from mfdesign import outputs
 
-__all__ = ["COUNTS", "compiled", "folder", "stale_shipped", "stored_jit", "stored_shapes"]
+__all__ = [
+    "COUNTS",
+    "cancel_ahead",
+    "compile_ahead",
+    "compiled",
+    "environment",
+    "folder",
+    "stale_shipped",
+    "stored_jit",
+    "stored_shapes",
+    "write_plan",
+]
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +137,18 @@ def _closure(roots) -> list[Path]:
     return sorted({p for p in map(_source, seen) if p is not None})
 
 
+def environment() -> dict[str, str]:
+    """What a kernel's key holds besides mfdesign's code: the libraries' versions and Python's
+    (``tools.ship_kernels`` records it beside the pack)."""
+    out = {}
+    for name in _VERSIONED:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            out[name] = "none"
+    return out | {"python": f"{sys.version_info[0]}.{sys.version_info[1]}"}
+
+
 # CPython 3.11's ast.parse is not thread-safe ("AST constructor recursion depth mismatch"
 # when two threads parse at once: seen with the plane solves' threads keying the solver's
 # kernels together, bench_round22 in session 40). Every parse here runs under this lock.
@@ -139,12 +163,8 @@ def _code(roots: frozenset[str]) -> str:
     report or a workflow keeps the solver's kernels (and the shipped ones) valid, and an
     edit of anything a kernel could run retraces it."""
     h = hashlib.sha256()
-    for name in _VERSIONED:
-        try:
-            h.update(f"{name}={importlib.metadata.version(name)};".encode())
-        except importlib.metadata.PackageNotFoundError:
-            h.update(f"{name}=none;".encode())
-    h.update(f"python={sys.version_info[0]}.{sys.version_info[1]};".encode())  # its syntax tree's layout
+    for name, version in environment().items():  # python: its syntax tree's layout
+        h.update(f"{name}={version};".encode())
     for path in _closure(roots):
         h.update(str(path.relative_to(_PACKAGE)).encode())
         h.update(_digest(path))
@@ -336,6 +356,126 @@ def _shipped(name: str) -> bytes | None:
 COUNTS = {"stored": 0, "shipped": 0, "traced": 0}
 
 
+# This process's kernels in the order it first called them: (file name, kind), kind
+# "kernel" (the solver's, :func:`compiled`) or "jit" (:func:`stored_jit`). A run that is
+# the same every time (the demo at its default settings) stores them as its plan
+# (:func:`write_plan`), from which its next cold run compiles ahead (:func:`compile_ahead`).
+USED: list[tuple[str, str]] = []
+PLAN_SUFFIX = ".plan.json"
+# compile_ahead's work: kernel file name -> Future of (Exported, compiled program, origin)
+_AHEAD: dict[str, concurrent.futures.Future] = {}
+
+
+def _used(name: str, kind: str) -> None:
+    if (name, kind) not in USED:
+        USED.append((name, kind))
+
+
+def _blob(name: str) -> tuple[bytes | None, str]:
+    """The bytes of the stored file ``name`` and where they came from: the user's store,
+    else the shipped pack (``(None, "")``: neither has it)."""
+    where = folder()
+    if where is not None:
+        try:
+            return (where / name).read_bytes(), "stored"
+        except OSError:
+            pass
+    blob = _shipped(name)
+    return (blob, "shipped") if blob is not None else (None, "")
+
+
+def write_plan(plan: str) -> None:
+    """Store :data:`USED` as the plan ``plan`` (``NAME.plan.json`` in the kernel store; the
+    pack ships the demo's, ``tools.ship_kernels``). Nothing where the store is off."""
+    where = folder()
+    if where is not None and USED:
+        try:
+            outputs.write_json(where / f"{plan}{PLAN_SUFFIX}", USED, indent=None)
+        except OSError as err:  # a full disk: the next run compiles as it goes
+            log.debug("plan %s not stored: %s", plan, err)
+
+
+def compile_ahead(plan: str) -> int:
+    """Compile the kernels of the plan ``plan`` (:func:`write_plan`) on one background
+    thread, in the order that run first called them, while this run works on the others.
+
+    Why: a cold demo waits ~77 s (of ~180 s, --quick) for XLA to compile its 17 stored
+    kernels, one at a time, while a core is idle (CPU 1.3 x wall; profile_compile.py,
+    session 41); compiled ahead, each is ready when called. A kernel called while still
+    queued is cancelled and compiled by its caller (waiting would also wait for the queue
+    before it); one being compiled is waited for. The store must be on (:func:`folder`),
+    and nothing is compiled that the run does not read from the store or the pack (a
+    stale plan's names are skipped). Returns the number of kernels queued;
+    :func:`cancel_ahead` drops what is left."""
+    if folder() is None or len(jax.local_devices()) > 1:
+        return 0
+    blob, _ = _blob(plan + PLAN_SUFFIX)
+    try:
+        entries = [(str(n), str(k)) for n, k in json.loads(blob or b"[]")]
+    except (ValueError, TypeError):
+        return 0
+    if not entries:
+        return 0
+    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="mfdesign-compile-ahead")
+    queued = 0
+    for name, kind in entries:
+        if name not in _AHEAD:
+            _AHEAD[name] = pool.submit(_compile_one, name, kind)
+            queued += 1
+    pool.shutdown(wait=False)  # its thread ends with the queue
+    return queued
+
+
+def _compile_one(name: str, kind: str):
+    """The stored kernel ``name`` compiled as its caller would compile it (the same program,
+    named alike: the compilation cache serves either), or None where it is missing."""
+    from jax import export
+
+    from mfdesign._memory import malloc_trim
+
+    blob, origin = _blob(name)
+    if blob is None:
+        return None
+    exported = export.deserialize(bytearray(blob))
+    fn = exported.call
+    if kind == "kernel":  # as compiled() names it
+
+        def fn(*xs):
+            return exported.call(*xs)
+
+        fn.__name__ = name.split("-")[0]
+    avals = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type) for a in exported.in_avals]
+    program = jax.jit(fn).lower(*avals).compile()
+    # this thread's heap arena keeps what XLA freed (~0.4 GB over the demo's kernels,
+    # session 41): given back, as release_memory does for the main thread's
+    malloc_trim()
+    return exported, program, origin
+
+
+def _take_ahead(name: str):
+    """(Exported, compiled program) of kernel ``name`` compiled ahead, or None (not queued,
+    still queued: cancelled, or failed)."""
+    job = _AHEAD.pop(name, None)
+    if job is None or job.cancel():
+        return None
+    try:
+        got = job.result()
+    except Exception as err:  # noqa: BLE001 -- compiled by the caller instead
+        log.debug("kernel %s not compiled ahead: %s", name, err)
+        return None
+    if got is None:
+        return None
+    COUNTS[got[2]] += 1
+    return got[0], got[1]
+
+
+def cancel_ahead() -> None:
+    """Drop the kernels queued by :func:`compile_ahead` and not called (the one compiling finishes)."""
+    while _AHEAD:
+        _, job = _AHEAD.popitem()
+        job.cancel()
+
+
 def stale_shipped() -> list[str]:
     """The shipped kernels whose sources changed since they were packed (their
     ``.roots.json`` hash differs from today's, or is missing): each is traced again in a
@@ -407,6 +547,10 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
     except Exception as err:  # noqa: BLE001 -- no key (a source unreadable): compile as before
         log.debug("kernel %s has no key (%s): compiled directly", kernel.__name__, err)
         return jax.jit(flat).lower(*leaves).compile()
+    _used(path.name, "kernel")
+    ahead = _take_ahead(path.name)
+    if ahead is not None:
+        return ahead[1]
     exported = _read(path)
     if exported is None:
         try:
@@ -535,6 +679,15 @@ def stored_jit(fn: Callable) -> Callable:
         program = _PROGRAMS.get(key)
         if program is None:
             path = where / f"{fn.__name__}-{key}{SUFFIX}"
+            _used(path.name, "jit")
+            ahead = _take_ahead(path.name)
+            if ahead is not None:
+                # later calls: the same program, from the compilation cache the ahead wrote
+                program = _PROGRAMS[key] = jax.jit(ahead[0].call)
+                try:
+                    return ahead[1](*leaves)
+                except (TypeError, ValueError):  # an argument's weak type differs: the jitted call takes it
+                    return program(*leaves)
             exported = _read(path)
             if exported is None:
 

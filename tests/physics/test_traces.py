@@ -307,3 +307,61 @@ def test_stored_jit_keys_a_module_level_lambda_by_its_code():
     # an MLP as the ensemble builds them: its default final activation is equinox's lambda
     mlp = eqx.nn.MLP(2, 2, 4, 1, activation=jnp.tanh, key=jax.random.key(0))
     assert _traces._key_bytes(eqx.filter(mlp, eqx.is_array, inverse=True))
+
+
+@pytest.fixture
+def ahead_clean():
+    _traces.USED.clear()
+    _traces.cancel_ahead()
+    yield
+    _traces.cancel_ahead()
+    _traces.USED.clear()
+
+
+def test_a_plan_compiles_its_kernels_ahead_and_the_caller_takes_them(stored_jit_store, exports, ahead_clean):
+    """A run's kernels in the order it called them (its plan) compile on a background
+    thread in the next process; the calls then take those programs: same results, no
+    trace, counted by where the module came from."""
+    m, x = _Scale(jnp.array([1.0, 2.0]), 2.0), np.array([3.0, 4.0])
+    _stored_affine(m, x, 1)
+    l1, l2 = np.array([1.2, 1.5]), np.array([1.1, 0.9])
+    _compile(l1, l2)
+    assert [kind for _, kind in _traces.USED] == ["jit", "kernel"]
+    _traces.write_plan("run")
+    assert (stored_jit_store / "run.plan.json").is_file()
+    _traces._PROGRAMS.clear()  # a new process
+    before = dict(_traces.COUNTS)
+    assert _traces.compile_ahead("run") == 2
+    jobs = list(_traces._AHEAD.values())
+    for job in jobs:
+        job.result(timeout=120)
+    np.testing.assert_array_equal(_stored_affine(m, x + 1, 1), 2.0 * m.w * (x + 1) + 1)
+    program, leaves = _compile(l1 + 0.1, l2)
+    np.testing.assert_allclose(program(*leaves), np.asarray(first_invariant(l1 + 0.1, l2)), rtol=1e-15)
+    assert program is jobs[1].result()[1]  # the kernel compiled ahead, not compiled again
+    assert not _traces._AHEAD and len(exports) == 2
+    assert _traces.COUNTS["stored"] == before["stored"] + 2
+    assert _traces.compile_ahead("no-such-plan") == 0
+
+
+def test_a_kernel_still_queued_is_compiled_by_its_caller(stored_jit_store, ahead_clean):
+    """Waiting for a queued kernel would wait for the queue before it: the caller cancels it."""
+    import concurrent.futures
+
+    m, x = _Scale(jnp.array([1.0, 2.0]), 2.0), np.array([3.0, 4.0])
+    _stored_affine(m, x, 1)
+    ((name, _),) = _traces.USED
+    _traces._PROGRAMS.clear()
+    queued: concurrent.futures.Future = concurrent.futures.Future()  # never started
+    _traces._AHEAD[name] = queued
+    np.testing.assert_array_equal(_stored_affine(m, x, 1), 2.0 * m.w * x + 1)
+    assert queued.cancelled() and not _traces._AHEAD
+
+
+def test_a_demo_has_a_plan_only_at_its_default_settings():
+    from mfdesign.workflows.demo import BUNDLED, DemoSettings, _plan_name
+
+    assert _plan_name(DemoSettings(), BUNDLED) == "demo-full"
+    assert _plan_name(DemoSettings.quick(), BUNDLED) == "demo-quick"
+    assert _plan_name(DemoSettings(seed=1), BUNDLED) is None
+    assert _plan_name(DemoSettings(), "elsewhere.parquet") is None
