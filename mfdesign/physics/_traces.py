@@ -362,7 +362,7 @@ COUNTS = {"stored": 0, "shipped": 0, "traced": 0}
 # (:func:`write_plan`), from which its next cold run compiles ahead (:func:`compile_ahead`).
 USED: list[tuple[str, str]] = []
 PLAN_SUFFIX = ".plan.json"
-# compile_ahead's work: kernel file name -> Future of (Exported, compiled program, origin)
+# compile_ahead's work: kernel file name -> Future (True: compiled into the compilation cache)
 _AHEAD: dict[str, concurrent.futures.Future] = {}
 
 
@@ -397,16 +397,19 @@ def write_plan(plan: str) -> None:
 
 def compile_ahead(plan: str) -> int:
     """Compile the kernels of the plan ``plan`` (:func:`write_plan`) on one background
-    thread, in the order that run first called them, while this run works on the others.
+    thread, in the order that run first called them, into the persistent compilation cache,
+    while this run works on the others.
 
     Why: a cold demo waits ~77 s (of ~180 s, --quick) for XLA to compile its 17 stored
     kernels, one at a time, while a core is idle (CPU 1.3 x wall; profile_compile.py,
-    session 41); compiled ahead, each is ready when called. A kernel called while still
-    queued is cancelled and compiled by its caller (waiting would also wait for the queue
-    before it); one being compiled is waited for. The store must be on (:func:`folder`),
-    and nothing is compiled that the run does not read from the store or the pack (a
-    stale plan's names are skipped). Returns the number of kernels queued;
-    :func:`cancel_ahead` drops what is left."""
+    session 41). Compiled ahead, each caller finds its program in the compilation cache
+    (the same program, named alike) and loads it. The programs themselves are not kept:
+    held until called, the full demo's 18 took ~0.38 GB (session 41). A caller of a kernel
+    still queued cancels it and compiles it itself (waiting would also wait for the queue
+    before it); a caller of one being compiled waits for it (:func:`_wait_ahead`). The
+    store must be on (:func:`folder`, which needs the compilation cache), and a plan's
+    names that neither the store nor the pack holds are skipped. Returns the number of
+    kernels queued; :func:`cancel_ahead` drops what is left."""
     if folder() is None or len(jax.local_devices()) > 1:
         return 0
     blob, _ = _blob(plan + PLAN_SUFFIX)
@@ -426,16 +429,16 @@ def compile_ahead(plan: str) -> int:
     return queued
 
 
-def _compile_one(name: str, kind: str):
-    """The stored kernel ``name`` compiled as its caller would compile it (the same program,
-    named alike: the compilation cache serves either), or None where it is missing."""
+def _compile_one(name: str, kind: str) -> bool:
+    """Compile the stored kernel ``name`` as its caller would (the same program, named
+    alike, so the compilation cache holds it for the caller); False where it is missing."""
     from jax import export
 
     from mfdesign._memory import malloc_trim
 
-    blob, origin = _blob(name)
+    blob, _ = _blob(name)
     if blob is None:
-        return None
+        return False
     exported = export.deserialize(bytearray(blob))
     fn = exported.call
     if kind == "kernel":  # as compiled() names it
@@ -445,28 +448,23 @@ def _compile_one(name: str, kind: str):
 
         fn.__name__ = name.split("-")[0]
     avals = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type) for a in exported.in_avals]
-    program = jax.jit(fn).lower(*avals).compile()
-    # this thread's heap arena keeps what XLA freed (~0.4 GB over the demo's kernels,
-    # session 41): given back, as release_memory does for the main thread's
+    jax.jit(fn).lower(*avals).compile()
+    # this thread's heap arena keeps what XLA freed: given back, as release_memory does
+    # for the main thread's
     malloc_trim()
-    return exported, program, origin
+    return True
 
 
-def _take_ahead(name: str):
-    """(Exported, compiled program) of kernel ``name`` compiled ahead, or None (not queued,
-    still queued: cancelled, or failed)."""
+def _wait_ahead(name: str) -> None:
+    """Before kernel ``name`` is compiled by its caller: wait while it is being compiled
+    ahead (the caller then loads it from the compilation cache); cancel it while queued."""
     job = _AHEAD.pop(name, None)
     if job is None or job.cancel():
-        return None
+        return
     try:
-        got = job.result()
+        job.result()
     except Exception as err:  # noqa: BLE001 -- compiled by the caller instead
         log.debug("kernel %s not compiled ahead: %s", name, err)
-        return None
-    if got is None:
-        return None
-    COUNTS[got[2]] += 1
-    return got[0], got[1]
 
 
 def cancel_ahead() -> None:
@@ -548,9 +546,7 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
         log.debug("kernel %s has no key (%s): compiled directly", kernel.__name__, err)
         return jax.jit(flat).lower(*leaves).compile()
     _used(path.name, "kernel")
-    ahead = _take_ahead(path.name)
-    if ahead is not None:
-        return ahead[1]
+    _wait_ahead(path.name)
     exported = _read(path)
     if exported is None:
         try:
@@ -680,14 +676,7 @@ def stored_jit(fn: Callable) -> Callable:
         if program is None:
             path = where / f"{fn.__name__}-{key}{SUFFIX}"
             _used(path.name, "jit")
-            ahead = _take_ahead(path.name)
-            if ahead is not None:
-                # later calls: the same program, from the compilation cache the ahead wrote
-                program = _PROGRAMS[key] = jax.jit(ahead[0].call)
-                try:
-                    return ahead[1](*leaves)
-                except (TypeError, ValueError):  # an argument's weak type differs: the jitted call takes it
-                    return program(*leaves)
+            _wait_ahead(path.name)
             exported = _read(path)
             if exported is None:
 

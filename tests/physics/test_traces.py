@@ -318,10 +318,37 @@ def ahead_clean():
     _traces.USED.clear()
 
 
-def test_a_plan_compiles_its_kernels_ahead_and_the_caller_takes_them(stored_jit_store, exports, ahead_clean):
+@pytest.fixture
+def compilation_cache(tmp_path, monkeypatch):
+    """JAX's persistent compilation cache on in a fresh folder (every program written), and
+    the names of the programs read back from it; the process's own settings restored after."""
+    from jax._src import compilation_cache as cc
+    from jax._src import compiler
+
+    hits: list[str] = []
+    log_hit = compiler.log_persistent_cache_hit
+    monkeypatch.setattr(compiler, "log_persistent_cache_hit", lambda name, key: (hits.append(name), log_hit(name, key)))
+    names = (
+        "jax_compilation_cache_dir",
+        "jax_persistent_cache_min_compile_time_secs",
+        "jax_persistent_cache_min_entry_size_bytes",
+    )
+    old = {n: getattr(jax.config, n) for n in names}
+    for n, v in zip(names, (str(tmp_path / "xla"), 0.0, 0)):
+        jax.config.update(n, v)
+    cc.reset_cache()
+    yield hits
+    for n, v in old.items():
+        jax.config.update(n, v)
+    cc.reset_cache()
+
+
+def test_a_plan_compiles_its_kernels_ahead_into_the_compilation_cache(
+    stored_jit_store, exports, ahead_clean, compilation_cache
+):
     """A run's kernels in the order it called them (its plan) compile on a background
-    thread in the next process; the calls then take those programs: same results, no
-    trace, counted by where the module came from."""
+    thread in the next process; the calls then load those programs from the compilation
+    cache (no compilation, no trace), with the same results."""
     m, x = _Scale(jnp.array([1.0, 2.0]), 2.0), np.array([3.0, 4.0])
     _stored_affine(m, x, 1)
     l1, l2 = np.array([1.2, 1.5]), np.array([1.1, 0.9])
@@ -329,18 +356,20 @@ def test_a_plan_compiles_its_kernels_ahead_and_the_caller_takes_them(stored_jit_
     assert [kind for _, kind in _traces.USED] == ["jit", "kernel"]
     _traces.write_plan("run")
     assert (stored_jit_store / "run.plan.json").is_file()
-    _traces._PROGRAMS.clear()  # a new process
-    before = dict(_traces.COUNTS)
+    # a new process: its own programs and a compilation cache with none of the kernels
+    _traces._PROGRAMS.clear()
+    jax.clear_caches()
+    for entry in (stored_jit_store.parent / "xla").iterdir():
+        entry.unlink()
     assert _traces.compile_ahead("run") == 2
-    jobs = list(_traces._AHEAD.values())
-    for job in jobs:
-        job.result(timeout=120)
+    for job in list(_traces._AHEAD.values()):
+        assert job.result(timeout=120)
+    compilation_cache.clear()
     np.testing.assert_array_equal(_stored_affine(m, x + 1, 1), 2.0 * m.w * (x + 1) + 1)
     program, leaves = _compile(l1 + 0.1, l2)
     np.testing.assert_allclose(program(*leaves), np.asarray(first_invariant(l1 + 0.1, l2)), rtol=1e-15)
-    assert program is jobs[1].result()[1]  # the kernel compiled ahead, not compiled again
+    assert {"jit_call", "jit_first_invariant"} <= set(compilation_cache), compilation_cache
     assert not _traces._AHEAD and len(exports) == 2
-    assert _traces.COUNTS["stored"] == before["stored"] + 2
     assert _traces.compile_ahead("no-such-plan") == 0
 
 
