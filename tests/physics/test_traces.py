@@ -4,6 +4,7 @@ new process compiles them without tracing them again (issue 40)."""
 from __future__ import annotations
 
 import pickle
+import sys
 
 import equinox as eqx
 import jax
@@ -394,3 +395,22 @@ def test_a_demo_has_a_plan_only_at_its_default_settings():
     assert _plan_name(DemoSettings.quick(), BUNDLED) == "demo-quick"
     assert _plan_name(DemoSettings(seed=1), BUNDLED) is None
     assert _plan_name(DemoSettings(), "elsewhere.parquet") is None
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's own nice value is Linux's")
+def test_compiling_ahead_takes_only_idle_cpu():
+    """The ahead thread runs at the lowest priority, the rest of the process as it was."""
+    import os
+    import threading
+
+    main = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    seen: list[int] = []
+
+    def worker():
+        _traces._lowest_priority()
+        seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+
+    t = threading.Thread(target=worker)
+    t.start()
+    t.join()
+    assert seen == [19] and os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == main
