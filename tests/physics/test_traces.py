@@ -397,6 +397,15 @@ def test_a_demo_has_a_plan_only_at_its_default_settings():
     assert _plan_name(DemoSettings(), "elsewhere.parquet") is None
 
 
+def test_a_demo_compiles_ahead_only_where_no_earlier_run_stored_its_plan(store, ahead_clean):
+    from mfdesign.workflows.demo import _plan_stored
+
+    assert not _plan_stored("demo-quick")  # a cold store: compiled ahead
+    _traces.USED.append(("k.jaxexport", "jit"))
+    _traces.write_plan("demo-quick")
+    assert _plan_stored("demo-quick")  # warm: its programs are in the compilation cache
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's own nice value is Linux's")
 def test_compiling_ahead_takes_only_idle_cpu():
     """The ahead thread runs at the lowest priority, the rest of the process as it was."""
