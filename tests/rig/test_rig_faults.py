@@ -3,6 +3,7 @@ pump off, valve open, actuators stop), loses no recorded sample, and the rig log
 happened."""
 
 import os
+import re
 import signal
 import threading
 import time
@@ -119,12 +120,18 @@ def test_disconnect_mid_trial_then_resume(tmp_path):
             run_job(em.port, tmp_path, plan(), cfg, progress=False)
         elapsed = time.monotonic() - t0
     assert em.closed and fault.started_wall is not None
-    # the pty is gone, so nothing can arrive; the host still tried s, q, h and closed the port
+    # the host tried s, q, h and closed the port; each write fails once the pty is gone,
+    # but the read can fail first, while the pty still takes writes (CI on 3cafbdb: all
+    # three "sent" after the read's EIO), so either outcome is logged per command
     assert_no_lost_samples(em, tmp_path)
     assert ends(tmp_path)[-1]["status"] == "aborted"
     log = log_text(tmp_path)
     assert "FAULT disconnected: serial port lost" in log
-    assert "SAFE STATE (fault disconnected): PUMP_OFF 's' FAILED, VALVE_OPEN 'q' FAILED, BOTH_STOP 'h' FAILED" in log
+    assert re.search(
+        r"SAFE STATE \(fault disconnected\): PUMP_OFF 's' (sent|FAILED), VALVE_OPEN 'q' (sent|FAILED), "
+        r"BOTH_STOP 'h' (sent|FAILED)",
+        log,
+    ), log
     assert "job stopped: RigDisconnected" in log
     assert elapsed < 5
     n_before = len(read_samples(tmp_path))
