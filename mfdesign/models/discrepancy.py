@@ -23,9 +23,10 @@ carries the shape near the data)::
   ensemble has no constant term, the prior term grows as ``p / p_ref`` with ``p_ref`` the
   training rows' RMS pressure, so ``sigma`` is the spread at a typical pressure).
 
-``l`` and ``sigma`` come from the training data by leave-one-membrane-out
+``l`` and ``sigma`` come from the training data by leave-one-membrane-out (beyond
+:data:`GATE_FOLDS` membranes, folds of several: every K-th membrane)
 (:func:`fit_gated`): every fold's ensemble is trained at once, with the full one
-(``member_weight`` masks the held-out membrane), ``l`` is the shortest candidate whose held-out mean square of the
+(``member_weight`` masks the held-out membranes), ``l`` is the shortest candidate whose held-out mean square of the
 residual is within one standard error of the best, the error of the paired difference
 over the held-out membranes (``0``: no transfer between membranes, a reference row;
 ``inf``: the ungated ensemble), and
@@ -56,6 +57,12 @@ LENGTHS = (0.0, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5, 2.5, math.inf)
 TIE_REL = 0.005  # held-out RMSEs this close are a tie (in words: "about zero")
 N_FEATURES_RFF = 128  # random Fourier features of the prior draw z_s
 GATE_FILE = "gate.json"
+# Folds of the gate's cross-validation at most: membranes beyond this many share folds
+# (round-robin over their ids, so a fold holds every K-th membrane), as Campbell et al. 2025
+# cross-validated 22 membranes 11-fold. Every fold is M ensemble members trained at once:
+# leave-one-membrane-out on a round of 22 membranes trained 23 x 8 = 184 members, 2.5 x the
+# time of 12 x 8 (~36 against ~90 training steps/s on 2 cores; issue 40).
+GATE_FOLDS = 11
 
 
 class Discrepancy(eqx.Module):
@@ -220,7 +227,7 @@ def _one_se_choice(mse, per_membrane) -> int:
 
 
 def _fit_with_folds(config, design, h_mm, p_pa, r, w, row_fold, n_folds, key, progress):
-    """The full ensemble and every leave-one-membrane-out fold's, in ONE training run of
+    """The full ensemble and every cross-validation fold's, in ONE training run of
     ``(K + 1) M`` members: block 0 sees every row (weight 1), block ``j + 1`` is blind to
     the rows of fold ``j`` (``row_fold`` [n] in 0..K-1). Members train independently
     (their own minibatches, Adam element-wise), so block 0 is an ordinary M-member fit;
@@ -246,8 +253,10 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
 
     One ensemble on every row (the discrepancy near the data). With three or more
     membranes, the same training run also holds ``K x M`` members, member block ``j`` blind
-    to membrane ``j`` (leave-one-membrane-out; one run, one compile: :func:`_fit_with_folds`):
-    each candidate of
+    to membrane ``j`` (leave-one-membrane-out; one run, one compile: :func:`_fit_with_folds`;
+    with more than :data:`GATE_FOLDS` membranes, ``K = GATE_FOLDS`` folds, fold ``j``
+    holding out every membrane whose index is ``j`` modulo ``K``, and a row's gate distance
+    is to the nearest membrane its fold saw): each candidate of
     :data:`LENGTHS` is scored by the held-out RMSE of ``resid - g delta_j``; the shortest
     length within one standard error of the best wins (the one-standard-error rule, on the
     membranes' paired differences to the best), and
@@ -279,15 +288,19 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
         return Discrepancy(
             full, jnp.asarray(anchors), math.inf, 0.0, tuple(tuple(sorted(x.items())) for x in report), p_ref
         )
-    row_fold = np.searchsorted(ids, membrane)
-    full, pred = _fit_with_folds(config, design, h_mm, p_pa, r, w, row_fold, len(ids), k0, progress)
+    row_membrane = np.searchsorted(ids, membrane)
+    n_folds = min(len(ids), GATE_FOLDS)
+    membrane_fold = np.arange(len(ids)) % n_folds  # one membrane a fold up to GATE_FOLDS
+    row_fold = membrane_fold[row_membrane]
+    full, pred = _fit_with_folds(config, design, h_mm, p_pa, r, w, row_fold, n_folds, k0, progress)
     if noise_n is None:
         noise_n = float(np.sqrt(np.average((r - pred[0]) ** 2, weights=w)))
     d_held = pred[1:][row_fold, np.arange(len(r))]  # each row by the fold blind to its membrane
     feats = np.asarray(membrane_features(design))
     fa = np.asarray(membrane_features(anchors))
     d2 = np.sum((feats[:, None, :] - fa[None, :, :]) ** 2, -1)
-    d2[np.arange(len(r)), row_fold] = np.inf  # the nearest OTHER membrane
+    # the nearest membrane its fold saw: not its own, nor one held out beside it
+    d2[row_fold[:, None] == membrane_fold[None, :]] = np.inf
     d2 = d2.min(1)
     rows, per_membrane = [], []
     for ell in LENGTHS:
@@ -299,7 +312,9 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
         rows.append(
             {"length": None if math.isinf(ell) else ell, "heldout_rmse_n": rmse, "sigma_n": math.sqrt(max(s2, 0.0))}
         )
-        per_membrane.append([np.average(e2[row_fold == j], weights=w[row_fold == j]) for j in range(len(ids))])
+        per_membrane.append(
+            [np.average(e2[row_membrane == j], weights=w[row_membrane == j]) for j in range(len(ids))]
+        )
     best = _one_se_choice(np.array([r_["heldout_rmse_n"] ** 2 for r_ in rows]), np.asarray(per_membrane))
     ell = LENGTHS[best]
     sigma = rows[best]["sigma_n"] if not math.isinf(ell) else 0.0

@@ -185,3 +185,35 @@ def test_one_training_run_serves_the_full_ensemble_and_every_fold(monkeypatch):
     _, pred2 = _fit_with_folds(CFG, d, h, p, shuffled, np.ones(len(h)), m, 3, jax.random.PRNGKey(0), False)
     np.testing.assert_array_equal(pred2[2], pred[2])  # blind to membrane 1
     assert np.max(np.abs(pred2[0] - pred[0])) > 1e-3 and np.max(np.abs(pred2[1] - pred[1])) > 1e-3
+
+
+def test_more_membranes_than_gate_folds_share_folds(monkeypatch):
+    """Beyond GATE_FOLDS membranes the gate cross-validates K-fold (membrane i in fold i mod
+    K): one run of (K + 1) M members, not (n + 1) M; a row's held-out prediction comes from
+    the fold blind to its membrane and to its fold-mates, and the rule still tells a shared
+    discrepancy (transfer) from one offset per membrane (none)."""
+    import mfdesign.models.discrepancy as disc
+    import mfdesign.models.ensemble as ens
+
+    monkeypatch.setattr(disc, "GATE_FOLDS", 3)
+    calls, blind = [], []
+    fit = ens.fit_ensemble
+
+    def spy(cfg, *a, member_weight=None, **k):
+        calls.append(cfg.n_members)
+        blind.append(member_weight)
+        return fit(cfg, *a, member_weight=member_weight, **k)
+
+    monkeypatch.setattr(ens, "fit_ensemble", spy)
+    d, h, p, m = _rows(DESIGNS)
+    w = np.ones(len(h))
+    rng = np.random.default_rng(1)
+    shared = fit_gated(CFG, d, h, p, 4.0 * np.sin(h / 20.0) + 0.1 * rng.standard_normal(len(h)), w, m, key=0)
+    assert calls == [4 * CFG.n_members]
+    seen = blind[0][:: CFG.n_members]  # one row of weights a block
+    for j in range(3):  # fold j is blind to membranes j, j + 3 and sees the rest
+        np.testing.assert_array_equal(seen[j + 1] == 0, (m % 3) == j)
+    assert shared.length >= 0.75, shared.selection()
+    assert len(shared.selection()) == len(disc.LENGTHS)
+    own = np.array([3.0, -4.0, 5.0, -3.0, 4.0])[m] + 0.1 * rng.standard_normal(len(h))
+    assert fit_gated(CFG, d, h, p, own, w, m, key=0).length <= 0.2
