@@ -312,9 +312,7 @@ def fit_gated(config, design, h_mm, p_pa, resid_n, weight, membrane, noise_n=Non
         rows.append(
             {"length": None if math.isinf(ell) else ell, "heldout_rmse_n": rmse, "sigma_n": math.sqrt(max(s2, 0.0))}
         )
-        per_membrane.append(
-            [np.average(e2[row_membrane == j], weights=w[row_membrane == j]) for j in range(len(ids))]
-        )
+        per_membrane.append([np.average(e2[row_membrane == j], weights=w[row_membrane == j]) for j in range(len(ids))])
     best = _one_se_choice(np.array([r_["heldout_rmse_n"] ** 2 for r_ in rows]), np.asarray(per_membrane))
     ell = LENGTHS[best]
     sigma = rows[best]["sigma_n"] if not math.isinf(ell) else 0.0

@@ -18,6 +18,11 @@ never used by code that would trace it differently (a lab's own effect file,
 mfdesign are stored (a closure's captured values are not in the key). The demo's kernels
 also ship in the package (:data:`SHIPPED_NAME`). Any failure (no folder, a kernel export refuses, a damaged file) falls
 back to tracing as before: the store can only save time.
+
+A run that calls the same kernels in the same order every time (the default demo) stores
+that order as a plan (:data:`USED`, :func:`write_plan`; the pack ships the demo's), and the
+next run on an empty compilation cache compiles the plan's kernels on a background thread
+while it works (:func:`compile_ahead`; a caller waits for, or cancels, its own kernel).
 """
 
 from __future__ import annotations
@@ -371,25 +376,27 @@ def _used(name: str, kind: str) -> None:
         USED.append((name, kind))
 
 
-def _blob(name: str) -> tuple[bytes | None, str]:
-    """The bytes of the stored file ``name`` and where they came from: the user's store,
-    else the shipped pack (``(None, "")``: neither has it)."""
+def _blob(name: str) -> bytes | None:
+    """The bytes of the stored file ``name``: the user's store, else the shipped pack (None:
+    neither has it)."""
     where = folder()
     if where is not None:
         try:
-            return (where / name).read_bytes(), "stored"
+            return (where / name).read_bytes()
         except OSError:
             pass
-    blob = _shipped(name)
-    return (blob, "shipped") if blob is not None else (None, "")
+    return _shipped(name)
 
 
 def write_plan(plan: str) -> None:
     """Store :data:`USED` as the plan ``plan`` (``NAME.plan.json`` in the kernel store; the
-    pack ships the demo's, ``tools.ship_kernels``). Nothing where the store is off."""
+    pack ships the demo's, ``tools.ship_kernels``). Nothing where the store is off. The
+    store's folder is made first: a cold run that read every kernel from the pack stored
+    none, and had no folder yet."""
     where = folder()
     if where is not None and USED:
         try:
+            where.mkdir(parents=True, exist_ok=True)
             outputs.write_json(where / f"{plan}{PLAN_SUFFIX}", USED, indent=None)
         except OSError as err:  # a full disk: the next run compiles as it goes
             log.debug("plan %s not stored: %s", plan, err)
@@ -412,7 +419,7 @@ def compile_ahead(plan: str) -> int:
     kernels queued; :func:`cancel_ahead` drops what is left."""
     if folder() is None or len(jax.local_devices()) > 1:
         return 0
-    blob, _ = _blob(plan + PLAN_SUFFIX)
+    blob = _blob(plan + PLAN_SUFFIX)
     try:
         entries = [(str(n), str(k)) for n, k in json.loads(blob or b"[]")]
     except (ValueError, TypeError):
@@ -448,7 +455,7 @@ def _compile_one(name: str, kind: str) -> bool:
 
     from mfdesign._memory import malloc_trim
 
-    blob, _ = _blob(name)
+    blob = _blob(name)
     if blob is None:
         return False
     exported = export.deserialize(bytearray(blob))

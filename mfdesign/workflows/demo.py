@@ -120,18 +120,6 @@ def _plan_stored(plan: str) -> bool:
     return store is None or (store / f"{plan}{_traces.PLAN_SUFFIX}").is_file()
 
 
-def _store_plan(plan: str) -> None:
-    """Store this run's kernel plan (:func:`mfdesign.physics._traces.write_plan`), the kernel
-    store's folder made first: a cold run that read every kernel from the pack stored none,
-    and had no folder to store its plan in."""
-    from mfdesign.physics import _traces
-
-    store = _traces.folder()
-    if store is not None:
-        store.mkdir(parents=True, exist_ok=True)
-        _traces.write_plan(plan)
-
-
 def _short(key: str) -> str:
     """A design key for people: mm to 0.01 (the JSON keeps the full key)."""
     return "[" + ", ".join("nan" if v != v else f"{v:.2f}" for v in Membrane.from_key(key).to_array()) + "]"
@@ -1178,7 +1166,7 @@ def run_demo(
     finally:  # a failed stage leaves nothing compiling behind it
         _traces.cancel_ahead()
     if plan:
-        _store_plan(plan)
+        _traces.write_plan(plan)
     summary.update(
         report=str(paths["html"]),
         json=str(paths["json"]),
