@@ -61,7 +61,7 @@ GATE_FILE = "gate.json"
 # (round-robin over their ids, so a fold holds every K-th membrane), as Campbell et al. 2025
 # cross-validated 22 membranes 11-fold. Every fold is M ensemble members trained at once:
 # leave-one-membrane-out on a round of 22 membranes trained 23 x 8 = 184 members, 2.5 x the
-# time of 12 x 8 (~36 against ~90 training steps/s on 2 cores; issue 40).
+# time of 12 x 8 (~33-37 against ~80 training steps/s on 2 cores; issue 40).
 GATE_FOLDS = 11
 
 
