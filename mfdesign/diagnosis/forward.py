@@ -344,9 +344,14 @@ class ForwardModel(RecordedForceModel):
         return _take(design, rws, jnp.asarray(rows))
 
     # -- evaluation -----------------------------------------------------------------------------
-    def _eval(self, fn, design, rows, order, t0, P, x) -> np.ndarray:
-        """``fn`` (:func:`_forward` or :func:`_jacobian`) on chunks of :data:`CHUNK` rows."""
-        n = int(design.shape[0])
+    def _eval(self, fn, meas, rows, order, t0, P, x) -> np.ndarray:
+        """``fn`` (:func:`_forward` or :func:`_jacobian`) on the rows ``rows`` of ``meas``
+        (None: all), in chunks of :data:`CHUNK` rows gathered from the whole table: one
+        gather program whatever the subset (a subset taken first compiled a gather per
+        subset size, ~30 small programs a cold diagnosis, issue 40)."""
+        design, table = self.tables(meas)
+        idx_all = np.arange(int(design.shape[0])) if rows is None else np.asarray(rows, np.int64)
+        n = len(idx_all)
         names = parameter_names(order)
         fm = self.clipped
         args = tuple(jnp.asarray(np.asarray(a, float)) for a in (t0, P, x))
@@ -354,8 +359,8 @@ class ForwardModel(RecordedForceModel):
         for a in range(0, n, CHUNK):
             b = min(a + CHUNK, n)
             # the last chunk repeats its last row up to CHUNK: every chunk shares one compile
-            idx = jnp.asarray(np.minimum(np.arange(a, a + CHUNK), n - 1))
-            d, r = (design, rows) if n == CHUNK else _take(design, rows, idx)
+            idx = jnp.asarray(idx_all[np.minimum(np.arange(a, a + CHUNK), n - 1)])
+            d, r = (design, table) if rows is None and n == CHUNK else _take(design, table, idx)
             out.append(np.asarray(fn(fm, order, names, self.base_params, *args, d, r))[: b - a])
         return np.concatenate(out, axis=0)
 
@@ -389,8 +394,7 @@ class ForwardModel(RecordedForceModel):
         fx.split_theta([fx.effect(e) for e in effects], theta)  # a name outside ``effects`` is an error
         t = theta_vector(order, theta)
         self.cover(meas, order, t[None], rows)
-        design, rws = self.table(meas, rows)
-        return self._eval(_forward, design, rws, order, t, np.zeros((len(t), 1)), np.zeros(1))
+        return self._eval(_forward, meas, rows, order, t, np.zeros((len(t), 1)), np.zeros(1))
 
     def jacobian(
         self,
@@ -427,8 +431,7 @@ class ForwardModel(RecordedForceModel):
         # planes a cold screen solves; a fit that goes the other way grows the axis there.
         steps = JACOBIAN_COVER_STEP * P[:, : len(free)].T
         self.cover(meas, order, np.vstack([t[None], t + steps]), rows)
-        design, rws = self.table(meas, rows)
-        return self._eval(_jacobian, design, rws, order, t, P, np.zeros(k))[:, : len(free)]
+        return self._eval(_jacobian, meas, rows, order, t, P, np.zeros(k))[:, : len(free)]
 
     def fit(
         self,
@@ -559,7 +562,9 @@ class ExactForwardModel(ForwardModel):
         return self.lattice.model
 
     def cover(self, meas: Measurements, order: tuple, thetas: np.ndarray, rows: np.ndarray | None = None) -> bool:
-        _, rws = self.table(meas, rows)
+        # a subset padded to a power of two by its last row (its constants are among the
+        # others'): one program per size class, not per subset size (issue 40)
+        _, rws = self.table(meas, None if rows is None else pad_last(rows, padded_size(len(rows))))
         params = _row_params(order, parameter_names(order), self.base_params, rws, thetas)
         # the rows' highest gauge pressure: at s it reads the planes at p / s (the planes
         # start at twice the data's top, room for the pressure chain's gain)

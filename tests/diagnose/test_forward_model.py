@@ -146,3 +146,23 @@ def test_padded_shapes_give_the_unpadded_numbers(meas):
     np.testing.assert_allclose(x, np.asarray(x_all), rtol=1e-10, atol=1e-12)
     np.testing.assert_array_equal(ok, np.asarray(ok_all))
     assert np.allclose(x, 0.5, atol=0.05)
+
+
+def test_row_subsets_of_any_size_share_one_gather_and_give_the_rows_values(meas):
+    """The forward model gathers each chunk of a row subset from the whole table: subsets of
+    three sizes compile one gather (a subset taken first compiled one a size, ~30 small
+    programs a cold diagnosis, issue 40), and each subset's forces and derivatives are those
+    of its rows in the whole table's."""
+    from mfdesign.diagnosis import forward as fw
+
+    sim = EmulatorForwardModel(StandinForceModel())
+    whole = sim.expected_force(meas, ["contact_offset"], THETA)
+    J_whole = sim.jacobian(meas, ["contact_offset.offset_mm"], ["contact_offset"], THETA)
+    before = fw._take._cached._cache_size()
+    for n in (5, 7, 301):
+        rows = np.linspace(0, len(meas) - 1, n).astype(int)[::-1]  # any order
+        np.testing.assert_array_equal(sim.expected_force(meas, ["contact_offset"], THETA, rows=rows), whole[rows])
+        np.testing.assert_array_equal(
+            sim.jacobian(meas, ["contact_offset.offset_mm"], ["contact_offset"], THETA, rows=rows), J_whole[rows]
+        )
+    assert fw._take._cached._cache_size() - before <= 1
