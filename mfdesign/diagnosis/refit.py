@@ -27,15 +27,16 @@ import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from mfdesign._padding import pad_last, padded_size
 from mfdesign.data.measurements import Measurements
 from mfdesign.diagnosis.forward import ForwardModel, effect_order, parameter_names, theta_vector
 from mfdesign.diagnosis.residuals import Residuals, noise_floor, subsample
 from mfdesign.diagnosis.screen import lag1_autocorrelation, parameter_scale, parameter_step
 from mfdesign.physics import effects as fx
+from mfdesign.physics._traces import stored_jit
 
 __all__ = ["CheckResult", "calibrate_effects", "full_check"]
 
@@ -110,8 +111,14 @@ def _bic(sim: ForwardModel, meas, rows, target, effects, theta, resid) -> float:
     from mfdesign.models.hierarchical import CalibrationData, HierarchicalModel
 
     n = len(rows)
-    design, rws = sim.table(meas, rows)
-    data = CalibrationData(design, rws, jnp.asarray(target, float), jnp.ones(n), ("all",))
+    # padded to a power of two by the last row at weight 0 (its sum unchanged): the check's
+    # BICs on rows[keep] of other sizes share one program (~11 s to compile, issue 40)
+    size = padded_size(n)
+    design, rws = sim.table(meas, pad_last(np.asarray(rows), size))
+    weight = np.concatenate([np.ones(n), np.zeros(size - n)])
+    data = CalibrationData(
+        design, rws, jnp.asarray(pad_last(np.asarray(target, float), size)), jnp.asarray(weight), ("all",)
+    )
     base = sim.base_params
     mu, jm = float(base.mu_pa), float(base.jm)
     # Every likelihood effect in the canonical order, those outside the set at their neutral
@@ -140,10 +147,11 @@ def _bic(sim: ForwardModel, meas, rows, target, effects, theta, resid) -> float:
     return k * math.log(n) - 2.0 * ll
 
 
-@eqx.filter_jit
+@stored_jit
 def _log_lik(model, x, data):
     """The model's log likelihood as one program per row count (run eagerly, each BIC compiled
-    ~25 small XLA programs in a cold demo, issue 40)."""
+    ~25 small XLA programs in a cold demo, issue 40). Stored: its ~11 s of XLA compilation
+    then run in a cold demo's plan, on the thread that compiles ahead, not in the diagnosis."""
     return model.log_lik(x, data)
 
 
