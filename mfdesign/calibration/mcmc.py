@@ -150,7 +150,7 @@ def _neg_log_post_per_row(u, args):
     return _neg_log_post(u, args) / jnp.maximum(jnp.sum(data.weight), 1.0)
 
 
-@stored_jit
+@stored_jit(fast_compile=True)
 def _map_kernel(model: HierarchicalModel, inits, data: CalibrationData, max_steps: int):
     """BFGS from every start at once, and the Hessian at every end point (one compile)."""
     import optimistix as optx

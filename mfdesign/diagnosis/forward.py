@@ -176,19 +176,19 @@ class ClippedForceModel(ForceModel):
         return ClippedForceModel(self.force_model.marking(mark), self.h_max_mm, self.p_max_pa)
 
 
-@stored_jit
+@stored_jit(fast_compile=True)
 def _forward(force_model: ClippedForceModel, order: tuple, names: tuple, base: SimParams, t0, P, x, design, rows):
     """Expected recorded force [N] of ``rows`` at ``theta = t0 + P @ x`` (all effects of ``order``)."""
     th = t0 + P @ x
     return recorded_force(force_model, design, rows, order, {n: th[i] for i, n in enumerate(names)}, base)
 
 
-@stored_jit
+@stored_jit(fast_compile=True)
 def _jacobian(force_model, order, names, base, t0, P, x, design, rows):
     return jax.jacfwd(lambda xx: _forward(force_model, order, names, base, t0, P, xx, design, rows))(x)
 
 
-@stored_jit
+@stored_jit(fast_compile=True)
 def _fit_batch(force_model, order, names, base, design, rows, obs, sigma, t0, P, w, tau, x0, max_steps: int):
     """Levenberg-Marquardt (optimistix) for a batch of problems (leading axis of t0, P, w, tau, x0), in turn:
     residuals ``[sqrt(w) (obs - F(t0 + P x)) / sigma, x / tau]`` (Gaussian-prior MAP)."""

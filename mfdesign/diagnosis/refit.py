@@ -147,7 +147,7 @@ def _bic(sim: ForwardModel, meas, rows, target, effects, theta, resid) -> float:
     return k * math.log(n) - 2.0 * ll
 
 
-@stored_jit
+@stored_jit(fast_compile=True)
 def _log_lik(model, x, data):
     """The model's log likelihood as one program per row count (run eagerly, each BIC compiled
     ~25 small XLA programs in a cold demo, issue 40). Stored: its ~11 s of XLA compilation

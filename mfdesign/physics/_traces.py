@@ -361,8 +361,27 @@ def _shipped(name: str) -> bytes | None:
 COUNTS = {"stored": 0, "shipped": 0, "traced": 0}
 
 
+# XLA's CPU compiler options of the solver's kernels (:func:`compiled`) and of the
+# ``stored_jit(fast_compile=True)`` ones (the diagnosis' fits, the MAP search): without
+# XLA's newer fusion emitters they compile in about half the time and run as fast (the
+# MAP kernel 18.0 -> 10.2 s of XLA, the diagnosis' least-squares fits 11.0 -> 7.1 s; 8
+# planes at 1.76 s each either way, equal to 6e-12 N of 460 N; a cold quick demo's
+# diagnosis 39-47 -> 30 s; session 43). The design searches' and the ensembles' kernels
+# keep the emitters: set for every program (XLA_FLAGS), propose and optimise ran 2.5-3.6 x
+# slower. The options are part of a program's key in the compilation cache, so a kernel
+# compiled ahead (:func:`_compile_one`) is compiled with its caller's.
+FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
+FAST_KINDS = ("kernel", "jit-fast")
+
+
+def _options(kind: str) -> dict | None:
+    """The compiler options of a stored program of ``kind`` (:data:`USED`)."""
+    return FAST_COMPILE if kind in FAST_KINDS else None
+
+
 # This process's kernels in the order it first called them: (file name, kind), kind
-# "kernel" (the solver's, :func:`compiled`) or "jit" (:func:`stored_jit`). A run that is
+# "kernel" (the solver's, :func:`compiled`), "jit" or "jit-fast" (:func:`stored_jit`,
+# compiled with :data:`FAST_COMPILE` or not). A run that is
 # the same every time (the demo at its default settings) stores them as its plan
 # (:func:`write_plan`), from which its next cold run compiles ahead (:func:`compile_ahead`).
 USED: list[tuple[str, str]] = []
@@ -467,7 +486,7 @@ def _compile_one(name: str, kind: str) -> bool:
 
         fn.__name__ = name.split("-")[0]
     avals = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type) for a in exported.in_avals]
-    jax.jit(fn).lower(*avals).compile()
+    jax.jit(fn, compiler_options=_options(kind)).lower(*avals).compile()
     # this thread's heap arena keeps what XLA freed: given back, as release_memory does
     # for the main thread's
     malloc_trim()
@@ -557,13 +576,13 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
     stored) on the way; traced the usual way where the store is off or the export fails."""
     where = folder()
     if where is None or not _storable(kernel):
-        return jax.jit(flat).lower(*leaves).compile()
+        return jax.jit(flat, compiler_options=FAST_COMPILE).lower(*leaves).compile()
 
     try:
         path = _module_file(where, kernel, static, tree, signature)
     except Exception as err:  # noqa: BLE001 -- no key (a source unreadable): compile as before
         log.debug("kernel %s has no key (%s): compiled directly", kernel.__name__, err)
-        return jax.jit(flat).lower(*leaves).compile()
+        return jax.jit(flat, compiler_options=FAST_COMPILE).lower(*leaves).compile()
     _used(path.name, "kernel")
     _wait_ahead(path.name)
     exported = _read(path)
@@ -572,7 +591,7 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
             exported = _export(flat, leaves)
         except Exception as err:  # noqa: BLE001 -- e.g. a host callback: compile as before
             log.debug("kernel %s not exported (%s): compiled directly", kernel.__name__, err)
-            return jax.jit(flat).lower(*leaves).compile()
+            return jax.jit(flat, compiler_options=FAST_COMPILE).lower(*leaves).compile()
         avals = [_Aval(tuple(shape), str(dtype), bool(weak)) for shape, dtype, weak in signature]
         if _write(path, exported, _roots(kernel, static, jax.tree.unflatten(tree, avals))):
             _list_shapes(where, kernel, static, tree, signature)
@@ -581,7 +600,7 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
         return exported.call(*xs)
 
     call.__name__ = kernel.__name__  # the program's name in logs (profile_compile reads them)
-    return jax.jit(call).lower(*leaves).compile()
+    return jax.jit(call, compiler_options=FAST_COMPILE).lower(*leaves).compile()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -643,8 +662,10 @@ _EXPORT_FAILED: set = set()  # stored_jit functions export refused in this proce
 _PROGRAMS: dict = {}  # stored_jit: key -> jax.jit(Exported.call), for this process
 
 
-def stored_jit(fn: Callable) -> Callable:
+def stored_jit(fn: Callable | None = None, *, fast_compile: bool = False) -> Callable:
     """``eqx.filter_jit(fn)``, its traced program also kept on disk for the next process.
+    ``@stored_jit(fast_compile=True)``: the stored program is compiled with
+    :data:`FAST_COMPILE` (for kernels whose compilation outweighs the emitters' speed).
 
     For a module-level function of mfdesign that a run calls a few times with large
     programs (a MAP search, an acquisition optimiser, a batch of least-squares fits): the
@@ -662,6 +683,9 @@ def stored_jit(fn: Callable) -> Callable:
     values would not be in the key), the call is under a trace (tracers), the process has
     several devices, or export refuses ``fn`` (a host callback). Not for a function called
     every MCMC step: pickling its arguments each call would cost more than it saves."""
+    if fn is None:
+        return functools.partial(stored_jit, fast_compile=fast_compile)
+    kind = "jit-fast" if fast_compile else "jit"
     jitted = eqx.filter_jit(fn)
 
     @functools.wraps(fn)
@@ -694,7 +718,7 @@ def stored_jit(fn: Callable) -> Callable:
         program = _PROGRAMS.get(key)
         if program is None:
             path = where / f"{fn.__name__}-{key}{SUFFIX}"
-            _used(path.name, "jit")
+            _used(path.name, kind)
             _wait_ahead(path.name)
             exported = _read(path)
             if exported is None:
@@ -710,7 +734,7 @@ def stored_jit(fn: Callable) -> Callable:
                     _EXPORT_FAILED.add(fn)
                     return jitted(*args, **kwargs)
                 _write(path, exported, roots)
-            program = _PROGRAMS[key] = jax.jit(exported.call)
+            program = _PROGRAMS[key] = jax.jit(exported.call, compiler_options=_options(kind))
         return program(*leaves)
 
     call.jitted = jitted  # type: ignore[attr-defined]  # the plain program (tests count its compilations)

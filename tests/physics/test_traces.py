@@ -234,6 +234,13 @@ def _affine(m: _Scale, x, n: int):
 _stored_affine = _traces.stored_jit(_affine)
 
 
+def _affine_minus(m: _Scale, x, n: int):
+    return m.factor * m.w * x - n
+
+
+_stored_affine_fast = _traces.stored_jit(fast_compile=True)(_affine_minus)  # FAST_COMPILE's programs
+
+
 @pytest.fixture
 def stored_jit_store(store, monkeypatch):
     """The store on for this module's functions (stored_jit stores mfdesign's alone), and
@@ -354,7 +361,8 @@ def test_a_plan_compiles_its_kernels_ahead_into_the_compilation_cache(
     _stored_affine(m, x, 1)
     l1, l2 = np.array([1.2, 1.5]), np.array([1.1, 0.9])
     _compile(l1, l2)
-    assert [kind for _, kind in _traces.USED] == ["jit", "kernel"]
+    _stored_affine_fast(m, x, 1)
+    assert [kind for _, kind in _traces.USED] == ["jit", "kernel", "jit-fast"]
     _traces.write_plan("run")
     assert (stored_jit_store / "run.plan.json").is_file()
     # a new process: its own programs and a compilation cache with none of the kernels
@@ -362,15 +370,18 @@ def test_a_plan_compiles_its_kernels_ahead_into_the_compilation_cache(
     jax.clear_caches()
     for entry in (stored_jit_store.parent / "xla").iterdir():
         entry.unlink()
-    assert _traces.compile_ahead("run") == 2
+    assert _traces.compile_ahead("run") == 3
     for job in list(_traces._AHEAD.values()):
         assert job.result(timeout=120)
     compilation_cache.clear()
     np.testing.assert_array_equal(_stored_affine(m, x + 1, 1), 2.0 * m.w * (x + 1) + 1)
     program, leaves = _compile(l1 + 0.1, l2)
     np.testing.assert_allclose(program(*leaves), np.asarray(first_invariant(l1 + 0.1, l2)), rtol=1e-15)
+    np.testing.assert_array_equal(_stored_affine_fast(m, x + 1, 1), 2.0 * m.w * (x + 1) - 1)
+    # each compiled ahead with its caller's compiler options (part of the cache's key): hits
     assert {"jit_call", "jit_first_invariant"} <= set(compilation_cache), compilation_cache
-    assert not _traces._AHEAD and len(exports) == 2
+    assert compilation_cache.count("jit_call") == 2, compilation_cache
+    assert not _traces._AHEAD and len(exports) == 3
     assert _traces.compile_ahead("no-such-plan") == 0
 
 
