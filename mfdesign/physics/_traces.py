@@ -458,9 +458,11 @@ def compile_ahead(plan: str) -> int:
 
 
 def _lowest_priority() -> None:
-    """This thread at the lowest CPU priority (Linux: a thread's nice value is its own), so
-    compiling ahead takes a core only where the run leaves it idle (at the default priority
-    it slowed the cold demo's diagnosis 38 -> 61 s, while saving ~60 s later, session 41)."""
+    """This thread at the lowest CPU priority (Linux: a thread's nice value is its own):
+    its own work (deserialising, lowering) yields to the run's. XLA's compilation itself
+    runs on jaxlib's compile threads, at their priority, not this one's (a big compile
+    beside a main thread: the nice-19 thread 4 CPU ticks, three native threads 190-530,
+    session 43), so compiling ahead still competes with the run for the CPU."""
     try:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
     except (AttributeError, OSError):  # not Linux, or not allowed: the default priority

@@ -419,7 +419,7 @@ def test_a_demo_compiles_ahead_only_where_no_earlier_run_stored_its_plan(store, 
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's own nice value is Linux's")
-def test_compiling_ahead_takes_only_idle_cpu():
+def test_the_ahead_thread_runs_at_the_lowest_priority():
     """The ahead thread runs at the lowest priority, the rest of the process as it was."""
     import os
     import threading
