@@ -112,7 +112,8 @@ def _bic(sim: ForwardModel, meas, rows, target, effects, theta, resid) -> float:
 
     n = len(rows)
     # padded to a power of two by the last row at weight 0 (its sum unchanged): the check's
-    # BICs on rows[keep] of other sizes share one program (~11 s to compile, issue 40)
+    # BICs on rows[keep] of other sizes share one program (1.9 s of XLA alone, 11.0 s beside
+    # the demo's compile-ahead thread; issue 40)
     size = padded_size(n)
     design, rws = sim.table(meas, pad_last(np.asarray(rows), size))
     weight = np.concatenate([np.ones(n), np.zeros(size - n)])
@@ -150,8 +151,8 @@ def _bic(sim: ForwardModel, meas, rows, target, effects, theta, resid) -> float:
 @stored_jit(fast_compile=True)
 def _log_lik(model, x, data):
     """The model's log likelihood as one program per row count (run eagerly, each BIC compiled
-    ~25 small XLA programs in a cold demo, issue 40). Stored: its ~11 s of XLA compilation
-    then run in a cold demo's plan, on the thread that compiles ahead, not in the diagnosis."""
+    ~25 small XLA programs in a cold demo, issue 40). Stored: a cold demo's plan compiles it
+    ahead (in the diagnosis it waited 11.0 s behind the kernels compiling ahead, session 43)."""
     return model.log_lik(x, data)
 
 
