@@ -157,6 +157,10 @@ class _Tables(eqx.Module):
 
     values: jax.Array  # [prod(L), M * nh * np]: unsolved nodes 0
     unsolved: jax.Array  # [L_1 + 1, ..., L_D + 1, M * nh * np] int32: summed-area table
+    # whether any node is unsolved: only then does a contraction need the multilinear
+    # fallback and the stencil checks (a second product as large as the first: 3 of the
+    # ~11 ms a 16-walker log-posterior call spent on a round of 22 membranes, issue 40)
+    holed: jax.Array  # [] bool
     outside: jax.Array | None  # the same of the outside-model nodes; None: no node is outside
     plane: tuple = eqx.field(static=True)  # (M, nh, np)
 
@@ -180,6 +184,7 @@ def _tables(arr, out, D: int) -> _Tables:
     return _Tables(
         values=jnp.where(fin, flat, 0.0).reshape(-1, flat.shape[-1]),
         unsolved=_summed_area(~fin, D),
+        holed=~jnp.all(fin),
         outside=None if out is None else _summed_area(jnp.moveaxis(jnp.asarray(out), 0, D).reshape(flat.shape), D),
         plane=plane,
     )
@@ -595,10 +600,16 @@ class ExactForceModel(ForceModel):
             hi = [ii + jnp.max(jnp.where(z, slot, -1)) for ii, z in zip(i, nz)]
             return (_box_count(tab.outside, lo, hi) > 0).reshape(tab.plane), valid
         w = _lattice_weights(pos, arr.shape[1 : 1 + D])
-        cubic, linear = jnp.stack([w.cubic.reshape(-1), w.linear.reshape(-1)]) @ tab.values
-        stencil_solved = _box_count(tab.unsolved, i, [ii + 3 for ii in i]) == 0
-        middle_solved = _box_count(tab.unsolved, [ii + 1 for ii in i], [ii + 2 for ii in i]) == 0
-        g = jnp.where(stencil_solved, cubic, jnp.where(middle_solved, linear, jnp.nan))
+
+        def holed(_):
+            cubic, linear = jnp.stack([w.cubic.reshape(-1), w.linear.reshape(-1)]) @ tab.values
+            stencil_solved = _box_count(tab.unsolved, i, [ii + 3 for ii in i]) == 0
+            middle_solved = _box_count(tab.unsolved, [ii + 1 for ii in i], [ii + 2 for ii in i]) == 0
+            return jnp.where(stencil_solved, cubic, jnp.where(middle_solved, linear, jnp.nan))
+
+        # every node solved: the cubic product is the answer (the predicate is the planes',
+        # not a walker's: under vmap the cond stays a branch, not a select of both)
+        g = jax.lax.cond(tab.holed, holed, lambda _: w.cubic.reshape(-1) @ tab.values, None)
         return g.reshape(tab.plane), valid
 
     def _tables_of(self, k: int) -> _Tables:

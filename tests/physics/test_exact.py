@@ -199,21 +199,24 @@ def test_a_fit_at_one_edge_grows_that_axis_only(exact, monkeypatch):
     assert grown == {"jm": (-2, 3), "ring": (-2, 3)}, grown
 
 
-def test_lattice_contraction_is_the_axis_by_axis_cubic_and_falls_back_to_multilinear():
+@pytest.mark.parametrize("holed", [True, False])
+def test_lattice_contraction_is_the_axis_by_axis_cubic_and_falls_back_to_multilinear(holed):
     """The scalar-coordinate contraction (one product per walker over the lattice-first
     values, box counts of the summed-area tables for unsolved and outside nodes) equals
     the Keys cubic applied axis by axis wherever the 4 x 4 stencil is complete, falls back
     to bilinear on the 4 middle nodes near an unsolved node (NaN without them), and marks
     outside-model rows by the same nonzero-weight rule as the axis-by-axis mask: inside a
     cell, at a node (one nonzero weight per axis) and at the top edge, with the tables
-    made once (``_assemble``) or derived per call (a model made by hand)."""
+    made once (``_assemble``) or derived per call (a model made by hand). Planes without an
+    unsolved node take the cubic product alone (``holed`` False): the same numbers."""
     import jax
 
     from mfdesign.models.exact import ExactForceModel, LatticeAxis, _contract, _position, _tables, _touch
 
     rng = np.random.default_rng(0)
     arr = rng.standard_normal((2, 6, 5, 7, 8))
-    arr[0, 2, 3, 3, 4] = np.nan  # one unsolved node
+    if holed:
+        arr[0, 2, 3, 3, 4] = np.nan  # one unsolved node
     arr = jnp.asarray(arr)
     mask = arr > 1.0
     axes = (LatticeAxis("jm", -2, 4), LatticeAxis("ring", -1, 3))
@@ -228,6 +231,7 @@ def test_lattice_contraction_is_the_axis_by_axis_cubic_and_falls_back_to_multili
         return m
 
     bare, made = model(()), model((_tables(arr, mask, 2),))
+    assert bool(made.tables[0].holed) == holed
 
     def axis_by_axis(a, pos, contract):
         zero = jnp.zeros((), jnp.int32)
