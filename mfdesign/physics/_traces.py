@@ -572,19 +572,31 @@ def _write(path: Path, exported, roots: frozenset[str]) -> bool:
         return False
 
 
+def plan_stored(plan: str) -> bool:
+    """Whether an earlier run stored the kernel plan ``plan`` in this kernel store (its
+    programs then sit in the compilation cache), or the store is off."""
+    store = folder()
+    return store is None or (store / f"{plan}{PLAN_SUFFIX}").is_file()
+
+
+def _fast_compiled(fn: Callable, leaves: list):
+    """``fn`` compiled for ``leaves`` with :data:`FAST_COMPILE` (every solver kernel's path)."""
+    return jax.jit(fn, compiler_options=FAST_COMPILE).lower(*leaves).compile()
+
+
 def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree, signature: tuple):
     """``flat(*leaves)`` (``kernel`` with its arguments flattened, ``static`` bound)
     compiled ahead of time: from the stored export when there is one, else exported (and
     stored) on the way; traced the usual way where the store is off or the export fails."""
     where = folder()
     if where is None or not _storable(kernel):
-        return jax.jit(flat, compiler_options=FAST_COMPILE).lower(*leaves).compile()
+        return _fast_compiled(flat, leaves)
 
     try:
         path = _module_file(where, kernel, static, tree, signature)
     except Exception as err:  # noqa: BLE001 -- no key (a source unreadable): compile as before
         log.debug("kernel %s has no key (%s): compiled directly", kernel.__name__, err)
-        return jax.jit(flat, compiler_options=FAST_COMPILE).lower(*leaves).compile()
+        return _fast_compiled(flat, leaves)
     _used(path.name, "kernel")
     _wait_ahead(path.name)
     exported = _read(path)
@@ -593,7 +605,7 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
             exported = _export(flat, leaves)
         except Exception as err:  # noqa: BLE001 -- e.g. a host callback: compile as before
             log.debug("kernel %s not exported (%s): compiled directly", kernel.__name__, err)
-            return jax.jit(flat, compiler_options=FAST_COMPILE).lower(*leaves).compile()
+            return _fast_compiled(flat, leaves)
         avals = [_Aval(tuple(shape), str(dtype), bool(weak)) for shape, dtype, weak in signature]
         if _write(path, exported, _roots(kernel, static, jax.tree.unflatten(tree, avals))):
             _list_shapes(where, kernel, static, tree, signature)
@@ -602,7 +614,7 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
         return exported.call(*xs)
 
     call.__name__ = kernel.__name__  # the program's name in logs (profile_compile reads them)
-    return jax.jit(call, compiler_options=FAST_COMPILE).lower(*leaves).compile()
+    return _fast_compiled(call, leaves)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -111,15 +111,6 @@ def _plan_name(s: DemoSettings, data_path) -> str | None:
     return "demo-full" if s == DemoSettings() else "demo-quick" if s == DemoSettings.quick() else None
 
 
-def _plan_stored(plan: str) -> bool:
-    """Whether an earlier run stored the kernel plan ``plan`` in this kernel store (its
-    programs then sit in the compilation cache), or the store is off."""
-    from mfdesign.physics import _traces
-
-    store = _traces.folder()
-    return store is None or (store / f"{plan}{_traces.PLAN_SUFFIX}").is_file()
-
-
 def _short(key: str) -> str:
     """A design key for people: mm to 0.01 (the JSON keeps the full key)."""
     return "[" + ", ".join("nan" if v != v else f"{v:.2f}" for v in Membrane.from_key(key).to_array()) + "]"
@@ -1102,7 +1093,7 @@ def run_demo(
     # run stored it, its programs are in the compilation cache already: loading them ahead
     # only slowed a warm diagnosis (20.6 -> 25.4 s, bench_demo, session 41).
     plan = _plan_name(s, data_path)
-    if plan and not _plan_stored(plan):
+    if plan and not _traces.plan_stored(plan):
         _traces.compile_ahead(plan)
     card = json.loads(CARD.read_text()) if Path(data_path) == BUNDLED and CARD.exists() else None
     try:

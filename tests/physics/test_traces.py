@@ -409,13 +409,11 @@ def test_a_demo_has_a_plan_only_at_its_default_settings():
 
 
 def test_a_demo_compiles_ahead_only_where_no_earlier_run_stored_its_plan(store, ahead_clean):
-    from mfdesign.workflows.demo import _plan_stored
-
     assert not store.exists()  # a cold run that read every kernel from the pack stores none
-    assert not _plan_stored("demo-quick")  # a cold store: compiled ahead
+    assert not _traces.plan_stored("demo-quick")  # a cold store: compiled ahead
     _traces.USED.append(("k.jaxexport", "jit"))
     _traces.write_plan("demo-quick")  # makes the store's folder
-    assert _plan_stored("demo-quick")  # warm: its programs are in the compilation cache
+    assert _traces.plan_stored("demo-quick")  # warm: its programs are in the compilation cache
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's own nice value is Linux's")
