@@ -488,7 +488,7 @@ def _compile_one(name: str, kind: str) -> bool:
 
         fn.__name__ = name.split("-")[0]
     avals = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type) for a in exported.in_avals]
-    jax.jit(fn, compiler_options=_options(kind)).lower(*avals).compile()
+    _compiled_as(kind, fn, avals)
     # this thread's heap arena keeps what XLA freed: given back, as release_memory does
     # for the main thread's
     malloc_trim()
@@ -579,9 +579,11 @@ def plan_stored(plan: str) -> bool:
     return store is None or (store / f"{plan}{PLAN_SUFFIX}").is_file()
 
 
-def _fast_compiled(fn: Callable, leaves: list):
-    """``fn`` compiled for ``leaves`` with :data:`FAST_COMPILE` (every solver kernel's path)."""
-    return jax.jit(fn, compiler_options=FAST_COMPILE).lower(*leaves).compile()
+def _compiled_as(kind: str, fn: Callable, args: list):
+    """``fn`` compiled for ``args`` (arrays or shapes) with the options of ``kind``
+    (:func:`_options`): the solver's kernels here, and a plan's kernels compiled ahead
+    with their caller's options (the compilation cache keys them)."""
+    return jax.jit(fn, compiler_options=_options(kind)).lower(*args).compile()
 
 
 def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree, signature: tuple):
@@ -590,13 +592,13 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
     stored) on the way; traced the usual way where the store is off or the export fails."""
     where = folder()
     if where is None or not _storable(kernel):
-        return _fast_compiled(flat, leaves)
+        return _compiled_as("kernel", flat, leaves)
 
     try:
         path = _module_file(where, kernel, static, tree, signature)
     except Exception as err:  # noqa: BLE001 -- no key (a source unreadable): compile as before
         log.debug("kernel %s has no key (%s): compiled directly", kernel.__name__, err)
-        return _fast_compiled(flat, leaves)
+        return _compiled_as("kernel", flat, leaves)
     _used(path.name, "kernel")
     _wait_ahead(path.name)
     exported = _read(path)
@@ -605,7 +607,7 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
             exported = _export(flat, leaves)
         except Exception as err:  # noqa: BLE001 -- e.g. a host callback: compile as before
             log.debug("kernel %s not exported (%s): compiled directly", kernel.__name__, err)
-            return _fast_compiled(flat, leaves)
+            return _compiled_as("kernel", flat, leaves)
         avals = [_Aval(tuple(shape), str(dtype), bool(weak)) for shape, dtype, weak in signature]
         if _write(path, exported, _roots(kernel, static, jax.tree.unflatten(tree, avals))):
             _list_shapes(where, kernel, static, tree, signature)
@@ -614,7 +616,7 @@ def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree
         return exported.call(*xs)
 
     call.__name__ = kernel.__name__  # the program's name in logs (profile_compile reads them)
-    return _fast_compiled(call, leaves)
+    return _compiled_as("kernel", call, leaves)
 
 
 @dataclasses.dataclass(frozen=True)
