@@ -172,7 +172,7 @@ def _fidelity_arg(predictor: AbstractPredictor, fidelity: str):
     return fidelity
 
 
-@stored_jit
+@stored_jit(fast_compile=True)
 def _grid_members(predictor, fidelity, design, grid):
     return predictor.grid_members(fidelity, design, grid)
 
@@ -248,7 +248,7 @@ def _masked(dev, mask):
     return dev if mask is None else jnp.where(mask, dev, 0.0)
 
 
-@stored_jit
+@stored_jit(fast_compile=True)
 def _screen(acq: BatchUncertainty, u0, n_rings, space):
     """Forward pass only: ``u0 [A, R, q, 6]`` (unit cube) -> deviations ``[A, R, q, M]``
     of every random batch (``jax.lax.map`` over blocks of ``SCREEN_BLOCK`` restarts)."""
@@ -286,7 +286,7 @@ def initial_batches(acq: BatchUncertainty, u0, n_rings, space: DesignSpace, n_be
 LINESEARCH_STEPS = 4
 
 
-@stored_jit
+@stored_jit(fast_compile=True)
 def _optimise(acq: BatchUncertainty, z0, n_rings, space, n_steps, mask=None):
     """``z0 [A, R, q, 6]``, ring counts ``n_rings [A]`` -> ``(u [A, R, q, 6], dev [A, R, q, M])``:
     every restart of every ring count runs ``n_steps`` L-BFGS iterations on ``-acq``

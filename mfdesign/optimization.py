@@ -410,12 +410,12 @@ def trajectory_loss(
 
 
 # --------------------------------------------------------------------------- multi-start
-@stored_jit
+@stored_jit(fast_compile=True)
 def _screen(loss, u0, batch_size: int):
     return jax.lax.map(lambda u: loss(u)[0], u0, batch_size=batch_size)
 
 
-@stored_jit
+@stored_jit(fast_compile=True)
 def _refine(loss, u0, steps: int, lr: float, batch_size: int):
     """Projected Adam from every row of ``u0`` [R, d] (vmapped, chunked); best visited point."""
     opt = optax.adam(lr)
@@ -446,7 +446,7 @@ def _decode_any(space: DesignSpace, u, n_rings):
     return space.decode_any(u, n_rings)
 
 
-@stored_jit
+@stored_jit(fast_compile=True)
 def _winner(loss: DesignLoss, u, design, grid):
     """The winner's ``aux`` and its per-member lift heights [M, K] mm on the height grid
     ``grid`` (a :class:`HeightLoss`) or model pressures [M, K] Pa on the pressure grid (a

@@ -214,7 +214,7 @@ def _delta_draws(delta, design, h_mm, p_pa, n_draws: int, key):
     return delta.draws(design, h_mm, p_pa, n_draws, key)
 
 
-@stored_jit
+@stored_jit(fast_compile=True)
 def _sim_draws(model: HierarchicalModel, theta, data: CalibrationData, key):
     return model.sample_force(theta, data, key)
 

@@ -361,27 +361,38 @@ def _shipped(name: str) -> bytes | None:
 COUNTS = {"stored": 0, "shipped": 0, "traced": 0}
 
 
-# XLA's CPU compiler options of the solver's kernels (:func:`compiled`) and of the
-# ``stored_jit(fast_compile=True)`` ones (the diagnosis' fits, the MAP search): without
-# XLA's newer fusion emitters they compile in about half the time and run as fast (the
-# MAP kernel 18.0 -> 10.2 s of XLA, the diagnosis' least-squares fits 11.0 -> 7.1 s; 8
-# planes at 1.76 s each either way, equal to 6e-12 N of 460 N; a cold quick demo's
-# diagnosis 39-47 -> 30 s; session 43). The design searches' and the ensembles' kernels
-# keep the emitters: set for every program (XLA_FLAGS), propose and optimise ran 2.5-3.6 x
-# slower. The options are part of a program's key in the compilation cache, so a kernel
-# compiled ahead (:func:`_compile_one`) is compiled with its caller's.
-FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
-FAST_KINDS = ("kernel", "jit-fast")
+# XLA's CPU compiler options by kind of stored program. Without XLA's newer fusion
+# emitters, programs compile in about half the time and run as fast (the MAP kernel 18.0 ->
+# 10.2 s of XLA, the diagnosis' least-squares fits 11.0 -> 7.1 s; 8 planes at 1.76 s each
+# either way, equal to 6e-12 N of 460 N; a cold quick demo's diagnosis 39-47 -> 30 s;
+# session 43). LLVM's optimisation level 1 instead of XLA's default cuts another 10-30 %
+# of compile time (`_refine` 10.7 -> 7.9 s, `_screen` 7.7 -> 5.7 s, `_winner` 4.6 -> 3.2 s,
+# emitters off as well) at the same run time for the programs that are mostly loops of
+# small dense maths and control flow: the diagnosis' fits, the MAP search, the design
+# searches (session 45, the quick demo's recorded arguments, `experiments/out/
+# bench_compile_options.json`). Not for:
+# - the solver's kernels ("kernel"): 13 % slower walk at level 1 (0.44 -> 0.50 s a call;
+#   the planes are most of a campaign's round);
+# - the ensembles' forward passes ("jit": `_predict`, `_delta_draws`): 1.4-2.7 x slower
+#   without the emitters. Set for every program (XLA_FLAGS), propose and optimise ran
+#   2.5-3.6 x slower.
+# The options are part of a program's key in the compilation cache, so a kernel compiled
+# ahead (:func:`_compiled_as`) is compiled with its caller's.
+OPTIONS: dict[str, dict | None] = {
+    "kernel": {"xla_cpu_use_fusion_emitters": False},
+    "jit-fast": {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1},
+    "jit": None,
+}
 
 
 def _options(kind: str) -> dict | None:
     """The compiler options of a stored program of ``kind`` (:data:`USED`)."""
-    return FAST_COMPILE if kind in FAST_KINDS else None
+    return OPTIONS[kind]
 
 
 # This process's kernels in the order it first called them: (file name, kind), kind
 # "kernel" (the solver's, :func:`compiled`), "jit" or "jit-fast" (:func:`stored_jit`,
-# compiled with :data:`FAST_COMPILE` or not). A run that is
+# compiled with :data:`OPTIONS` of their kind). A run that is
 # the same every time (the demo at its default settings) stores them as its plan
 # (:func:`write_plan`), from which its next cold run compiles ahead (:func:`compile_ahead`).
 USED: list[tuple[str, str]] = []
@@ -586,6 +597,12 @@ def _compiled_as(kind: str, fn: Callable, args: list):
     return jax.jit(fn, compiler_options=_options(kind)).lower(*args).compile()
 
 
+def _lazy_program(kind: str, fn: Callable) -> Callable:
+    """``fn`` jitted with the options of ``kind``, compiled at its first call (a stored
+    module's ``Exported.call``: :func:`stored_jit`)."""
+    return jax.jit(fn, compiler_options=_options(kind))
+
+
 def compiled(kernel: Callable, flat: Callable, leaves: list, static: tuple, tree, signature: tuple):
     """``flat(*leaves)`` (``kernel`` with its arguments flattened, ``static`` bound)
     compiled ahead of time: from the stored export when there is one, else exported (and
@@ -681,7 +698,8 @@ _PROGRAMS: dict = {}  # stored_jit: key -> jax.jit(Exported.call), for this proc
 def stored_jit(fn: Callable | None = None, *, fast_compile: bool = False) -> Callable:
     """``eqx.filter_jit(fn)``, its traced program also kept on disk for the next process.
     ``@stored_jit(fast_compile=True)``: the stored program is compiled with
-    :data:`FAST_COMPILE` (for kernels whose compilation outweighs the emitters' speed).
+    ``OPTIONS["jit-fast"]`` (for programs whose compilation outweighs the emitters' and
+    LLVM's full optimisation: not an ensemble's forward pass, :data:`OPTIONS`).
 
     For a module-level function of mfdesign that a run calls a few times with large
     programs (a MAP search, an acquisition optimiser, a batch of least-squares fits): the
@@ -750,7 +768,7 @@ def stored_jit(fn: Callable | None = None, *, fast_compile: bool = False) -> Cal
                     _EXPORT_FAILED.add(fn)
                     return jitted(*args, **kwargs)
                 _write(path, exported, roots)
-            program = _PROGRAMS[key] = jax.jit(exported.call, compiler_options=_options(kind))
+            program = _PROGRAMS[key] = _lazy_program(kind, exported.call)
         return program(*leaves)
 
     call.jitted = jitted  # type: ignore[attr-defined]  # the plain program (tests count its compilations)

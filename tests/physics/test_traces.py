@@ -238,7 +238,7 @@ def _affine_minus(m: _Scale, x, n: int):
     return m.factor * m.w * x - n
 
 
-_stored_affine_fast = _traces.stored_jit(fast_compile=True)(_affine_minus)  # FAST_COMPILE's programs
+_stored_affine_fast = _traces.stored_jit(fast_compile=True)(_affine_minus)  # OPTIONS['jit-fast']'s programs
 
 
 @pytest.fixture
