@@ -364,18 +364,17 @@ COUNTS = {"stored": 0, "shipped": 0, "traced": 0}
 # XLA's CPU compiler options by kind of stored program. Without XLA's newer fusion
 # emitters, programs compile in about half the time and run as fast (the MAP kernel 18.0 ->
 # 10.2 s of XLA, the diagnosis' least-squares fits 11.0 -> 7.1 s; 8 planes at 1.76 s each
-# either way, equal to 6e-12 N of 460 N; a cold quick demo's diagnosis 39-47 -> 30 s;
-# session 43). LLVM's optimisation level 1 instead of XLA's default cuts another 10-30 %
-# of compile time (`_refine` 10.7 -> 7.9 s, `_screen` 7.7 -> 5.7 s, `_winner` 4.6 -> 3.2 s,
-# emitters off as well) at the same run time for the programs that are mostly loops of
-# small dense maths and control flow: the diagnosis' fits, the MAP search, the design
-# searches (session 45, the quick demo's recorded arguments, `experiments/out/
-# bench_compile_options.json`). Not for:
-# - the solver's kernels ("kernel"): 13 % slower walk at level 1 (0.44 -> 0.50 s a call;
-#   the planes are most of a campaign's round);
-# - the ensembles' forward passes ("jit": `_predict`, `_delta_draws`): 1.4-2.7 x slower
-#   without the emitters. Set for every program (XLA_FLAGS), propose and optimise ran
-#   2.5-3.6 x slower.
+# either way, equal to 6e-12 N of 460 N; session 43). LLVM's optimisation level 1 instead
+# of XLA's default cuts another 5-25 % at the same time a call for the programs that are
+# loops of small dense maths and control flow: the diagnosis' fits, the MAP search, the
+# design searches, the simulator draws ("jit-fast"; session 45, the quick demo's stored
+# programs on their recorded arguments, `experiments/bench_compile_options.py`: 52.5 s of
+# XLA all default, 46.4 s with session 44's choice, 38.4 s with these). Not for:
+# - the solver's kernels ("kernel"): level 1 walks ~15 % slower (0.42 -> 0.48 s a call),
+#   and the planes are most of a campaign's round;
+# - the ensembles' forward passes ("jit": `_predict`, `_delta_draws`): 1.7-2.1 x slower a
+#   call without the emitters (set for every program by XLA_FLAGS, a quick demo's propose
+#   and optimise ran 2.5-3.6 x slower, session 43).
 # The options are part of a program's key in the compilation cache, so a kernel compiled
 # ahead (:func:`_compiled_as`) is compiled with its caller's.
 OPTIONS: dict[str, dict | None] = {
