@@ -365,9 +365,10 @@ COUNTS = {"stored": 0, "shipped": 0, "traced": 0}
 # emitters, programs compile in about half the time and run as fast (the MAP kernel 18.0 ->
 # 10.2 s of XLA, the diagnosis' least-squares fits 11.0 -> 7.1 s; 8 planes at 1.76 s each
 # either way, equal to 6e-12 N of 460 N; session 43). LLVM's optimisation level 1 instead
-# of XLA's default cuts another 5-25 % at the same time a call for the programs that are
-# loops of small dense maths and control flow: the diagnosis' fits, the MAP search, the
-# design searches, the simulator draws ("jit-fast"; session 45, the quick demo's stored
+# of XLA's default cuts another 7-37 % at about the same time a call (the MAP kernel +12 %,
+# one simulator draw 0.19 -> 0.28 s) for the programs that are loops of small dense maths and
+# control flow: the diagnosis' fits, the MAP search, the design searches, the simulator
+# draws ("jit-fast"; session 45, the quick demo's stored
 # programs on their recorded arguments, `experiments/bench_compile_options.py`: 52.5 s of
 # XLA all default, 46.4 s with session 44's choice, 38.4 s with these). Not for:
 # - the solver's kernels ("kernel"): level 1 walks ~15 % slower (0.42 -> 0.48 s a call),
