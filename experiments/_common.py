@@ -96,6 +96,25 @@ def load() -> list[float]:
     return list(os.getloadavg())
 
 
+def cpu_info() -> dict:
+    """The CPU's model and its widest vector unit: float32 sums of the ensembles may differ in
+    their last bits between hosts (AVX2 against AVX-512), and a run that follows a host change
+    can then retrace a stored program keyed by a fitted constant (session 46)."""
+    model, flags = platform.processor(), set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            name, _, value = line.partition(":")
+            if name.strip() == "model name":
+                model = value.strip()
+            elif name.strip() == "flags":
+                flags = set(value.split())
+                break
+    except OSError:
+        pass
+    vector = next((v for v in ("avx512f", "avx2", "avx", "sse4_2") if v in flags), "")
+    return {"model": model, "vector": vector}
+
+
 def accelerators() -> list[str]:
     """The GPUs ``nvidia-smi -L`` lists ([] where there is none): a run's line says whether
     the machine had one, whichever backend JAX was told to use (``JAX_PLATFORMS``)."""
@@ -116,6 +135,7 @@ def machine() -> dict:
         "backend": jax.default_backend(),
         "devices": [str(d) for d in jax.devices()],
         "accelerators": accelerators(),
+        "cpu": cpu_info(),
         "load_average": load(),
     }
 

@@ -50,7 +50,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import accelerators, command, git_state, load, parser
+from _common import accelerators, command, cpu_info, git_state, load, parser
 
 JSONL = "bench_demo.jsonl"
 # Issue 40's targets on the 2-core CPU [s]; the warm quick run has none of its own.
@@ -403,6 +403,7 @@ def main() -> None:
             "nproc": _nproc(),
             "platform": sys.platform,
             "accelerators": accelerators(),
+            "cpu": cpu_info(),
             "jax_platforms": os.environ.get("JAX_PLATFORMS", ""),
             "xla_flags": os.environ.get("XLA_FLAGS", ""),  # they change what XLA compiles, and how fast
         },

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import platform
 from pathlib import Path
 
 import pytest
@@ -130,3 +131,16 @@ def test_machine_probe_is_recorded_and_compared(bench):
     assert line.startswith("machine probe: 2.00 s") and "x2.00" in line
     assert "no earlier probe" in bench.probe_line(now, {"mode": "cold"})
     assert bench.probe_line({"speed_probe": None}, None) == "machine probe: failed"
+
+
+def test_the_cpu_is_named_with_its_widest_vector_unit(bench):
+    # float32 sums differ between hosts by their vector unit: a line names both, so two lines
+    # whose stored programs were traced anew can be told apart by host (session 46)
+    import _common  # on the path through the ``bench`` fixture
+
+    info = _common.cpu_info()
+    assert set(info) == {"model", "vector"}
+    assert isinstance(info["model"], str)
+    assert info["vector"] in {"avx512f", "avx2", "avx", "sse4_2", ""}
+    if platform.machine() == "x86_64" and Path("/proc/cpuinfo").is_file():  # read, not guessed
+        assert info["model"] and info["vector"]
